@@ -1,0 +1,56 @@
+# MISS - two commands on a fresh machine: `make run` and `make test`.
+PYTHON ?= python3
+VENV := .venv
+PY := $(VENV)/bin/python
+PIP := $(PY) -m pip
+WEB := src/miss/web
+
+.PHONY: run test lint format bench web-deps chromium clean
+
+$(VENV)/.installed: pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(PIP) install -q --upgrade pip
+	$(PIP) install -q -e '.[test]'
+	touch $@
+
+$(VENV)/.bench-installed: $(VENV)/.installed
+	$(PIP) install -q -e '.[test,bench]'
+	touch $@
+
+# Front-end packages (three.js) from the npm registry, served locally: no CDN.
+web-deps:
+	@if [ -f $(WEB)/package.json ]; then \
+		if [ ! -d $(WEB)/node_modules ] || [ $(WEB)/package.json -nt $(WEB)/node_modules ]; then \
+			cd $(WEB) && (npm ci --no-audit --no-fund --silent || npm install --no-audit --no-fund --silent) && touch node_modules; \
+		fi; \
+	fi
+
+# Debian's chromium for the browser tests (Playwright drives /usr/bin/chromium).
+chromium:
+	@if [ ! -x /usr/bin/chromium ]; then \
+		echo "installing Debian's chromium for browser tests"; \
+		apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null; \
+	fi
+
+run: $(VENV)/.installed web-deps
+	$(VENV)/bin/miss demo miss-demo-head.nii.gz
+	$(VENV)/bin/miss convert miss-demo-head.nii.gz --level 300 -o miss-demo-bone.wrl -o miss-demo-bone.glb
+
+test: $(VENV)/.installed web-deps chromium
+	$(VENV)/bin/ruff check src tests benchmarks
+	$(VENV)/bin/ruff format --check src tests benchmarks
+	$(VENV)/bin/pytest -q
+
+lint:
+	$(VENV)/bin/ruff check src tests benchmarks
+
+format:
+	$(VENV)/bin/ruff format src tests benchmarks
+	$(VENV)/bin/ruff check --fix src tests benchmarks
+
+bench: $(VENV)/.bench-installed
+	$(PY) benchmarks/paper_tables.py
+	$(PY) benchmarks/peers.py
+
+clean:
+	rm -rf $(VENV) $(WEB)/node_modules .pytest_cache miss-data miss-demo-*

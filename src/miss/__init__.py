@@ -1,0 +1,37 @@
+"""MISS - Medical Image Sharing System.
+
+The stable Python API::
+
+    import miss
+    vol = miss.load_volume(path, series=None)                      # -> Volume
+    mesh = miss.extract_surface(vol, level, sample_rate=1, slices=None, roi=None)
+    mesh, report = miss.decimate(mesh, method="quadric", reduce=0.9, error_bound=0.0002)
+    data = miss.export(mesh, "wrl")                                # bytes
+"""
+
+from __future__ import annotations
+
+from miss.decimate import DecimationReport, decimate
+from miss.errors import BadParameter, EmptySurface, MissError, UnreadableVolume, UnsupportedFormat
+from miss.export import export
+from miss.io import load_volume
+from miss.surface import extract_surface
+from miss.types import Mesh, Volume
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "BadParameter",
+    "DecimationReport",
+    "EmptySurface",
+    "Mesh",
+    "MissError",
+    "UnreadableVolume",
+    "UnsupportedFormat",
+    "Volume",
+    "__version__",
+    "decimate",
+    "export",
+    "extract_surface",
+    "load_volume",
+]

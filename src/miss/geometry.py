@@ -1,0 +1,53 @@
+"""Small vectorised mesh measures shared by surface, decimation, export and tests."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def face_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Unnormalised face normals, (F, 3) float64; length = 2 x triangle area."""
+    v = np.asarray(vertices, dtype=np.float64)
+    a, b, c = v[faces[:, 0]], v[faces[:, 1]], v[faces[:, 2]]
+    return np.cross(b - a, c - a)
+
+
+def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Area-weighted unit vertex normals, (N, 3) float32 (zero for unused vertices)."""
+    n = len(vertices)
+    fn = face_normals(vertices, faces)
+    acc = np.zeros((n, 3), dtype=np.float64)
+    idx = np.asarray(faces).ravel()
+    for axis in range(3):
+        acc[:, axis] = np.bincount(idx, weights=np.repeat(fn[:, axis], 3), minlength=n)
+    length = np.linalg.norm(acc, axis=1, keepdims=True)
+    np.divide(acc, length, out=acc, where=length > 0)
+    return acc.astype(np.float32)
+
+
+def surface_area(vertices: np.ndarray, faces: np.ndarray) -> float:
+    """Total area in mm^2."""
+    return float(0.5 * np.linalg.norm(face_normals(vertices, faces), axis=1).sum())
+
+
+def enclosed_volume(vertices: np.ndarray, faces: np.ndarray) -> float:
+    """Signed enclosed volume in mm^3 (positive when faces wind outward)."""
+    v = np.asarray(vertices, dtype=np.float64)
+    a, b, c = v[faces[:, 0]], v[faces[:, 1]], v[faces[:, 2]]
+    return float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0)
+
+
+def compact(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Drop unreferenced vertices; returns (vertices, faces) renumbered in first-use order."""
+    used = np.zeros(len(vertices), dtype=bool)
+    used[faces.ravel()] = True
+    remap = np.cumsum(used, dtype=np.int64) - 1
+    return vertices[used], remap[faces].astype(np.int32)
+
+
+def boundary_edge_count(faces: np.ndarray) -> int:
+    """Number of edges used by exactly one triangle (0 for a closed surface)."""
+    e = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
+    key = e[:, 0].astype(np.int64) * (int(faces.max()) + 1) + e[:, 1]
+    _, counts = np.unique(key, return_counts=True)
+    return int((counts == 1).sum())

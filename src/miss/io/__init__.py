@@ -1,0 +1,135 @@
+"""Read a CT/MR volume from whatever the user has: DICOM, NIfTI, NRRD, MetaImage ...
+
+``load_volume`` checks the path once, sniffs the first bytes, and asks each reader in
+``READERS`` (in order) whether the file is its own. Every reader module has the same
+small contract::
+
+    sniff(path: Path, head: bytes) -> bool   # is this mine? (extension, magic bytes)
+    read(path: Path, series: str | None) -> Volume
+
+A reader that recognises its format but finds it broken raises ``UnreadableVolume``
+with the diagnosis, which is final. Any other failure lets the next reader try; when
+all fail, one ``UnreadableVolume`` lists why each one did.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+from miss.errors import MissError, UnreadableVolume, UnsupportedFormat
+from miss.io import dicom, itk, metaimage, nifti, nrrd
+from miss.types import Volume
+
+#: Tried in this order; ``itk`` is the catch-all for anything else SimpleITK reads.
+READERS = [dicom, nifti, nrrd, metaimage, itk]
+
+#: Enough bytes for every magic number we look at (DICOM's sits at 128, NIfTI's at 344).
+HEAD_BYTES = 1024
+
+
+def load_volume(path: str | os.PathLike[str], series: str | None = None) -> Volume:
+    """Read a scan into a ``Volume`` (LPS millimetres, real units).
+
+    Parameters
+    ----------
+    path : str or PathLike
+        A DICOM folder, ``.zip`` or file; ``.nii``/``.nii.gz``; ``.nrrd``/``.nhdr``;
+        ``.mha``/``.mhd``; or another format SimpleITK reads.
+    series : str, optional
+        DICOM SeriesInstanceUID to read when several are present (default: the one
+        with the most slices). See :func:`list_series`.
+
+    Raises
+    ------
+    UnreadableVolume
+        Missing, empty, truncated or damaged input; the message names the fix.
+    UnsupportedFormat
+        No reader recognises the file.
+    BadParameter
+        ``series`` names no series in the input.
+    """
+    p = _existing(path)
+    head = _head(p)
+    failures: list[str] = []
+    for reader in READERS:
+        if not reader.sniff(p, head):
+            continue
+        try:
+            return reader.read(p, series)
+        except UnsupportedFormat as exc:  # a variant this reader lacks: let the next try
+            failures.append(f"{_name(reader)}: {exc}")
+        except MissError:  # a diagnosis (broken file, bad series=): final
+            raise
+        except Exception as exc:  # library internals: report, let the next reader try
+            failures.append(f"{_name(reader)}: {type(exc).__name__}: {_first_line(exc)}")
+    raise _all_failed(p, failures)
+
+
+def list_series(path: str | os.PathLike[str]) -> list[dict[str, Any]]:
+    """Series found at ``path``: [{"uid", "description", "modality", "slices", "dims"}].
+
+    ``dims`` is (columns, rows, slices). Non-DICOM inputs hold one volume and give a
+    one-entry list (read in full to describe it).
+    """
+    p = _existing(path)
+    if dicom.sniff(p, _head(p)):
+        try:
+            return dicom.list_series(p)
+        except MissError:
+            raise
+        except Exception as exc:
+            raise UnreadableVolume(
+                f"{p.name}: cannot list DICOM series ({_first_line(exc)})."
+            ) from exc
+    return load_volume(p).meta["series"]
+
+
+def _existing(path: str | os.PathLike[str]) -> Path:
+    """The path, checked to exist and (for a file) to be non-empty."""
+    p = Path(path)
+    if not p.exists():
+        raise UnreadableVolume(
+            f"{p}: no such file or folder; check the path (and upload it again)."
+        )
+    if p.is_file() and p.stat().st_size == 0:
+        raise UnreadableVolume(
+            f"{p.name}: the file is empty (0 bytes); the upload or copy was probably "
+            "interrupted, copy it again."
+        )
+    return p
+
+
+def _head(path: Path) -> bytes:
+    if path.is_dir():
+        return b""
+    try:
+        with path.open("rb") as stream:
+            return stream.read(HEAD_BYTES)
+    except OSError as exc:
+        raise UnreadableVolume(
+            f"{path.name}: cannot be opened ({exc.strerror}); check its permissions."
+        ) from exc
+
+
+def _all_failed(path: Path, failures: list[str]) -> MissError:
+    if not failures:
+        return UnsupportedFormat(
+            f"{path.name}: not a format MISS reads. Use a DICOM folder/.zip/.dcm, NIfTI "
+            "(.nii, .nii.gz), NRRD (.nrrd, .nhdr), MetaImage (.mha, .mhd) or another "
+            "format SimpleITK reads."
+        )
+    return UnreadableVolume(f"{path.name}: no reader could read it; " + "; ".join(failures))
+
+
+def _name(reader: Any) -> str:
+    return reader.__name__.rsplit(".", 1)[-1]
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip()
+    return text.splitlines()[0] if text else type(exc).__name__
+
+
+__all__ = ["READERS", "list_series", "load_volume"]

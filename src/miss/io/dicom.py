@@ -1,0 +1,183 @@
+"""DICOM series reader: find the slices, group them by series, pick one, stack it.
+
+A folder (searched recursively), a ``.zip`` of one, or a single file. Headers are read
+first without pixels to group files by ``SeriesInstanceUID``; only the chosen series is
+decoded (compressed transfer syntaxes through the pylibjpeg plug-ins). Stacking, slice
+order, gantry tilt and uneven gaps are handled in :mod:`miss.io.dicom_stack`.
+"""
+
+from __future__ import annotations
+
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import pydicom
+from pydicom.dataset import Dataset
+from pydicom.errors import InvalidDicomError
+
+from miss.errors import BadParameter, MissError, UnreadableVolume, UnsupportedFormat
+from miss.io import dicom_stack
+from miss.io.common import make_volume, recorded_warnings
+from miss.io.dicom_files import Entry, open_source
+from miss.types import Volume
+
+EXTENSIONS = {".dcm", ".dicom", ".ima", ".zip"}
+PATIENT_TAGS = (
+    "PatientName",
+    "PatientID",
+    "PatientBirthDate",
+    "PatientSex",
+    "InstitutionName",
+    "AccessionNumber",
+    "ReferringPhysicianName",
+    "StudyDate",
+)
+#: Volume formats people drop into a folder next to (or instead of) DICOM slices.
+OTHER_VOLUMES = ("*.nhdr", "*.nrrd", "*.mhd", "*.mha", "*.nii", "*.nii.gz")
+
+
+@dataclass(frozen=True)
+class Header:
+    """A slice file's header (no pixels yet) and where to fetch the full file."""
+
+    entry: Entry
+    ds: Dataset
+
+
+def sniff(path: Path, head: bytes) -> bool:
+    """Folders, zips, ``.dcm``-like names, the ``DICM`` preamble, or a bare group-8 start."""
+    if path.is_dir() or path.suffix.lower() in EXTENSIONS or head[:4] == b"PK\x03\x04":
+        return True
+    return head[128:132] == b"DICM" or head[:2] in (b"\x08\x00", b"\x02\x00")
+
+
+def list_series(path: Path) -> list[dict[str, Any]]:
+    """Describe every series found: [{"uid", "description", "modality", "slices", "dims"}]."""
+    with open_source(path) as entries:
+        groups, _ = _grouped_headers(path, entries)
+    return [_describe(uid, headers) for uid, headers in groups.items()]
+
+
+def read(path: Path, series: str | None) -> Volume:
+    """Read one series as a ``Volume`` (the one with most slices unless ``series`` names a UID)."""
+    with open_source(path) as entries:
+        groups, notes = _grouped_headers(path, entries)
+        uid = _choose(path, groups, series)
+        _refuse_multiframe(groups[uid])
+        stack = dicom_stack.assemble(path, [(h.entry, h.ds) for h in groups[uid]])
+    first = groups[uid][0].ds
+    return make_volume(
+        path,
+        stack.data,
+        stack.affine,
+        "dicom",
+        notes=notes + stack.notes,
+        patient={tag: str(first.get(tag, "") or "") for tag in PATIENT_TAGS},
+        modality=str(first.get("Modality", "")),
+        units="HU" if first.get("Modality") == "CT" else "",
+        rescale=stack.rescale,
+        series_description=str(first.get("SeriesDescription", "")),
+        series_uid=uid,
+        study_uid=str(first.get("StudyInstanceUID", "")),
+        frame_of_reference=str(first.get("FrameOfReferenceUID", "")),
+        series=[_describe(u, h) for u, h in groups.items()],
+    )
+
+
+def _grouped_headers(path: Path, entries: list[Entry]) -> tuple[dict[str, list[Header]], list[str]]:
+    """Headers of every image file, grouped by series UID (largest series first)."""
+    headers: list[Header] = []
+    rejected = 0
+    with recorded_warnings("pydicom") as notes:
+        for entry in entries:
+            ds = _read_header(entry)
+            if ds is None:
+                rejected += 1
+            else:
+                headers.append(Header(entry, ds))
+    if not headers:
+        raise _no_images(path, len(entries))
+    if rejected:
+        notes.append(f"skipped {rejected} file(s) that are not DICOM images")
+    groups: dict[str, list[Header]] = {}
+    for header in headers:
+        groups.setdefault(str(header.ds.get("SeriesInstanceUID", "")), []).append(header)
+    ranked = sorted(groups.items(), key=lambda item: -len(item[1]))
+    return dict(ranked), notes
+
+
+def _read_header(entry: Entry) -> Dataset | None:
+    """The header of an image file, or None for non-DICOM files and non-image objects."""
+    try:
+        ds = pydicom.dcmread(entry.fetch(), stop_before_pixels=True)
+    except InvalidDicomError:
+        ds = _read_without_preamble(entry)
+    except Exception:  # a damaged header: skip the file, the caller counts it
+        return None
+    if ds is None or "Rows" not in ds or "Columns" not in ds:
+        return None
+    return ds
+
+
+def _read_without_preamble(entry: Entry) -> Dataset | None:
+    """Old files start straight with group 0008 (no 128-byte preamble, no ``DICM``)."""
+    source = entry.fetch()
+    with open(source, "rb") if isinstance(source, str) else source as stream:
+        start = stream.read(2)
+    if start not in (b"\x08\x00", b"\x02\x00"):
+        return None
+    try:
+        return pydicom.dcmread(entry.fetch(), stop_before_pixels=True, force=True)
+    except Exception:
+        return None
+
+
+def _refuse_multiframe(headers: list[Header]) -> None:
+    """Enhanced (multi-frame) objects keep geometry per frame; SimpleITK may still read them."""
+    for header in headers:
+        if int(header.ds.get("NumberOfFrames", 1) or 1) > 1:
+            raise UnsupportedFormat(
+                f"{header.entry.label} is a multi-frame (enhanced) DICOM object, which this "
+                "reader does not stack; export the series as one file per slice."
+            )
+
+
+def _choose(path: Path, groups: dict[str, list[Header]], series: str | None) -> str:
+    if series is None:
+        return next(iter(groups))
+    if series in groups:
+        return series
+    available = "; ".join(
+        f"{uid} ({len(h)} slices, {h[0].ds.get('SeriesDescription', '')!s})"
+        for uid, h in groups.items()
+    )
+    raise BadParameter(
+        f"{path.name}: no series with UID {series!r}; available: {available}. "
+        "Pass one of these as series= (or none for the largest)."
+    )
+
+
+def _describe(uid: str, headers: list[Header]) -> dict[str, Any]:
+    ds = headers[0].ds
+    return {
+        "uid": uid,
+        "description": str(ds.get("SeriesDescription", "")),
+        "modality": str(ds.get("Modality", "")),
+        "slices": len(headers),
+        "dims": (int(ds.Columns), int(ds.Rows), len(headers)),
+    }
+
+
+def _no_images(path: Path, scanned: int) -> MissError:
+    if not path.is_dir() and not zipfile.is_zipfile(path):
+        # A weak sniff (extension or two magic bytes): let the other readers try.
+        return UnsupportedFormat(f"{path.name} is not a DICOM image")
+    where = f"folder {path.name}" if path.is_dir() else path.name
+    hint = "Pass the folder (or a .zip of it) that holds the series' .dcm files."
+    if path.is_dir():
+        others = sorted({p.name for pattern in OTHER_VOLUMES for p in path.glob(pattern)})
+        if others:
+            hint = f"It holds {', '.join(others[:3])}: pass that file instead of the folder."
+    return UnreadableVolume(f"{where}: no DICOM images found among {scanned} file(s). {hint}")

@@ -1,0 +1,180 @@
+"""The job as data: a frozen ``JobSpec`` and ``run(volume, spec) -> JobResult``.
+
+No web, no globals: the CLI and the server's workers both call ``run``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import asdict, dataclass, field, fields
+from typing import Any
+
+from miss.decimate import METHODS, DecimationReport, decimate
+from miss.errors import BadParameter
+from miss.export import WRITERS, export
+from miss.surface import extract_surface
+from miss.types import Mesh, Volume
+
+Progress = Callable[[str, float], None]
+
+
+def _no_progress(stage: str, fraction: float) -> None:
+    return None
+
+
+@dataclass(frozen=True)
+class JobSpec:
+    """The paper's processing choices (the 1998 web form), validated on construction.
+
+    ``level`` is in the volume's real units (HU for CT); slices are 1-based and
+    inclusive along the third voxel axis; bounds are fractions of the diagonal.
+    """
+
+    level: float
+    sample_rate: int | tuple[int, int, int] = 1
+    start_slice: int | None = None
+    end_slice: int | None = None
+    roi: tuple[int, int, int, int, int, int] | None = None
+    decimate: str = "quadric"
+    error_bound: float = 0.0002
+    reduce: float = 0.9
+    max_error: float = 0.01
+    formats: tuple[str, ...] = field(default=("glb",))
+
+    def __post_init__(self) -> None:
+        _validate(self)
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> JobSpec:
+        """Build from JSON-like data; unknown keys and wrong types raise ``BadParameter``."""
+        names = {f.name for f in fields(cls)}
+        unknown = set(data) - names
+        if unknown:
+            raise BadParameter(f"unknown job parameter(s) {sorted(unknown)}; known: {sorted(names)}.")
+        if "level" not in data:
+            raise BadParameter("a job needs a 'level' (threshold in the volume's units, e.g. HU).")
+        values = dict(data)
+        for key in ("sample_rate", "roi", "formats"):
+            if isinstance(values.get(key), list):
+                values[key] = tuple(values[key])
+        return cls(**values)
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+    def key(self) -> str:
+        """Stable hash of the parameters that shape the surface (not the output formats)."""
+        d = self.to_dict()
+        d.pop("formats")
+        d["sample_rate"] = list(self.steps)
+        return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:32]
+
+    @property
+    def steps(self) -> tuple[int, int, int]:
+        sr = self.sample_rate
+        return (sr, sr, sr) if isinstance(sr, int) else (sr[0], sr[1], sr[2])
+
+
+def _is_int(x: Any) -> bool:
+    return isinstance(x, int) and not isinstance(x, bool)
+
+
+def _is_num(x: Any) -> bool:
+    return isinstance(x, int | float) and not isinstance(x, bool)
+
+
+def _validate(spec: JobSpec) -> None:
+    if not _is_num(spec.level):
+        raise BadParameter(f"level must be a number in the volume's units, got {spec.level!r}.")
+    sr = spec.sample_rate
+    ok = _is_int(sr) or (isinstance(sr, tuple) and len(sr) == 3 and all(_is_int(s) for s in sr))
+    if not ok or min(spec.steps) < 1:
+        raise BadParameter(f"sample_rate must be an integer >= 1 or three of them, got {sr!r}.")
+    for name in ("start_slice", "end_slice"):
+        value = getattr(spec, name)
+        if value is not None and (not _is_int(value) or value < 1):
+            raise BadParameter(f"{name} must be a whole number >= 1 (1-based), got {value!r}.")
+    if spec.start_slice and spec.end_slice and spec.start_slice > spec.end_slice:
+        raise BadParameter(
+            f"start_slice {spec.start_slice} is after end_slice {spec.end_slice}; swap them."
+        )
+    if spec.decimate not in METHODS:
+        raise BadParameter(f"decimate must be one of {', '.join(METHODS)}, got {spec.decimate!r}.")
+    for name in ("error_bound", "reduce", "max_error"):
+        if not _is_num(getattr(spec, name)):
+            raise BadParameter(f"{name} must be a number, got {getattr(spec, name)!r}.")
+    if not 0.0 <= spec.reduce < 1.0:
+        raise BadParameter(f"reduce must be in [0, 1) (fraction removed, e.g. 0.9), got {spec.reduce!r}.")
+    if not 0.0 < spec.error_bound <= spec.max_error:
+        raise BadParameter(
+            f"error_bound must be > 0 and <= max_error {spec.max_error!r}, got {spec.error_bound!r}."
+        )
+    bad = [f for f in spec.formats if f.lower().lstrip(".") not in WRITERS]
+    if bad or not spec.formats:
+        raise BadParameter(f"unknown output format(s) {bad}; choose from {', '.join(WRITERS)}.")
+
+
+@dataclass
+class JobResult:
+    """Surface, decimation report, encoded files and per-stage seconds of one run."""
+
+    mesh: Mesh
+    report: DecimationReport
+    artifacts: dict[str, bytes]
+    seconds: dict[str, float]
+
+    def stats(self) -> dict[str, Any]:
+        return {
+            "triangles": self.mesh.n_triangles,
+            "vertices": self.mesh.n_vertices,
+            "seconds": self.seconds,
+            "bytes": {fmt: len(data) for fmt, data in self.artifacts.items()},
+            "decimation": {
+                "method": self.report.method,
+                "reduce": self.report.reduce,
+                "error_bound": self.report.error_bound,
+                "triangles_before": self.report.triangles_in,
+                "achieved_reduction": self.report.achieved_reduction,
+                "max_error_mm": self.report.max_error_mm,
+                "mean_error_mm": self.report.mean_error_mm,
+            },
+        }
+
+
+def slice_range(spec: JobSpec, volume: Volume) -> tuple[int, int] | None:
+    """The spec's 1-based inclusive slice range, with a missing end filled from the volume."""
+    if spec.start_slice is None and spec.end_slice is None:
+        return None
+    return (spec.start_slice or 1, spec.end_slice or volume.dims[2])
+
+
+def run(
+    volume: Volume,
+    spec: JobSpec,
+    progress: Progress | None = None,
+    *,
+    title: str | None = None,
+    metadata: dict[str, str] | None = None,
+) -> JobResult:
+    """Surface, decimate and encode ``volume`` as ``spec`` says; ``progress(stage, 0..1)``."""
+    report_progress = progress or _no_progress
+    seconds: dict[str, float] = {}
+    t0 = time.perf_counter()
+    report_progress("surface", 0.0)
+    mesh = extract_surface(volume, spec.level, spec.steps, slice_range(spec, volume), spec.roi)
+    seconds["surface"] = time.perf_counter() - t0
+    report_progress("decimate", 0.35)
+    t1 = time.perf_counter()
+    mesh, report = decimate(mesh, spec.decimate, spec.reduce, spec.error_bound, max_error=spec.max_error)
+    seconds["decimate"] = time.perf_counter() - t1
+    artifacts: dict[str, bytes] = {}
+    t2 = time.perf_counter()
+    for i, fmt in enumerate(spec.formats):
+        report_progress("write", 0.7 + 0.3 * i / len(spec.formats))
+        artifacts[fmt.lower().lstrip(".")] = export(mesh, fmt, title=title, metadata=metadata)
+    seconds["write"] = time.perf_counter() - t2
+    report_progress("done", 1.0)
+    return JobResult(mesh=mesh, report=report, artifacts=artifacts, seconds=seconds)

@@ -1,0 +1,104 @@
+"""The two values that travel through MISS: a ``Volume`` in and a ``Mesh`` out.
+
+Coordinates inside MISS are patient LPS millimetres (DICOM convention: +x to the
+patient's Left, +y Posterior, +z Superior).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Volume:
+    """A scalar volume on a (possibly sheared) regular grid.
+
+    Attributes
+    ----------
+    data : (X, Y, Z) array
+        Voxel values in real units (HU for CT after rescale), indexed
+        ``data[i, j, k]`` with i = column, j = row, k = slice. Readers return it
+        Fortran-ordered (i fastest) when they can, so VTK takes it without a copy.
+    affine : (4, 4) float64 array
+        Maps voxel indices ``(i, j, k, 1)`` to LPS millimetres. Columns 0-2 are the
+        step vectors along i, j, k; a gantry tilt makes column 2 oblique (sheared grid).
+    meta : dict
+        Non-identifying metadata: ``modality``, ``units`` ("HU" or "" when unknown),
+        ``rescale`` (slope, intercept), ``series_description``, ``series_uid``,
+        ``series`` (list of series found beside it), ``source_format``, ``notes``.
+    patient : dict
+        Patient-identifying fields (name, id, birth date ...), kept apart so that
+        sharing can strip them in one place.
+    """
+
+    data: np.ndarray
+    affine: np.ndarray
+    meta: dict[str, Any] = field(default_factory=dict)
+    patient: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if self.data.ndim != 3:
+            raise ValueError(f"Volume data must be 3-D, got shape {self.data.shape}.")
+        aff = np.asarray(self.affine, dtype=np.float64)
+        if aff.shape != (4, 4):
+            raise ValueError(f"Volume affine must be 4x4, got {aff.shape}.")
+        object.__setattr__(self, "affine", aff)
+
+    @property
+    def dims(self) -> tuple[int, int, int]:
+        """Voxel counts (x, y, z) = (columns, rows, slices)."""
+        x, y, z = self.data.shape
+        return int(x), int(y), int(z)
+
+    @property
+    def spacing(self) -> tuple[float, float, float]:
+        """Step length in mm along each voxel axis (norms of the affine's columns)."""
+        s = np.linalg.norm(self.affine[:3, :3], axis=0)
+        return float(s[0]), float(s[1]), float(s[2])
+
+    def value_range(self) -> tuple[float, float]:
+        """(min, max) of the voxel values, in the volume's real units."""
+        return float(np.nanmin(self.data)), float(np.nanmax(self.data))
+
+
+@dataclass(frozen=True)
+class Mesh:
+    """A triangle mesh in LPS millimetres.
+
+    Attributes
+    ----------
+    vertices : (N, 3) float32 array, mm
+    faces : (F, 3) int32 array
+        Counter-clockwise seen from outside (normals point out of the structure).
+    normals : (N, 3) float32 array or None
+        Unit per-vertex normals pointing outward.
+    labels : (F,) int array or None
+        Optional per-face structure label.
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    normals: np.ndarray | None = None
+    labels: np.ndarray | None = None
+
+    @property
+    def n_vertices(self) -> int:
+        return int(self.vertices.shape[0])
+
+    @property
+    def n_triangles(self) -> int:
+        return int(self.faces.shape[0])
+
+    def bounds(self) -> np.ndarray:
+        """(2, 3) array: min and max corner in mm."""
+        if self.n_vertices == 0:
+            return np.zeros((2, 3))
+        return np.stack([self.vertices.min(axis=0), self.vertices.max(axis=0)])
+
+    def diagonal(self) -> float:
+        """Length of the bounding-box diagonal in mm."""
+        lo, hi = self.bounds()
+        return float(np.linalg.norm(hi - lo))

@@ -1,0 +1,99 @@
+"""The command line as a user runs it: real processes, exit codes, one-line errors."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+
+def miss(*args: str, check: bool = True) -> subprocess.CompletedProcess[str]:
+    proc = subprocess.run(
+        [sys.executable, "-m", "miss.cli", *args], capture_output=True, text=True, timeout=600
+    )
+    if check:
+        assert proc.returncode == 0, proc.stderr
+    return proc
+
+
+@pytest.fixture(scope="module")
+def demo_file(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    path = tmp_path_factory.mktemp("demo") / "head.nii.gz"
+    miss("demo", str(path))
+    return path
+
+
+def test_info_json_describes_the_volume(demo_file: Path) -> None:
+    info = json.loads(miss("info", str(demo_file), "--json").stdout)
+    assert info["dims"] == [128, 128, 128]
+    assert info["spacing"] == pytest.approx([1.5, 1.5, 1.5])
+    assert len(info["affine"]) == 4 and info["affine"][0][0] == pytest.approx(1.5)  # LPS, x to the left
+    assert info["range"][0] <= -900 and info["range"][1] >= 1000
+    assert set(info) >= {"dims", "spacing", "affine", "dtype", "range", "modality", "series"}
+
+
+def test_convert_writes_every_output_and_reports_json(demo_file: Path, tmp_path: Path) -> None:
+    outs = [tmp_path / f"bone.{ext}" for ext in ("wrl", "wrz", "glb", "stl")]
+    args = ["convert", str(demo_file), "--level", "300", "--sample-rate", "2", "--json"]
+    for out in outs:
+        args += ["-o", str(out)]
+    stats = json.loads(miss(*args).stdout)
+    assert [o["path"] for o in stats["outputs"]] == [str(o) for o in outs]
+    for out, entry in zip(outs, stats["outputs"], strict=True):
+        assert out.stat().st_size == entry["bytes"] > 0
+    assert outs[0].read_bytes().startswith(b"#VRML V2.0 utf8")
+    assert set(stats["seconds"]) >= {"read", "surface", "decimate", "write", "total"}
+    dec = stats["decimation"]
+    assert dec["method"] == "quadric" and dec["max_error_mm"] > 0 and dec["mean_error_mm"] > 0
+    assert stats["triangles"] < 0.15 * dec["triangles_before"]
+
+
+def test_start_and_end_slice_cut_the_model(demo_file: Path, tmp_path: Path) -> None:
+    base = ["convert", str(demo_file), "--level", "300", "--decimate", "none", "--json"]
+    full = json.loads(miss(*base, "-o", str(tmp_path / "a.stl")).stdout)
+    half = json.loads(
+        miss(*base, "--start-slice", "64", "--end-slice", "128", "-o", str(tmp_path / "b.stl")).stdout
+    )
+    assert 0.3 * full["triangles"] < half["triangles"] < 0.8 * full["triangles"]
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["info", "/no/such/scan"], "no such file"),
+        (["convert", "{demo}", "--level", "300", "-o", "{tmp}/x.dxf"], "unknown output extension"),
+        (["convert", "{demo}", "--level", "99999", "-o", "{tmp}/x.stl"], "no surface at level"),
+        (["convert", "{demo}", "--level", "300", "--start-slice", "100", "--end-slice", "400",
+          "-o", "{tmp}/x.stl"], "outside 1..128"),
+        (["convert", "{demo}", "--level", "300", "--reduce", "1.5", "-o", "{tmp}/x.stl"], "reduce"),
+        (["convert", "{truncated}", "--level", "300", "-o", "{tmp}/x.stl"], "truncated.nii.gz"),
+        (["convert", "{demo}", "-o", "{tmp}/x.stl"], "--level"),
+    ],
+)
+def test_bad_input_gives_one_line_and_exit_2(
+    demo_file: Path, tmp_path: Path, args: list[str], message: str
+) -> None:
+    truncated = tmp_path / "truncated.nii.gz"
+    truncated.write_bytes(demo_file.read_bytes()[:5000])
+    subs = {"{demo}": str(demo_file), "{tmp}": str(tmp_path), "{truncated}": str(truncated)}
+    for key, value in subs.items():
+        args = [a.replace(key, value) for a in args]
+    proc = miss(*args, check=False)
+    assert proc.returncode == 2
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1, proc.stderr
+    assert message in lines[0]
+    assert "Traceback" not in proc.stderr
+    assert not (tmp_path / "x.stl").exists()
+
+
+def test_cthead_bone_gives_about_545k_triangles(datasets: Path, tmp_path: Path) -> None:
+    out = tmp_path / "cthead.stl"
+    stats = json.loads(
+        miss("convert", str(datasets / "ct_head_stanford_cthead" / "CThead.nhdr"), "--level", "1500",
+             "--decimate", "none", "--json", "-o", str(out)).stdout
+    )
+    assert stats["triangles"] == pytest.approx(545_000, rel=0.03)

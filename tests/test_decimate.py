@@ -1,0 +1,75 @@
+"""Decimation: reduce rate met, closed stays closed, the reported error is a real measurement."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from miss import BadParameter, Mesh, decimate, extract_surface
+from miss.demo import phantom
+from miss.deviation import distances_to
+from miss.geometry import boundary_edge_count, enclosed_volume
+
+
+@pytest.fixture(scope="module")
+def skull() -> Mesh:
+    return extract_surface(phantom(), 300.0, sample_rate=2)
+
+
+@pytest.mark.parametrize("method", ["quadric", "schroeder"])
+def test_reduce_met_and_surface_stays_closed(skull: Mesh, method: str) -> None:
+    out, report = decimate(skull, method, reduce=0.8, error_bound=0.0002)
+    assert report.triangles_in == skull.n_triangles
+    assert out.n_triangles <= 0.25 * skull.n_triangles
+    assert report.achieved_reduction >= 0.75
+    assert boundary_edge_count(out.faces) == 0
+    assert enclosed_volume(out.vertices, out.faces) == pytest.approx(
+        enclosed_volume(skull.vertices, skull.faces), rel=0.02
+    )
+
+
+@pytest.mark.parametrize("method", ["quadric", "schroeder"])
+def test_no_vertex_is_moved_or_created(skull: Mesh, method: str) -> None:
+    out, _ = decimate(skull, method, reduce=0.8, measure=False)
+    original = {tuple(v) for v in skull.vertices.tolist()}
+    assert all(tuple(v) in original for v in out.vertices.tolist())
+
+
+def test_reported_error_matches_an_independent_measurement(skull: Mesh) -> None:
+    out, report = decimate(skull, "quadric", reduce=0.9)
+    # every original vertex must lie within the reported max of the decimated surface
+    d = distances_to(skull.vertices, out)
+    assert report.max_error_mm is not None and report.max_error_mm > 0
+    assert d.max() <= report.max_error_mm * 1.05 + 1e-6
+    assert d.max() >= 0.5 * report.max_error_mm  # the report is not inflated either
+    assert report.mean_error_mm < report.max_error_mm
+
+
+def test_none_returns_the_mesh_unchanged(skull: Mesh) -> None:
+    out, report = decimate(skull, "none")
+    assert out is skull and report.max_error_mm == 0.0 and report.achieved_reduction == 0.0
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"method": "vertex"}, "unknown decimation method"),
+        ({"reduce": 1.5}, r"reduce must be .* \[0, 1\)"),
+        ({"error_bound": 0.0}, "error bound must be > 0"),
+    ],
+)
+def test_bad_parameters(skull: Mesh, kwargs: dict, message: str) -> None:
+    with pytest.raises(BadParameter, match=message):
+        decimate(skull, **kwargs)
+
+
+def test_quadric_on_a_flat_patch_keeps_zero_error() -> None:
+    n = 20
+    xs, ys = np.meshgrid(np.arange(n, dtype=np.float32), np.arange(n, dtype=np.float32), indexing="ij")
+    verts = np.stack([xs.ravel(), ys.ravel(), np.zeros(n * n, np.float32)], axis=1)
+    idx = np.arange(n * n).reshape(n, n)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
+    faces = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)]).astype(np.int32)
+    out, report = decimate(Mesh(verts, faces), "quadric", reduce=0.9)
+    assert out.n_triangles < 0.2 * len(faces)
+    assert report.max_error_mm == pytest.approx(0.0, abs=1e-4)

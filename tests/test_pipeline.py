@@ -1,0 +1,48 @@
+"""The job as data: validation, caching key, and a full run on the demo phantom."""
+
+from __future__ import annotations
+
+import pytest
+
+from miss import BadParameter
+from miss.demo import phantom
+from miss.pipeline import JobSpec, run
+
+
+def test_run_produces_every_requested_format() -> None:
+    spec = JobSpec(level=300.0, sample_rate=2, formats=("glb", "wrl", "stl"))
+    stages: list[str] = []
+    result = run(phantom(), spec, progress=lambda stage, f: stages.append(stage))
+    assert set(result.artifacts) == {"glb", "wrl", "stl"}
+    assert result.artifacts["wrl"].startswith(b"#VRML V2.0 utf8")
+    assert stages[0] == "surface" and stages[-1] == "done"
+    stats = result.stats()
+    assert stats["triangles"] == result.mesh.n_triangles > 1000
+    assert stats["decimation"]["achieved_reduction"] >= 0.85
+    assert stats["decimation"]["max_error_mm"] > 0
+
+
+def test_key_ignores_formats_and_normalises_sample_rate() -> None:
+    a = JobSpec(level=300.0, sample_rate=2, formats=("glb",))
+    b = JobSpec.from_dict({"level": 300.0, "sample_rate": [2, 2, 2], "formats": ["wrl"]})
+    assert a.key() == b.key()
+    assert a.key() != JobSpec(level=301.0, sample_rate=2).key()
+
+
+@pytest.mark.parametrize(
+    ("data", "message"),
+    [
+        ({}, "needs a 'level'"),
+        ({"level": "bone"}, "level must be a number"),
+        ({"level": 1, "sample_rate": 0}, "sample_rate must be an integer >= 1"),
+        ({"level": 1, "sample_rate": [1, 2]}, "sample_rate must be"),
+        ({"level": 1, "reduce": 1.5}, r"reduce must be in \[0, 1\)"),
+        ({"level": 1, "start_slice": 9, "end_slice": 3}, "swap them"),
+        ({"level": 1, "decimate": "fast"}, "decimate must be one of"),
+        ({"level": 1, "formats": ["dxf"]}, "unknown output format"),
+        ({"level": 1, "colour": "red"}, "unknown job parameter"),
+    ],
+)
+def test_from_dict_rejects_bad_input_with_a_clear_message(data: dict, message: str) -> None:
+    with pytest.raises(BadParameter, match=message):
+        JobSpec.from_dict(data)
