@@ -1,0 +1,50 @@
+"""Wavefront OBJ text: ``v``, ``vn`` and ``f a//a b//b c//c`` (1-based indices).
+
+Every 3-D tool imports it; it is the simplest format to inspect by eye. Vertex
+and normal share an index because MISS stores one normal per vertex.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from miss.export._text import format_rows
+from miss.geometry import vertex_normals
+from miss.types import Mesh
+
+
+def write(mesh: Mesh, *, title: str | None = None, metadata: dict[str, str] | None = None) -> bytes:
+    """Encode ``mesh`` as OBJ.
+
+    Parameters
+    ----------
+    mesh : Mesh
+        Vertices (N, 3) in LPS mm, faces (F, 3) counter-clockwise from outside
+        (OBJ's front-face convention); normals computed when ``mesh.normals`` is None.
+    title, metadata
+        ``o title`` (the object name) and one ``# key: value`` comment each.
+
+    Returns
+    -------
+    bytes
+        UTF-8 text; coordinates to 3 decimals (um), normals to 4.
+    """
+    normals = (
+        mesh.normals if mesh.normals is not None else vertex_normals(mesh.vertices, mesh.faces)
+    )
+    comments = [
+        "MISS surface; units mm; axes patient LPS (+x left, +y posterior, +z superior)",
+        *(f"{key}: {value}" for key, value in (metadata or {}).items()),
+    ]
+    head = "".join(f"# {' '.join(str(text).splitlines())}\n" for text in comments)
+    if title:
+        head += f"o {' '.join(title.split())}\n"  # a name is one line; keep it one word-run
+    indices = mesh.faces[:, [0, 0, 1, 1, 2, 2]].astype(np.int64) + 1
+    return b"".join(
+        [
+            head.encode("utf-8"),
+            format_rows(mesh.vertices, b"v {} {} {}\n", 3),
+            format_rows(normals, b"vn {} {} {}\n", 4),
+            format_rows(indices, b"f {}//{} {}//{} {}//{}\n"),
+        ]
+    )

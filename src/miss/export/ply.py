@@ -1,0 +1,72 @@
+"""PLY (Stanford polygon format), binary little-endian, with per-vertex normals.
+
+Meshlab, CloudCompare and Blender read it; it keeps the shared-vertex structure
+STL throws away. Provenance goes into ``comment`` header lines.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from miss.geometry import vertex_normals
+from miss.types import Mesh
+
+# "<": the header says binary_little_endian, so the body is little-endian on any host.
+_VERTEX = np.dtype([(name, "<f4") for name in ("x", "y", "z", "nx", "ny", "nz")])
+# A PLY list property: uchar count (always 3) then three int indices; packed, 13 bytes.
+_FACE = np.dtype([("count", "u1"), ("indices", "<i4", (3,))])
+
+
+def write(mesh: Mesh, *, title: str | None = None, metadata: dict[str, str] | None = None) -> bytes:
+    """Encode ``mesh`` as binary little-endian PLY.
+
+    Parameters
+    ----------
+    mesh : Mesh
+        Vertices (N, 3) in LPS mm, faces (F, 3) counter-clockwise from outside;
+        normals (N, 3) are computed when ``mesh.normals`` is None.
+    title, metadata
+        ``comment title: ...`` and one ``comment key: value`` line each.
+
+    Returns
+    -------
+    bytes
+        ASCII header, then 24 N + 13 F bytes.
+    """
+    normals = (
+        mesh.normals if mesh.normals is not None else vertex_normals(mesh.vertices, mesh.faces)
+    )
+    vertices = np.empty(mesh.n_vertices, dtype=_VERTEX)  # every field is written below
+    for axis, name in enumerate("xyz"):
+        vertices[name] = mesh.vertices[:, axis]
+        vertices["n" + name] = normals[:, axis]
+    faces = np.empty(mesh.n_triangles, dtype=_FACE)
+    faces["count"] = 3
+    faces["indices"] = mesh.faces
+    return _header(mesh, title, metadata) + vertices.tobytes() + faces.tobytes()
+
+
+def _header(mesh: Mesh, title: str | None, metadata: dict[str, str] | None) -> bytes:
+    """The ASCII header: format, provenance comments, element and property declarations."""
+    comments = [
+        "MISS surface; units mm; axes patient LPS (+x left, +y posterior, +z superior)",
+        *([f"title: {title}"] if title else []),
+        *(f"{key}: {value}" for key, value in (metadata or {}).items()),
+    ]
+    lines = [
+        "ply",
+        "format binary_little_endian 1.0",
+        *(f"comment {_one_line(text)}" for text in comments),
+        f"element vertex {mesh.n_vertices}",
+        *(f"property float {name}" for name in _VERTEX.names),
+        f"element face {mesh.n_triangles}",
+        "property list uchar int vertex_indices",
+        "end_header",
+    ]
+    # The header is ASCII by definition: anything else is escaped, not dropped.
+    return ("\n".join(lines) + "\n").encode("ascii", "backslashreplace")
+
+
+def _one_line(text: str) -> str:
+    """A header line ends at the first newline, so fold line breaks into spaces."""
+    return " ".join(str(text).splitlines())

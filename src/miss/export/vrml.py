@@ -1,0 +1,111 @@
+"""VRML 2.0 (VRML97, ISO/IEC 14772-1): the format the 1998 MISS served.
+
+One ``Shape`` with an ``IndexedFaceSet`` carrying per-vertex normals, so the
+browser need not compute them (the paper's point), a ``WorldInfo`` with the
+provenance and a ``Viewpoint`` that frames the model from the front.
+
+Units: VRML97 nominally measures length in metres, but MISS writes patient
+millimetres exactly as the 1998 system did (browsers fit the view to whatever
+scale they get, and 3 decimals of a millimetre is the scanner's precision,
+1 um). A reader wanting metres multiplies by 0.001. Axes are patient LPS:
++x left, +y posterior, +z superior.
+"""
+
+from __future__ import annotations
+
+import gzip
+import math
+
+import numpy as np
+
+from miss.export._text import format_rows
+from miss.geometry import vertex_normals
+from miss.types import Mesh
+
+# Bone: 3D Slicer's generic-anatomy "bone" (241, 214, 145) as sRGB fractions.
+BONE_RGB = (0.945, 0.839, 0.569)
+
+DEFAULT_TITLE = "MISS surface model"
+
+
+def write(mesh: Mesh, *, title: str | None = None, metadata: dict[str, str] | None = None) -> bytes:
+    """Encode ``mesh`` as a VRML 2.0 ``.wrl`` file.
+
+    Parameters
+    ----------
+    mesh : Mesh
+        Vertices (N, 3) in LPS mm, faces (F, 3) counter-clockwise from outside;
+        normals (N, 3) are computed when ``mesh.normals`` is None.
+    title, metadata
+        ``WorldInfo.title`` and ``WorldInfo.info`` (one ``"key: value"`` string each).
+
+    Returns
+    -------
+    bytes
+        UTF-8 text; coordinates to 3 decimals (um), normals to 4. Data rows are
+        not indented and use commas only as row ends: size is what the network pays.
+    """
+    normals = (
+        mesh.normals if mesh.normals is not None else vertex_normals(mesh.vertices, mesh.faces)
+    )
+    return b"".join(
+        [
+            _header(mesh, title, metadata).encode("utf-8"),
+            format_rows(mesh.vertices, b"{} {} {},\n", 3),
+            b"    ] }\n    normal Normal { vector [\n",
+            format_rows(normals, b"{} {} {},\n", 4),
+            b"    ] }\n    coordIndex [\n",
+            format_rows(mesh.faces, b"{} {} {} -1,\n"),
+            b"    ]\n  }\n}\n",
+        ]
+    )
+
+
+def _header(mesh: Mesh, title: str | None, metadata: dict[str, str] | None) -> str:
+    """Everything up to the first coordinate: provenance, camera, material."""
+    info = " ".join(_sf_string(f"{key}: {value}") for key, value in (metadata or {}).items())
+    position, orientation = viewpoint(mesh)
+    r, g, b = BONE_RGB
+    return (
+        "#VRML V2.0 utf8\n"
+        "# Written by MISS. Units: millimetres (not VRML's nominal metres); axes: patient LPS.\n"
+        f"WorldInfo {{\n  title {_sf_string(title or DEFAULT_TITLE)}\n  info [ {info} ]\n}}\n"
+        'NavigationInfo { type [ "EXAMINE", "ANY" ] }\n'
+        f'Viewpoint {{ description "Anterior" position {position} orientation {orientation} }}\n'
+        "Shape {\n  appearance Appearance {\n    material Material {\n"
+        f"      diffuseColor {r} {g} {b}\n      specularColor 0.2 0.2 0.2\n      shininess 0.2\n"
+        "    }\n  }\n  geometry IndexedFaceSet {\n    solid TRUE\n    ccw TRUE\n"
+        "    normalPerVertex TRUE\n    coord Coordinate { point [\n"
+    )
+
+
+def write_gzip(
+    mesh: Mesh, *, title: str | None = None, metadata: dict[str, str] | None = None
+) -> bytes:
+    """``.wrz``: the ``.wrl`` bytes gzipped, which every VRML97 browser must accept.
+
+    The gzip header's mtime is 0 so the same mesh always gives the same bytes
+    (cacheable, comparable by hash). Level 6, zlib's default: on a 63 MB file
+    level 9 took 2.8x as long for 0.4 % less, level 1 a fifth of the time for 23 % more.
+    """
+    return gzip.compress(write(mesh, title=title, metadata=metadata), compresslevel=6, mtime=0)
+
+
+def viewpoint(mesh: Mesh) -> tuple[str, str]:
+    """VRML/X3D ``position`` and ``orientation`` that show the whole mesh from the front.
+
+    The default camera looks down -z with +y up; a +90 degree turn about x makes
+    it look along +y (posterior, so from in front of the patient) with +z
+    (superior) up. The distance fits the bounding sphere in the default
+    45 degree field of view.
+    """
+    lo, hi = mesh.bounds().astype(np.float64)
+    centre = (lo + hi) / 2
+    distance = max(mesh.diagonal(), 1.0) / 2 / math.tan(math.pi / 8) * 1.1
+    x, y, z = centre[0], centre[1] - distance, centre[2]
+    return f"{x:.3f} {y:.3f} {z:.3f}", f"1 0 0 {math.pi / 2:.6f}"
+
+
+def _sf_string(text: str) -> str:
+    """A VRML SFString literal: double quotes, with ``"`` and ``\\`` backslash-escaped."""
+    return '"' + str(text).replace("\\", "\\\\").replace('"', '\\"') + '"'
