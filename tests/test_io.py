@@ -332,3 +332,11 @@ def test_zip_with_parent_member(tmp_path: Path) -> None:
 def test_folder_of_other_format_points_at_the_file(datasets: Path) -> None:
     with pytest.raises(UnreadableVolume, match="pass that file instead"):
         load_volume(datasets / "mr_headsq_quarter")
+
+
+def test_nifti_ct_is_recognised_as_hu(datasets: Path, tmp_path: Path) -> None:
+    """NIfTI has no modality; air near -1000 marks CT so HU presets apply, MR stays unitless."""
+    ct = load_volume(datasets / "ct_abdomen_totalseg" / "example_ct.nii.gz")
+    assert (ct.meta["modality"], ct.meta["units"]) == ("CT", "HU")
+    mr = load_volume(datasets / "nifti" / "MR_Gd.nii.gz")
+    assert mr.meta["units"] != "HU"

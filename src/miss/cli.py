@@ -200,6 +200,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     ras = np.diag([-1.0, -1.0, 1.0, 1.0]) @ vol.affine  # NIfTI stores RAS
     image = nib.Nifti1Image(np.asarray(vol.data), ras)
     image.header.set_xyzt_units("mm")
+    image.header["descrip"] = b"MISS CT phantom HU"
     nib.save(image, args.output)
     print(f"wrote {args.output}: {' x '.join(map(str, vol.dims))} voxels, HU (bone ~300, skin ~-500)")
     return 0

@@ -44,6 +44,10 @@ def read(path: Path, series: str | None) -> Volume:
         raise _truncated(path, str(exc)) from exc
     notes += _orientation_notes(img)
     slope, inter = _scaling(img)
+    description = _description(img)
+    ct = _looks_like_ct(data, description)
+    if ct:
+        notes.append("values read as CT Hounsfield units (" + ct + ")")
     return make_volume(
         path,
         data,
@@ -51,8 +55,24 @@ def read(path: Path, series: str | None) -> Volume:
         "nifti",
         notes=notes,
         rescale=(slope, inter),
-        series_description=_description(img),
+        series_description=description,
+        **({"modality": "CT", "units": "HU"} if ct else {}),
     )
+
+
+def _looks_like_ct(data: np.ndarray, description: str) -> str:
+    """Why the volume is taken as CT in HU ('' when it is not).
+
+    NIfTI has no modality field, but bone and skin presets need to know HU: trust a
+    description that says so, else air at about -1000 (or a -2048/-3024 pad) with tissue above 0 is CT.
+    """
+    words = description.upper().split()
+    if "HU" in words or "CT" in words:
+        return f"the header description says {description!r}"
+    lo, hi = float(np.min(data)), float(np.max(data))
+    if -3100.0 <= lo <= -900.0 and hi > 100.0:  # some scanners pad outside the FOV at -2048/-3024
+        return f"air at {lo:g}, as CT stores it"
+    return ""
 
 
 def _check_header(path: Path) -> None:

@@ -1,0 +1,124 @@
+// The MISS REST API as small functions. Every failure becomes an ApiError whose
+// message is the server's `detail`, because that text already says what to fix.
+
+export class ApiError extends Error {
+	constructor( status, detail ) {
+		super( detail );
+		this.name = 'ApiError';
+		this.status = status;
+	}
+}
+
+// FastAPI sends `detail` as a string for our own errors and as a list of
+// {loc, msg} for request validation errors; show both as one readable line.
+export function detailText( body, status ) {
+	const detail = body && body.detail;
+	if ( typeof detail === 'string' ) return detail;
+	if ( Array.isArray( detail ) ) {
+		return detail.map( ( d ) => ( d.loc ? d.loc.filter( ( p ) => p !== 'body' ).join( '.' ) + ': ' : '' ) + d.msg ).join( '; ' );
+	}
+	return `request failed (HTTP ${status})`;
+}
+
+async function request( method, path, body ) {
+	const init = { method, headers: { Accept: 'application/json' } };
+	if ( body !== undefined ) {
+		init.headers[ 'Content-Type' ] = 'application/json';
+		init.body = JSON.stringify( body );
+	}
+	let response;
+	try {
+		response = await fetch( path, init );
+	} catch ( err ) {
+		throw new ApiError( 0, 'the MISS server cannot be reached; is `miss serve` running?' );
+	}
+	const text = await response.text();
+	let data = null;
+	try {
+		data = text ? JSON.parse( text ) : null;
+	} catch ( err ) {
+		data = { detail: text };
+	}
+	if ( ! response.ok ) throw new ApiError( response.status, detailText( data, response.status ) );
+	return data;
+}
+
+const enc = encodeURIComponent;
+
+export const api = {
+	volumes: () => request( 'GET', '/api/volumes' ),
+	volume: ( id ) => request( 'GET', `/api/volumes/${enc( id )}` ),
+	deleteVolume: ( id ) => request( 'DELETE', `/api/volumes/${enc( id )}` ),
+	histogram: ( id ) => request( 'GET', `/api/volumes/${enc( id )}/histogram` ),
+	models: ( volumeId ) => request( 'GET', `/api/models?volume=${enc( volumeId )}` ),
+	model: ( id ) => request( 'GET', `/api/models/${enc( id )}` ),
+	createModel: ( params ) => request( 'POST', '/api/models', params ),
+};
+
+export const urls = {
+	volumePage: ( id ) => `/volumes/${enc( id )}`,
+	viewerPage: ( id ) => `/models/${enc( id )}`,
+	thumbnail: ( id ) => `/api/volumes/${enc( id )}/thumbnail.png`,
+	slice( id, axis, index, { window, level, threshold } ) {
+		const q = new URLSearchParams();
+		if ( window != null ) q.set( 'window', String( window ) );
+		if ( level != null ) q.set( 'level', String( level ) );
+		if ( threshold != null ) q.set( 'threshold', String( threshold ) );
+		return `/api/volumes/${enc( id )}/slices/${axis}/${index}.png?${q}`;
+	},
+	download: ( id, format ) => `/api/models/${enc( id )}/model.${format}`,
+	events: ( id ) => `/api/models/${enc( id )}/events`,
+};
+
+export const FORMATS = [ 'glb', 'wrl', 'wrz', 'x3d', 'stl', 'ply', 'obj' ];
+
+const FINAL = new Set( [ 'done', 'failed' ] );
+
+// Follows a model job until it is done or failed, calling onUpdate with each
+// status JSON. Server-Sent Events give live stages; if the stream breaks (a
+// proxy that buffers, a server restart) it falls back to polling, so the page
+// never hangs on a finished job.
+export function watchModel( id, onUpdate ) {
+	return new Promise( ( resolve, reject ) => {
+		let finished = false;
+		const finish = ( model ) => {
+			finished = true;
+			if ( model.status === 'failed' ) reject( new ApiError( 422, model.error || 'the model could not be built' ) );
+			else resolve( model );
+		};
+		const handle = ( model ) => {
+			if ( finished ) return;
+			onUpdate( model );
+			if ( FINAL.has( model.status ) ) finish( model );
+		};
+
+		const poll = async () => {
+			while ( ! finished ) {
+				try {
+					handle( await api.model( id ) );
+				} catch ( err ) {
+					if ( err.status === 404 ) return reject( err );
+				}
+				if ( ! finished ) await new Promise( ( r ) => setTimeout( r, 1000 ) );
+			}
+		};
+
+		if ( typeof EventSource === 'undefined' ) return void poll();
+		const source = new EventSource( urls.events( id ) );
+		const onMessage = ( event ) => {
+			try {
+				handle( JSON.parse( event.data ) );
+			} catch ( err ) {
+				return; // a keep-alive or comment line; the next event carries the state
+			}
+			if ( finished ) source.close();
+		};
+		source.onmessage = onMessage;
+		// Servers may name their events; listen to the likely names as well.
+		for ( const name of [ 'status', 'progress', 'update', 'done', 'failed' ] ) source.addEventListener( name, onMessage );
+		source.onerror = () => {
+			source.close();
+			if ( ! finished ) poll();
+		};
+	} );
+}

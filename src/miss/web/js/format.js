@@ -1,0 +1,65 @@
+// Small helpers shared by the pages: DOM building and number formatting.
+
+// el('a.button.small', {href}, 'text', child) — enough of a hyperscript to keep
+// page code declarative without a framework.
+// The attributes object may be left out: el('div.facts', 'text').
+export function el( spec, attrs = {}, ...children ) {
+	if ( attrs === null || typeof attrs !== 'object' || attrs instanceof Node || Array.isArray( attrs ) ) {
+		children.unshift( attrs );
+		attrs = {};
+	}
+	const [ tag, ...classes ] = spec.split( '.' );
+	const node = document.createElement( tag || 'div' );
+	if ( classes.length ) node.className = classes.join( ' ' );
+	for ( const [ key, value ] of Object.entries( attrs ) ) {
+		if ( value == null || value === false ) continue;
+		if ( key.startsWith( 'on' ) ) node.addEventListener( key.slice( 2 ), value );
+		else if ( key === 'dataset' ) Object.assign( node.dataset, value );
+		else node.setAttribute( key, value === true ? '' : String( value ) );
+	}
+	for ( const child of children.flat() ) {
+		if ( child == null || child === false ) continue;
+		node.append( child instanceof Node ? child : document.createTextNode( String( child ) ) );
+	}
+	return node;
+}
+
+export function formatBytes( n ) {
+	if ( n == null || ! Number.isFinite( n ) ) return '–';
+	if ( n < 1024 ) return `${n} B`;
+	const units = [ 'KB', 'MB', 'GB' ];
+	let v = n / 1024;
+	let i = 0;
+	while ( v >= 1024 && i < units.length - 1 ) {
+		v /= 1024;
+		i ++;
+	}
+	return `${v < 10 ? v.toFixed( 1 ) : Math.round( v )} ${units[ i ]}`;
+}
+
+export function formatSeconds( s ) {
+	if ( s == null || ! Number.isFinite( s ) ) return '–';
+	return s < 10 ? `${s.toFixed( 2 )} s` : `${s.toFixed( 1 )} s`;
+}
+
+export function formatCount( n ) {
+	return n == null ? '–' : Number( n ).toLocaleString( 'en-US' );
+}
+
+export function formatMm( v, digits = 3 ) {
+	return v == null || ! Number.isFinite( v ) ? '–' : `${v.toFixed( digits )} mm`;
+}
+
+export function describeVolume( v ) {
+	const dims = ( v.dims || [] ).join( ' × ' );
+	const spacing = ( v.spacing || [] ).map( ( s ) => +Number( s ).toFixed( 3 ) ).join( ' × ' );
+	return `${v.modality || 'volume'} · ${dims} voxels · ${spacing} mm`;
+}
+
+export function debounce( fn, ms ) {
+	let timer = 0;
+	return ( ...args ) => {
+		clearTimeout( timer );
+		timer = setTimeout( () => fn( ...args ), ms );
+	};
+}

@@ -1,0 +1,32 @@
+// How a model job's progress is shown, shared by the volume page and the viewer.
+
+import { el } from './format.js';
+
+// The pipeline's stages in order, with words a physician reads.
+export const STAGES = [
+	[ 'queued', 'Waiting for a worker' ],
+	[ 'surface', 'Marching cubes' ],
+	[ 'decimate', 'Decimation' ],
+	[ 'write', 'Writing files' ],
+	[ 'done', 'Done' ],
+];
+
+export function stageLabel( stage ) {
+	const known = STAGES.find( ( [ key ] ) => key === stage );
+	return known ? known[ 1 ] : stage || 'Starting';
+}
+
+// Fills a list with the stages, marking the ones passed and the current one.
+// A stage the pipeline adds later (say 'read') is simply shown as text above.
+export function renderStages( list, model ) {
+	const stage = model.status === 'queued' ? 'queued' : model.status === 'done' ? 'done' : model.stage;
+	const at = STAGES.findIndex( ( [ key ] ) => key === stage );
+	list.replaceChildren( ...STAGES.map( ( [ key, label ], i ) => {
+		const state = model.status === 'done' || ( at >= 0 && i < at ) ? 'done' : i === at ? 'active' : '';
+		return el( `li${state ? '.' + state : ''}`, { dataset: { stage: key } }, label );
+	} ) );
+}
+
+export function percent( model ) {
+	return `${Math.round( ( model.progress || 0 ) * 100 )} %`;
+}

@@ -1,0 +1,254 @@
+// Volume page: three orthogonal slices, window/level, the histogram with a
+// threshold, the 1998 form's choices (start/end slice, sample rate,
+// decimation, error bound, reduce rate) and Generate with live progress.
+
+import { api, urls, watchModel } from './api.js';
+import { describeVolume, el, formatCount } from './format.js';
+import { Histogram, binEdges } from './histogram.js';
+import { percent, renderStages, stageLabel } from './job.js';
+import { SliceRange } from './range.js';
+import { SliceView } from './slices.js';
+
+const $ = ( id ) => document.getElementById( id );
+const volumeId = decodeURIComponent( location.pathname.split( '/' ).filter( Boolean ).pop() );
+
+const state = { window: 400, level: 40, threshold: 0 };
+let views = [];
+let histogram = null;
+let range = null;
+
+function showError( err ) {
+	$( 'form-error' ).textContent = err ? err.message || String( err ) : '';
+	$( 'form-error' ).hidden = ! err;
+}
+
+// Value at a cumulative fraction of the voxels; gives a contrast window for
+// MR and other scans with no standard one.
+// The server may send presets as {name: level} or as [{name, level, basis}].
+function presetLevels( hist, volume ) {
+	const raw = hist.presets ?? volume.presets ?? {};
+	if ( ! Array.isArray( raw ) ) return raw;
+	return Object.fromEntries( raw.map( ( p ) => [ p.name, p.level ] ) );
+}
+
+function quantile( hist, q ) {
+	const total = hist.counts.reduce( ( a, b ) => a + b, 0 );
+	let acc = 0;
+	for ( let i = 0; i < hist.counts.length; i ++ ) {
+		acc += hist.counts[ i ];
+		if ( acc >= q * total ) return hist.bins[ i + 1 ];
+	}
+	return hist.bins[ hist.bins.length - 1 ];
+}
+
+function windowPresets( volume, hist ) {
+	const [ lo, hi ] = volume.range || [ hist.bins[ 0 ], hist.bins[ hist.bins.length - 1 ] ];
+	const p1 = quantile( hist, 0.01 );
+	const p99 = quantile( hist, 0.99 );
+	const server = volume.window || hist.window;
+	const presets = [ [ 'contrast (1–99 %)', Math.max( 1, p99 - p1 ), ( p1 + p99 ) / 2 ], [ 'full range', Math.max( 1, hi - lo ), ( lo + hi ) / 2 ] ];
+	if ( server ) presets.unshift( [ 'default', server.window, server.level ] );
+	if ( isCT( volume, hist ) ) {
+		presets.unshift( [ 'soft tissue', 400, 40 ], [ 'bone', 2000, 500 ], [ 'brain', 80, 40 ], [ 'lung', 1500, - 600 ] );
+	}
+	return presets.map( ( [ name, w, l ] ) => ( { name, window: Math.round( w * 100 ) / 100, level: Math.round( l * 100 ) / 100 } ) );
+}
+
+function isCT( volume, hist ) {
+	return ( volume.modality || '' ).toUpperCase() === 'CT' || hist.units === 'HU';
+}
+
+function refreshSlices( delay ) {
+	for ( const view of views ) view.setDisplay( { ...state }, delay );
+}
+
+function setupWindowLevel( volume, hist ) {
+	const presets = windowPresets( volume, hist );
+	const select = $( 'wl-preset' );
+	select.append( ...presets.map( ( p, i ) => el( 'option', { value: i }, `${p.name} (W ${p.window}, L ${p.level})` ) ) );
+	const apply = ( p ) => {
+		state.window = p.window;
+		state.level = p.level;
+		$( 'window' ).value = p.window;
+		$( 'level' ).value = p.level;
+	};
+	apply( presets[ 0 ] );
+	select.value = '0';
+	select.addEventListener( 'change', () => {
+		if ( select.value === '' ) return;
+		apply( presets[ Number( select.value ) ] );
+		refreshSlices( 0 );
+	} );
+	for ( const id of [ 'window', 'level' ] ) {
+		$( id ).addEventListener( 'input', () => {
+			const v = Number( $( id ).value );
+			if ( $( id ).value === '' || ! Number.isFinite( v ) || ( id === 'window' && v <= 0 ) ) return;
+			state[ id ] = v;
+			select.value = '';
+			refreshSlices( 250 );
+		} );
+	}
+}
+
+function setupThreshold( hist, volume ) {
+	const presets = presetLevels( hist, volume );
+	const names = Object.keys( presets );
+	const units = hist.units ?? volume.units ?? '';
+	$( 'units' ).textContent = units;
+	const buttons = [ ...names, 'custom' ].map( ( name ) => el( 'button.small', {
+		type: 'button', dataset: { preset: name }, 'aria-pressed': 'false',
+		onclick: () => ( name === 'custom' ? $( 'threshold' ).focus() : setThreshold( presets[ name ], 0 ) ),
+	}, name === 'custom' ? 'custom' : `${name} ${presets[ name ]}` ) );
+	$( 'presets' ).replaceChildren( ...buttons );
+
+	const setThreshold = ( value, delay ) => {
+		state.threshold = value;
+		$( 'threshold' ).value = value;
+		$( 'threshold-readout' ).textContent = `${value} ${units}`;
+		const active = names.find( ( n ) => presets[ n ] === value ) || 'custom';
+		for ( const b of buttons ) b.setAttribute( 'aria-pressed', String( b.dataset.preset === active ) );
+		if ( histogram && histogram.value !== value ) histogram.setValue( value );
+		refreshSlices( delay );
+	};
+
+	const start = presets.bone ?? presets[ names[ 0 ] ] ?? quantile( hist, 0.9 );
+	histogram = new Histogram( $( 'histogram' ), hist, {
+		value: start,
+		onInput: ( v ) => setThreshold( v, 150 ), // live tint while dragging, debounced reloads
+		onChange: ( v ) => setThreshold( v, 0 ),
+	} );
+	$( 'threshold' ).addEventListener( 'input', () => {
+		const v = Number( $( 'threshold' ).value );
+		if ( $( 'threshold' ).value !== '' && Number.isFinite( v ) ) setThreshold( v, 250 );
+	} );
+	setThreshold( start, 0 );
+}
+
+function setupViews( volume ) {
+	const [ nx, ny, nz ] = volume.dims;
+	const counts = { sagittal: nx, coronal: ny, axial: nz };
+	views = [ ...document.querySelectorAll( '.view[data-axis]' ) ].map( ( root ) => {
+		const axis = root.dataset.axis;
+		return new SliceView( root, {
+			volumeId, axis, count: counts[ axis ], index: Math.floor( counts[ axis ] / 2 ), display: { ...state },
+		} );
+	} );
+	const sagittal = document.querySelector( '.view[data-axis=sagittal] .frame' );
+	// The server draws superior up; whether that is the last slice depends on
+	// how the series was stacked (feet-to-head or head-to-feet).
+	const vertical = volume.views?.sagittal?.vertical;
+	range = new SliceRange( sagittal, {
+		count: nz, start: 1, end: nz, topIsLast: vertical ? vertical.flipped !== false : true,
+		onChange: ( s, e ) => {
+			$( 'start-slice' ).value = s;
+			$( 'end-slice' ).value = e;
+		},
+	} );
+	for ( const id of [ 'start-slice', 'end-slice' ] ) {
+		$( id ).max = String( nz );
+		$( id ).addEventListener( 'change', () => {
+			range.setRange( Number( $( 'start-slice' ).value ) || 1, Number( $( 'end-slice' ).value ) || nz );
+			// Show what was taken: out-of-range or swapped numbers come back clamped and ordered.
+			$( 'start-slice' ).value = range.start;
+			$( 'end-slice' ).value = range.end;
+		} );
+	}
+	$( 'start-slice' ).value = 1;
+	$( 'end-slice' ).value = nz;
+}
+
+function sampleRate() {
+	const parts = $( 'sample-rate' ).value.split( ',' ).map( ( s ) => Number( s.trim() ) );
+	return parts.length === 1 ? parts[ 0 ] : parts;
+}
+
+function modelParams( volume ) {
+	const nz = volume.dims[ 2 ];
+	const params = {
+		volume: volumeId,
+		level: state.threshold,
+		sample_rate: sampleRate(),
+		decimate: $( 'decimate' ).value,
+		error_bound: Number( $( 'error-bound' ).value ),
+		reduce: Number( $( 'reduce' ).value ),
+	};
+	// The whole stack is sent as no range at all, so it shares the cache with API clients that omit it.
+	if ( range.start !== 1 || range.end !== nz ) {
+		params.start_slice = range.start;
+		params.end_slice = range.end;
+	}
+	return params;
+}
+
+function showJob( model ) {
+	$( 'job' ).hidden = false;
+	$( 'job-stage' ).textContent = model.status === 'failed' ? 'Failed' : stageLabel( model.status === 'queued' ? 'queued' : model.stage );
+	$( 'job-percent' ).textContent = percent( model );
+	$( 'job-progress' ).value = model.progress || 0;
+	renderStages( $( 'job-stages' ), model );
+}
+
+async function generate( volume ) {
+	showError( null );
+	const inputs = [ ...document.querySelectorAll( '.side input' ) ];
+	const bad = inputs.find( ( i ) => ! i.checkValidity() );
+	if ( bad ) return void bad.reportValidity();
+	const button = $( 'generate' );
+	button.disabled = true;
+	$( 'job-link' ).hidden = true;
+	try {
+		const job = await api.createModel( modelParams( volume ) );
+		showJob( { progress: 0, ...job } );
+		const model = await watchModel( job.id, showJob );
+		showJob( model );
+		const link = $( 'job-link' );
+		link.href = urls.viewerPage( model.id || job.id );
+		link.hidden = false;
+		loadModels();
+		// A short pause so the finished stages are seen, then on to the viewer.
+		setTimeout( () => location.assign( link.href ), 600 );
+	} catch ( err ) {
+		showError( err );
+		loadModels();
+	} finally {
+		button.disabled = false;
+	}
+}
+
+function modelItem( m ) {
+	const p = m.params || {};
+	const sr = Array.isArray( p.sample_rate ) ? p.sample_rate.join( ',' ) : p.sample_rate;
+	const what = `level ${p.level} · rate ${sr} · ${p.decimate}`;
+	const tail = m.status === 'done' ? `${formatCount( m.stats?.triangles )} △` : m.status;
+	return el( 'li', {}, el( 'a', { href: urls.viewerPage( m.id ) }, what ), el( 'span.muted', {}, tail ) );
+}
+
+async function loadModels() {
+	try {
+		const data = await api.models( volumeId );
+		const models = Array.isArray( data ) ? data : data.models || data.items || [];
+		$( 'models' ).replaceChildren( ...( models.length ? models.map( modelItem ) : [ el( 'li.muted', {}, 'none yet' ) ] ) );
+	} catch ( err ) {
+		$( 'models' ).replaceChildren( el( 'li.muted', {}, err.message ) );
+	}
+}
+
+async function main() {
+	try {
+		const [ volume, hist ] = await Promise.all( [ api.volume( volumeId ), api.histogram( volumeId ) ] );
+		hist.bins = binEdges( hist );
+		document.title = `MISS · ${volume.name}`;
+		$( 'volume-name' ).textContent = volume.name;
+		$( 'volume-meta' ).textContent = describeVolume( volume );
+		setupWindowLevel( volume, hist );
+		setupThreshold( hist, volume );
+		setupViews( volume );
+		$( 'generate' ).addEventListener( 'click', () => generate( volume ) );
+		document.body.dataset.ready = '1';
+		loadModels();
+	} catch ( err ) {
+		showError( err );
+	}
+}
+
+main();
