@@ -32,9 +32,9 @@ chromium:
 		apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null; \
 	fi
 
+# Starts the web system on embedded defaults: SQLite + data folder ./miss-data, demo volume.
 run: $(VENV)/.installed web-deps
-	$(VENV)/bin/miss demo miss-demo-head.nii.gz
-	$(VENV)/bin/miss convert miss-demo-head.nii.gz --level 300 -o miss-demo-bone.wrl -o miss-demo-bone.glb
+	$(VENV)/bin/miss serve $(if $(HOST),--host $(HOST)) $(if $(PORT),--port $(PORT))
 
 test: $(VENV)/.installed web-deps chromium
 	$(VENV)/bin/ruff check src tests benchmarks

@@ -1,0 +1,180 @@
+"""2-D pictures of a volume: slice PNGs, thumbnails, the histogram and threshold presets.
+
+Slices are shown the way radiologists read them: axial and coronal with the patient's
+right on the screen's left, sagittal with anterior on the left, superior always up.
+Which voxel axis runs where, and whether it is flipped, comes from the affine, so
+RAS-stored NIfTI and LPS DICOM look the same. Pixels are resampled to square
+millimetres so a 0.5 x 0.5 x 4 mm stack does not look squashed.
+"""
+
+from __future__ import annotations
+
+import io
+from typing import Any
+
+import numpy as np
+from PIL import Image
+
+#: View name -> voxel axis held fixed (slices are taken along it).
+AXES = {"sagittal": 0, "coronal": 1, "axial": 2}
+#: LPS directions of the screen's right and down for each view.
+_SCREEN = {
+    "axial": ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0)),
+    "coronal": ((1.0, 0.0, 0.0), (0.0, 0.0, -1.0)),
+    "sagittal": ((0.0, 1.0, 0.0), (0.0, 0.0, -1.0)),
+}
+MAX_SIDE = 1024
+THUMB_SIDE = 160
+TINT = np.array([255.0, 96.0, 32.0], dtype=np.float32)
+TINT_ALPHA = 0.55
+HU_PRESETS = (("bone", 300.0), ("skin", -500.0))
+
+
+def views(affine: np.ndarray, dims: tuple[int, int, int]) -> dict[str, dict[str, Any]]:
+    """For each view: which voxel axes run across and down the image, flips, size in mm.
+
+    ``horizontal``/``vertical`` are {"axis": 0|1|2, "flipped": bool}; flipped means the
+    axis's index grows right-to-left (or bottom-to-top), e.g. slice numbers on sagittal.
+    """
+    out = {}
+    spacing = np.linalg.norm(np.asarray(affine)[:3, :3], axis=0)
+    for name, fixed in AXES.items():
+        h, v = (a for a in range(3) if a != fixed)
+        right, down = _SCREEN[name]
+        out[name] = {
+            "axis": fixed,
+            "count": int(dims[fixed]),
+            "horizontal": {"axis": h, "flipped": bool(np.dot(affine[:3, h], right) < 0)},
+            "vertical": {"axis": v, "flipped": bool(np.dot(affine[:3, v], down) < 0)},
+            "width_mm": float(dims[h] * spacing[h]),
+            "height_mm": float(dims[v] * spacing[v]),
+        }
+    return out
+
+
+def slice_plane(data: np.ndarray, view: dict[str, Any], index: int) -> np.ndarray:
+    """The slice as a float32 (rows, columns) image in display orientation."""
+    plane = np.asarray(np.take(data, index, axis=view["axis"]), dtype=np.float32).T
+    if view["vertical"]["flipped"]:
+        plane = plane[::-1, :]
+    if view["horizontal"]["flipped"]:
+        plane = plane[:, ::-1]
+    return plane
+
+
+def display_size(view: dict[str, Any], shape: tuple[int, int], max_side: int) -> tuple[int, int]:
+    """(width, height) in pixels with square millimetres, the finer axis kept at full detail."""
+    rows, cols = shape
+    w_mm, h_mm = view["width_mm"], view["height_mm"]
+    px = min(w_mm / cols, h_mm / rows)
+    width, height = w_mm / px, h_mm / px
+    scale = min(1.0, max_side / max(width, height))
+    return max(1, round(width * scale)), max(1, round(height * scale))
+
+
+def render(
+    plane: np.ndarray,
+    size: tuple[int, int],
+    window: float,
+    level: float,
+    threshold: float | None = None,
+) -> bytes:
+    """PNG of a plane under window/level (units of the volume), voxels above ``threshold`` tinted."""
+    low = level - window / 2.0
+    grey = np.clip((plane - low) * (255.0 / window), 0.0, 255.0)
+    rgb = np.repeat(grey[:, :, None], 3, axis=2)
+    if threshold is not None:
+        above = plane > threshold
+        rgb[above] = (1.0 - TINT_ALPHA) * rgb[above] + TINT_ALPHA * TINT
+    image = Image.fromarray(np.ascontiguousarray(rgb.astype(np.uint8)), "RGB")
+    if image.size != size:
+        image = image.resize(size, Image.Resampling.BILINEAR)
+    buf = io.BytesIO()
+    image.save(buf, "PNG", compress_level=3)
+    return buf.getvalue()
+
+
+def thumbnail(data: np.ndarray, affine: np.ndarray, window: dict[str, float]) -> bytes:
+    """The middle axial slice, small, under the default window."""
+    view = views(affine, data.shape)["axial"]
+    plane = slice_plane(data, view, data.shape[2] // 2)
+    return render(
+        plane, display_size(view, plane.shape, THUMB_SIDE), window["window"], window["level"]
+    )
+
+
+def _sample(data: np.ndarray, max_voxels: int = 1 << 25) -> np.ndarray:
+    """Every n-th slice of very large volumes: histograms need counts, not every voxel."""
+    step = max(1, int(np.ceil(data.size / max_voxels)))
+    block = np.asarray(data[:, :, ::step])
+    return block[np.isfinite(block)] if block.dtype.kind == "f" else block.ravel()
+
+
+def histogram(data: np.ndarray, bins: int = 256) -> dict[str, Any]:
+    """Counts per value bin over the volume's range; integer data gets whole-number bins."""
+    values = _sample(data)
+    lo, hi = float(values.min()), float(values.max())
+    if values.dtype.kind in "iu" and hi - lo + 1 <= bins:
+        edges = np.arange(lo, hi + 2, dtype=np.float64) - 0.5
+    else:
+        edges = np.linspace(lo, hi if hi > lo else lo + 1.0, bins + 1)
+    counts, edges = np.histogram(values, bins=edges)
+    return {"edges": edges.tolist(), "counts": counts.tolist(), "range": [lo, hi]}
+
+
+def percentile(hist: dict[str, Any], q: float, above: float | None = None) -> float:
+    """Approximate q-th percentile (0..100) from histogram counts, optionally of values > above."""
+    edges = np.asarray(hist["edges"])
+    counts = np.asarray(hist["counts"], dtype=np.float64)
+    if above is not None:
+        counts = np.where(edges[:-1] >= above, counts, 0.0)
+    cum = np.cumsum(counts)
+    if cum[-1] == 0:
+        return float(edges[-1])
+    i = int(np.searchsorted(cum, cum[-1] * q / 100.0))
+    return float((edges[i] + edges[i + 1]) / 2.0)
+
+
+def default_window(hist: dict[str, Any]) -> dict[str, float]:
+    """A window spanning the 0.5th..99.5th percentiles: every structure visible, none clipped."""
+    lo, hi = percentile(hist, 0.5), percentile(hist, 99.5)
+    if hi <= lo:
+        lo, hi = hist["range"][0], max(hist["range"][1], hist["range"][0] + 1.0)
+    return {"window": _round(hi - lo), "level": _round((hi + lo) / 2.0)}
+
+
+def otsu(hist: dict[str, Any]) -> float:
+    """Otsu's threshold: the split of the histogram with the largest between-class variance."""
+    edges = np.asarray(hist["edges"])
+    counts = np.asarray(hist["counts"], dtype=np.float64)
+    centres = (edges[:-1] + edges[1:]) / 2.0
+    w0 = np.cumsum(counts)
+    w1 = w0[-1] - w0
+    m0 = np.cumsum(counts * centres) / np.maximum(w0, 1e-12)
+    m1 = (np.sum(counts * centres) - np.cumsum(counts * centres)) / np.maximum(w1, 1e-12)
+    between = w0 * w1 * (m0 - m1) ** 2
+    return float(edges[int(np.argmax(between[:-1])) + 1])
+
+
+def presets(hist: dict[str, Any], units: str) -> list[dict[str, Any]]:
+    """Suggested levels: CT in HU gets bone 300 / skin -500; anything else gets the
+    background/body split (Otsu) as skin and the 95th percentile of the body as bone."""
+    lo, hi = hist["range"]
+    if units == "HU":
+        found = [{"name": n, "level": v, "basis": "HU"} for n, v in HU_PRESETS if lo < v < hi]
+        if len(found) == len(HU_PRESETS):
+            return found
+    skin = otsu(hist)
+    bone = percentile(hist, 95.0, above=skin)
+    return [
+        {"name": "bone", "level": _round(bone), "basis": "95th percentile above the skin level"},
+        {"name": "skin", "level": _round(skin), "basis": "Otsu split of background and body"},
+    ]
+
+
+def _round(value: float) -> float:
+    """Three significant digits: a level a person can type and read back."""
+    if value == 0:
+        return 0.0
+    digits = 2 - int(np.floor(np.log10(abs(value))))
+    return float(round(value, max(digits, 0)))

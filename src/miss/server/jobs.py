@@ -1,0 +1,165 @@
+"""The job queue: threads in the server that each supervise one worker process at a time.
+
+State lives in the database, not in these threads: a thread claims the oldest queued
+row, starts ``python -m miss.server.worker`` for it and waits. The child writes
+progress and the result; when it dies by a signal (a segfault in native code, the
+out-of-memory killer) the thread records why. On start, rows left ``running`` by a
+previous server are queued again, or failed once they were interrupted twice.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import subprocess
+import sys
+import threading
+
+from miss.server.jobstate import JobState
+from miss.server.store import Store
+
+log = logging.getLogger("miss.server.jobs")
+
+MAX_ATTEMPTS = 2
+#: Seconds an idle thread sleeps before looking at the database again (jobs queued by
+#: another process, or a wake-up missed).
+POLL_SECONDS = 2.0
+
+
+def crash_reason(returncode: int) -> str:
+    """Why a worker ended without recording an outcome, in words."""
+    if returncode < 0:
+        sig = -returncode
+        name = signal.Signals(sig).name if sig in signal.Signals._value2member_map_ else "?"
+        hint = (
+            " (most likely out of memory; choose a larger sample rate or fewer slices)"
+            if sig == signal.SIGKILL
+            else ""
+        )
+        return f"worker crashed with signal {sig} ({name}){hint}."
+    return f"worker exited with code {returncode} without a result; see its worker.log."
+
+
+#: The worker's first lines, run before it imports VTK and numba (seconds): Linux is asked
+#: to kill it when the server dies (PR_SET_PDEATHSIG), so a server killed meanwhile never
+#: leaves a worker behind that finishes a job the restarted server has queued again.
+_BOOTSTRAP = """\
+import ctypes, os, sys
+try:
+    ctypes.CDLL(None).prctl(1, 9)
+except (OSError, AttributeError):
+    pass
+if os.getppid() != int(sys.argv[4]):
+    sys.exit(3)
+from miss.server.worker import main
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+class JobQueue:
+    """``workers`` threads running queued jobs, each in a child process."""
+
+    def __init__(self, store: Store, workers: int = 1) -> None:
+        self.store = store
+        self.state = JobState(store)
+        self.workers = workers
+        self._wake = threading.Condition()
+        self._stopping = threading.Event()
+        self._threads: list[threading.Thread] = []
+        self._running: dict[str, subprocess.Popen[bytes]] = {}
+
+    def start(self) -> None:
+        """Recover interrupted jobs, start the threads (the store holds the folder's lock)."""
+        requeued, failed = self.state.recover(MAX_ATTEMPTS)
+        if requeued or failed:
+            log.warning(
+                "after restart: %d job(s) queued again, %d failed", len(requeued), len(failed)
+            )
+        for n in range(self.workers):
+            thread = threading.Thread(target=self._loop, name=f"miss-jobs-{n}", daemon=True)
+            thread.start()
+            self._threads.append(thread)
+
+    def submit(self) -> None:
+        """Wake an idle thread: a job was queued."""
+        with self._wake:
+            self._wake.notify()
+
+    def cancel(self, model_id: str) -> None:
+        """Kill the worker of a job (its row was deleted)."""
+        proc = self._running.get(model_id)
+        if proc is not None and proc.poll() is None:
+            proc.kill()
+
+    def stop(self) -> None:
+        """Kill running workers and queue their jobs again: a clean stop costs no attempt."""
+        self._stopping.set()
+        with self._wake:
+            self._wake.notify_all()
+        for proc in list(self._running.values()):
+            if proc.poll() is None:
+                proc.kill()  # each thread then queues its job again
+        for thread in self._threads:
+            thread.join(timeout=10)
+
+    def _loop(self) -> None:
+        while not self._stopping.is_set():
+            try:
+                row = self.state.claim_next()
+                if row is None:
+                    with self._wake:
+                        self._wake.wait(POLL_SECONDS)
+                    continue
+                self._run(row.id)
+            except Exception:  # keep the thread alive through a database hiccup
+                log.exception("job thread error")
+                self._stopping.wait(POLL_SECONDS)
+
+    def _run(self, model_id: str) -> None:
+        proc = self._spawn(model_id)
+        self._running[model_id] = proc
+        if self._stopping.is_set():  # claimed while stop() was killing the others
+            proc.kill()
+        self.state.set_pid(model_id, proc.pid)
+        log.info("job %s started in process %d", model_id, proc.pid)
+        try:
+            code = proc.wait()
+        finally:
+            self._running.pop(model_id, None)
+        log.info("job %s: worker ended with code %d", model_id, code)
+        if self._stopping.is_set():
+            self.state.requeue(model_id, count_attempt=False)
+            return
+        # The child records its own outcome; a row still running means it could not.
+        if code != 0 and self.state.fail(model_id, crash_reason(code)):
+            log.warning("job %s: %s", model_id, crash_reason(code))
+        elif code == 0:
+            self.state.fail(
+                model_id, "worker ended without recording a result; see its worker.log."
+            )
+
+    def _spawn(self, model_id: str) -> subprocess.Popen[bytes]:
+        """Start the worker; its output goes to ``models/<id>/worker.log``."""
+        folder = self.store.model_dir(model_id)
+        folder.mkdir(parents=True, exist_ok=True)
+        cmd = [
+            sys.executable,
+            "-c",
+            _BOOTSTRAP,
+            model_id,
+            str(self.store.data_dir),
+            self.store.database_url,
+            str(os.getpid()),
+        ]
+        with open(folder / "worker.log", "ab") as log_file:
+            # A session of its own: a Ctrl-C in the server's terminal reaches the server,
+            # which stops the workers itself and queues their jobs again.
+            return subprocess.Popen(
+                cmd,
+                stdin=subprocess.DEVNULL,
+                stdout=log_file,
+                stderr=log_file,
+                cwd=self.store.data_dir,
+                start_new_session=True,
+            )

@@ -1,0 +1,107 @@
+"""A job's life in its database row: queued -> running -> done | failed.
+
+Every change is a conditional UPDATE (``WHERE status = ...``), so the server's threads
+and the worker processes can race without a lock: a claim, a finish or a failure
+either applies to the state it expects or does nothing.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from sqlalchemy import select
+
+from miss.server.db import DONE, FAILED, QUEUED, RUNNING, ModelRow, utcnow
+from miss.server.store import Store
+
+
+class JobState:
+    """State transitions of the model rows kept by ``store``."""
+
+    def __init__(self, store: Store) -> None:
+        self.store = store
+
+    def claim_next(self) -> ModelRow | None:
+        """Mark the oldest queued job running and return it (None when the queue is empty).
+
+        The conditional update makes the claim safe between threads: only one wins.
+        """
+        while True:
+            query = (
+                select(ModelRow.id).where(ModelRow.status == QUEUED).order_by(ModelRow.created_at)
+            )
+            with self.store.session() as s:
+                model_id = s.scalars(query.limit(1)).first()
+            if model_id is None:
+                return None
+            values = dict(
+                status=RUNNING,
+                progress=0.0,
+                stage="starting",
+                started_at=utcnow(),
+                attempts=ModelRow.attempts + 1,
+                error=None,
+            )
+            if self.store.update_model(model_id, ModelRow.status == QUEUED, **values):
+                return self.store.get_model(model_id)
+
+    def set_pid(self, model_id: str, pid: int | None) -> None:
+        self.store.update_model(model_id, pid=pid)
+
+    def set_progress(self, model_id: str, stage: str, fraction: float) -> bool:
+        """Record progress of a running job; False when it is no longer running (deleted)."""
+        return self.store.update_model(
+            model_id,
+            ModelRow.status == RUNNING,
+            stage=stage,
+            progress=float(min(max(fraction, 0.0), 1.0)),
+        )
+
+    def finish(self, model_id: str, stats: dict[str, Any], files: dict[str, Any]) -> bool:
+        return self.store.update_model(
+            model_id,
+            ModelRow.status == RUNNING,
+            status=DONE,
+            progress=1.0,
+            stage="done",
+            stats=stats,
+            files=files,
+            error=None,
+            pid=None,
+            finished_at=utcnow(),
+        )
+
+    def fail(self, model_id: str, reason: str) -> bool:
+        """Mark a running job failed with a reason a physician can act on."""
+        return self.store.update_model(
+            model_id,
+            ModelRow.status == RUNNING,
+            status=FAILED,
+            error=reason,
+            pid=None,
+            finished_at=utcnow(),
+        )
+
+    def requeue(self, model_id: str, count_attempt: bool) -> bool:
+        """Put a running job back in the queue; a clean shutdown does not count as an attempt."""
+        values: dict[str, Any] = dict(status=QUEUED, progress=0.0, stage="", pid=None)
+        if not count_attempt:
+            values["attempts"] = ModelRow.attempts - 1
+        return self.store.update_model(model_id, ModelRow.status == RUNNING, **values)
+
+    def recover(self, max_attempts: int = 2) -> tuple[list[str], list[str]]:
+        """After a restart: re-queue jobs left running, fail those interrupted twice."""
+        with self.store.session() as s:
+            rows = list(s.scalars(select(ModelRow).where(ModelRow.status == RUNNING)))
+        requeued, failed = [], []
+        for row in rows:
+            if row.attempts >= max_attempts:
+                self.fail(
+                    row.id,
+                    f"interrupted twice (server stopped during {row.stage or 'the job'}); "
+                    "submit the same parameters again to retry.",
+                )
+                failed.append(row.id)
+            elif self.requeue(row.id, count_attempt=True):
+                requeued.append(row.id)
+        return requeued, failed

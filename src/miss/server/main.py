@@ -1,0 +1,35 @@
+"""``miss serve``: run the app under uvicorn."""
+
+from __future__ import annotations
+
+import logging
+import sys
+
+import uvicorn
+
+from miss.server.app import create_app
+from miss.server.settings import Settings
+from miss.server.store import DataDirInUse, Store
+
+
+def serve(host: str | None = None, port: int | None = None, data_dir: str | None = None) -> int:
+    """Serve MISS until interrupted; arguments override the environment's settings."""
+    try:
+        settings = Settings.from_env(host=host, port=port, data_dir=data_dir)
+    except ValueError as exc:
+        print(f"miss: {exc}", file=sys.stderr)
+        return 2
+    probe = Store(settings.data_dir, settings.database_url)
+    try:  # say it in one line now rather than as a traceback from the app's startup
+        probe.lock()
+    except DataDirInUse as exc:
+        print(f"miss: {exc}", file=sys.stderr)
+        return 1
+    finally:
+        probe.close()
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s:     %(name)s: %(message)s")
+    shown = "localhost" if settings.host in ("127.0.0.1", "0.0.0.0", "::") else settings.host
+    url = f"http://{shown}:{settings.port}/"
+    print(f"MISS serving {settings.data_dir} at {url}  (API docs: {url}docs)", flush=True)
+    uvicorn.run(create_app(settings), host=settings.host, port=settings.port, log_level="info")
+    return 0

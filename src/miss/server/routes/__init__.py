@@ -1,0 +1,1 @@
+"""One module per resource: volumes, models, and the HTML pages."""

@@ -1,0 +1,186 @@
+"""``/api/models``: submit a job, follow it, download the model in every format."""
+
+from __future__ import annotations
+
+from collections.abc import AsyncIterator
+from typing import Annotated
+
+import anyio
+from fastapi import APIRouter, Query, Request, Response
+from fastapi.responses import FileResponse, JSONResponse
+from fastapi.sse import EventSourceResponse, ServerSentEvent
+from starlette.concurrency import run_in_threadpool
+
+from miss.errors import BadParameter, EmptySurface
+from miss.export import FORMATS, WRITERS
+from miss.pipeline import JobSpec, slice_range
+from miss.server.db import DONE, FAILED, VolumeRow
+from miss.server.deps import ModelDep, QueueDep, StoreDep
+from miss.server.errors import NotFound, NotReady
+from miss.server.schemas import ModelOut, ModelRequest, download_name, mime_for, model_out
+from miss.server.store import Store
+
+router = APIRouter(prefix="/api/models", tags=["models"])
+
+#: Seconds between looks at a job's row while streaming its progress.
+EVENT_POLL = 0.25
+
+
+def check_against_volume(spec: JobSpec, volume: VolumeRow, store: Store) -> None:
+    """Refuse at submit time what would only fail minutes later in the job: a level
+    outside the values, slices beyond the stack, a region with no surface."""
+    info = volume.info
+    lo, hi = info["range"]
+    units = f" {info['units']}" if info["units"] else ""
+    if not lo < spec.level < hi:
+        raise EmptySurface(
+            f"level {spec.level:g} is outside this volume's values {lo:g}..{hi:g}{units}; "
+            "pick a level inside that range (see the histogram's presets)."
+        )
+    slices = info["dims"][2]
+    for name in ("start_slice", "end_slice"):
+        value = getattr(spec, name)
+        if value is not None and value > slices:
+            raise BadParameter(
+                f"{name} {value} is beyond the volume's {slices} slices; use 1..{slices}."
+            )
+    _check_region(spec, volume, store, units)
+
+
+def _check_region(spec: JobSpec, volume: VolumeRow, store: Store, units: str) -> None:
+    """The voxels the job will actually see: enough of them, and the level among them."""
+    info = volume.info
+    slices = info["dims"][2]
+    first, last = slice_range(spec, _Dims(info["dims"])) or (1, slices)
+    sx, sy, sz = spec.steps
+    block = store.open_volume(volume.id).data[::sx, ::sy, first - 1 : last : sz]
+    if min(block.shape) < 2:
+        raise BadParameter(
+            f"sample rate {list(spec.steps)} on slices {first}..{last} leaves {list(block.shape)} voxels; "
+            "a surface needs at least 2 along each axis: lower the sample rate or widen the slices."
+        )
+    bmin, bmax = float(block.min()), float(block.max())
+    if not bmin < spec.level < bmax:
+        raise EmptySurface(
+            f"no surface at level {spec.level:g} in slices {first}..{last}: they hold values "
+            f"{bmin:g}..{bmax:g}{units}; pick a level inside that range or other slices."
+        )
+
+
+class _Dims:
+    """Just enough of a Volume for ``slice_range`` (which reads ``dims``)."""
+
+    def __init__(self, dims: list[int]) -> None:
+        self.dims = tuple(dims)
+
+
+@router.post(
+    "",
+    status_code=202,
+    response_model=ModelOut,
+    responses={
+        200: {"description": "the same parameters were done before: that model"},
+        422: {"description": "bad parameters, or no surface at this level"},
+    },
+)
+def create_model(body: ModelRequest, store: StoreDep, queue: QueueDep) -> JSONResponse:
+    """Queue a surface job (202); identical parameters on the same volume return the
+    existing model: 202 while it is queued or running, 200 once done."""
+    volume = store.get_volume(body.volume)
+    spec = body.spec()
+    check_against_volume(spec, volume, store)
+    row, created = store.find_or_create_model(volume.id, spec.key(), spec.to_dict())
+    if created:
+        queue.submit()
+    code = 200 if row.status == DONE else 202
+    return JSONResponse(
+        model_out(row, volume).model_dump(mode="json"),
+        status_code=code,
+        headers={"Location": f"/api/models/{row.id}"},
+    )
+
+
+@router.get("", response_model=list[ModelOut])
+def list_models(
+    store: StoreDep,
+    volume: Annotated[str | None, Query(description="only the models of this volume")] = None,
+) -> list[ModelOut]:
+    if volume is not None:
+        store.get_volume(volume)
+    volumes = {v.id: v for v in store.list_volumes()}
+    return [model_out(row, volumes.get(row.volume_id)) for row in store.list_models(volume)]
+
+
+@router.get("/{model_id}", response_model=ModelOut)
+def get_model(model: ModelDep, store: StoreDep) -> ModelOut:
+    return model_out(model, store.get_volume(model.volume_id))
+
+
+@router.delete("/{model_id}", status_code=204)
+def delete_model(model: ModelDep, store: StoreDep, queue: QueueDep) -> Response:
+    queue.cancel(model.id)
+    store.delete_model(model.id)
+    return Response(status_code=204)
+
+
+@router.get("/{model_id}/events", response_class=EventSourceResponse)
+async def model_events(model: ModelDep, store: StoreDep) -> AsyncIterator[ServerSentEvent]:
+    """Server-Sent Events: the model (as GET /api/models/{id}) each time its status,
+    stage or progress changes, until it is done or failed; then the stream ends."""
+    volume = await run_in_threadpool(store.get_volume, model.volume_id)
+    row, last = model, None
+    while True:
+        state = (row.status, row.stage, round(row.progress, 3))
+        if state != last:
+            last = state
+            yield ServerSentEvent(data=model_out(row, volume).model_dump(mode="json"))
+        if row.status in (DONE, FAILED):
+            return
+        await anyio.sleep(EVENT_POLL)
+        try:
+            row = await run_in_threadpool(store.get_model, model.id)
+        except NotFound:
+            yield ServerSentEvent(data={"id": model.id, "status": FAILED, "error": "model deleted"})
+            return
+
+
+def _etag_matches(header: str | None, etag: str) -> bool:
+    if not header:
+        return False
+    tags = [t.strip().removeprefix("W/") for t in header.split(",")]
+    return "*" in tags or etag in tags
+
+
+@router.head("/{model_id}/model.{fmt}", include_in_schema=False)
+@router.get(
+    "/{model_id}/model.{fmt}",
+    response_class=FileResponse,
+    responses={304: {"description": "not modified (ETag)"}, 409: {"description": "not done yet"}},
+)
+def download(model: ModelDep, fmt: str, request: Request, store: StoreDep) -> Response:
+    """The model file, as an attachment with a readable name; ``Accept: x-world/x-vrml``
+    gets VRML under its 1998 type."""
+    if fmt not in WRITERS:
+        raise NotFound(f"no format {fmt!r}; choose one of {', '.join(FORMATS)}.")
+    if model.status != DONE or not model.files or fmt not in model.files:
+        reason = f": {model.error}" if model.status == FAILED else f" ({model.progress:.0%})"
+        raise NotReady(
+            f"model {model.id} is {model.status}{reason}; download it once its status is done."
+        )
+    mime = mime_for(fmt, request.headers.get("accept", ""))
+    etag = f'"{model.files[fmt]["etag"]}{"-legacy" if mime != WRITERS[fmt].mime else ""}"'
+    headers = {"ETag": etag, "Cache-Control": "private, max-age=86400", "Vary": "Accept"}
+    if _etag_matches(request.headers.get("if-none-match"), etag):
+        return Response(status_code=304, headers=headers)
+    path = store.model_dir(model.id) / f"model.{fmt}"
+    if not path.is_file():
+        raise NotFound(
+            f"the {fmt} file of model {model.id} is missing; delete the model and submit again."
+        )
+    volume = store.get_volume(model.volume_id)
+    return FileResponse(
+        path,
+        media_type=mime,
+        filename=download_name(volume, model, fmt),
+        headers=headers,
+    )

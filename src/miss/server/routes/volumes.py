@@ -1,0 +1,160 @@
+"""``/api/volumes``: upload a scan, list and delete volumes, slice images, histogram."""
+
+from __future__ import annotations
+
+import shutil
+from enum import StrEnum
+from typing import Annotated, Any
+
+import numpy as np
+from fastapi import APIRouter, Query, Request, Response, status
+from fastapi.responses import FileResponse, JSONResponse
+from starlette.concurrency import run_in_threadpool
+
+from miss.server import imaging
+from miss.server.deps import QueueDep, SettingsDep, StoreDep, VolumeDep
+from miss.server.errors import NotFound
+from miss.server.ingest import ingest
+from miss.server.schemas import VolumeOut, volume_out
+from miss.server.uploads import receive
+
+router = APIRouter(prefix="/api/volumes", tags=["volumes"])
+
+_UPLOAD_BODY = {
+    "requestBody": {
+        "required": True,
+        "content": {
+            "multipart/form-data": {
+                "schema": {
+                    "type": "object",
+                    "required": ["file"],
+                    "properties": {
+                        "file": {
+                            "type": "string",
+                            "format": "binary",
+                            "description": "a .zip of a DICOM series (or folder tree), or one "
+                            ".nii/.nii.gz/.nrrd/.mha file",
+                        },
+                        "name": {
+                            "type": "string",
+                            "description": "name to list (default: the file name)",
+                        },
+                        "series": {
+                            "type": "string",
+                            "description": "DICOM SeriesInstanceUID to read",
+                        },
+                    },
+                }
+            }
+        },
+    }
+}
+
+
+class Axis(StrEnum):
+    axial = "axial"
+    coronal = "coronal"
+    sagittal = "sagittal"
+
+
+@router.post(
+    "",
+    status_code=201,
+    response_model=VolumeOut,
+    openapi_extra=_UPLOAD_BODY,
+    responses={413: {"description": "over the size limit"}, 415: {"description": "not a scan"}},
+)
+async def upload_volume(request: Request, store: StoreDep, settings: SettingsDep) -> JSONResponse:
+    """Upload a scan; it is read once and stored for slicing and jobs."""
+    work = await run_in_threadpool(store.tmp_dir)
+    try:
+        upload = await receive(request, work, settings.max_upload_bytes)
+        row = await run_in_threadpool(ingest, store, upload, work, settings.max_unzipped_bytes)
+    finally:
+        # Whatever happened, the upload and its unpacked files go; a stored volume was
+        # moved out of tmp/ before this point.
+        await run_in_threadpool(shutil.rmtree, work, True)
+    body = volume_out(row).model_dump(mode="json")
+    return JSONResponse(body, status_code=201, headers={"Location": f"/api/volumes/{row.id}"})
+
+
+@router.get("", response_model=list[VolumeOut])
+def list_volumes(store: StoreDep) -> list[VolumeOut]:
+    return [volume_out(row) for row in store.list_volumes()]
+
+
+@router.get("/{volume_id}", response_model=VolumeOut)
+def get_volume(volume: VolumeDep) -> VolumeOut:
+    return volume_out(volume)
+
+
+@router.delete("/{volume_id}", status_code=status.HTTP_204_NO_CONTENT)
+def delete_volume(volume: VolumeDep, store: StoreDep, queue: QueueDep) -> Response:
+    """Delete a volume with all its models (running jobs are stopped)."""
+    for model in store.list_models(volume.id):
+        queue.cancel(model.id)
+    store.delete_volume(volume.id)
+    return Response(status_code=204)
+
+
+@router.get("/{volume_id}/thumbnail.png", response_class=FileResponse)
+def thumbnail(volume: VolumeDep, store: StoreDep) -> FileResponse:
+    path = store.volume_dir(volume.id) / "thumbnail.png"
+    return FileResponse(
+        path, media_type="image/png", headers={"Cache-Control": "private, max-age=86400"}
+    )
+
+
+@router.get("/{volume_id}/histogram")
+def histogram(volume: VolumeDep, store: StoreDep) -> dict[str, Any]:
+    """Counts per value bin (``edges`` has one more entry than ``counts``) and presets."""
+    hist = store.read_json(volume.id, "histogram.json")
+    edges = np.asarray(hist["edges"])
+    return {
+        **hist,
+        "bins": ((edges[:-1] + edges[1:]) / 2).tolist(),
+        "units": volume.info["units"],
+        "presets": volume.info["presets"],
+        "window": volume.info["window"],
+    }
+
+
+@router.get(
+    "/{volume_id}/slices/{axis}/{index}.png",
+    response_class=Response,
+    responses={200: {"content": {"image/png": {}}}, 404: {"description": "no such slice"}},
+)
+def slice_png(
+    volume: VolumeDep,
+    store: StoreDep,
+    axis: Axis,
+    index: int,
+    window: Annotated[
+        float | None, Query(gt=0, allow_inf_nan=False, description="width, volume units")
+    ] = None,
+    level: Annotated[
+        float | None, Query(allow_inf_nan=False, description="centre, volume units")
+    ] = None,
+    threshold: Annotated[
+        float | None, Query(allow_inf_nan=False, description="tint voxels above")
+    ] = None,
+    size: Annotated[
+        int, Query(ge=16, le=4096, description="longest side, pixels")
+    ] = imaging.MAX_SIDE,
+) -> Response:
+    """One slice (0-based ``index``) with window/level, square millimetres, radiological
+    orientation (see the volume's ``views``); voxels above ``threshold`` are tinted."""
+    view = volume.info["views"][axis.value]
+    if not 0 <= index < view["count"]:
+        raise NotFound(f"{axis.value} slice {index} is outside 0..{view['count'] - 1} (0-based).")
+    data = store.open_volume(volume.id).data
+    plane = imaging.slice_plane(data, view, index)
+    default = volume.info["window"]
+    png = imaging.render(
+        plane,
+        imaging.display_size(view, plane.shape, size),
+        window or default["window"],
+        default["level"] if level is None else level,
+        threshold,
+    )
+    return Response(png, media_type="image/png", headers={"Cache-Control": "private, max-age=3600"})

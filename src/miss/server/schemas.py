@@ -1,0 +1,175 @@
+"""Request and response bodies of the REST API, and how rows become them."""
+
+from __future__ import annotations
+
+from dataclasses import fields
+from datetime import UTC, datetime
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from miss.export import FORMATS, WRITERS
+from miss.pipeline import JobSpec
+from miss.server.db import DONE, ModelRow, VolumeRow
+
+_DEFAULTS = {f.name: f.default for f in fields(JobSpec)}
+
+
+class ModelRequest(BaseModel):
+    """The 1998 form: which volume, which density, how coarse, how much decimation."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    volume: str = Field(description="volume id (GET /api/volumes)")
+    level: float = Field(
+        allow_inf_nan=False, description="threshold in the volume's units (HU for CT)"
+    )
+    sample_rate: int | list[int] = Field(
+        _DEFAULTS["sample_rate"], description="voxels per cube: n or [x, y, z]"
+    )
+    start_slice: int | None = Field(None, description="first slice, 1-based, inclusive")
+    end_slice: int | None = Field(None, description="last slice, 1-based, inclusive")
+    decimate: str = Field(_DEFAULTS["decimate"], description='"none", "schroeder" or "quadric"')
+    error_bound: float = Field(
+        _DEFAULTS["error_bound"],
+        allow_inf_nan=False,
+        description="local error bound, fraction of the bounding-box diagonal",
+    )
+    reduce: float = Field(
+        _DEFAULTS["reduce"],
+        allow_inf_nan=False,
+        description="target fraction of triangles removed, 0 <= reduce < 1",
+    )
+
+    def spec(self) -> JobSpec:
+        """The engine's validated spec (raises BadParameter); every format is produced."""
+        values = self.model_dump(exclude={"volume"})
+        return JobSpec.from_dict({**values, "formats": list(FORMATS)})
+
+
+class VolumeOut(BaseModel):
+    id: str
+    name: str
+    created: datetime
+    dims: list[int] = Field(description="voxels (x, y, z) = (columns, rows, slices)")
+    spacing: list[float] = Field(description="mm per voxel along x, y, z")
+    range: list[float] = Field(description="min and max value, in the volume's units")
+    modality: str
+    units: str = Field(description='"HU" for CT, "" when unknown')
+    series: list[dict[str, Any]]
+    source_format: str
+    notes: list[str]
+    window: dict[str, float] = Field(description="default window/level for slice images")
+    presets: list[dict[str, Any]] = Field(description="suggested levels: bone, skin")
+    views: dict[str, Any] = Field(description="per view: voxel axes across/down, flips, mm size")
+    thumbnail: str
+
+
+class ModelOut(BaseModel):
+    id: str
+    volume: str
+    status: str = Field(description="queued | running | done | failed")
+    progress: float = Field(description="0..1")
+    stage: str
+    params: dict[str, Any]
+    stats: dict[str, Any] | None
+    error: str | None
+    attempts: int
+    created: datetime
+    started: datetime | None
+    finished: datetime | None
+    files: dict[str, dict[str, Any]] | None = Field(
+        description="per format: url, bytes, mime, filename"
+    )
+
+
+def _utc(value: datetime | None) -> datetime | None:
+    """The database keeps naive UTC; say so, or browsers read it as local time."""
+    return value.replace(tzinfo=UTC) if value is not None else None
+
+
+def volume_out(row: VolumeRow) -> VolumeOut:
+    info = row.info
+    keys = (
+        "dims",
+        "spacing",
+        "range",
+        "modality",
+        "units",
+        "series",
+        "source_format",
+        "notes",
+        "window",
+        "presets",
+        "views",
+    )
+    return VolumeOut(
+        id=row.id,
+        name=row.name,
+        created=_utc(row.created_at),
+        thumbnail=f"/api/volumes/{row.id}/thumbnail.png",
+        **{k: info[k] for k in keys},
+    )
+
+
+def params_of(row: ModelRow) -> dict[str, Any]:
+    return {k: v for k, v in row.spec.items() if k not in ("formats", "roi", "max_error")}
+
+
+def model_out(row: ModelRow, volume: VolumeRow | None = None) -> ModelOut:
+    files = None
+    if row.status == DONE and row.files:
+        files = {
+            fmt: {
+                **meta,
+                "url": f"/api/models/{row.id}/model.{fmt}",
+                "filename": download_name(volume, row, fmt) if volume else f"model.{fmt}",
+            }
+            for fmt, meta in row.files.items()
+        }
+    return ModelOut(
+        id=row.id,
+        volume=row.volume_id,
+        status=row.status,
+        progress=row.progress,
+        stage=row.stage,
+        params=params_of(row),
+        stats=row.stats,
+        error=row.error,
+        attempts=row.attempts,
+        created=_utc(row.created_at),
+        started=_utc(row.started_at),
+        finished=_utc(row.finished_at),
+        files=files,
+    )
+
+
+def _number(value: float) -> str:
+    return f"{value:g}".replace("+", "")
+
+
+def download_name(volume: VolumeRow, row: ModelRow, fmt: str) -> str:
+    """A readable file name without identity: ``demo-head_level300_bone.wrl``."""
+    spec = row.spec
+    parts = [volume.slug, f"level{_number(spec['level'])}"]
+    preset = next(
+        (p["name"] for p in volume.info.get("presets", []) if p["level"] == spec["level"]), None
+    )
+    if preset:
+        parts.append(preset)
+    steps = spec["sample_rate"] if isinstance(spec["sample_rate"], list) else [spec["sample_rate"]]
+    if any(s != 1 for s in steps):
+        parts.append("sr" + "x".join(str(s) for s in steps))
+    if spec.get("start_slice") or spec.get("end_slice"):
+        parts.append(f"slices{spec.get('start_slice') or 1}-{spec.get('end_slice') or 'end'}")
+    if spec.get("decimate") == "none":
+        parts.append("nodecimation")
+    return "_".join(parts) + f".{fmt}"
+
+
+def mime_for(fmt: str, accept: str) -> str:
+    """The writer's type; a client asking for the 1998 VRML type by name gets that one."""
+    writer = WRITERS[fmt]
+    if writer.legacy_mime and writer.legacy_mime in accept:
+        return writer.legacy_mime
+    return writer.mime

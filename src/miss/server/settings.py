@@ -1,0 +1,96 @@
+"""The server's one ``Settings`` object, read from the environment in one place.
+
+Environment variables (all optional):
+
+``MISS_DATA_DIR``         folder for the database, volumes and models (``./miss-data``)
+``MISS_DATABASE_URL``     SQLAlchemy URL (SQLite file in the data folder; PostgreSQL works)
+``MISS_MAX_UPLOAD_MB``    largest accepted upload, MB (2048)
+``MISS_MAX_UNZIPPED_MB``  largest total size a zip may expand to, MB (4 x the upload limit)
+``MISS_WORKERS``          jobs run at the same time, each in its own process (1)
+``MISS_DEMO``             register the demo phantom on first start ("1"; "0" to skip)
+``MISS_HOST``, ``MISS_PORT``  where ``miss serve`` listens (127.0.0.1, 8000)
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+MB = 1024 * 1024
+
+
+@dataclass(frozen=True)
+class Settings:
+    """Where MISS keeps its data and how much it accepts; sizes in MB."""
+
+    data_dir: Path = Path("miss-data")
+    database_url: str = ""
+    max_upload_mb: float = 2048.0
+    max_unzipped_mb: float = 0.0
+    workers: int = 1
+    demo: bool = True
+    host: str = "127.0.0.1"
+    port: int = 8000
+
+    def __post_init__(self) -> None:
+        # Resolve once so the worker subprocesses, which get these as arguments, see the
+        # same folder whatever their working directory.
+        object.__setattr__(self, "data_dir", Path(self.data_dir).expanduser().resolve())
+        if not self.database_url:
+            object.__setattr__(self, "database_url", f"sqlite:///{self.data_dir / 'miss.sqlite3'}")
+        if self.max_unzipped_mb <= 0:
+            object.__setattr__(self, "max_unzipped_mb", 4.0 * self.max_upload_mb)
+        if self.workers < 1:
+            raise ValueError(f"MISS_WORKERS must be at least 1, got {self.workers}.")
+
+    @classmethod
+    def from_env(cls, env: Mapping[str, str] | None = None, **overrides: Any) -> Settings:
+        """Settings from ``env`` (default ``os.environ``); keyword overrides win when not None."""
+        env = os.environ if env is None else env
+        values: dict[str, Any] = {}
+        for name, key, cast in _ENV:
+            if env.get(key, "").strip():
+                values[name] = _parse(key, env[key].strip(), cast)
+        values.update({k: v for k, v in overrides.items() if v is not None})
+        return cls(**values)
+
+    def with_(self, **changes: Any) -> Settings:
+        return replace(self, **changes)
+
+    @property
+    def max_upload_bytes(self) -> int:
+        return int(self.max_upload_mb * MB)
+
+    @property
+    def max_unzipped_bytes(self) -> int:
+        return int(self.max_unzipped_mb * MB)
+
+
+def _bool(text: str) -> bool:
+    if text.lower() in ("1", "true", "yes", "on"):
+        return True
+    if text.lower() in ("0", "false", "no", "off"):
+        return False
+    raise ValueError("expected 1/0, true/false, yes/no or on/off")
+
+
+_ENV: tuple[tuple[str, str, Any], ...] = (
+    ("data_dir", "MISS_DATA_DIR", Path),
+    ("database_url", "MISS_DATABASE_URL", str),
+    ("max_upload_mb", "MISS_MAX_UPLOAD_MB", float),
+    ("max_unzipped_mb", "MISS_MAX_UNZIPPED_MB", float),
+    ("workers", "MISS_WORKERS", int),
+    ("demo", "MISS_DEMO", _bool),
+    ("host", "MISS_HOST", str),
+    ("port", "MISS_PORT", int),
+)
+
+
+def _parse(key: str, text: str, cast: Any) -> Any:
+    try:
+        return cast(text)
+    except ValueError as exc:
+        raise ValueError(f"{key}={text!r} is not valid: {exc}") from None

@@ -1,0 +1,250 @@
+"""Where everything lives: the database rows and the files under the data folder.
+
+Layout of the data folder::
+
+    miss.sqlite3              the database (unless MISS_DATABASE_URL points elsewhere)
+    volumes/<id>/data.npy     voxels, real units (HU for CT), (X, Y, Z) Fortran order
+    volumes/<id>/meta.json    affine, spacing, range, modality, series, presets (no patient data)
+    volumes/<id>/histogram.json, thumbnail.png
+    models/<id>/model.<fmt>   one file per output format, written by the job's worker
+    models/<id>/worker.log    the worker's stderr, for the rare crash
+    tmp/                      uploads and half-made volumes; emptied on start
+
+Files appear by rename only (``tmp`` and ``volumes`` share a file system), so a reader
+never sees half of one.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import json
+import os
+import secrets
+import shutil
+from collections.abc import Sequence
+from pathlib import Path
+from typing import IO, Any
+
+import numpy as np
+from sqlalchemy import delete, func, select, update
+from sqlalchemy.exc import IntegrityError
+
+from miss.server.db import (
+    FAILED,
+    QUEUED,
+    Base,
+    ModelRow,
+    VolumeRow,
+    make_engine,
+    make_sessionmaker,
+)
+from miss.server.errors import NotFound
+from miss.types import Volume
+
+
+class DataDirInUse(RuntimeError):
+    """Another MISS server already uses this data folder."""
+
+
+def new_id() -> str:
+    return secrets.token_hex(8)
+
+
+def write_atomic(path: Path, data: bytes) -> None:
+    """Write beside ``path`` and rename, so nobody reads a half-written file."""
+    tmp = path.with_name(f".{path.name}.{secrets.token_hex(4)}.part")
+    try:
+        with open(tmp, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+class Store:
+    """Database rows and data-folder files of volumes and models."""
+
+    def __init__(self, data_dir: Path, database_url: str) -> None:
+        self.data_dir = Path(data_dir)
+        self.database_url = database_url
+        self.engine = make_engine(database_url)
+        self.session = make_sessionmaker(self.engine)
+        self._lock: IO[str] | None = None
+
+    # -- layout ---------------------------------------------------------------------------
+
+    def volume_dir(self, volume_id: str) -> Path:
+        return self.data_dir / "volumes" / volume_id
+
+    def model_dir(self, model_id: str) -> Path:
+        return self.data_dir / "models" / model_id
+
+    def tmp_dir(self) -> Path:
+        """A fresh private folder under ``tmp/`` (same file system as the final places)."""
+        path = self.data_dir / "tmp" / new_id()
+        path.mkdir(parents=True)
+        return path
+
+    def lock(self) -> None:
+        """Take the data folder for this process; raises ``DataDirInUse`` if another has it.
+
+        Starting sweeps ``tmp/`` and re-queues every running job: both are only safe when
+        no other server is uploading into or running jobs from the same folder.
+        """
+        self.data_dir.mkdir(parents=True, exist_ok=True)
+        handle = open(self.data_dir / "server.lock", "w")  # noqa: SIM115 - held until close()
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            handle.close()
+            raise DataDirInUse(
+                f"another MISS server is using {self.data_dir}; stop it or choose another --data-dir."
+            ) from None
+        self._lock = handle
+
+    def init(self) -> None:
+        """Lock the folder, create folders and tables, drop leftovers of an interrupted
+        upload or delete."""
+        self.lock()
+        for sub in ("volumes", "models", "tmp"):
+            (self.data_dir / sub).mkdir(parents=True, exist_ok=True)
+        Base.metadata.create_all(self.engine)
+        shutil.rmtree(self.data_dir / "tmp", ignore_errors=True)
+        (self.data_dir / "tmp").mkdir()
+        with self.session() as s:
+            volumes = set(s.scalars(select(VolumeRow.id)))
+            models = set(s.scalars(select(ModelRow.id)))
+        _remove_unknown(self.data_dir / "volumes", volumes)
+        _remove_unknown(self.data_dir / "models", models)
+
+    def close(self) -> None:
+        self.engine.dispose()
+        if self._lock is not None:
+            self._lock.close()
+            self._lock = None
+
+    # -- volumes --------------------------------------------------------------------------
+
+    def list_volumes(self) -> list[VolumeRow]:
+        with self.session() as s:
+            return list(s.scalars(select(VolumeRow).order_by(VolumeRow.created_at)))
+
+    def count_volumes(self) -> int:
+        with self.session() as s:
+            return s.scalar(select(func.count()).select_from(VolumeRow)) or 0
+
+    def get_volume(self, volume_id: str) -> VolumeRow:
+        with self.session() as s:
+            row = s.get(VolumeRow, volume_id)
+        if row is None:
+            raise NotFound(f"no volume {volume_id!r}; GET /api/volumes lists the volumes.")
+        return row
+
+    def add_volume(self, staged: Path, name: str, slug: str, info: dict[str, Any]) -> VolumeRow:
+        """Move a staged folder (data.npy, meta.json ...) into place and record it."""
+        row = VolumeRow(id=new_id(), name=name, slug=slug, info=info)
+        final = self.volume_dir(row.id)
+        os.replace(staged, final)
+        try:
+            with self.session.begin() as s:
+                s.add(row)
+        except BaseException:
+            shutil.rmtree(final, ignore_errors=True)
+            raise
+        return row
+
+    def delete_volume(self, volume_id: str) -> list[str]:
+        """Delete a volume, its models and their files; returns the deleted model ids."""
+        self.get_volume(volume_id)
+        with self.session.begin() as s:
+            model_ids = list(s.scalars(select(ModelRow.id).where(ModelRow.volume_id == volume_id)))
+            s.execute(delete(ModelRow).where(ModelRow.volume_id == volume_id))
+            s.execute(delete(VolumeRow).where(VolumeRow.id == volume_id))
+        for model_id in model_ids:
+            _remove_tree(self.model_dir(model_id), self.data_dir)
+        _remove_tree(self.volume_dir(volume_id), self.data_dir)
+        return model_ids
+
+    def open_volume(self, volume_id: str) -> Volume:
+        """The stored volume, voxels memory-mapped read-only (no copy, no DICOM parsing)."""
+        folder = self.volume_dir(volume_id)
+        meta = json.loads((folder / "meta.json").read_text())
+        data = np.load(folder / "data.npy", mmap_mode="r")
+        return Volume(data=data, affine=np.array(meta["affine"]), meta=meta, patient={})
+
+    def read_json(self, volume_id: str, name: str) -> Any:
+        return json.loads((self.volume_dir(volume_id) / name).read_text())
+
+    # -- models ---------------------------------------------------------------------------
+
+    def get_model(self, model_id: str) -> ModelRow:
+        with self.session() as s:
+            row = s.get(ModelRow, model_id)
+        if row is None:
+            raise NotFound(f"no model {model_id!r}; GET /api/models lists the models.")
+        return row
+
+    def list_models(self, volume_id: str | None = None) -> list[ModelRow]:
+        query = select(ModelRow).order_by(ModelRow.created_at)
+        if volume_id is not None:
+            query = query.where(ModelRow.volume_id == volume_id)
+        with self.session() as s:
+            return list(s.scalars(query))
+
+    def find_or_create_model(
+        self, volume_id: str, key: str, spec: dict[str, Any]
+    ) -> tuple[ModelRow, bool]:
+        """The model with these parameters on this volume, created (queued) if new.
+
+        A failed one is queued again: the failure may have been a crash or a restart.
+        """
+        existing = self._find_model(volume_id, key)
+        if existing is None:
+            row = ModelRow(id=new_id(), volume_id=volume_id, key=key, spec=spec, status=QUEUED)
+            try:
+                with self.session.begin() as s:
+                    s.add(row)
+                return row, True
+            except IntegrityError:  # the same request raced us; theirs wins
+                existing = self._find_model(volume_id, key)
+                assert existing is not None
+        if existing.status == FAILED:
+            self.update_model(
+                existing.id, status=QUEUED, progress=0.0, stage="", error=None, attempts=0
+            )
+            return self.get_model(existing.id), True
+        return existing, False
+
+    def _find_model(self, volume_id: str, key: str) -> ModelRow | None:
+        query = select(ModelRow).where(ModelRow.volume_id == volume_id, ModelRow.key == key)
+        with self.session() as s:
+            return s.scalars(query).first()
+
+    def delete_model(self, model_id: str) -> None:
+        self.get_model(model_id)
+        with self.session.begin() as s:
+            s.execute(delete(ModelRow).where(ModelRow.id == model_id))
+        _remove_tree(self.model_dir(model_id), self.data_dir)
+
+    def update_model(self, model_id: str, *conditions: Any, **values: Any) -> bool:
+        """Update one model row if ``conditions`` hold; True when a row changed."""
+        query = update(ModelRow).where(ModelRow.id == model_id, *conditions).values(**values)
+        with self.session.begin() as s:
+            return s.execute(query).rowcount == 1
+
+
+def _remove_tree(path: Path, data_dir: Path) -> None:
+    """Remove by first renaming into ``tmp/`` so a crash mid-delete leaves no half folder."""
+    if not path.exists():
+        return
+    trash = data_dir / "tmp" / f"trash-{new_id()}"
+    os.replace(path, trash)
+    shutil.rmtree(trash, ignore_errors=True)
+
+
+def _remove_unknown(parent: Path, known: set[str] | Sequence[str]) -> None:
+    for child in parent.iterdir():
+        if child.name not in known:
+            shutil.rmtree(child, ignore_errors=True)

@@ -1,0 +1,140 @@
+"""One job in its own process.
+
+The server starts it through a short bootstrap (``jobs._BOOTSTRAP``); by hand it runs as
+``python -m miss.server.worker <model-id> <data-dir> <db-url> <parent-pid>``.
+
+Marching cubes and decimation run in native code (VTK, numba) that can crash or run
+out of memory; in a child process that costs one job, never the server. The child
+reports progress straight to the database, writes every format atomically, and
+records its own failure when it can; the parent records the ones it cannot (signals).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import hashlib
+import json
+import os
+import signal
+import sys
+import time
+import traceback
+from pathlib import Path
+from typing import Any
+
+from miss import __version__
+from miss.errors import MissError
+from miss.export import FORMATS, WRITERS
+from miss.pipeline import JobResult, JobSpec, run
+from miss.server.jobstate import JobState
+from miss.server.store import Store, write_atomic
+
+#: Seconds between progress writes within one stage: enough for a live bar, light on the DB.
+PROGRESS_INTERVAL = 0.3
+
+
+class Stop(Exception):
+    """The job was deleted or taken back by the server, or the server died: stop quietly."""
+
+
+def die_with_parent(parent: int) -> None:
+    """Ask Linux to kill this process when the server dies, so no orphan finishes a job
+    that the restarted server has already queued again."""
+    # Not Linux: no prctl; the progress callback still checks the parent.
+    with contextlib.suppress(OSError, AttributeError):
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    if os.getppid() != parent:  # the parent died before prctl took effect
+        raise Stop
+
+
+class Reporter:
+    """The pipeline's progress callback: throttled writes of (stage, fraction) to the row."""
+
+    def __init__(self, state: JobState, model_id: str, parent: int) -> None:
+        self.state, self.model_id, self.parent = state, model_id, parent
+        self.stage, self.last = "", 0.0
+
+    def __call__(self, stage: str, fraction: float) -> None:
+        if os.getppid() != self.parent:
+            raise Stop
+        now = time.monotonic()
+        if stage == self.stage and now - self.last < PROGRESS_INTERVAL:
+            return
+        self.stage, self.last = stage, now
+        if not self.state.set_progress(self.model_id, stage, fraction):
+            raise Stop
+
+
+def write_files(folder: Path, artifacts: dict[str, bytes]) -> dict[str, Any]:
+    """Write ``model.<fmt>`` files atomically; returns {fmt: {bytes, etag, mime}}."""
+    folder.mkdir(parents=True, exist_ok=True)
+    files = {}
+    for fmt, data in artifacts.items():
+        write_atomic(folder / f"model.{fmt}", data)
+        files[fmt] = {
+            "bytes": len(data),
+            "etag": hashlib.sha256(data).hexdigest()[:32],
+            "mime": WRITERS[fmt].mime,
+        }
+    return files
+
+
+def summarize(result: JobResult, load_seconds: float, total_seconds: float) -> dict[str, Any]:
+    """The stats the API shows: triangles, vertices, seconds per stage, bytes, error in mm."""
+    stats = result.stats()
+    stats["seconds"] = {"load": load_seconds, **stats["seconds"], "total": total_seconds}
+    stats["max_error_mm"] = result.report.max_error_mm
+    stats["mean_error_mm"] = result.report.mean_error_mm
+    return json.loads(json.dumps(stats, default=float))
+
+
+def run_job(store: Store, model_id: str, parent: int) -> None:
+    """Compute one model and record it as done (or raise)."""
+    t0 = time.perf_counter()
+    row = store.get_model(model_id)
+    state = JobState(store)
+    reporter = Reporter(state, model_id, parent)
+    reporter("load", 0.0)
+    volume_row = store.get_volume(row.volume_id)
+    volume = store.open_volume(row.volume_id)
+    spec = JobSpec.from_dict({**row.spec, "formats": list(FORMATS)})
+    load_seconds = time.perf_counter() - t0
+    params = json.dumps({k: v for k, v in spec.to_dict().items() if k != "formats"})
+    metadata = {"software": f"MISS {__version__}", "parameters": params, "volume": volume_row.slug}
+    result = run(volume, spec, progress=reporter, title=volume_row.name, metadata=metadata)
+    reporter("store", 1.0)
+    files = write_files(store.model_dir(model_id), result.artifacts)
+    if not state.finish(model_id, summarize(result, load_seconds, time.perf_counter() - t0), files):
+        raise Stop
+
+
+def main(argv: list[str]) -> int:
+    """Exit 0 when the outcome (done or a failure reason) is in the database."""
+    model_id, data_dir, db_url, parent = argv[0], Path(argv[1]), argv[2], int(argv[3])
+    store = Store(data_dir, db_url)
+    state = JobState(store)
+    try:
+        die_with_parent(parent)
+        run_job(store, model_id, parent)
+    except Stop:
+        return 3
+    except MissError as exc:
+        state.fail(model_id, str(exc))
+    except MemoryError:
+        state.fail(model_id, "out of memory; choose a larger sample rate or fewer slices.")
+    except Exception as exc:
+        traceback.print_exc()
+        state.fail(
+            model_id,
+            f"internal error ({type(exc).__name__}: {exc}); "
+            f"see models/{model_id}/worker.log in the data folder.",
+        )
+        return 1
+    finally:
+        store.close()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))

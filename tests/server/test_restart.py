@@ -1,0 +1,201 @@
+"""Jobs survive the server: a real ``miss serve`` stopped (SIGTERM) or killed (SIGKILL)
+mid-job and started again on the same data folder finishes every job."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import httpx
+import pytest
+
+from miss.server.db import FAILED, QUEUED, RUNNING, ModelRow, VolumeRow
+from miss.server.jobstate import JobState
+from miss.server.main import serve
+from miss.server.settings import Settings
+from miss.server.store import Store
+
+JOBS = [{"level": level, "sample_rate": 4, "decimate": "none"} for level in (200, 260, 320)]
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def alive(pid: int) -> bool:
+    """True while ``pid`` runs (a zombie waiting for its reaper counts as dead)."""
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except (FileNotFoundError, IndexError):
+        return False
+    return state not in ("Z", "X")
+
+
+class Server:
+    """``miss serve`` in a subprocess on a free loopback port."""
+
+    def __init__(self, data_dir: Path, log: Path, workers: int = 1) -> None:
+        self.data_dir, self.log = data_dir, log
+        self.port = free_port()
+        self.url = f"http://127.0.0.1:{self.port}"
+        cmd = [
+            sys.executable,
+            "-m",
+            "miss.cli",
+            "serve",
+            "--port",
+            str(self.port),
+            "--data-dir",
+            str(data_dir),
+        ]
+        with open(log, "ab") as out:
+            self.proc = subprocess.Popen(
+                cmd,
+                stdout=out,
+                stderr=subprocess.STDOUT,
+                stdin=subprocess.DEVNULL,
+                env={**os.environ, "MISS_WORKERS": str(workers)},
+            )
+        self.http = httpx.Client(base_url=self.url, timeout=10)
+        self._wait_ready()
+
+    def _wait_ready(self, timeout: float = 60) -> None:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            assert self.proc.poll() is None, f"server exited early:\n{self.log.read_text()}"
+            try:
+                if self.http.get("/api/health").status_code == 200:
+                    return
+            except httpx.TransportError:
+                pass
+            time.sleep(0.2)
+        raise AssertionError(f"server not ready after {timeout} s:\n{self.log.read_text()}")
+
+    def model(self, model_id: str) -> dict:
+        return self.http.get(f"/api/models/{model_id}").json()
+
+    def wait(self, model_id: str, until: tuple[str, ...], timeout: float = 90) -> dict:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            body = self.model(model_id)
+            if body["status"] in until:
+                return body
+            time.sleep(0.1)
+        raise AssertionError(
+            f"{model_id} not {until} after {timeout} s: {body}\n{self.log.read_text()}"
+        )
+
+    def stop(self, sig: int) -> int:
+        self.http.close()
+        self.proc.send_signal(sig)
+        return self.proc.wait(timeout=30)
+
+
+@contextmanager
+def serving(data_dir: Path, log: Path, workers: int = 1) -> Iterator[Server]:
+    server = Server(data_dir, log, workers)
+    try:
+        yield server
+    finally:
+        if server.proc.poll() is None:
+            server.stop(signal.SIGTERM)
+
+
+def submit_all(server: Server) -> list[str]:
+    demo = server.http.get("/api/volumes").json()[0]["id"]
+    ids = []
+    for params in JOBS:
+        r = server.http.post("/api/models", json={"volume": demo, **params})
+        assert r.status_code == 202, r.text
+        ids.append(r.json()["id"])
+    return ids
+
+
+def test_sigterm_requeues_and_restart_finishes(data_dir: Path, tmp_path: Path) -> None:
+    data = data_dir
+    server = Server(data, tmp_path / "server.log")
+    ids = submit_all(server)
+    server.wait(ids[0], ("running",))
+    # uvicorn shuts down gracefully, then re-raises the signal it caught.
+    assert server.stop(signal.SIGTERM) in (0, -signal.SIGTERM)
+    assert "Application shutdown complete" in server.log.read_text()
+    store = Store(data, Settings(data_dir=data).database_url)
+    rows = [store.get_model(i) for i in ids]
+    store.close()
+    assert RUNNING not in [r.status for r in rows]  # the running job was put back, not lost
+    assert all(r.attempts == 0 for r in rows if r.status == QUEUED)  # a clean stop costs no attempt
+    with serving(data, tmp_path / "server.log", workers=2) as again:
+        for model_id in ids:
+            assert again.wait(model_id, ("done", "failed"))["status"] == "done"
+
+
+def test_sigkill_mid_job_reruns_after_restart(data_dir: Path, tmp_path: Path) -> None:
+    data = data_dir
+    server = Server(data, tmp_path / "server.log")
+    # Heavier than the others (decimation at sample rate 2), so it is surely mid-run.
+    demo = server.http.get("/api/volumes").json()[0]["id"]
+    r = server.http.post("/api/models", json={"volume": demo, "level": 300, "sample_rate": 2})
+    model_id = r.json()["id"]
+    server.wait(model_id, ("running",))
+    store = Store(data, Settings(data_dir=data).database_url)
+    deadline = time.monotonic() + 30
+    while (pid := store.get_model(model_id).pid) is None and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert pid is not None
+    server.stop(signal.SIGKILL)
+    # The worker dies with the server (no orphan finishing a job that will run again).
+    deadline = time.monotonic() + 10
+    while alive(pid) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not alive(pid), f"worker {pid} outlived the server:\n{server.log.read_text()}"
+    left = store.get_model(model_id)
+    assert left.status == RUNNING, left.__dict__  # as the killed server left it
+    store.close()
+    with serving(data, tmp_path / "server.log") as again:
+        body = again.wait(model_id, ("done", "failed"))
+        assert body["status"] == "done" and body["attempts"] == 2, body
+
+
+def test_interrupted_twice_fails_with_reason(tmp_path: Path) -> None:
+    store = Store(tmp_path, Settings(data_dir=tmp_path).database_url)
+    store.init()
+    with store.session.begin() as s:
+        s.add(VolumeRow(id="v", name="v", slug="v", info={}))
+        s.flush()  # the volume before its models (no ORM relationship orders them)
+        s.add(
+            ModelRow(
+                id="once", volume_id="v", key="a", status=RUNNING, attempts=1, stage="decimate"
+            )
+        )
+        s.add(
+            ModelRow(
+                id="twice", volume_id="v", key="b", status=RUNNING, attempts=2, stage="decimate"
+            )
+        )
+    requeued, failed = JobState(store).recover(max_attempts=2)
+    assert (requeued, failed) == (["once"], ["twice"])
+    assert store.get_model("once").status == QUEUED
+    twice = store.get_model("twice")
+    assert twice.status == FAILED and twice.error.startswith("interrupted twice")
+    store.close()
+
+
+def test_second_server_on_same_data_dir_refuses(
+    data_dir: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    holder = Store(data_dir, Settings(data_dir=data_dir).database_url)
+    holder.lock()  # as a running server holds it
+    try:
+        assert serve(port=free_port(), data_dir=str(data_dir)) == 1
+    finally:
+        holder.close()
+    assert "another MISS server is using" in capsys.readouterr().err
