@@ -7,6 +7,9 @@ The stable Python API::
     mesh = miss.extract_surface(vol, level, sample_rate=1, slices=None, roi=None)
     mesh, report = miss.decimate(mesh, method="quadric", reduce=0.9, error_bound=0.0002)
     data = miss.export(mesh, "wrl")                                # bytes
+    scene = miss.extract_scene(vol, levels=[-500, 300])            # -> Scene (skin, bone)
+    scene = miss.extract_scene(labelmap, labels="all")             # one part per label
+    data = miss.export(scene, "glb")                               # named, coloured parts
 """
 
 from __future__ import annotations
@@ -15,6 +18,8 @@ from miss.decimate import DecimationReport, decimate
 from miss.errors import BadParameter, EmptySurface, MissError, UnreadableVolume, UnsupportedFormat
 from miss.export import export
 from miss.io import load_volume
+from miss.scene import Part, Scene
+from miss.structures import extract_scene
 from miss.surface import extract_surface
 from miss.types import Mesh, Volume
 
@@ -26,12 +31,15 @@ __all__ = [
     "EmptySurface",
     "Mesh",
     "MissError",
+    "Part",
+    "Scene",
     "UnreadableVolume",
     "UnsupportedFormat",
     "Volume",
     "__version__",
     "decimate",
     "export",
+    "extract_scene",
     "extract_surface",
     "load_volume",
 ]

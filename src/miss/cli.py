@@ -16,6 +16,8 @@ from typing import Any, NoReturn
 
 import numpy as np
 
+from miss.cli_scene import add_structure_arguments, convert_scene, label_listing, wants_scene
+
 EXIT_BAD_INPUT = 2
 
 
@@ -31,7 +33,9 @@ def _sample_rate(text: str) -> int | tuple[int, int, int]:
     try:
         values = [int(p) for p in parts]
     except ValueError:
-        raise argparse.ArgumentTypeError(f"sample rate must be N or X,Y,Z integers, got {text!r}") from None
+        raise argparse.ArgumentTypeError(
+            f"sample rate must be N or X,Y,Z integers, got {text!r}"
+        ) from None
     if len(values) == 1:
         return values[0]
     if len(values) == 3:
@@ -43,28 +47,64 @@ def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="miss", description="MISS - CT/MRI volumes to shared 3-D surface models.")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
 
-    info = sub.add_parser("info", help="describe a volume (DICOM folder/zip, NIfTI, NRRD, MetaImage)")
+    info = sub.add_parser(
+        "info", help="describe a volume (DICOM folder/zip, NIfTI, NRRD, MetaImage)"
+    )
     info.add_argument("path")
     info.add_argument("--series", help="DICOM SeriesInstanceUID when the folder holds several")
     info.add_argument("--json", action="store_true", help="print one JSON object")
 
     conv = sub.add_parser("convert", help="volume -> surface model(s)")
     conv.add_argument("path")
-    conv.add_argument("-o", "--output", action="append", required=True, metavar="OUT",
-                      help="output file; format from its extension; repeat for several")
-    conv.add_argument("--level", type=float, required=True, help="threshold in the volume's units (HU for CT)")
+    conv.add_argument(
+        "-o",
+        "--output",
+        action="append",
+        required=True,
+        metavar="OUT",
+        help="output file; format from its extension; repeat for several",
+    )
+    conv.add_argument(
+        "--level", type=float, action="append", metavar="LEVEL",
+        help="threshold in the volume's units (HU for CT); repeat for several structures",
+    )  # fmt: skip
     conv.add_argument("--series")
     conv.add_argument("--sample-rate", type=_sample_rate, default=1, metavar="N|X,Y,Z")
-    conv.add_argument("--start-slice", type=int, metavar="A", help="1-based first slice (inclusive)")
+    conv.add_argument(
+        "--start-slice", type=int, metavar="A", help="1-based first slice (inclusive)"
+    )
     conv.add_argument("--end-slice", type=int, metavar="B", help="1-based last slice (inclusive)")
     conv.add_argument("--decimate", default="quadric", choices=["none", "schroeder", "quadric"])
-    conv.add_argument("--error-bound", type=float, default=0.0002,
-                      help="local error bound, fraction of the bounding-box diagonal (paper: 0.0002, 0.002)")
-    conv.add_argument("--reduce", type=float, default=0.9, help="target fraction of triangles removed")
+    conv.add_argument(
+        "--error-bound",
+        type=float,
+        default=0.0002,
+        help="local error bound, fraction of the bounding-box diagonal (paper: 0.0002, 0.002)",
+    )
+    conv.add_argument(
+        "--reduce", type=float, default=0.9, help="target fraction of triangles removed"
+    )
     conv.add_argument("--json", action="store_true", help="print the run's statistics as JSON")
+    add_structure_arguments(conv)
 
     demo = sub.add_parser("demo", help="write the synthetic CT head phantom as NIfTI")
     demo.add_argument("output", help="e.g. demo-head.nii.gz")
+
+    bench = sub.add_parser("bench", help="regenerate the 1998 paper's performance tables")
+    bench.add_argument("suite", choices=["paper"], help="'paper': Tables 1-2 on the CThead volume")
+    bench.add_argument(
+        "--out", default="benchmarks/results", help="folder for JSON, Markdown and PNG"
+    )
+    bench.add_argument(
+        "--repeats", type=int, default=5, help="timed runs per row (the median is kept)"
+    )
+    bench.add_argument("--volume", default=None, help="CThead.nhdr (default: ../shared/datasets)")
+    bench.add_argument(
+        "--sample-rates",
+        default="1,2,4",
+        metavar="A,B,...",
+        help="sample rates to measure (default 1,2,4)",
+    )
 
     serve = sub.add_parser("serve", help="start the web system")
     serve.add_argument("--host", default=None)
@@ -91,18 +131,23 @@ def _describe(volume: Any) -> dict[str, Any]:
 def cmd_info(args: argparse.Namespace) -> int:
     from miss.io import load_volume
 
-    desc = _describe(load_volume(args.path, series=args.series))
+    volume = load_volume(args.path, series=args.series)
+    desc = {**_describe(volume), **label_listing(volume, args.path)}
     if args.json:
         print(json.dumps(desc))
         return 0
     print(f"dims      {' x '.join(map(str, desc['dims']))} (columns x rows x slices)")
     print(f"spacing   {' x '.join(f'{s:g}' for s in desc['spacing'])} mm")
-    print(f"values    {desc['range'][0]:g} .. {desc['range'][1]:g} {desc['units']} ({desc['dtype']})")
+    print(
+        f"values    {desc['range'][0]:g} .. {desc['range'][1]:g} {desc['units']} ({desc['dtype']})"
+    )
     print(f"modality  {desc['modality'] or '-'}")
     for s in desc["series"]:
         print(f"series    {s.get('uid')}  {s.get('slices')} slices  {s.get('description', '')}")
     for note in desc["notes"]:
         print(f"note      {note}")
+    for item in desc.get("labels", []):
+        print(f"label     {item['label']:<5} {item['voxels']:>10} voxels  {item['name'] or ''}")
     return 0
 
 
@@ -149,16 +194,28 @@ def cmd_convert(args: argparse.Namespace) -> int:
         if not out.parent.is_dir():
             raise UnsupportedFormat(f"{out}: folder {out.parent} does not exist; create it first.")
         formats.append(fmt)
+    if wants_scene(args):
+        return convert_scene(args, outputs, formats)
     spec = JobSpec(
-        level=args.level, sample_rate=args.sample_rate, start_slice=args.start_slice,
-        end_slice=args.end_slice, decimate=args.decimate, error_bound=args.error_bound,
-        reduce=args.reduce, formats=tuple(dict.fromkeys(formats)),
+        level=args.level[0],
+        sample_rate=args.sample_rate,
+        start_slice=args.start_slice,
+        end_slice=args.end_slice,
+        decimate=args.decimate,
+        error_bound=args.error_bound,
+        reduce=args.reduce,
+        formats=tuple(dict.fromkeys(formats)),
     )
     t0 = time.perf_counter()
     volume = load_volume(args.path, series=args.series)
     t_read = time.perf_counter() - t0
-    result = run(volume, spec, progress=_Bar(), title=Path(args.path).name,
-                 metadata={"software": "MISS", "parameters": json.dumps(spec.to_dict())})
+    result = run(
+        volume,
+        spec,
+        progress=_Bar(),
+        title=Path(args.path).name,
+        metadata={"software": "MISS", "parameters": json.dumps(spec.to_dict())},
+    )
     for out, fmt in zip(outputs, formats, strict=True):
         _write_atomic(out, result.artifacts[fmt])
     seconds = {"read": t_read, **result.seconds}
@@ -182,9 +239,11 @@ def cmd_convert(args: argparse.Namespace) -> int:
         print(json.dumps(summary))
     else:
         d = summary["decimation"]
-        print(f"{summary['triangles']} triangles, {summary['vertices']} vertices "
-              f"({d['triangles_before']} before {d['method']} decimation; "
-              f"max error {d['max_error_mm'] or 0:.3f} mm, mean {d['mean_error_mm'] or 0:.4f} mm)")
+        print(
+            f"{summary['triangles']} triangles, {summary['vertices']} vertices "
+            f"({d['triangles_before']} before {d['method']} decimation; "
+            f"max error {d['max_error_mm'] or 0:.3f} mm, mean {d['mean_error_mm'] or 0:.4f} mm)"
+        )
         print("seconds   " + "  ".join(f"{k} {v:.2f}" for k, v in summary["seconds"].items()))
         for o in summary["outputs"]:
             print(f"wrote     {o['path']} ({o['bytes'] / 1024:.0f} KB)")
@@ -202,7 +261,32 @@ def cmd_demo(args: argparse.Namespace) -> int:
     image.header.set_xyzt_units("mm")
     image.header["descrip"] = b"MISS CT phantom HU"
     nib.save(image, args.output)
-    print(f"wrote {args.output}: {' x '.join(map(str, vol.dims))} voxels, HU (bone ~300, skin ~-500)")
+    print(
+        f"wrote {args.output}: {' x '.join(map(str, vol.dims))} voxels, HU (bone ~300, skin ~-500)"
+    )
+    return 0
+
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    from miss import bench
+    from miss.errors import BadParameter
+
+    try:
+        rates = tuple(int(r) for r in args.sample_rates.split(","))
+    except ValueError:
+        raise BadParameter(
+            f"--sample-rates must be integers like 1,2,4, got {args.sample_rates!r}"
+        ) from None
+    out = Path(args.out)
+    result = bench.run_paper(
+        out,
+        args.repeats,
+        Path(args.volume) if args.volume else None,
+        rates,
+        log=lambda line: print(line, file=sys.stderr),
+    )
+    print(bench.markdown(bench.rows_from_json(result)))
+    print(f"wrote {out / 'paper_tables.json'}, .md and .png")
     return 0
 
 
@@ -212,7 +296,13 @@ def cmd_serve(args: argparse.Namespace) -> int:
     return serve(host=args.host, port=args.port, data_dir=args.data_dir)
 
 
-COMMANDS = {"info": cmd_info, "convert": cmd_convert, "demo": cmd_demo, "serve": cmd_serve}
+COMMANDS = {
+    "info": cmd_info,
+    "convert": cmd_convert,
+    "demo": cmd_demo,
+    "bench": cmd_bench,
+    "serve": cmd_serve,
+}
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -224,10 +314,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     except MissError as exc:
         print(f"miss: {exc}", file=sys.stderr)
     except MemoryError:
-        print("miss: out of memory; use a larger --sample-rate or a smaller slice range", file=sys.stderr)
+        print(
+            "miss: out of memory; use a larger --sample-rate or a smaller slice range",
+            file=sys.stderr,
+        )
     except OSError as exc:
-        print(f"miss: {exc.filename or ''}: {exc.strerror or exc}; check the path and permissions",
-              file=sys.stderr)
+        print(
+            f"miss: {exc.filename or ''}: {exc.strerror or exc}; check the path and permissions",
+            file=sys.stderr,
+        )
     except KeyboardInterrupt:
         print("miss: interrupted", file=sys.stderr)
     return EXIT_BAD_INPUT

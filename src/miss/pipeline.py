@@ -15,6 +15,9 @@ from typing import Any
 from miss.decimate import METHODS, DecimationReport, decimate
 from miss.errors import BadParameter
 from miss.export import WRITERS, export
+from miss.labels import TableSpec
+from miss.scene import Scene
+from miss.structures import SceneOptions, build_scene, combined_report
 from miss.surface import extract_surface
 from miss.types import Mesh, Volume
 
@@ -31,9 +34,11 @@ class JobSpec:
 
     ``level`` is in the volume's real units (HU for CT); slices are 1-based and
     inclusive along the third voxel axis; bounds are fractions of the diagonal.
+    The fields after ``formats`` make a scene job (several structures, see
+    :func:`miss.extract_scene`); ``level`` may then be left out.
     """
 
-    level: float
+    level: float | None = None
     sample_rate: int | tuple[int, int, int] = 1
     start_slice: int | None = None
     end_slice: int | None = None
@@ -43,6 +48,13 @@ class JobSpec:
     reduce: float = 0.9
     max_error: float = 0.01
     formats: tuple[str, ...] = field(default=("glb",))
+    # Structures; at these defaults a job and its key() are what they were before them.
+    levels: tuple[float, ...] | None = None
+    labels: str | tuple[int, ...] | None = None
+    components: str = "all"
+    min_size_mm3: float = 0.0
+    smooth: int | None = None
+    passband: float = 0.1
 
     def __post_init__(self) -> None:
         _validate(self)
@@ -53,11 +65,16 @@ class JobSpec:
         names = {f.name for f in fields(cls)}
         unknown = set(data) - names
         if unknown:
-            raise BadParameter(f"unknown job parameter(s) {sorted(unknown)}; known: {sorted(names)}.")
-        if "level" not in data:
-            raise BadParameter("a job needs a 'level' (threshold in the volume's units, e.g. HU).")
+            raise BadParameter(
+                f"unknown job parameter(s) {sorted(unknown)}; known: {sorted(names)}."
+            )
+        if "level" not in data and not data.get("levels") and data.get("labels") is None:
+            raise BadParameter(
+                "a job needs a 'level' (threshold in the volume's units, e.g. HU), "
+                "'levels' or 'labels'."
+            )
         values = dict(data)
-        for key in ("sample_rate", "roi", "formats"):
+        for key in ("sample_rate", "roi", "formats", "levels", "labels"):
             if isinstance(values.get(key), list):
                 values[key] = tuple(values[key])
         return cls(**values)
@@ -70,12 +87,42 @@ class JobSpec:
         d = self.to_dict()
         d.pop("formats")
         d["sample_rate"] = list(self.steps)
+        for name, default in _STRUCTURE_DEFAULTS.items():
+            if d[name] == default:
+                del d[name]  # old specs keep their keys (and cached results)
         return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:32]
 
     @property
     def steps(self) -> tuple[int, int, int]:
         sr = self.sample_rate
         return (sr, sr, sr) if isinstance(sr, int) else (sr[0], sr[1], sr[2])
+
+    @property
+    def is_scene(self) -> bool:
+        """True when the job asks for structures (a scene), not one surface."""
+        return any(getattr(self, name) != d for name, d in _STRUCTURE_DEFAULTS.items())
+
+    def scene_options(self, volume: Volume) -> SceneOptions:
+        """The :class:`~miss.structures.SceneOptions` this spec means for ``volume``."""
+        levels = self.levels or (() if self.level is None else (self.level,))
+        return SceneOptions(
+            levels=tuple(levels), labels=self.labels, components=self.components,
+            min_size_mm3=self.min_size_mm3, smooth=self.smooth, passband=self.passband,
+            decimate=self.decimate, reduce=self.reduce, error_bound=self.error_bound,
+            max_error=self.max_error, sample_rate=self.sample_rate,
+            slices=slice_range(self, volume), roi=self.roi,
+        )  # fmt: skip
+
+
+#: The structure fields and their defaults (a plain single-level job).
+_STRUCTURE_DEFAULTS: dict[str, Any] = {
+    "levels": None,
+    "labels": None,
+    "components": "all",
+    "min_size_mm3": 0.0,
+    "smooth": None,
+    "passband": 0.1,
+}
 
 
 def _is_int(x: Any) -> bool:
@@ -87,7 +134,9 @@ def _is_num(x: Any) -> bool:
 
 
 def _validate(spec: JobSpec) -> None:
-    if not _is_num(spec.level):
+    if spec.level is None and not spec.levels and spec.labels is None:
+        raise BadParameter("a job needs a 'level' (threshold in the volume's units, e.g. HU).")
+    if spec.level is not None and not _is_num(spec.level):
         raise BadParameter(f"level must be a number in the volume's units, got {spec.level!r}.")
     sr = spec.sample_rate
     ok = _is_int(sr) or (isinstance(sr, tuple) and len(sr) == 3 and all(_is_int(s) for s in sr))
@@ -107,7 +156,9 @@ def _validate(spec: JobSpec) -> None:
         if not _is_num(getattr(spec, name)):
             raise BadParameter(f"{name} must be a number, got {getattr(spec, name)!r}.")
     if not 0.0 <= spec.reduce < 1.0:
-        raise BadParameter(f"reduce must be in [0, 1) (fraction removed, e.g. 0.9), got {spec.reduce!r}.")
+        raise BadParameter(
+            f"reduce must be in [0, 1) (fraction removed, e.g. 0.9), got {spec.reduce!r}."
+        )
     if not 0.0 < spec.error_bound <= spec.max_error:
         raise BadParameter(
             f"error_bound must be > 0 and <= max_error {spec.max_error!r}, got {spec.error_bound!r}."
@@ -115,6 +166,22 @@ def _validate(spec: JobSpec) -> None:
     bad = [f for f in spec.formats if f.lower().lstrip(".") not in WRITERS]
     if bad or not spec.formats:
         raise BadParameter(f"unknown output format(s) {bad}; choose from {', '.join(WRITERS)}.")
+    if spec.is_scene:
+        _validate_structures(spec)
+
+
+def _validate_structures(spec: JobSpec) -> None:
+    """The structure fields, checked as :class:`SceneOptions` checks them."""
+    if spec.levels is not None and not all(_is_num(v) for v in spec.levels):
+        raise BadParameter(f"levels must be numbers in the volume's units, got {spec.levels!r}.")
+    if spec.smooth is not None and not _is_int(spec.smooth):
+        raise BadParameter(f"smooth must be a whole number of iterations, got {spec.smooth!r}.")
+    if not _is_num(spec.min_size_mm3) or not _is_num(spec.passband):
+        raise BadParameter("min_size_mm3 and passband must be numbers.")
+    SceneOptions(
+        levels=spec.levels or (), labels=spec.labels, components=spec.components,
+        min_size_mm3=spec.min_size_mm3, smooth=spec.smooth, passband=spec.passband,
+    )  # fmt: skip
 
 
 @dataclass
@@ -125,8 +192,18 @@ class JobResult:
     report: DecimationReport
     artifacts: dict[str, bytes]
     seconds: dict[str, float]
+    scene: Scene | None = None  # set for a scene job; ``mesh`` then holds all parts merged
 
     def stats(self) -> dict[str, Any]:
+        if self.scene is not None:
+            return {
+                **self._mesh_stats(),
+                "parts": self.scene.summary(),
+                "notes": list(self.scene.notes),
+            }
+        return self._mesh_stats()
+
+    def _mesh_stats(self) -> dict[str, Any]:
         return {
             "triangles": self.mesh.n_triangles,
             "vertices": self.mesh.n_vertices,
@@ -158,8 +235,16 @@ def run(
     *,
     title: str | None = None,
     metadata: dict[str, str] | None = None,
+    label_map: Volume | None = None,
+    table: TableSpec = None,
 ) -> JobResult:
-    """Surface, decimate and encode ``volume`` as ``spec`` says; ``progress(stage, 0..1)``."""
+    """Surface, decimate and encode ``volume`` as ``spec`` says; ``progress(stage, 0..1)``.
+
+    A scene job (``spec.is_scene``, or a ``label_map`` laid over the volume) builds
+    a :class:`~miss.scene.Scene` instead, names and colours from ``table``.
+    """
+    if spec.is_scene or label_map is not None:
+        return _run_scene(volume, spec, progress or _no_progress, title, metadata, label_map, table)
     report_progress = progress or _no_progress
     seconds: dict[str, float] = {}
     t0 = time.perf_counter()
@@ -168,7 +253,9 @@ def run(
     seconds["surface"] = time.perf_counter() - t0
     report_progress("decimate", 0.35)
     t1 = time.perf_counter()
-    mesh, report = decimate(mesh, spec.decimate, spec.reduce, spec.error_bound, max_error=spec.max_error)
+    mesh, report = decimate(
+        mesh, spec.decimate, spec.reduce, spec.error_bound, max_error=spec.max_error
+    )
     seconds["decimate"] = time.perf_counter() - t1
     artifacts: dict[str, bytes] = {}
     t2 = time.perf_counter()
@@ -178,3 +265,36 @@ def run(
     seconds["write"] = time.perf_counter() - t2
     report_progress("done", 1.0)
     return JobResult(mesh=mesh, report=report, artifacts=artifacts, seconds=seconds)
+
+
+def _run_scene(
+    volume: Volume,
+    spec: JobSpec,
+    report_progress: Progress,
+    title: str | None,
+    metadata: dict[str, str] | None,
+    label_map: Volume | None,
+    table: TableSpec,
+) -> JobResult:
+    """The structures of ``volume`` (and ``label_map``) as one scene, encoded."""
+    report_progress("surface", 0.0)
+    built = build_scene(
+        volume, spec.scene_options(volume), label_map=label_map, table=table, title=title
+    )
+    seconds = dict(built.seconds)
+    artifacts: dict[str, bytes] = {}
+    t0 = time.perf_counter()
+    for i, fmt in enumerate(spec.formats):
+        report_progress("write", 0.7 + 0.3 * i / len(spec.formats))
+        artifacts[fmt.lower().lstrip(".")] = export(
+            built.scene, fmt, title=title, metadata=metadata
+        )
+    seconds["write"] = time.perf_counter() - t0
+    report_progress("done", 1.0)
+    return JobResult(
+        mesh=built.scene.merged(),
+        report=combined_report(built.reports),
+        artifacts=artifacts,
+        seconds=seconds,
+        scene=built.scene,
+    )

@@ -19,7 +19,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from miss.errors import BadParameter, EmptySurface, UnsupportedFormat
-from miss.export import gltf, obj, ply, stl, vrml, x3d
+from miss.export import _zip, gltf, obj, ply, stl, vrml, x3d
+from miss.scene import Scene
 from miss.types import Mesh
 
 
@@ -94,7 +95,7 @@ def mime_type(fmt: str) -> str:
 
 
 def export(
-    mesh: Mesh,
+    mesh: Mesh | Scene,
     fmt: str,
     *,
     title: str | None = None,
@@ -105,9 +106,11 @@ def export(
 
     Parameters
     ----------
-    mesh : Mesh
+    mesh : Mesh or Scene
         Vertices (N, 3) in patient LPS mm, faces (F, 3) counter-clockwise from
         outside; normals are computed (area-weighted) when ``mesh.normals`` is None.
+        A :class:`~miss.scene.Scene` goes to the format's scene writer
+        (``SCENE_WRITERS``): named, coloured parts; a zip for stl, ply and obj.
     fmt : str
         One of ``FORMATS``, with or without a dot, any case.
     title : str, optional
@@ -129,6 +132,8 @@ def export(
         raise BadParameter(
             f"Format {fmt!r} has no option {', '.join(sorted(unknown))}; it takes: {takes}."
         )
+    if isinstance(mesh, Scene):
+        return _export_scene(mesh, fmt, title, metadata, options)
     _check(mesh)
     return chosen.write(mesh, title=title, metadata=metadata, **options)
 
@@ -145,3 +150,46 @@ def _check(mesh: Mesh) -> None:
         raise ValueError(f"Mesh faces index vertices outside 0..{mesh.n_vertices - 1}.")
     if not np.isfinite(mesh.vertices).all():
         raise ValueError("Mesh vertices contain NaN or infinity.")
+
+
+#: Scene writers, same keys as ``WRITERS``. Formats that hold one uncoloured mesh
+#: (stl, ply) or need a side file (obj + mtl) write a zip with a ``scene.json``.
+SCENE_WRITERS: dict[str, Callable[..., bytes]] = {
+    "wrl": vrml.write_scene,
+    "wrz": vrml.write_scene_gzip,
+    "x3d": x3d.write_scene,
+    "glb": gltf.write_scene,
+    "stl": stl.write_scene,
+    "ply": ply.write_scene,
+    "obj": obj.write_scene,
+}
+
+#: Formats whose scene is a zip rather than one file of the format.
+ZIPPED_SCENES: frozenset[str] = frozenset({"stl", "ply", "obj"})
+
+
+def scene_mime_type(fmt: str) -> str:
+    """The Content-Type of a scene in ``fmt``: the format's own, or ``application/zip``."""
+    key = fmt.strip().lstrip(".").lower()
+    return _zip.MIME if key in ZIPPED_SCENES else writer(fmt).mime
+
+
+def _export_scene(
+    scene: Scene,
+    fmt: str,
+    title: str | None,
+    metadata: dict[str, str] | None,
+    options: dict[str, object],
+) -> bytes:
+    """Check every part as :func:`_check` does a mesh, then call the scene writer."""
+    if not scene.parts:
+        raise EmptySurface(
+            "Nothing to export: the scene has no parts (try other levels or labels)."
+        )
+    for part in scene.parts:
+        try:
+            _check(part.mesh)
+        except ValueError as exc:
+            raise type(exc)(f"part {part.name!r}: {exc}") from exc
+    key = fmt.strip().lstrip(".").lower()
+    return SCENE_WRITERS[key](scene, title=title, metadata=metadata, **options)

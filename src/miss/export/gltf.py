@@ -38,6 +38,7 @@ import numpy as np
 
 from miss.export.vrml import BONE_RGB, DEFAULT_TITLE
 from miss.geometry import vertex_normals
+from miss.scene import Part, Scene, linear_rgb
 from miss.types import Mesh
 
 # Rows: glTF X, Y, Z in LPS coordinates (see the module docstring).
@@ -354,3 +355,114 @@ def _glb(document: dict[str, Any], binary: bytes) -> bytes:
     json_chunk = np.array((len(text), _JSON_CHUNK), dtype=_CHUNK_HEADER).tobytes()
     bin_chunk = np.array((len(binary), _BIN_CHUNK), dtype=_CHUNK_HEADER).tobytes()
     return header + json_chunk + text + bin_chunk + binary
+
+
+# ------------------------------------------------------------------ scenes
+
+
+def write_scene(
+    scene: Scene,
+    *,
+    title: str | None = None,
+    metadata: dict[str, str] | None = None,
+    compress: bool = False,
+) -> bytes:
+    """Encode a :class:`~miss.scene.Scene` as binary glTF 2.0: one mesh and material per part.
+
+    Node, mesh and material carry the part's name. The material's base colour
+    is the part's colour made linear with its opacity as alpha; a translucent
+    part (opacity < 1) uses ``alphaMode: BLEND``. Each part node's ``extras``
+    (three.js ``userData``) hold ``label``, ``volume_ml`` and ``area_cm2``. The
+    root node carries ``FRAME`` as for a single mesh; ``compress`` as :func:`write`.
+    """
+    streams: list[_Stream] = []
+    matrices: list[np.ndarray | None] = []
+    for part in scene.parts:
+        mesh = part.mesh
+        normals = (
+            mesh.normals if mesh.normals is not None else vertex_normals(mesh.vertices, mesh.faces)
+        )
+        if compress:
+            part_streams, matrix = _quantized_streams(mesh.vertices, normals, mesh.faces)
+        else:
+            part_streams, matrix = _float_streams(mesh.vertices, normals, mesh.faces), None
+        streams += part_streams
+        matrices.append(matrix)
+    binary, buffers = _compressed_buffers(streams) if compress else _plain_buffers(streams)
+    document = {**_parts_document(scene, streams, matrices, title, metadata), **buffers}
+    if compress:
+        document["extensionsUsed"] = document["extensionsRequired"] = [_MESHOPT, _QUANTIZATION]
+    return _glb(document, binary)
+
+
+def _parts_document(
+    scene: Scene,
+    streams: list[_Stream],
+    matrices: list[np.ndarray | None],
+    title: str | None,
+    metadata: dict[str, str] | None,
+) -> dict[str, Any]:
+    """The JSON without buffers: three accessors, a mesh, a material and a node per part."""
+    accessors = [
+        {"bufferView": i, **s.accessor, "count": len(s.data)} for i, s in enumerate(streams)
+    ]
+    n = len(scene.parts)
+    root: dict[str, Any] = {
+        "name": "patient LPS mm to glTF m",
+        "matrix": _column_major(FRAME),
+        "children": list(range(1, n + 1)),
+        "extras": {"frame": "glTF +X = patient left, +Y = superior, +Z = anterior; data in mm"},
+    }
+    asset: dict[str, Any] = {"version": "2.0", "generator": "MISS (Medical Image Sharing System)"}
+    if metadata:
+        root["extras"]["provenance"] = {str(k): str(v) for k, v in metadata.items()}
+        asset["extras"] = {str(k): str(v) for k, v in metadata.items()}
+    meshes, nodes = [], [root]
+    for i, (part, matrix) in enumerate(zip(scene.parts, matrices, strict=True)):
+        primitive = {
+            "attributes": {"POSITION": 3 * i, "NORMAL": 3 * i + 1},
+            "indices": 3 * i + 2,
+            "material": i,
+            "mode": 4,
+        }
+        meshes.append({"name": part.name, "primitives": [primitive]})
+        nodes.append(_part_node(part, i, matrix))
+    return {
+        "asset": asset,
+        "scene": 0,
+        "scenes": [{"name": title or scene.title, "nodes": [0]}],
+        "nodes": nodes,
+        "meshes": meshes,
+        "materials": [_part_material(part) for part in scene.parts],
+        "accessors": accessors,
+    }
+
+
+def _part_node(part: Part, index: int, matrix: np.ndarray | None) -> dict[str, Any]:
+    """A part's node: name, mesh, measures in ``extras``, dequantisation when compressed."""
+    node: dict[str, Any] = {"name": part.name, "mesh": index}
+    if matrix is not None:
+        node["matrix"] = _column_major(matrix)
+    node["extras"] = {
+        "label": part.label,
+        "volume_ml": round(part.volume_ml, 4),
+        "area_cm2": round(part.area_cm2, 4),
+        "opacity": part.opacity,
+    }
+    return node
+
+
+def _part_material(part: Part) -> dict[str, Any]:
+    """PBR material in the part's colour (linear factors), blended when translucent."""
+    material: dict[str, Any] = {
+        "name": part.name,
+        "pbrMetallicRoughness": {
+            "baseColorFactor": [*linear_rgb(part.color), round(part.opacity, 4)],
+            "metallicFactor": 0.0,
+            "roughnessFactor": 0.6,
+        },
+        "doubleSided": False,
+    }
+    if part.opacity < 1.0:
+        material["alphaMode"] = "BLEND"
+    return material

@@ -9,7 +9,9 @@ from __future__ import annotations
 import numpy as np
 
 from miss.export._text import format_rows
+from miss.export._zip import manifest, zip_files
 from miss.geometry import vertex_normals
+from miss.scene import Scene, safe_names
 from miss.types import Mesh
 
 
@@ -48,3 +50,50 @@ def write(mesh: Mesh, *, title: str | None = None, metadata: dict[str, str] | No
             format_rows(indices, b"f {}//{} {}//{} {}//{}\n"),
         ]
     )
+
+
+def write_scene(
+    scene: Scene, *, title: str | None = None, metadata: dict[str, str] | None = None
+) -> bytes:
+    """A zip of ``scene.obj``, its ``scene.mtl`` and ``scene.json``.
+
+    One ``o``/``usemtl`` group per part (the part's name made one safe word),
+    vertex indices running on across parts. The MTL gives each part ``Kd`` (its
+    sRGB colour) and ``d`` (its opacity).
+    """
+    names = safe_names(scene.parts)
+    comments = [
+        "MISS scene; units mm; axes patient LPS (+x left, +y posterior, +z superior)",
+        f"title: {title or scene.title}",
+        *(f"{key}: {value}" for key, value in (metadata or {}).items()),
+    ]
+    head = "".join(f"# {' '.join(str(text).splitlines())}\n" for text in comments)
+    body = [(head + "mtllib scene.mtl\n").encode("utf-8")]
+    offset = 1  # OBJ indices are 1-based and global
+    for part, key in zip(scene.parts, names, strict=True):
+        mesh = part.mesh
+        normals = (
+            mesh.normals if mesh.normals is not None else vertex_normals(mesh.vertices, mesh.faces)
+        )
+        indices = mesh.faces[:, [0, 0, 1, 1, 2, 2]].astype(np.int64) + offset
+        body += [
+            f"o {key}\nusemtl {key}\n".encode(),
+            format_rows(mesh.vertices, b"v {} {} {}\n", 3),
+            format_rows(normals, b"vn {} {} {}\n", 4),
+            format_rows(indices, b"f {}//{} {}//{} {}//{}\n"),
+        ]
+        offset += mesh.n_vertices
+    listing = manifest(scene, ["scene.obj"] * len(names), title, metadata)
+    return zip_files(
+        [("scene.obj", b"".join(body)), ("scene.mtl", _mtl(scene, names)), ("scene.json", listing)]
+    )
+
+
+def _mtl(scene: Scene, names: list[str]) -> bytes:
+    """One ``newmtl`` per part: diffuse colour ``Kd`` and dissolve ``d`` (opacity)."""
+    blocks = [
+        f"newmtl {key}\nKa 0 0 0\nKd {part.color[0]:.4f} {part.color[1]:.4f} {part.color[2]:.4f}\n"
+        f"Ks 0.2 0.2 0.2\nNs 20\nd {part.opacity:.4f}\nillum 2\n"
+        for part, key in zip(scene.parts, names, strict=True)
+    ]
+    return ("# MISS scene materials\n" + "\n".join(blocks)).encode("utf-8")

@@ -8,7 +8,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from miss.export._zip import zip_parts
 from miss.geometry import vertex_normals
+from miss.scene import Scene
 from miss.types import Mesh
 
 # "<": the header says binary_little_endian, so the body is little-endian on any host.
@@ -70,3 +72,13 @@ def _header(mesh: Mesh, title: str | None, metadata: dict[str, str] | None) -> b
 def _one_line(text: str) -> str:
     """A header line ends at the first newline, so fold line breaks into spaces."""
     return " ".join(str(text).splitlines())
+
+
+def write_scene(
+    scene: Scene, *, title: str | None = None, metadata: dict[str, str] | None = None
+) -> bytes:
+    """A zip of one binary PLY per part (``01_<name>.ply`` ...) and ``scene.json``.
+
+    Each PLY's title comment is its part's name; colours are in the manifest.
+    """
+    return zip_parts(scene, write, "ply", title, metadata)

@@ -10,7 +10,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from miss.export._zip import zip_parts
 from miss.geometry import face_normals
+from miss.scene import Scene
 from miss.types import Mesh
 
 # "<" everywhere: STL is little-endian whatever the host; packed, no padding.
@@ -49,3 +51,13 @@ def _header(title: str | None) -> bytes:
     """80 bytes that never start with b"solid" (readers would take the file for ASCII STL)."""
     text = f"MISS binary STL, mm, LPS: {title or 'surface'}"
     return text.encode("ascii", "replace")[:80].ljust(80, b"\0")
+
+
+def write_scene(
+    scene: Scene, *, title: str | None = None, metadata: dict[str, str] | None = None
+) -> bytes:
+    """A zip of one binary STL per part (``01_<name>.stl`` ...) and ``scene.json``.
+
+    STL has no colour; the manifest carries each part's name, colour and opacity.
+    """
+    return zip_parts(scene, write, "stl", title, metadata)

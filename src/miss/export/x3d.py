@@ -14,9 +14,12 @@ from __future__ import annotations
 
 from xml.sax.saxutils import quoteattr
 
+import numpy as np
+
 from miss.export._text import format_rows
 from miss.export.vrml import BONE_RGB, DEFAULT_TITLE, viewpoint
 from miss.geometry import vertex_normals
+from miss.scene import Part, Scene, safe_names
 from miss.types import Mesh
 
 # Interchange is the smallest profile with IndexedTriangleSet and Viewpoint.
@@ -92,4 +95,64 @@ def _scene_opening(mesh: Mesh) -> str:
         "  <Shape>\n   <Appearance>\n"
         f'    <Material diffuseColor="{r} {g} {b}" specularColor="0.2 0.2 0.2" shininess="0.2"/>\n'
         "   </Appearance>\n"
+    )
+
+
+# ------------------------------------------------------------------ scenes
+
+
+def write_scene(
+    scene: Scene, *, title: str | None = None, metadata: dict[str, str] | None = None
+) -> bytes:
+    """Encode a :class:`~miss.scene.Scene` as X3D: one ``Shape`` per part.
+
+    Each shape is ``DEF``-named after its part (a valid XML id) with a
+    ``MetadataString name="part"`` holding the full name (and the label, when
+    there is one); its ``Material`` has the part's colour and ``1 - opacity`` as
+    ``transparency``. Title defaults to the scene's.
+    """
+    names = safe_names(scene.parts)
+    bounds = Mesh(scene.bounds().astype(np.float32), np.zeros((0, 3), dtype=np.int32))
+    position, orientation = viewpoint(bounds)
+    centre = " ".join(f"{c:.3f}" for c in bounds.bounds().mean(axis=0))
+    opening = (
+        _OPENING
+        + _head(title or scene.title, metadata)
+        + " <Scene>\n"
+        + '  <NavigationInfo type=\'"EXAMINE" "ANY"\'/>\n'
+        + f'  <Viewpoint description="Anterior" position="{position}"'
+        + f' orientation="{orientation}" centerOfRotation="{centre}"/>\n'
+    )
+    shapes = [_shape(part, key) for part, key in zip(scene.parts, names, strict=True)]
+    return b"".join([opening.encode("utf-8"), *shapes, b" </Scene>\n</X3D>\n"])
+
+
+def _shape(part: Part, key: str) -> bytes:
+    """``<Shape DEF=key>`` with the part's name as metadata, its material and triangles."""
+    mesh = part.mesh
+    normals = (
+        mesh.normals if mesh.normals is not None else vertex_normals(mesh.vertices, mesh.faces)
+    )
+    names = [part.name] if part.label is None else [part.name, f"label {part.label}"]
+    mfstring = " ".join('"' + n.replace("\\", "\\\\").replace('"', '\\"') + '"' for n in names)
+    r, g, b = (f"{c:.4f}" for c in part.color)
+    opening = (
+        f'  <Shape DEF="{key}">\n'
+        f'   <MetadataString containerField="metadata" name="part" value={quoteattr(mfstring)}/>\n'
+        "   <Appearance>\n"
+        f'    <Material diffuseColor="{r} {g} {b}" specularColor="0.2 0.2 0.2" shininess="0.2"'
+        f' transparency="{1.0 - part.opacity:.4f}"/>\n'
+        "   </Appearance>\n"
+        '    <IndexedTriangleSet solid="true" ccw="true" normalPerVertex="true" index="\n'
+    )
+    return b"".join(
+        [
+            opening.encode("utf-8"),
+            format_rows(mesh.faces, b"{} {} {}\n"),
+            b'">\n     <Coordinate point="\n',
+            format_rows(mesh.vertices, b"{} {} {}\n", 3),
+            b'"/>\n     <Normal vector="\n',
+            format_rows(normals, b"{} {} {}\n", 4),
+            b'"/>\n    </IndexedTriangleSet>\n   </Shape>\n',
+        ]
     )
