@@ -11,6 +11,7 @@ $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(PIP) install -q --upgrade pip
 	$(PIP) install -q -e '.[test]'
+	$(PY) -c "from miss._schroeder import warm_up; warm_up()"  # compile numba kernels once
 	touch $@
 
 $(VENV)/.bench-installed: $(VENV)/.installed

@@ -749,3 +749,22 @@ def schroeder_decimate(
         "reduction": 1.0 - len(new_faces) / len(work) if len(work) else 0.0,
     }
     return new_faces, info
+
+
+def warm_up() -> None:
+    """Compile (or load from numba's cache) every kernel once, on a small sphere.
+
+    ``make`` calls this after installing so that tests and the server's worker
+    processes load compiled code instead of racing to compile it at the same time.
+    """
+    import vtk
+    from vtk.util import numpy_support
+
+    source = vtk.vtkSphereSource()
+    source.SetThetaResolution(24)
+    source.SetPhiResolution(24)
+    source.Update()
+    poly = source.GetOutput()
+    pts = numpy_support.vtk_to_numpy(poly.GetPoints().GetData()).astype(np.float64)
+    faces = numpy_support.vtk_to_numpy(poly.GetPolys().GetConnectivityArray()).reshape(-1, 3)
+    schroeder_decimate(pts, faces.astype(np.int32), reduce=0.5, error_bound=0.01)
