@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from miss.types import Mesh
+
 
 def face_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """Unnormalised face normals, (F, 3) float64; length = 2 x triangle area."""
@@ -51,3 +53,10 @@ def boundary_edge_count(faces: np.ndarray) -> int:
     key = e[:, 0].astype(np.int64) * (int(faces.max()) + 1) + e[:, 1]
     _, counts = np.unique(key, return_counts=True)
     return int((counts == 1).sum())
+
+
+def mesh_normals(mesh: Mesh) -> np.ndarray:
+    """The mesh's own unit vertex normals, or area-weighted ones computed from its faces."""
+    if mesh.normals is not None:
+        return mesh.normals
+    return vertex_normals(mesh.vertices, mesh.faces)

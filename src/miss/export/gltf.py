@@ -37,7 +37,7 @@ import meshoptimizer
 import numpy as np
 
 from miss.export.vrml import BONE_RGB, DEFAULT_TITLE
-from miss.geometry import vertex_normals
+from miss.geometry import mesh_normals
 from miss.scene import Part, Scene, linear_rgb
 from miss.types import Mesh
 
@@ -94,9 +94,7 @@ def write(
     bytes
         A GLB file.
     """
-    normals = (
-        mesh.normals if mesh.normals is not None else vertex_normals(mesh.vertices, mesh.faces)
-    )
+    normals = mesh_normals(mesh)
     if compress:
         streams, mesh_matrix = _quantized_streams(mesh.vertices, normals, mesh.faces)
         binary, buffers = _compressed_buffers(streams)
@@ -379,9 +377,7 @@ def write_scene(
     matrices: list[np.ndarray | None] = []
     for part in scene.parts:
         mesh = part.mesh
-        normals = (
-            mesh.normals if mesh.normals is not None else vertex_normals(mesh.vertices, mesh.faces)
-        )
+        normals = mesh_normals(mesh)
         if compress:
             part_streams, matrix = _quantized_streams(mesh.vertices, normals, mesh.faces)
         else:

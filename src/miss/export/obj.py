@@ -10,7 +10,7 @@ import numpy as np
 
 from miss.export._text import format_rows
 from miss.export._zip import manifest, zip_files
-from miss.geometry import vertex_normals
+from miss.geometry import mesh_normals
 from miss.scene import Scene, safe_names
 from miss.types import Mesh
 
@@ -31,9 +31,7 @@ def write(mesh: Mesh, *, title: str | None = None, metadata: dict[str, str] | No
     bytes
         UTF-8 text; coordinates to 3 decimals (um), normals to 4.
     """
-    normals = (
-        mesh.normals if mesh.normals is not None else vertex_normals(mesh.vertices, mesh.faces)
-    )
+    normals = mesh_normals(mesh)
     comments = [
         "MISS surface; units mm; axes patient LPS (+x left, +y posterior, +z superior)",
         *(f"{key}: {value}" for key, value in (metadata or {}).items()),
@@ -72,9 +70,7 @@ def write_scene(
     offset = 1  # OBJ indices are 1-based and global
     for part, key in zip(scene.parts, names, strict=True):
         mesh = part.mesh
-        normals = (
-            mesh.normals if mesh.normals is not None else vertex_normals(mesh.vertices, mesh.faces)
-        )
+        normals = mesh_normals(mesh)
         indices = mesh.faces[:, [0, 0, 1, 1, 2, 2]].astype(np.int64) + offset
         body += [
             f"o {key}\nusemtl {key}\n".encode(),

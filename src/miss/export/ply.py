@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from miss.export._zip import zip_parts
-from miss.geometry import vertex_normals
+from miss.geometry import mesh_normals
 from miss.scene import Scene
 from miss.types import Mesh
 
@@ -35,9 +35,7 @@ def write(mesh: Mesh, *, title: str | None = None, metadata: dict[str, str] | No
     bytes
         ASCII header, then 24 N + 13 F bytes.
     """
-    normals = (
-        mesh.normals if mesh.normals is not None else vertex_normals(mesh.vertices, mesh.faces)
-    )
+    normals = mesh_normals(mesh)
     vertices = np.empty(mesh.n_vertices, dtype=_VERTEX)  # every field is written below
     for axis, name in enumerate("xyz"):
         vertices[name] = mesh.vertices[:, axis]

@@ -19,7 +19,7 @@ import math
 import numpy as np
 
 from miss.export._text import format_rows
-from miss.geometry import vertex_normals
+from miss.geometry import mesh_normals
 from miss.scene import Part, Scene, safe_names
 from miss.types import Mesh
 
@@ -46,18 +46,11 @@ def write(mesh: Mesh, *, title: str | None = None, metadata: dict[str, str] | No
         UTF-8 text; coordinates to 3 decimals (um), normals to 4. Data rows are
         not indented and use commas only as row ends: size is what the network pays.
     """
-    normals = (
-        mesh.normals if mesh.normals is not None else vertex_normals(mesh.vertices, mesh.faces)
-    )
+    normals = mesh_normals(mesh)
     return b"".join(
         [
             _header(mesh, title, metadata).encode("utf-8"),
-            format_rows(mesh.vertices, b"{} {} {},\n", 3),
-            b"    ] }\n    normal Normal { vector [\n",
-            format_rows(normals, b"{} {} {},\n", 4),
-            b"    ] }\n    coordIndex [\n",
-            format_rows(mesh.faces, b"{} {} {} -1,\n"),
-            b"    ]\n  }\n}\n",
+            _face_set_rows(mesh, normals),
         ]
     )
 
@@ -162,9 +155,7 @@ _NO_FACES = np.zeros((0, 3), dtype=np.int32)
 def _shape(part: Part, key: str) -> bytes:
     """One part as ``DEF key Shape``: material with its colour and transparency, geometry."""
     mesh = part.mesh
-    normals = (
-        mesh.normals if mesh.normals is not None else vertex_normals(mesh.vertices, mesh.faces)
-    )
+    normals = mesh_normals(mesh)
     r, g, b = (f"{c:.4f}" for c in part.color)
     label = f" (label {part.label})" if part.label is not None else ""
     comment = " ".join(f"{part.name}{label}".splitlines())
@@ -175,9 +166,13 @@ def _shape(part: Part, key: str) -> bytes:
         "  geometry IndexedFaceSet {\n    solid TRUE\n    ccw TRUE\n"
         "    normalPerVertex TRUE\n    coord Coordinate { point [\n"
     )
+    return opening.encode("utf-8") + _face_set_rows(mesh, normals)
+
+
+def _face_set_rows(mesh: Mesh, normals: np.ndarray) -> bytes:
+    """The data rows of an ``IndexedFaceSet`` opened by the caller, and its closing brackets."""
     return b"".join(
         [
-            opening.encode("utf-8"),
             format_rows(mesh.vertices, b"{} {} {},\n", 3),
             b"    ] }\n    normal Normal { vector [\n",
             format_rows(normals, b"{} {} {},\n", 4),

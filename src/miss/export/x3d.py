@@ -18,7 +18,7 @@ import numpy as np
 
 from miss.export._text import format_rows
 from miss.export.vrml import BONE_RGB, DEFAULT_TITLE, viewpoint
-from miss.geometry import vertex_normals
+from miss.geometry import mesh_normals
 from miss.scene import Part, Scene, safe_names
 from miss.types import Mesh
 
@@ -49,21 +49,8 @@ def write(mesh: Mesh, *, title: str | None = None, metadata: dict[str, str] | No
         triangle per line inside the attribute values (XML reads newlines there
         as spaces).
     """
-    normals = (
-        mesh.normals if mesh.normals is not None else vertex_normals(mesh.vertices, mesh.faces)
-    )
-    return b"".join(
-        [
-            (_OPENING + _head(title, metadata) + _scene_opening(mesh)).encode("utf-8"),
-            b'    <IndexedTriangleSet solid="true" ccw="true" normalPerVertex="true" index="\n',
-            format_rows(mesh.faces, b"{} {} {}\n"),
-            b'">\n     <Coordinate point="\n',
-            format_rows(mesh.vertices, b"{} {} {}\n", 3),
-            b'"/>\n     <Normal vector="\n',
-            format_rows(normals, b"{} {} {}\n", 4),
-            b'"/>\n    </IndexedTriangleSet>\n   </Shape>\n  </Scene>\n</X3D>\n',
-        ]
-    )
+    opening = _OPENING + _head(title, metadata) + _scene_opening(mesh)
+    return opening.encode("utf-8") + _triangle_set(mesh) + b"  </Scene>\n</X3D>\n"
 
 
 def _head(title: str | None, metadata: dict[str, str] | None) -> str:
@@ -129,10 +116,6 @@ def write_scene(
 
 def _shape(part: Part, key: str) -> bytes:
     """``<Shape DEF=key>`` with the part's name as metadata, its material and triangles."""
-    mesh = part.mesh
-    normals = (
-        mesh.normals if mesh.normals is not None else vertex_normals(mesh.vertices, mesh.faces)
-    )
     names = [part.name] if part.label is None else [part.name, f"label {part.label}"]
     mfstring = " ".join('"' + n.replace("\\", "\\\\").replace('"', '\\"') + '"' for n in names)
     r, g, b = (f"{c:.4f}" for c in part.color)
@@ -143,16 +126,20 @@ def _shape(part: Part, key: str) -> bytes:
         f'    <Material diffuseColor="{r} {g} {b}" specularColor="0.2 0.2 0.2" shininess="0.2"'
         f' transparency="{1.0 - part.opacity:.4f}"/>\n'
         "   </Appearance>\n"
-        '    <IndexedTriangleSet solid="true" ccw="true" normalPerVertex="true" index="\n'
     )
+    return opening.encode("utf-8") + _triangle_set(part.mesh)
+
+
+def _triangle_set(mesh: Mesh) -> bytes:
+    """``<IndexedTriangleSet>`` with coordinates and normals, and the closing ``</Shape>``."""
     return b"".join(
         [
-            opening.encode("utf-8"),
+            b'    <IndexedTriangleSet solid="true" ccw="true" normalPerVertex="true" index="\n',
             format_rows(mesh.faces, b"{} {} {}\n"),
             b'">\n     <Coordinate point="\n',
             format_rows(mesh.vertices, b"{} {} {}\n", 3),
             b'"/>\n     <Normal vector="\n',
-            format_rows(normals, b"{} {} {}\n", 4),
+            format_rows(mesh_normals(mesh), b"{} {} {}\n", 4),
             b'"/>\n    </IndexedTriangleSet>\n   </Shape>\n',
         ]
     )
