@@ -19,18 +19,13 @@ def miss(*args: str, check: bool = True) -> subprocess.CompletedProcess[str]:
     return proc
 
 
-@pytest.fixture(scope="module")
-def demo_file(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    path = tmp_path_factory.mktemp("demo") / "head.nii.gz"
-    miss("demo", str(path))
-    return path
-
-
 def test_info_json_describes_the_volume(demo_file: Path) -> None:
     info = json.loads(miss("info", str(demo_file), "--json").stdout)
     assert info["dims"] == [128, 128, 128]
     assert info["spacing"] == pytest.approx([1.5, 1.5, 1.5])
-    assert len(info["affine"]) == 4 and info["affine"][0][0] == pytest.approx(1.5)  # LPS, x to the left
+    assert len(info["affine"]) == 4 and info["affine"][0][0] == pytest.approx(
+        1.5
+    )  # LPS, x to the left
     assert info["range"][0] <= -900 and info["range"][1] >= 1000
     assert set(info) >= {"dims", "spacing", "affine", "dtype", "range", "modality", "series"}
 
@@ -55,7 +50,9 @@ def test_start_and_end_slice_cut_the_model(demo_file: Path, tmp_path: Path) -> N
     base = ["convert", str(demo_file), "--level", "300", "--decimate", "none", "--json"]
     full = json.loads(miss(*base, "-o", str(tmp_path / "a.stl")).stdout)
     half = json.loads(
-        miss(*base, "--start-slice", "64", "--end-slice", "128", "-o", str(tmp_path / "b.stl")).stdout
+        miss(
+            *base, "--start-slice", "64", "--end-slice", "128", "-o", str(tmp_path / "b.stl")
+        ).stdout
     )
     assert 0.3 * full["triangles"] < half["triangles"] < 0.8 * full["triangles"]
 
@@ -66,8 +63,21 @@ def test_start_and_end_slice_cut_the_model(demo_file: Path, tmp_path: Path) -> N
         (["info", "/no/such/scan"], "no such file"),
         (["convert", "{demo}", "--level", "300", "-o", "{tmp}/x.dxf"], "unknown output extension"),
         (["convert", "{demo}", "--level", "99999", "-o", "{tmp}/x.stl"], "no surface at level"),
-        (["convert", "{demo}", "--level", "300", "--start-slice", "100", "--end-slice", "400",
-          "-o", "{tmp}/x.stl"], "outside 1..128"),
+        (
+            [
+                "convert",
+                "{demo}",
+                "--level",
+                "300",
+                "--start-slice",
+                "100",
+                "--end-slice",
+                "400",
+                "-o",
+                "{tmp}/x.stl",
+            ],
+            "outside 1..128",
+        ),
         (["convert", "{demo}", "--level", "300", "--reduce", "1.5", "-o", "{tmp}/x.stl"], "reduce"),
         (["convert", "{truncated}", "--level", "300", "-o", "{tmp}/x.stl"], "truncated.nii.gz"),
         (["convert", "{demo}", "-o", "{tmp}/x.stl"], "--level"),
@@ -93,7 +103,16 @@ def test_bad_input_gives_one_line_and_exit_2(
 def test_cthead_bone_gives_about_545k_triangles(datasets: Path, tmp_path: Path) -> None:
     out = tmp_path / "cthead.stl"
     stats = json.loads(
-        miss("convert", str(datasets / "ct_head_stanford_cthead" / "CThead.nhdr"), "--level", "1500",
-             "--decimate", "none", "--json", "-o", str(out)).stdout
+        miss(
+            "convert",
+            str(datasets / "ct_head_stanford_cthead" / "CThead.nhdr"),
+            "--level",
+            "1500",
+            "--decimate",
+            "none",
+            "--json",
+            "-o",
+            str(out),
+        ).stdout
     )
     assert stats["triangles"] == pytest.approx(545_000, rel=0.03)

@@ -6,30 +6,14 @@ import io
 import json
 import math
 import shutil
-import subprocess
-import sys
 import zipfile
 from pathlib import Path
 
 import pytest
 import trimesh
 
-
-def miss(*args: str, check: bool = True) -> subprocess.CompletedProcess[str]:
-    proc = subprocess.run(
-        [sys.executable, "-m", "miss.cli", *args], capture_output=True, text=True, timeout=600
-    )
-    if check:
-        assert proc.returncode == 0, proc.stderr
-    return proc
-
-
-@pytest.fixture(scope="module")
-def demo_file(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """The phantom: skin -500 HU, skull 1100 HU, a 6 mm lesion of 400 HU inside the brain."""
-    path = tmp_path_factory.mktemp("demo") / "head.nii.gz"
-    miss("demo", str(path))
-    return path
+# the same subprocess runner as the core CLI tests
+from test_cli import miss
 
 
 def test_two_levels_give_translucent_skin_and_opaque_bone(demo_file: Path, tmp_path: Path) -> None:
