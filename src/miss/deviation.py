@@ -2,16 +2,27 @@
 
 Used to report what a decimation really did, not just the bound it was given:
 points are sampled on each surface (its vertices plus random points inside its
-triangles) and their exact distance to the other surface is taken with VTK's
-point-to-triangle distance (``vtkImplicitPolyDataDistance``), both ways.
+triangles) and their exact distance to the other surface is taken, both ways.
+
+The distances are exact: triangles are binned into a uniform grid of cells (by their
+bounding boxes) and each query searches cubic rings of cells outwards from its own,
+skipping cells whose box is farther than the best triangle so far, and stopping once a
+whole ring lies beyond it (Ericson's closest-point-on-triangle for each candidate). Queries
+run in parallel (numba) in grid order, so neighbouring queries share cached triangles.
+Against ``vtkImplicitPolyDataDistance``, used before: about 8x faster on a 800 k-triangle
+CT surface, no copies of the meshes, and right where VTK was not (on a surface with
+zero-area triangles it put 30 of the surface's own vertices up to 2.1 mm away from it);
+checked against brute force in the tests.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 import vtk
+from numba import njit, prange
 from vtk.util import numpy_support
 
 from miss.types import Mesh
@@ -29,12 +40,16 @@ class Deviation:
 def to_polydata(vertices: np.ndarray, faces: np.ndarray) -> vtk.vtkPolyData:
     """vtkPolyData of a triangle mesh (deep copies, safe to keep)."""
     pts = vtk.vtkPoints()
-    pts.SetData(numpy_support.numpy_to_vtk(np.ascontiguousarray(vertices, dtype=np.float64), deep=True))
+    pts.SetData(
+        numpy_support.numpy_to_vtk(np.ascontiguousarray(vertices, dtype=np.float64), deep=True)
+    )
     offsets = np.arange(0, 3 * len(faces) + 1, 3, dtype=np.int64)
     cells = vtk.vtkCellArray()
     cells.SetData(
         numpy_support.numpy_to_vtkIdTypeArray(offsets, deep=True),
-        numpy_support.numpy_to_vtkIdTypeArray(np.ascontiguousarray(faces, dtype=np.int64).ravel(), deep=True),
+        numpy_support.numpy_to_vtkIdTypeArray(
+            np.ascontiguousarray(faces, dtype=np.int64).ravel(), deep=True
+        ),
     )
     poly = vtk.vtkPolyData()
     poly.SetPoints(pts)
@@ -45,29 +60,226 @@ def to_polydata(vertices: np.ndarray, faces: np.ndarray) -> vtk.vtkPolyData:
 def sample_surface(mesh: Mesh, count: int, rng: np.random.Generator) -> np.ndarray:
     """(count, 3) points: all vertices used by faces (subsampled if too many) plus area-weighted
     random points inside triangles, so both corners and flat interiors are checked."""
-    v = mesh.vertices.astype(np.float64)
-    used = np.unique(mesh.faces)
-    corners = v[rng.choice(used, size=min(len(used), count // 2), replace=False)]
-    tri = v[mesh.faces]
-    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    used = np.zeros(mesh.n_vertices, dtype=bool)
+    used[mesh.faces.ravel()] = True  # a mask, not np.unique: no sort of 3 F indices
+    used_idx = np.flatnonzero(used)
+    corners = mesh.vertices[
+        rng.choice(used_idx, size=min(len(used_idx), count // 2), replace=False)
+    ]
     n_inner = count - len(corners)
-    pick = rng.choice(len(tri), size=n_inner, p=area / area.sum())
+    # cumsum + searchsorted is what choice(p=) does underneath, without its O(F) checks
+    cum = np.cumsum(_double_areas(mesh.vertices, mesh.faces))
+    pick = np.searchsorted(cum, rng.random(n_inner) * cum[-1], side="right")
+    pick = np.minimum(pick, len(cum) - 1)
     r1, r2 = rng.random(n_inner), rng.random(n_inner)
     flip = r1 + r2 > 1
     r1[flip], r2[flip] = 1 - r1[flip], 1 - r2[flip]
-    t = tri[pick]
-    inner = t[:, 0] + r1[:, None] * (t[:, 1] - t[:, 0]) + r2[:, None] * (t[:, 2] - t[:, 0])
-    return np.concatenate([corners, inner])
+    a, b, c = (mesh.vertices[mesh.faces[pick, i]].astype(np.float64) for i in range(3))
+    inner = a + r1[:, None] * (b - a) + r2[:, None] * (c - a)
+    return np.concatenate([corners.astype(np.float64), inner])
+
+
+@njit(cache=True, parallel=True)
+def _double_areas(verts, faces):
+    """Twice the area of each triangle, float64, without (F, 3) gathers of the corners."""
+    out = np.empty(len(faces))
+    for f in prange(len(faces)):
+        a, b, c = verts[faces[f, 0]], verts[faces[f, 1]], verts[faces[f, 2]]
+        ux, uy, uz = float(b[0]) - a[0], float(b[1]) - a[1], float(b[2]) - a[2]
+        vx, vy, vz = float(c[0]) - a[0], float(c[1]) - a[1], float(c[2]) - a[2]
+        nx, ny, nz = uy * vz - uz * vy, uz * vx - ux * vz, ux * vy - uy * vx
+        out[f] = math.sqrt(nx * nx + ny * ny + nz * nz)
+    return out
+
+
+@njit(cache=True, inline="always")
+def _dot(ax, ay, az, bx, by, bz):
+    return ax * bx + ay * by + az * bz
+
+
+@njit(cache=True)
+def _point_segment_sq(p, a, b):
+    """Squared distance from p to segment ab (a point when a == b)."""
+    abx, aby, abz = b[0] - a[0], b[1] - a[1], b[2] - a[2]
+    apx, apy, apz = p[0] - a[0], p[1] - a[1], p[2] - a[2]
+    length2 = _dot(abx, aby, abz, abx, aby, abz)
+    t = 0.0 if length2 == 0.0 else min(max(_dot(abx, aby, abz, apx, apy, apz) / length2, 0.0), 1.0)
+    qx, qy, qz = apx - t * abx, apy - t * aby, apz - t * abz
+    return _dot(qx, qy, qz, qx, qy, qz)
+
+
+@njit(cache=True)
+def _point_triangle_sq(p, a, b, c):
+    """Squared distance from p to triangle abc (Ericson, Real-Time Collision Detection 5.1.5)."""
+    abx, aby, abz = b[0] - a[0], b[1] - a[1], b[2] - a[2]
+    acx, acy, acz = c[0] - a[0], c[1] - a[1], c[2] - a[2]
+    nx, ny, nz = aby * acz - abz * acy, abz * acx - abx * acz, abx * acy - aby * acx
+    scale = _dot(abx, aby, abz, abx, aby, abz) * _dot(acx, acy, acz, acx, acy, acz)
+    if _dot(nx, ny, nz, nx, ny, nz) <= 1e-24 * scale or scale == 0.0:
+        # a sliver or a point: the region tests below would divide by zero
+        return min(
+            _point_segment_sq(p, a, b), _point_segment_sq(p, b, c), _point_segment_sq(p, c, a)
+        )
+    apx, apy, apz = p[0] - a[0], p[1] - a[1], p[2] - a[2]
+    d1, d2 = _dot(abx, aby, abz, apx, apy, apz), _dot(acx, acy, acz, apx, apy, apz)
+    if d1 <= 0.0 and d2 <= 0.0:
+        return _dot(apx, apy, apz, apx, apy, apz)
+    bpx, bpy, bpz = p[0] - b[0], p[1] - b[1], p[2] - b[2]
+    d3, d4 = _dot(abx, aby, abz, bpx, bpy, bpz), _dot(acx, acy, acz, bpx, bpy, bpz)
+    if d3 >= 0.0 and d4 <= d3:
+        return _dot(bpx, bpy, bpz, bpx, bpy, bpz)
+    cpx, cpy, cpz = p[0] - c[0], p[1] - c[1], p[2] - c[2]
+    d5, d6 = _dot(abx, aby, abz, cpx, cpy, cpz), _dot(acx, acy, acz, cpx, cpy, cpz)
+    if d6 >= 0.0 and d5 <= d6:
+        return _dot(cpx, cpy, cpz, cpx, cpy, cpz)
+    vc, vb, va = d1 * d4 - d3 * d2, d5 * d2 - d1 * d6, d3 * d6 - d5 * d4
+    if vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0:
+        s, t = d1 / (d1 - d3), 0.0
+    elif vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0:
+        s, t = 0.0, d2 / (d2 - d6)
+    elif va <= 0.0 and (d4 - d3) >= 0.0 and (d5 - d6) >= 0.0:
+        w = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+        s, t = 1.0 - w, w
+    else:
+        denom = va + vb + vc
+        s, t = vb / denom, vc / denom
+    qx, qy, qz = apx - s * abx - t * acx, apy - s * aby - t * acy, apz - s * abz - t * acz
+    return _dot(qx, qy, qz, qx, qy, qz)
+
+
+def _grid_shape(verts: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
+    """Origin, cell size (mm) and cell counts of a uniform grid over the mesh's bounding box.
+
+    Cells about twice the median edge hold a few triangles each; the floor on the size keeps
+    the number of cells within about twice the number of triangles whatever the mesh's shape.
+    """
+    lo, hi = verts.min(axis=0).astype(np.float64), verts.max(axis=0).astype(np.float64)
+    some = faces[:: max(1, len(faces) // 100_000)]  # a median needs no million edges
+    edge = np.linalg.norm(verts[some[:, 0]].astype(np.float64) - verts[some[:, 1]], axis=1)
+    extent = np.maximum(hi - lo, 1e-9)
+    floor = float(np.prod(extent) / max(2 * len(faces), 1)) ** (1 / 3)
+    cell = max(2.0 * float(np.median(edge)), floor, 1e-9)
+    dims = np.maximum(np.ceil(extent / cell).astype(np.int64), 1)
+    return lo, cell, dims
+
+
+@njit(cache=True)
+def _cell_range(verts, face, lo, cell, dims, axis):
+    """First and last cell index along ``axis`` met by the triangle's bounding box."""
+    a, b, c = verts[face[0], axis], verts[face[1], axis], verts[face[2], axis]
+    first = int((min(a, b, c) - lo[axis]) / cell)
+    last = int((max(a, b, c) - lo[axis]) / cell)
+    return max(0, min(first, dims[axis] - 1)), max(0, min(last, dims[axis] - 1))
+
+
+@njit(cache=True)
+def _build_grid(verts, faces, lo, cell, dims):
+    """CSR lists of the triangles whose bounding box meets each cell: (offsets, items).
+
+    Two passes over the triangles (count, then fill) instead of sorting (cell, triangle) pairs.
+    """
+    offsets = np.zeros(dims[0] * dims[1] * dims[2] + 1, dtype=np.int64)
+    items = np.empty(0, dtype=np.int32)
+    cursor = np.empty(0, dtype=np.int64)
+    for fill in (False, True):
+        if fill:
+            offsets = np.cumsum(offsets)
+            items = np.empty(offsets[-1], dtype=np.int32)
+            cursor = offsets[:-1].copy()
+        for f in range(len(faces)):
+            i0, i1 = _cell_range(verts, faces[f], lo, cell, dims, 0)
+            j0, j1 = _cell_range(verts, faces[f], lo, cell, dims, 1)
+            k0, k1 = _cell_range(verts, faces[f], lo, cell, dims, 2)
+            for k in range(k0, k1 + 1):
+                for j in range(j0, j1 + 1):
+                    for i in range(i0, i1 + 1):
+                        c = (k * dims[1] + j) * dims[0] + i
+                        if fill:
+                            items[cursor[c]] = f
+                            cursor[c] += 1
+                        else:
+                            offsets[c + 1] += 1
+    return offsets, items
+
+
+@njit(cache=True)
+def _visit(p, i, j, k, best, grid):
+    """Smaller of ``best`` and the squared distance from p to the triangles of cell (i, j, k)."""
+    lo, cell, dims, offsets, items, verts, faces = grid
+    if i < 0 or j < 0 or k < 0 or i >= dims[0] or j >= dims[1] or k >= dims[2]:
+        return best
+    gap = 0.0  # squared distance from p to the cell's box: skip cells that cannot do better
+    for axis, idx in ((0, i), (1, j), (2, k)):
+        below = lo[axis] + idx * cell - p[axis]
+        above = p[axis] - (lo[axis] + (idx + 1) * cell)
+        gap += max(below, above, 0.0) ** 2
+    if gap >= best:
+        return best
+    c = (k * dims[1] + j) * dims[0] + i
+    for n in range(offsets[c], offsets[c + 1]):
+        f = items[n]
+        best = min(
+            best, _point_triangle_sq(p, verts[faces[f, 0]], verts[faces[f, 1]], verts[faces[f, 2]])
+        )
+    return best
+
+
+@njit(cache=True)
+def _ring(p, ci, cj, ck, r, best, grid):
+    """Visit the cells on the surface of the cube of Chebyshev radius r around (ci, cj, ck)."""
+    for dk in range(-r, r + 1):
+        for dj in range(-r, r + 1):
+            if abs(dk) == r or abs(dj) == r:
+                for di in range(-r, r + 1):
+                    best = _visit(p, ci + di, cj + dj, ck + dk, best, grid)
+            else:
+                best = _visit(p, ci - r, cj + dj, ck + dk, best, grid)
+                if r > 0:
+                    best = _visit(p, ci + r, cj + dj, ck + dk, best, grid)
+    return best
+
+
+@njit(cache=True, parallel=True)
+def _grid_distances(points, grid):
+    """Exact distance from each point to the nearest triangle, searching rings of cells outwards.
+
+    Every cell on ring r is at least r - 1 cells away from the point, so the search stops once
+    the best distance is within that.
+    """
+    lo, cell, dims = grid[0], grid[1], grid[2]
+    out = np.empty(len(points))
+    for n in prange(len(points)):
+        p = points[n]
+        ci = max(0, min(int((p[0] - lo[0]) / cell), dims[0] - 1))
+        cj = max(0, min(int((p[1] - lo[1]) / cell), dims[1] - 1))
+        ck = max(0, min(int((p[2] - lo[2]) / cell), dims[2] - 1))
+        best = np.inf
+        for r in range(max(dims[0], dims[1], dims[2]) + 2):
+            reach = max(r - 1, 0) * cell
+            if best <= reach * reach:
+                break
+            best = _ring(p, ci, cj, ck, r, best, grid)
+        out[n] = math.sqrt(best)
+    return out
 
 
 def distances_to(points: np.ndarray, mesh: Mesh) -> np.ndarray:
     """Unsigned distance in mm from each of (P, 3) points to the surface of ``mesh``."""
-    implicit = vtk.vtkImplicitPolyDataDistance()
-    implicit.SetInput(to_polydata(mesh.vertices, mesh.faces))
-    src = numpy_support.numpy_to_vtk(np.ascontiguousarray(points, dtype=np.float64), deep=True)
-    out = vtk.vtkDoubleArray()
-    implicit.FunctionValue(src, out)
-    return np.abs(numpy_support.vtk_to_numpy(out))
+    pts = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
+    # float32 vertices and int32 faces as they are (the kernels compute in float64): no copies
+    verts = np.ascontiguousarray(mesh.vertices)
+    faces = np.ascontiguousarray(mesh.faces)
+    if len(faces) == 0:
+        return np.full(len(pts), np.inf)
+    lo, cell, dims = _grid_shape(verts, faces)
+    offsets, items = _build_grid(verts, faces, lo, cell, dims)
+    # neighbouring queries touch the same triangles: visiting them in cell order keeps the
+    # triangles in cache (3x faster on a 1M-triangle mesh)
+    key = np.floor((pts - lo) / cell).astype(np.int64)
+    order = np.lexsort((key[:, 0], key[:, 1], key[:, 2]))
+    out = np.empty(len(pts))
+    out[order] = _grid_distances(pts[order], (lo, cell, dims, offsets, items, verts, faces))
+    return out
 
 
 def deviation(a: Mesh, b: Mesh, samples: int = 100_000, seed: int = 0) -> Deviation:

@@ -3,20 +3,29 @@
 The surface is computed on the voxel index grid and mapped through the volume's
 affine afterwards. Linear interpolation along cube edges commutes with affine maps,
 so this is exact for sheared (gantry-tilted) and oblique grids alike.
+
+Memory: the region is padded (so that cut surfaces close) and contoured slab by slab
+along the third axis, each slab a small padded copy with one context plane beyond each
+seam; the slabs' meshes are welded on the seams. The result is the one a single run over
+the whole padded region gives (same triangles and normals), without a second copy of the
+volume or VTK's whole-volume working arrays: the peak stays near the volume plus the mesh.
 """
 
 from __future__ import annotations
 
+import os
 from collections.abc import Sequence
 
 import numpy as np
 import vtk
+from numba import njit, prange
 from vtk.util import numpy_support
 
 from miss.errors import BadParameter, EmptySurface
 from miss.types import Mesh, Volume
 
 SampleRate = int | Sequence[int]
+_Arrays = tuple[np.ndarray, np.ndarray, np.ndarray]  # vertices, faces, normals
 Roi = Sequence[int]  # (i0, i1, j0, j1, k0, k1), 0-based, inclusive
 
 
@@ -77,21 +86,190 @@ def polydata_to_arrays(poly: vtk.vtkPolyData) -> tuple[np.ndarray, np.ndarray]:
     return pts, conn.reshape(-1, 3).astype(np.int32)
 
 
-def _pad_below(block: np.ndarray, level: float, span: float) -> np.ndarray:
-    """Surround the block by one voxel far below the level so cut surfaces close (capped).
-
-    The pad is very low so the cap's vertices, interpolated towards it, land within a
-    few hundredths of a voxel of the last chosen slice rather than half a voxel beyond.
-    """
-    dtype = block.dtype
+def _pad_value(dtype: np.dtype, level: float, span: float) -> tuple[np.dtype, float]:
+    """(dtype, value) of the pad: very low, so that the cap's vertices, interpolated towards
+    it, land within a few hundredths of a voxel of the last chosen slice rather than half a
+    voxel beyond. Integer data keeps its type when its minimum is below the level."""
     if np.issubdtype(dtype, np.integer) and np.iinfo(dtype).min < level:
-        low: float = float(np.iinfo(dtype).min)
-    else:
-        dtype = np.dtype(np.float32)
-        low = level - 1e3 * max(span, 1.0)
+        return dtype, float(np.iinfo(dtype).min)
+    return np.dtype(np.float32), level - 1e3 * max(span, 1.0)
+
+
+def _pad_below(block: np.ndarray, level: float, span: float) -> np.ndarray:
+    """Surround the block by one voxel far below the level so cut surfaces close (capped)."""
+    dtype, low = _pad_value(block.dtype, level, span)
     out = np.full(tuple(s + 2 for s in block.shape), low, dtype=dtype, order="F")
     out[1:-1, 1:-1, 1:-1] = block
     return out
+
+
+# Slabs of about this many voxels bound the padded copy and VTK's output (int64 triangles
+# and a byte per voxel of edge cases) to a fraction of the volume: the peak stays near the
+# volume's own bytes plus the mesh.
+_SLAB_VOXELS = 4_000_000
+
+
+def _seam_planes(block: np.ndarray, level: float) -> list[int]:
+    """Planes (third axis) where the surface is cut into slabs, about ``_SLAB_VOXELS`` apart.
+
+    A seam plane holds no voxel exactly at the level, so every vertex on it comes from an
+    edge lying in the plane and is found, bit for bit the same, by the slabs on both sides.
+    """
+    nz = block.shape[2]
+    depth = max(4, _SLAB_VOXELS // max(1, block.shape[0] * block.shape[1]))
+    seams: list[int] = []
+    for ideal in range(depth, nz - depth // 2, depth):
+        for k in sorted(
+            range(ideal - depth // 4, ideal + depth // 4 + 1), key=lambda k: abs(k - ideal)
+        ):
+            if seams and k <= seams[-1] + 2 or not 1 <= k <= nz - 2:
+                continue
+            if not (block[:, :, k] == level).any():
+                seams.append(k)
+                break
+    return seams
+
+
+def _slab(block: np.ndarray, first: int, last: int, pad: tuple[np.dtype, float]) -> np.ndarray:
+    """Planes ``first..last`` of the block (-1 and nz stand for the pad) with the pad ring."""
+    nx, ny, nz = block.shape
+    out = np.full((nx + 2, ny + 2, last - first + 1), pad[1], dtype=pad[0], order="F")
+    lo, hi = max(first, 0), min(last, nz - 1)
+    out[1:-1, 1:-1, lo - first : hi - first + 1] = block[:, :, lo : hi + 1]
+    return out
+
+
+def _contour_level(dtype: np.dtype, level: float) -> float:
+    """The value flying edges contours: ``level``, or a quarter below a whole-number level on
+    integer data.
+
+    Flying edges counts a voxel at or above the value as inside, and no integer lies between
+    level - 1/4 and level, so inside and outside stay exactly as asked. What changes is that
+    no vertex lands exactly on a voxel any more (t = 0 or 1 when a voxel equals the level):
+    no coincident vertices, no zero-length edges, and every slab seam can be welded. A
+    vertex moves by a quarter of a grey level over its edge's rise, 1/1000 voxel for a rise
+    of 250.
+    """
+    if np.issubdtype(dtype, np.integer) and float(level).is_integer():
+        return float(level) - 0.25
+    return float(level)
+
+
+class _SeamMismatch(Exception):
+    """Two slabs disagree on a seam's vertices (float data at a knife's edge): don't weld."""
+
+
+def _surface_whole(block: np.ndarray, level: float, span: float) -> _Arrays:
+    """One padded copy, one flying-edges run; vertices in block index coordinates."""
+    verts, faces, normals = _flying_edges(_pad_below(block, level, span), level)
+    verts -= np.float32(1.0)  # the pad shifted every index by one
+    return verts, faces, normals
+
+
+def _surface_in_slabs(block: np.ndarray, level: float, span: float) -> _Arrays:
+    """The padded block's surface, made slab by slab and welded along the seams.
+
+    Each slab is copied with one context plane beyond each inner seam, so that the gradient
+    normals on the seam are central differences as in one run over the whole block, and
+    only the triangles of its own cells are kept. The result equals the whole block's (the
+    same triangles, in another order); without a usable seam it *is* the whole-block run.
+    """
+    seams = _seam_planes(block, level)
+    if not seams:
+        return _surface_whole(block, level, span)
+    pad, bounds = _pad_value(block.dtype, level, span), [-1, *seams, block.shape[2]]
+    welder = _Welder()
+    for j in range(len(bounds) - 1):
+        inner_lo, inner_hi = j > 0, j < len(bounds) - 2
+        first = bounds[j] - 1 if inner_lo else -1
+        last = bounds[j + 1] + 1 if inner_hi else block.shape[2]
+        verts, faces, normals = _flying_edges(_slab(block, first, last, pad), level)
+        # seams in the slab's own (small) coordinates, where float32 still tells a vertex
+        # a hair off the seam plane from one on it
+        z_lo = bounds[j] - first if inner_lo else -np.inf
+        z_hi = bounds[j + 1] - first if inner_hi else np.inf
+        # context-layer triangles have a vertex beyond the seam: a marching-cubes triangle
+        # never lies flat in a cell face, so each cell keeps exactly its own triangles
+        beyond = (verts[:, 2] < z_lo) | (verts[:, 2] > z_hi)
+        try:
+            welder.add(verts, faces, normals, beyond, (z_lo, z_hi))
+        except _SeamMismatch:
+            return _surface_whole(block, level, span)
+        welder.parts[-1][0][:] += np.array([-1.0, -1.0, first], dtype=np.float32)
+    return welder.result()
+
+
+class _Welder:
+    """Concatenates slab meshes, giving a seam's vertices the ids they got in the slab below."""
+
+    def __init__(self) -> None:
+        self.parts: list[_Arrays] = []
+        self.count = 0
+        self.seam_xy = np.zeros((0, 2), dtype=np.float32)
+        self.seam_ids = np.zeros(0, dtype=np.int64)
+
+    def add(
+        self,
+        verts: np.ndarray,
+        faces: np.ndarray,
+        normals: np.ndarray,
+        beyond: np.ndarray,
+        seams: tuple[float, float],
+    ) -> None:
+        """Append one slab: triangles with a vertex ``beyond`` its seams are dropped, the
+        vertices on its lower seam take their ids from the slab below."""
+        ids = np.full(len(verts), -1, dtype=np.int64)
+        if np.isfinite(seams[0]):
+            below, xy = _seam_vertices(verts, seams[0])
+            if not np.array_equal(xy, self.seam_xy):
+                raise _SeamMismatch
+            ids[below] = self.seam_ids
+        kept, order = _keep_and_number(faces, beyond, ids, self.count)
+        self.count += len(order)
+        if np.isfinite(seams[1]):
+            above, self.seam_xy = _seam_vertices(verts, seams[1])
+            self.seam_ids = ids[above]
+        self.parts.append((verts[order], kept, normals[order]))
+
+    def result(self) -> _Arrays:
+        verts, faces, normals = (np.concatenate([p[i] for p in self.parts]) for i in range(3))
+        self.parts.clear()
+        return verts, faces, normals
+
+
+@njit(cache=True)
+def _keep_and_number(faces, beyond, ids, start):
+    """Faces without a vertex ``beyond``, renumbered: vertices with an id (from the seam
+    below) keep it, the others get start, start + 1, ... in first-use order. Returns the
+    faces (int32) and the local indices of the newly numbered vertices; fills ``ids``."""
+    out = np.empty(faces.shape, dtype=np.int32)
+    order = np.empty(len(ids), dtype=np.int64)
+    n_faces, n_new = 0, 0
+    for f in range(len(faces)):
+        a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
+        if beyond[a] or beyond[b] or beyond[c]:
+            continue
+        for k in range(3):
+            v = faces[f, k]
+            if ids[v] < 0:
+                ids[v] = start + n_new
+                order[n_new] = v
+                n_new += 1
+            out[n_faces, k] = ids[v]
+        n_faces += 1
+    return out[:n_faces], order[:n_new]
+
+
+def _seam_vertices(verts: np.ndarray, plane: float) -> tuple[np.ndarray, np.ndarray]:
+    """Indices of the vertices on ``plane`` (exact: in-plane edges give integer z), sorted by
+    (x, y), and their (x, y)."""
+    on = np.flatnonzero(verts[:, 2] == np.float32(plane))
+    xy = verts[on, :2]
+    order = np.lexsort((xy[:, 1], xy[:, 0]))
+    xy = xy[order]
+    if len(xy) > 1 and (xy[1:] == xy[:-1]).all(axis=1).any():
+        raise _SeamMismatch  # two vertices at one spot: their pairing would be a guess
+    return on[order], xy
 
 
 def extract_surface(
@@ -131,7 +309,9 @@ def extract_surface(
         raise BadParameter(f"level must be a finite number, got {level!r}.")
     steps = _sample_steps(sample_rate)
     box = _region(volume.dims, slices, roi)
-    block = volume.data[tuple(slice(lo, hi + 1, st) for (lo, hi), st in zip(box, steps, strict=True))]
+    block = volume.data[
+        tuple(slice(lo, hi + 1, st) for (lo, hi), st in zip(box, steps, strict=True))
+    ]
     if min(block.shape) < 2:
         raise BadParameter(
             f"sample rate {steps} leaves {block.shape} voxels; a surface needs at least 2 per axis. "
@@ -144,40 +324,79 @@ def extract_surface(
             "pick a level inside that range."
         )
     offset = np.array([b[0] for b in box], dtype=np.float64)
+    contour = _contour_level(block.dtype, level)
     if closed:
-        block = _pad_below(block, level, hi - lo)
-        offset -= np.array(steps, dtype=np.float64)
+        verts, faces, index_normals = _surface_in_slabs(block, contour, hi - lo)
     else:
-        block = np.asfortranarray(block)
-    verts, faces, index_normals = _flying_edges(block, level)
+        verts, faces, index_normals = _flying_edges(np.asfortranarray(block), contour)
     if len(faces) == 0:
-        raise EmptySurface(f"no surface at level {level:g} in the chosen region; pick another level.")
-    ijk = verts * np.array(steps, dtype=np.float64) + offset
-    xyz = ijk @ volume.affine[:3, :3].T + volume.affine[:3, 3]
+        raise EmptySurface(
+            f"no surface at level {level:g} in the chosen region; pick another level."
+        )
     if np.linalg.det(volume.affine[:3, :3]) < 0:
-        faces = faces[:, ::-1].copy()  # a mirroring affine flips the winding
+        faces = np.ascontiguousarray(faces[:, ::-1])  # a mirroring affine flips the winding
     return Mesh(
-        vertices=xyz.astype(np.float32),
+        vertices=_points_to_patient(verts, volume.affine, steps, offset),
         faces=faces,
         normals=_normals_to_patient(index_normals, volume.affine[:3, :3], steps),
     )
 
 
-def _normals_to_patient(normals: np.ndarray, linear: np.ndarray, steps: tuple[int, int, int]) -> np.ndarray:
+@njit(cache=True, parallel=True, nogil=True)
+def _map_rows(points, matrix, shift, unit):
+    """(N, 3) float32 ``points @ matrix.T + shift`` in float64 arithmetic, scaled to unit
+    length when ``unit``; one pass on all cores (a BLAS matmul of a tall (N, 3) array is
+    slow and erratic: 0.05-0.3 s for 400 k rows here, against a few ms)."""
+    out = np.empty((len(points), 3), dtype=np.float32)
+    for i in prange(len(points)):
+        x, y, z = float(points[i, 0]), float(points[i, 1]), float(points[i, 2])
+        r0 = matrix[0, 0] * x + matrix[0, 1] * y + matrix[0, 2] * z + shift[0]
+        r1 = matrix[1, 0] * x + matrix[1, 1] * y + matrix[1, 2] * z + shift[1]
+        r2 = matrix[2, 0] * x + matrix[2, 1] * y + matrix[2, 2] * z + shift[2]
+        if unit:
+            length = np.sqrt(r0 * r0 + r1 * r1 + r2 * r2)
+            if length > 0.0:
+                r0, r1, r2 = r0 / length, r1 / length, r2 / length
+        out[i, 0], out[i, 1], out[i, 2] = r0, r1, r2
+    return out
+
+
+def _points_to_patient(
+    verts: np.ndarray, affine: np.ndarray, steps: tuple[int, int, int], offset: np.ndarray
+) -> np.ndarray:
+    """Index-space vertices of the (sampled, padded) block to LPS mm, float32."""
+    linear = affine[:3, :3] @ np.diag(np.asarray(steps, dtype=np.float64))
+    return _map_rows(verts, linear, affine[:3, :3] @ offset + affine[:3, 3], False)
+
+
+def _normals_to_patient(
+    normals: np.ndarray, linear: np.ndarray, steps: tuple[int, int, int]
+) -> np.ndarray:
     """Map index-space gradient normals to unit LPS normals (inverse transpose of the map)."""
     to_patient = linear @ np.diag(np.asarray(steps, dtype=np.float64))
-    out = normals.astype(np.float64) @ np.linalg.inv(to_patient)
-    length = np.linalg.norm(out, axis=1, keepdims=True)
-    np.divide(out, length, out=out, where=length > 0)
-    return out.astype(np.float32)
+    return _map_rows(normals, np.linalg.inv(to_patient).T, np.zeros(3), True)
+
+
+def _use_both_cores() -> None:
+    """Run VTK's SMP filters (flying edges among them) on every core.
+
+    The PyPI wheels build the STDThread backend but start on "Sequential"; a user who chose
+    a backend through ``VTK_SMP_BACKEND_IN_USE`` keeps it.
+    """
+    if "VTK_SMP_BACKEND_IN_USE" not in os.environ:
+        smp = vtk.vtkSMPTools()
+        if smp.GetBackend() == "Sequential":
+            smp.SetBackend("STDThread")
 
 
 def _flying_edges(block: np.ndarray, level: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Flying-edges isosurface of an (X, Y, Z) array in index coordinates.
 
-    Returns vertices (N, 3), outward-wound faces (F, 3) and gradient normals (N, 3),
-    all in index space; VTK computes the normals in parallel, cheaper than from faces.
+    Returns vertices (N, 3) float32, outward-wound faces (F, 3) int32 and gradient normals
+    (N, 3) float32, all in index space; VTK computes the normals in parallel, cheaper than
+    from faces.
     """
+    _use_both_cores()
     fe = vtk.vtkFlyingEdges3D()
     fe.SetInputData(_to_vtk_image(block))
     fe.SetValue(0, float(level))
@@ -186,8 +405,17 @@ def _flying_edges(block: np.ndarray, level: float) -> tuple[np.ndarray, np.ndarr
     fe.ComputeScalarsOff()
     fe.Update()
     out = fe.GetOutput()
-    verts, faces = polydata_to_arrays(out)
-    normals = numpy_support.vtk_to_numpy(out.GetPointData().GetNormals()) if len(faces) else verts
+    if out.GetNumberOfPoints() == 0:
+        return (
+            np.zeros((0, 3), np.float32),
+            np.zeros((0, 3), np.int32),
+            np.zeros((0, 3), np.float32),
+        )
+    # copies, so that VTK's arrays (int64 connectivity: twice our faces) go with the filter
+    verts = numpy_support.vtk_to_numpy(out.GetPoints().GetData()).astype(np.float32)
+    conn = numpy_support.vtk_to_numpy(out.GetPolys().GetConnectivityArray())
+    faces = conn.astype(np.int32).reshape(-1, 3)
+    normals = numpy_support.vtk_to_numpy(out.GetPointData().GetNormals()).astype(np.float32)
     # VTK winds flying-edges triangles counter-clockwise seen from the lower values and
     # its normals point down the gradient: both outward for a structure above the level
     # (checked by the sphere and ellipsoid tests).

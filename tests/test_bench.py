@@ -1,0 +1,217 @@
+"""The benchmark's machinery: resampling, the paper-table rows, the CLI entry, and the two
+performance paths it relies on (exact fast deviation, parallel quadric decimation)."""
+
+from __future__ import annotations
+
+import importlib
+import json
+
+import numpy as np
+import pytest
+
+from miss import BadParameter, Mesh, Volume, decimate, extract_surface
+from miss.bench import MODES, SAMPLE_RATES, markdown, paper_rows, resample_axis
+from miss.cli import main
+from miss.demo import phantom
+from miss.deviation import deviation, distances_to
+from miss.geometry import boundary_edge_count, enclosed_volume
+
+# the package exports the function decimate under the module's name
+decimate_module = importlib.import_module("miss.decimate")
+PHANTOM_LEVELS = {"bone": 300.0, "skin": -500.0}  # HU, see miss.demo
+
+
+def test_resample_keeps_a_linear_ramp_and_the_physical_extent() -> None:
+    k = np.arange(5, dtype=np.float64)
+    data = np.broadcast_to(100 * k, (3, 4, 5)).astype(np.int16)
+    affine = np.diag([1.0, 1.0, 2.0, 1.0])
+    affine[:3, 3] = (7.0, 8.0, 9.0)
+    out = resample_axis(Volume(np.asfortranarray(data), affine), 2, 9)
+    assert out.data.shape == (3, 4, 9) and out.data.dtype == np.int16
+    assert out.data.flags.f_contiguous
+    np.testing.assert_array_equal(out.data[1, 2], np.arange(9) * 50)
+    last = out.affine @ [0, 0, 8, 1]
+    np.testing.assert_allclose(last[:3], (affine @ [0, 0, 4, 1])[:3])  # same last slice
+    assert out.spacing == pytest.approx((1.0, 1.0, 1.0))
+
+
+def test_resample_refuses_fewer_than_two_samples() -> None:
+    with pytest.raises(BadParameter, match="at least 2 samples"):
+        resample_axis(phantom(16), 0, 1)
+
+
+def test_paper_rows_on_the_phantom() -> None:
+    rows = paper_rows(
+        phantom(64, spacing=3.0),
+        repeats=1,
+        sample_rates=(4,),
+        method="quadric",
+        levels=PHANTOM_LEVELS,
+    )
+    assert [(r.tissue, r.sample_rate, r.mode) for r in rows] == [
+        (t, 4, m) for t in PHANTOM_LEVELS for m in MODES
+    ]
+    by_mode = {(r.tissue, r.mode): r for r in rows}
+    for tissue in PHANTOM_LEVELS:
+        m, md, md2 = (by_mode[(tissue, mode)] for mode in MODES)
+        assert m.reduction == 0.0 and m.max_error_mm == 0.0
+        # the larger bound removes more and errs more, as in the paper
+        assert m.triangles >= md.triangles >= md2.triangles > 0
+        assert md2.mean_error_mm >= md.mean_error_mm >= 0.0
+        assert m.vrml_kb > md2.vrml_kb > 0
+        assert m.seconds > 0 and len(m.seconds_runs) == 1
+        paper = {"bone": (35744, 2656), "skin": (42756, 3200)}[tissue]
+        assert (m.paper_triangles, m.paper_vrml_kb) == paper
+    table = markdown(rows)
+    assert table.count("\n| 4 |") == 6
+    assert "paper triangles" in table and "mean error mm" in table
+    assert "| 4 | MD2 |" in table and "illegible" in table  # bone MD at rate 4 in the scan
+
+
+def test_paper_plot_is_a_png(tmp_path) -> None:
+    pytest.importorskip("matplotlib")
+    from miss.bench import plot
+
+    rows = paper_rows(
+        phantom(48, spacing=4.0),
+        repeats=1,
+        sample_rates=(4, 2),
+        method="quadric",
+        levels={"bone": 300.0},
+    )
+    plot(rows, tmp_path / "t.png")
+    assert (tmp_path / "t.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_cli_bench_rejects_bad_sample_rates(capsys) -> None:
+    assert main(["bench", "paper", "--sample-rates", "one"]) == 2
+    assert "--sample-rates must be integers" in capsys.readouterr().err
+
+
+def test_cli_bench_writes_the_three_files(tmp_path, monkeypatch, capsys) -> None:
+    pytest.importorskip("matplotlib")
+    import miss.bench as bench
+
+    monkeypatch.setattr(bench, "paper_volume", lambda path=None: phantom(48, spacing=4.0))
+    monkeypatch.setattr(bench, "LEVELS", {"bone": 300.0})
+    monkeypatch.setattr(bench, "decimation_method", lambda: "quadric")  # no numba compile
+    assert (
+        main(["bench", "paper", "--out", str(tmp_path), "--repeats", "1", "--sample-rates", "4"])
+        == 0
+    )
+    data = json.loads((tmp_path / "paper_tables.json").read_text())
+    assert len(data["rows"]) == 3 and data["machine"]["cores"] >= 1
+    assert (tmp_path / "paper_tables.md").is_file() and (tmp_path / "paper_tables.png").is_file()
+    assert "| 4 | MD |" in capsys.readouterr().out
+    assert SAMPLE_RATES == (1, 2, 4)
+
+
+# ----------------------------------------------------------------------------- deviation
+
+
+def _brute_force(points: np.ndarray, mesh: Mesh) -> np.ndarray:
+    """Distance to every triangle, by projecting onto each plane and each edge (slow, obvious)."""
+    tri = mesh.vertices.astype(np.float64)[mesh.faces]
+    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
+    n = np.cross(b - a, c - a)
+    length = np.linalg.norm(n, axis=1, keepdims=True)
+    flat = length[:, 0] > 1e-12  # zero-area triangles are covered by their edges below
+    n = np.divide(n, length, out=np.zeros_like(n), where=length > 1e-12)
+    best = np.full(len(points), np.inf)
+    for i, p in enumerate(points):
+        q = p - ((p - a) * n).sum(axis=1)[:, None] * n  # projection onto each plane
+        inside = flat.copy()
+        for u, v in ((a, b), (b, c), (c, a)):
+            inside &= (np.cross(v - u, q - u) * n).sum(axis=1) >= 0
+        d = np.where(inside, np.linalg.norm(p - q, axis=1), np.inf)
+        for u, v in ((a, b), (b, c), (c, a)):
+            length2 = np.maximum(((v - u) ** 2).sum(axis=1), 1e-300)  # a zero edge is a point
+            t = np.clip(((p - u) * (v - u)).sum(axis=1) / length2, 0, 1)
+            d = np.minimum(d, np.linalg.norm(p - (u + t[:, None] * (v - u)), axis=1))
+        best[i] = d.min()
+    return best
+
+
+@pytest.fixture(scope="module")
+def skull() -> Mesh:
+    return extract_surface(phantom(), 300.0, sample_rate=4)
+
+
+def test_distances_are_exact(skull: Mesh) -> None:
+    coarse, _ = decimate(skull, "quadric", reduce=0.95, measure=False)
+    rng = np.random.default_rng(3)
+    lo, hi = skull.bounds()
+    points = np.concatenate(
+        [
+            rng.uniform(lo - 30, hi + 30, (150, 3)),  # near, inside, and far outside
+            skull.vertices[rng.choice(skull.n_vertices, 100)].astype(np.float64),
+        ]
+    )
+    for target in (skull, coarse):
+        np.testing.assert_allclose(
+            distances_to(points, target), _brute_force(points, target), rtol=1e-9, atol=1e-6
+        )
+
+
+def test_deviation_is_zero_to_itself_and_symmetric_in_its_samples(skull: Mesh) -> None:
+    assert deviation(skull, skull, samples=5000).max_mm == pytest.approx(0.0, abs=1e-5)
+    shifted = Mesh(skull.vertices + np.float32(0.25), skull.faces)
+    dev = deviation(skull, shifted, samples=5000)
+    assert 0.0 < dev.mean_mm <= dev.max_mm <= np.sqrt(3) * 0.25 + 1e-5
+
+
+# ----------------------------------------------------------------------------- parallel quadric
+
+
+def test_two_phase_quadric_meets_the_target_and_stays_closed(monkeypatch) -> None:
+    mesh = extract_surface(phantom(), 300.0, sample_rate=2)
+    monkeypatch.setattr(decimate_module, "_PARALLEL_MIN_TRIANGLES", 1000)
+    out, report = decimate(mesh, "quadric", reduce=0.9, samples=20_000)
+    assert abs(out.n_triangles - 0.1 * mesh.n_triangles) <= 0.01 * mesh.n_triangles
+    assert boundary_edge_count(out.faces) == 0
+    assert enclosed_volume(out.vertices, out.faces) == pytest.approx(
+        enclosed_volume(mesh.vertices, mesh.faces), rel=0.02
+    )
+    original = {tuple(v) for v in mesh.vertices.tolist()}
+    assert all(tuple(v) in original for v in out.vertices.tolist())
+    assert report.max_error_mm is not None and report.max_error_mm < 0.02 * mesh.diagonal()
+
+
+# ----------------------------------------------------------------------------- slab surface
+
+
+@pytest.mark.parametrize("level", [300.0, -500.0])
+def test_slabs_give_the_whole_blocks_surface(monkeypatch, level: float) -> None:
+    from scipy.spatial import cKDTree
+
+    surface = importlib.import_module("miss.surface")
+    block = phantom(96, spacing=2.0).data
+    contour = surface._contour_level(block.dtype, level)
+    span = float(block.max() - block.min())
+    monkeypatch.setattr(surface, "_SLAB_VOXELS", 96 * 96 * 20)
+    assert len(surface._seam_planes(block, contour)) >= 3
+    v1, f1, n1 = surface._surface_in_slabs(block, contour, span)
+    v2, f2, n2 = surface._surface_whole(block, contour, span)
+    dist, to_whole = cKDTree(v2).query(v1)
+    assert dist.max() < 1e-4 and len(np.unique(to_whole)) == len(v2) == len(v1)
+    np.testing.assert_allclose(n1, n2[to_whole], atol=1e-6)  # central differences on seams
+
+    def canonical(faces: np.ndarray) -> np.ndarray:
+        # rotate each triangle to start at its smallest index: keeps the winding comparable
+        first = np.argmin(faces, axis=1)
+        rolled = np.stack([faces[np.arange(len(faces)), (first + k) % 3] for k in range(3)], 1)
+        return rolled[np.lexsort(rolled.T[::-1])]
+
+    np.testing.assert_array_equal(canonical(to_whole[f1]), canonical(f2))
+
+
+def test_a_voxel_at_the_level_is_inside_and_makes_no_degenerate_triangle() -> None:
+    data = np.zeros((9, 5, 5), dtype=np.int16)
+    data[2, 2, 2] = 100  # exactly at the level: inside, a small octahedron around it
+    data[6, 2, 2] = 150
+    mesh = extract_surface(Volume(data, np.eye(4)), 100.0)
+    assert mesh.n_triangles == 16  # two octahedra
+    tri = mesh.vertices[mesh.faces]
+    assert (
+        np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1) > 0
+    ).all()
