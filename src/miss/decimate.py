@@ -18,15 +18,17 @@ Both bounds are fractions of the mesh's bounding-box diagonal, as in the paper
 
 from __future__ import annotations
 
+import ctypes
 import itertools
 import os
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass
-from typing import Literal
+from typing import Any, Literal
 
 import meshoptimizer
 import numpy as np
+from numba import njit
 
 from miss.deviation import deviation
 from miss.errors import BadParameter
@@ -82,22 +84,56 @@ _SLABS = 8
 _FIRST_PHASE_KEEP = 0.3
 
 
+def _bind_simplify_with_attributes() -> Any:
+    """meshoptimizer's C ``meshopt_simplifyWithAttributes`` with its argument types declared.
+
+    The Python wrapper (0.2.x) leaves them undeclared, so ctypes refuses the float error
+    and would pass sizes as 32-bit ints; the C signature is declared here once.
+    """
+    fn = meshoptimizer.simplifier.lib.meshopt_simplifyWithAttributes
+    u32, f32, size = ctypes.POINTER(ctypes.c_uint), ctypes.POINTER(ctypes.c_float), ctypes.c_size_t
+    fn.argtypes = [u32, u32, size, f32, size, size, f32, size, f32, size,
+                   ctypes.POINTER(ctypes.c_ubyte), size, ctypes.c_float, ctypes.c_uint, f32]  # fmt: skip
+    fn.restype = size
+    return fn
+
+
+_SIMPLIFY_WITH_LOCKS = _bind_simplify_with_attributes()
+
+
 def _simplify(
-    indices: np.ndarray, positions: np.ndarray, target: int, max_error: float, options: int
+    indices: np.ndarray,
+    positions: np.ndarray,
+    target: int,
+    max_error: float,
+    options: int,
+    lock: np.ndarray,
 ) -> tuple[np.ndarray, float]:
-    """One meshoptimizer call: (indices kept, its relative error). It releases the GIL."""
+    """One meshoptimizer call: (indices kept, its relative error). ctypes releases the GIL.
+
+    indices (3F,) uint32, positions (N, 3) float32, ``lock`` (N,) uint8: vertices that stay.
+    """
     out = np.empty_like(indices)
-    result_error = np.zeros(1, dtype=np.float32)
-    count = meshoptimizer.simplify(
-        out,
-        indices,
-        positions,
-        target_index_count=max(3, target // 3 * 3),
-        target_error=max_error,
-        options=options,
-        result_error=result_error,
+    error = ctypes.c_float(0.0)
+    no_weights = np.zeros(1, dtype=np.float32)
+    count = _SIMPLIFY_WITH_LOCKS(
+        out.ctypes.data_as(ctypes.POINTER(ctypes.c_uint)),
+        indices.ctypes.data_as(ctypes.POINTER(ctypes.c_uint)),
+        len(indices),
+        positions.ctypes.data_as(ctypes.POINTER(ctypes.c_float)),
+        len(positions),
+        12,
+        positions.ctypes.data_as(ctypes.POINTER(ctypes.c_float)),  # no attributes weighed
+        12,
+        no_weights.ctypes.data_as(ctypes.POINTER(ctypes.c_float)),
+        0,
+        lock.ctypes.data_as(ctypes.POINTER(ctypes.c_ubyte)),
+        max(3, target // 3 * 3),
+        float(max_error),
+        options,
+        ctypes.byref(error),
     )
-    return out[:count], float(result_error[0])
+    return out[:count], float(error.value)
 
 
 def _slabs(faces: np.ndarray, positions: np.ndarray, count: int) -> list[np.ndarray]:
@@ -110,8 +146,86 @@ def _slabs(faces: np.ndarray, positions: np.ndarray, count: int) -> list[np.ndar
     return [faces[(centre >= lo) & (centre < hi)].ravel() for lo, hi in itertools.pairwise(cuts)]
 
 
+@njit(cache=True)
+def _roots(faces: np.ndarray, n_vertices: int) -> np.ndarray:
+    """(N,) connected-component root of every vertex (union-find over the faces' edges)."""
+    parent = np.arange(n_vertices)
+    for f in range(faces.shape[0]):
+        for k in range(1, 3):
+            a, b = faces[f, 0], faces[f, k]
+            while parent[a] != a:
+                parent[a] = parent[parent[a]]
+                a = parent[a]
+            while parent[b] != b:
+                parent[b] = parent[parent[b]]
+                b = parent[b]
+            if a != b:
+                parent[b] = a
+    for v in range(n_vertices):
+        r = v
+        while parent[r] != r:
+            r = parent[r]
+        parent[v] = r
+    return parent
+
+
+# Pieces the reduce rate would leave fewer triangles than this are kept whole.
+_SMALL_PIECE_TRIANGLES = 8
+# Pieces below this size are simplified each on its own, to its own share of the target.
+_OWN_TARGET_TRIANGLES = 20_000
+
+
 def _quadric(mesh: Mesh, reduce: float, max_error: float) -> tuple[np.ndarray, float]:
-    """meshoptimizer simplify to the reduce target, never past ``max_error`` (relative).
+    """meshoptimizer simplify to the reduce target, never past ``max_error`` (relative),
+    without losing small pieces.
+
+    An edge-collapse simplifier working on the whole mesh can collapse a small closed piece
+    (a bone chip, a calcification) to nothing or to a sliver: its own quadric error stays
+    tiny, yet the piece is gone and the measured deviation jumps to its distance from the
+    rest of the surface (70 mm on CThead). So tiny pieces are kept whole, small pieces are
+    simplified one by one to the same reduce rate, and only large pieces share one target.
+    """
+    faces = np.ascontiguousarray(mesh.faces)
+    face_root = _roots(faces, mesh.n_vertices)[faces[:, 0]]
+    size = np.bincount(face_root, minlength=mesh.n_vertices)[face_root]
+    whole = size < _SMALL_PIECE_TRIANGLES / (1.0 - reduce)
+    small = ~whole & (size < _OWN_TARGET_TRIANGLES)
+    large = size >= _OWN_TARGET_TRIANGLES
+    kept, error = [faces[whole]], 0.0
+    if small.any():
+        kept.append(_each_piece(faces[small], face_root[small], mesh.vertices, reduce, max_error))
+    if large.any():
+        # the large pieces make up what the kept and small pieces left of the target
+        budget = (1.0 - reduce) * len(faces) - sum(len(k) for k in kept)
+        share = min(1.0, max(budget, 1.0) / int(large.sum()))
+        faces_large, error = _quadric_all(faces[large], mesh.vertices, 1.0 - share, max_error)
+        kept.append(faces_large)
+    return np.concatenate(kept), error
+
+
+def _each_piece(
+    faces: np.ndarray, face_root: np.ndarray, vertices: np.ndarray, reduce: float, max_error: float
+) -> np.ndarray:
+    """Simplify each connected piece of ``faces`` on its own to the reduce rate."""
+    order = np.argsort(face_root, kind="stable")
+    starts = np.flatnonzero(np.diff(face_root[order])) + 1
+    positions = np.ascontiguousarray(vertices, dtype=np.float32)
+    unlocked = np.zeros(len(vertices), dtype=np.uint8)
+    pieces = []
+    for piece in np.split(faces[order].astype(np.uint32), starts):
+        target = int(round(3 * len(piece) * (1.0 - reduce)))
+        # SPARSE: a piece touches few vertices; cost follows the piece, not the buffer
+        out, _ = _simplify(
+            piece.ravel(), positions, target, max_error, meshoptimizer.SIMPLIFY_SPARSE, unlocked
+        )
+        pieces.append(out.reshape(-1, 3).astype(np.int32))
+    return np.concatenate(pieces)
+
+
+def _quadric_all(
+    faces: np.ndarray, vertices: np.ndarray, reduce: float, max_error: float
+) -> tuple[np.ndarray, float]:
+    """meshoptimizer simplify of ``faces`` (F, 3) to the reduce target.
 
     Large meshes go in two phases: slabs simplified on all cores with their cut borders
     locked, then the merged mesh in one call. The first phase does most of the collapses
@@ -121,15 +235,15 @@ def _quadric(mesh: Mesh, reduce: float, max_error: float) -> tuple[np.ndarray, f
     higher (the second phase starts its error quadrics afresh), the maximum the same.
     Eight slabs, two at a time, also keep meshoptimizer's working memory to a third.
     """
-    faces = mesh.faces
     if faces.dtype == np.int32 and faces.flags.c_contiguous:
         faces = faces.view(np.uint32)  # indices are >= 0: the same bits, no copy
     faces = np.ascontiguousarray(faces, dtype=np.uint32)
-    positions = np.ascontiguousarray(mesh.vertices, dtype=np.float32)
+    positions = np.ascontiguousarray(vertices, dtype=np.float32)
     target = int(round(3 * len(faces) * (1.0 - reduce)))
+    lock = np.zeros(len(positions), dtype=np.uint8)
     cores = os.cpu_count() or 1
     if len(faces) < _PARALLEL_MIN_TRIANGLES or cores < 2 or (1.0 - reduce) >= _FIRST_PHASE_KEEP:
-        kept, error = _simplify(faces.ravel(), positions, target, max_error, 0)
+        kept, error = _simplify(faces.ravel(), positions, target, max_error, 0, lock)
         return kept.reshape(-1, 3).astype(np.int32), error
     # SPARSE: each slab touches an eighth of the vertex buffer; LOCK_BORDER: its cut edges
     # must stay as they are so that the slabs still meet
@@ -138,13 +252,15 @@ def _quadric(mesh: Mesh, reduce: float, max_error: float) -> tuple[np.ndarray, f
         phase = list(
             pool.map(
                 lambda idx: _simplify(
-                    idx, positions, int(len(idx) * _FIRST_PHASE_KEEP), max_error, options
+                    idx, positions, int(len(idx) * _FIRST_PHASE_KEEP), max_error, options, lock
                 ),
                 _slabs(faces, positions, _SLABS),
             )
         )
     merged = np.concatenate([kept for kept, _ in phase])
-    kept, error = _simplify(merged, positions, target, max_error, meshoptimizer.SIMPLIFY_SPARSE)
+    kept, error = _simplify(
+        merged, positions, target, max_error, meshoptimizer.SIMPLIFY_SPARSE, lock
+    )
     # the two phases' errors add up at most
     return kept.reshape(-1, 3).astype(np.int32), error + max(err for _, err in phase)
 
