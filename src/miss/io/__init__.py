@@ -91,7 +91,7 @@ def _existing(path: str | os.PathLike[str]) -> Path:
     p = Path(path)
     if not p.exists():
         raise UnreadableVolume(
-            f"{p}: no such file or folder; check the path (and upload it again)."
+            f"{p}: no such file or folder; check the path."
         )
     if p.is_file() and p.stat().st_size == 0:
         raise UnreadableVolume(
