@@ -46,3 +46,12 @@ def test_key_ignores_formats_and_normalises_sample_rate() -> None:
 def test_from_dict_rejects_bad_input_with_a_clear_message(data: dict, message: str) -> None:
     with pytest.raises(BadParameter, match=message):
         JobSpec.from_dict(data)
+
+
+def test_export_options_reach_the_writer() -> None:
+    """The server asks for meshopt-compressed glTF: far smaller, same triangles."""
+    spec = JobSpec(level=300.0, sample_rate=2, formats=("glb",))
+    plain = run(phantom(), spec).artifacts["glb"]
+    packed = run(phantom(), spec, export_options={"glb": {"compress": True}}).artifacts["glb"]
+    assert b"EXT_meshopt_compression" in packed and b"EXT_meshopt_compression" not in plain
+    assert len(packed) < 0.5 * len(plain)

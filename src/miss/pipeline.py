@@ -228,6 +228,30 @@ def slice_range(spec: JobSpec, volume: Volume) -> tuple[int, int] | None:
     return (spec.start_slice or 1, spec.end_slice or volume.dims[2])
 
 
+ExportOptions = Mapping[str, Mapping[str, Any]]
+
+
+@dataclass(frozen=True)
+class _Encoder:
+    """Writes a mesh or scene in every format of the spec, with progress and timing."""
+
+    spec: JobSpec
+    title: str | None
+    metadata: dict[str, str] | None
+    options: ExportOptions
+
+    def __call__(self, model: Mesh | Scene, progress: Progress) -> tuple[dict[str, bytes], float]:
+        start = time.perf_counter()
+        artifacts: dict[str, bytes] = {}
+        for i, fmt in enumerate(self.spec.formats):
+            progress("write", 0.7 + 0.3 * i / len(self.spec.formats))
+            key = fmt.lower().lstrip(".")
+            artifacts[key] = export(
+                model, key, title=self.title, metadata=self.metadata, **self.options.get(key, {})
+            )
+        return artifacts, time.perf_counter() - start
+
+
 def run(
     volume: Volume,
     spec: JobSpec,
@@ -237,14 +261,18 @@ def run(
     metadata: dict[str, str] | None = None,
     label_map: Volume | None = None,
     table: TableSpec = None,
+    export_options: ExportOptions | None = None,
 ) -> JobResult:
     """Surface, decimate and encode ``volume`` as ``spec`` says; ``progress(stage, 0..1)``.
 
     A scene job (``spec.is_scene``, or a ``label_map`` laid over the volume) builds
     a :class:`~miss.scene.Scene` instead, names and colours from ``table``.
+    ``export_options`` maps a format to its writer's options, e.g.
+    ``{"glb": {"compress": True}}`` (the server sends meshopt-compressed glTF).
     """
+    encode = _Encoder(spec, title, metadata, export_options or {})
     if spec.is_scene or label_map is not None:
-        return _run_scene(volume, spec, progress or _no_progress, title, metadata, label_map, table)
+        return _run_scene(volume, spec, progress or _no_progress, encode, label_map, table)
     report_progress = progress or _no_progress
     seconds: dict[str, float] = {}
     t0 = time.perf_counter()
@@ -257,12 +285,7 @@ def run(
         mesh, spec.decimate, spec.reduce, spec.error_bound, max_error=spec.max_error
     )
     seconds["decimate"] = time.perf_counter() - t1
-    artifacts: dict[str, bytes] = {}
-    t2 = time.perf_counter()
-    for i, fmt in enumerate(spec.formats):
-        report_progress("write", 0.7 + 0.3 * i / len(spec.formats))
-        artifacts[fmt.lower().lstrip(".")] = export(mesh, fmt, title=title, metadata=metadata)
-    seconds["write"] = time.perf_counter() - t2
+    artifacts, seconds["write"] = encode(mesh, report_progress)
     report_progress("done", 1.0)
     return JobResult(mesh=mesh, report=report, artifacts=artifacts, seconds=seconds)
 
@@ -271,25 +294,17 @@ def _run_scene(
     volume: Volume,
     spec: JobSpec,
     report_progress: Progress,
-    title: str | None,
-    metadata: dict[str, str] | None,
+    encode: _Encoder,
     label_map: Volume | None,
     table: TableSpec,
 ) -> JobResult:
     """The structures of ``volume`` (and ``label_map``) as one scene, encoded."""
     report_progress("surface", 0.0)
     built = build_scene(
-        volume, spec.scene_options(volume), label_map=label_map, table=table, title=title
+        volume, spec.scene_options(volume), label_map=label_map, table=table, title=encode.title
     )
     seconds = dict(built.seconds)
-    artifacts: dict[str, bytes] = {}
-    t0 = time.perf_counter()
-    for i, fmt in enumerate(spec.formats):
-        report_progress("write", 0.7 + 0.3 * i / len(spec.formats))
-        artifacts[fmt.lower().lstrip(".")] = export(
-            built.scene, fmt, title=title, metadata=metadata
-        )
-    seconds["write"] = time.perf_counter() - t0
+    artifacts, seconds["write"] = encode(built.scene, report_progress)
     report_progress("done", 1.0)
     return JobResult(
         mesh=built.scene.merged(),
