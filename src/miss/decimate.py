@@ -148,7 +148,11 @@ def _slabs(faces: np.ndarray, positions: np.ndarray, count: int) -> list[np.ndar
 
 @njit(cache=True)
 def _roots(faces: np.ndarray, n_vertices: int) -> np.ndarray:
-    """(N,) connected-component root of every vertex (union-find over the faces' edges)."""
+    """(N,) connected-component root of every vertex: its piece's smallest vertex index.
+
+    Union-find over the faces' edges, always linking the larger root under the smaller,
+    so that one final pass in index order resolves every vertex in O(1).
+    """
     parent = np.arange(n_vertices)
     for f in range(faces.shape[0]):
         for k in range(1, 3):
@@ -159,13 +163,12 @@ def _roots(faces: np.ndarray, n_vertices: int) -> np.ndarray:
             while parent[b] != b:
                 parent[b] = parent[parent[b]]
                 b = parent[b]
-            if a != b:
+            if a < b:
                 parent[b] = a
+            elif b < a:
+                parent[a] = b
     for v in range(n_vertices):
-        r = v
-        while parent[r] != r:
-            r = parent[r]
-        parent[v] = r
+        parent[v] = parent[parent[v]]  # parent[v] <= v is already resolved
     return parent
 
 
