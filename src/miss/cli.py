@@ -110,7 +110,23 @@ def build_parser() -> argparse.ArgumentParser:
     serve.add_argument("--host", default=None)
     serve.add_argument("--port", type=int, default=None)
     serve.add_argument("--data-dir", default=None)
+    _add_account_commands(sub)
     return parser
+
+
+def _add_account_commands(sub: Any) -> None:
+    """``miss user add`` and ``miss audit``: the server's accounts and audit log, offline."""
+    user = sub.add_parser("user", help="manage the web system's accounts")
+    user_sub = user.add_subparsers(dest="user_command", required=True, parser_class=_Parser)
+    add = user_sub.add_parser("add", help="create an account; the password is read from stdin")
+    add.add_argument("name")
+    add.add_argument("--admin", action="store_true", help="may see everything and read the audit")
+    add.add_argument("--data-dir", default=None, help="default: MISS_DATA_DIR or ./miss-data")
+    audit = sub.add_parser("audit", help="print the web system's audit log")
+    audit.add_argument("--data-dir", default=None, help="default: MISS_DATA_DIR or ./miss-data")
+    audit.add_argument("--limit", type=int, default=500, help="newest entries (default 500)")
+    audit.add_argument("--action", default=None, help="only this action (login, share ...)")
+    audit.add_argument("--json", action="store_true", help="one JSON object per line")
 
 
 def _describe(volume: Any) -> dict[str, Any]:
@@ -296,12 +312,61 @@ def cmd_serve(args: argparse.Namespace) -> int:
     return serve(host=args.host, port=args.port, data_dir=args.data_dir)
 
 
+def _read_password() -> str:
+    """The new password: typed twice at a terminal, else the first line of stdin."""
+    if sys.stdin.isatty():
+        import getpass
+
+        first = getpass.getpass("password: ")
+        if getpass.getpass("again: ") != first:
+            from miss.errors import BadParameter
+
+            raise BadParameter("the two passwords differ; run the command again.")
+        return first
+    return sys.stdin.readline().rstrip("\r\n")
+
+
+def cmd_user(args: argparse.Namespace) -> int:
+    from miss.server.accounts import create_user
+    from miss.server.settings import Settings
+    from miss.server.store import Store
+
+    settings = Settings.from_env(data_dir=args.data_dir)
+    store = Store(settings.data_dir, settings.database_url)
+    try:
+        store.init_schema()
+        user = create_user(store, args.name, _read_password(), is_admin=args.admin)
+    finally:
+        store.close()
+    print(f"created {'administrator' if user.is_admin else 'user'} {user.name!r}")
+    return 0
+
+
+def cmd_audit(args: argparse.Namespace) -> int:
+    from miss.server import audit
+    from miss.server.settings import Settings
+    from miss.server.store import Store
+
+    settings = Settings.from_env(data_dir=args.data_dir)
+    store = Store(settings.data_dir, settings.database_url)
+    try:
+        store.init_schema()
+        entries = audit.entries(store, args.limit, args.action)
+    finally:
+        store.close()
+    for entry in entries:
+        print(json.dumps(entry) if args.json else audit.format_line(entry))
+    return 0
+
+
 COMMANDS = {
     "info": cmd_info,
     "convert": cmd_convert,
     "demo": cmd_demo,
     "bench": cmd_bench,
     "serve": cmd_serve,
+    "user": cmd_user,
+    "audit": cmd_audit,
 }
 
 

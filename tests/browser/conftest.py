@@ -36,6 +36,7 @@ CHROMIUM_ARGS = [
 ]
 LAPTOP = {"width": 1366, "height": 768}
 STARTUP_SECONDS = 90
+ADMIN_PASSWORD = "admin-password-for-browsers"
 
 if not CHROMIUM.is_file():
     pytest.skip(
@@ -58,20 +59,32 @@ class Server:
         self.url = url
         self.data_dir = data_dir
         self.log = log
+        self.token = ""
+
+    def log_in(self, name: str = "admin", password: str = ADMIN_PASSWORD) -> str:
+        """A bearer token for this helper's own requests (as a script would log in)."""
+        body = {"username": name, "password": password}
+        self.token = self.post("/api/auth/login", body)["token"]
+        return self.token
+
+    def _send(self, path: str, body: dict[str, Any] | None, method: str) -> Any:
+        headers = {"Content-Type": "application/json"}
+        if self.token:
+            headers["Authorization"] = f"Bearer {self.token}"
+        data = json.dumps(body).encode() if body is not None else None
+        request = urllib.request.Request(self.url + path, data=data, headers=headers, method=method)
+        with urllib.request.urlopen(request, timeout=30) as response:
+            text = response.read()
+        return json.loads(text) if text else None
 
     def get(self, path: str) -> Any:
-        with urllib.request.urlopen(self.url + path, timeout=30) as response:
-            return json.load(response)
+        return self._send(path, None, "GET")
 
     def post(self, path: str, body: dict[str, Any]) -> Any:
-        request = urllib.request.Request(
-            self.url + path,
-            data=json.dumps(body).encode(),
-            headers={"Content-Type": "application/json"},
-            method="POST",
-        )
-        with urllib.request.urlopen(request, timeout=30) as response:
-            return json.load(response)
+        return self._send(path, body, "POST")
+
+    def delete(self, path: str) -> Any:
+        return self._send(path, None, "DELETE")
 
     def wait_model(self, model_id: str, timeout: float = 120.0) -> dict[str, Any]:
         deadline = time.monotonic() + timeout
@@ -89,7 +102,7 @@ def _wait_until_up(proc: subprocess.Popen[bytes], url: str, log: Path) -> None:
         if proc.poll() is not None:
             pytest.fail(f"`miss serve` exited with {proc.returncode}:\n{log.read_text()[-4000:]}")
         try:
-            with urllib.request.urlopen(url + "/api/volumes", timeout=2) as response:
+            with urllib.request.urlopen(url + "/api/health", timeout=2) as response:
                 if response.status == 200:
                     return
         except (urllib.error.URLError, ConnectionError, TimeoutError):
@@ -106,7 +119,7 @@ def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
     data_dir = tmp_path_factory.mktemp("miss-data")
     log = data_dir.parent / "miss-serve.log"
     port = _free_port()
-    env = {**os.environ, "MISS_DATA_DIR": str(data_dir)}
+    env = {**os.environ, "MISS_DATA_DIR": str(data_dir), "MISS_ADMIN_PASSWORD": ADMIN_PASSWORD}
     cmd = [sys.executable, "-m", "miss.cli", "serve", "--host", "127.0.0.1", "--port", str(port)]
     cmd += ["--data-dir", str(data_dir)]
     with log.open("wb") as out:
@@ -114,7 +127,9 @@ def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
     url = f"http://127.0.0.1:{port}"
     try:
         _wait_until_up(proc, url, log)
-        yield Server(url, data_dir, log)
+        running = Server(url, data_dir, log)
+        running.log_in()
+        yield running
     finally:
         proc.terminate()
         try:
@@ -139,10 +154,30 @@ def artifacts() -> Path:
     return ARTIFACTS
 
 
+def log_in_context(context: Any, name: str = "admin", password: str = ADMIN_PASSWORD) -> None:
+    """Log a browser context in as the login page would: the session cookies land in it."""
+    response = context.request.post(
+        "/api/auth/login", data={"username": name, "password": password}
+    )
+    assert response.status == 200, response.text()
+
+
+@pytest.fixture(scope="session")
+def admin_password() -> str:
+    return ADMIN_PASSWORD
+
+
+@pytest.fixture(scope="session")
+def logged_in() -> Any:
+    """``logged_in(context)``: the context now carries an admin session."""
+    return log_in_context
+
+
 @pytest.fixture
 def page(browser: Any, server: Server) -> Iterator[Any]:
-    """A laptop-sized page (1366x768) whose script errors fail the test."""
+    """A laptop-sized page (1366x768), logged in, whose script errors fail the test."""
     context = browser.new_context(viewport=LAPTOP, accept_downloads=True, base_url=server.url)
+    log_in_context(context)
     page = context.new_page()
     errors: list[str] = []
     page.on("pageerror", lambda exc: errors.append(f"page error: {exc}"))

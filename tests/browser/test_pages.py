@@ -69,10 +69,11 @@ def drop_file(page: Any, path: Path) -> None:
 
 
 def upload_via_library(
-    browser: Any, server: Any, path: Path, artifacts: Path, how: str
+    browser: Any, server: Any, path: Path, artifacts: Path, how: str, logged_in: Any
 ) -> dict[str, Any]:
     """Upload through the library page (file picker or drop); the new volume's JSON."""
     context = browser.new_context(viewport=LAPTOP, base_url=server.url)
+    logged_in(context)
     page = context.new_page()
     try:
         page.goto("/")
@@ -98,9 +99,11 @@ def upload_via_library(
 
 
 @pytest.fixture(scope="module")
-def uploaded(browser: Any, server: Any, phantom: Path, artifacts: Path) -> dict[str, Any]:
+def uploaded(
+    browser: Any, server: Any, phantom: Path, artifacts: Path, logged_in: Any
+) -> dict[str, Any]:
     """The synthetic head (NIfTI) dropped on the library page."""
-    return upload_via_library(browser, server, phantom, artifacts, "drop")
+    return upload_via_library(browser, server, phantom, artifacts, "drop", logged_in)
 
 
 @pytest.fixture(scope="module")
@@ -110,6 +113,7 @@ def head_ct(
     tmp_path_factory: pytest.TempPathFactory,
     artifacts: Path,
     uploaded: dict[str, Any],
+    logged_in: Any,
 ) -> dict[str, Any]:
     """A real head CT: the zipped DICOM series from ../shared/datasets chosen with the
     file picker; without the datasets, the phantom (whose NIfTI carries no HU units)."""
@@ -120,7 +124,7 @@ def head_ct(
     with zipfile.ZipFile(archive, "w") as zf:
         for file in sorted(folder.iterdir()):
             zf.write(file, f"series/{file.name}")
-    return upload_via_library(browser, server, archive, artifacts, "picker")
+    return upload_via_library(browser, server, archive, artifacts, "picker", logged_in)
 
 
 def test_upload_from_library_lists_the_volume(page: Any, uploaded: dict[str, Any]) -> None:
@@ -254,12 +258,13 @@ def _finished_model(server: Any, volume_id: str) -> str:
 
 
 def test_viewer_on_a_tablet_turns_by_touch(
-    browser: Any, server: Any, uploaded: dict[str, Any], artifacts: Path
+    browser: Any, server: Any, uploaded: dict[str, Any], artifacts: Path, logged_in: Any
 ) -> None:
     model_id = _finished_model(server, uploaded["id"])
     context = browser.new_context(
         viewport={"width": 1024, "height": 768}, has_touch=True, is_mobile=True, base_url=server.url
     )
+    logged_in(context)
     page = context.new_page()
     try:
         page.goto(f"/models/{model_id}")
@@ -291,8 +296,11 @@ def test_viewer_on_a_tablet_turns_by_touch(
 
 
 def test_delete_from_library(page: Any, server: Any, phantom: Path) -> None:
+    # The page's own session: a cookie, so the write carries the CSRF token as api.js does.
+    csrf = next(c["value"] for c in page.context.cookies() if c["name"] == "miss_csrf")
     response = page.request.post(
         "/api/volumes",
+        headers={"X-CSRF-Token": csrf},
         multipart={
             "file": {
                 "name": "to-delete.nii.gz",

@@ -1,4 +1,5 @@
-"""Fixtures for the server tests: a seeded data folder, apps on copies of it, upload files."""
+"""Fixtures for the server tests: a seeded data folder, apps on copies of it (logged in as
+the administrator), upload files."""
 
 from __future__ import annotations
 
@@ -25,6 +26,35 @@ from miss.server.settings import Settings
 from miss.server.store import Store
 
 JOB_TIMEOUT = 120.0
+ADMIN_PASSWORD = "admin-password-for-tests"
+
+
+def log_in(client: TestClient, name: str = "admin", password: str = ADMIN_PASSWORD) -> str:
+    """Log ``client`` in with a bearer token (as scripts do: no cookie, so no CSRF)."""
+    r = client.post("/api/auth/login", json={"username": name, "password": password})
+    assert r.status_code == 200, r.text
+    client.cookies.clear()
+    token = r.json()["token"]
+    client.headers["Authorization"] = f"Bearer {token}"
+    return token
+
+
+@pytest.fixture
+def admin_password() -> str:
+    return ADMIN_PASSWORD
+
+
+@pytest.fixture
+def login() -> Callable[..., TestClient]:
+    """``login(client)`` logs a started TestClient in as admin and returns it."""
+
+    def start(
+        client: TestClient, name: str = "admin", password: str = ADMIN_PASSWORD
+    ) -> TestClient:
+        log_in(client, name, password)
+        return client
+
+    return start
 
 
 @pytest.fixture(scope="session")
@@ -53,20 +83,24 @@ def data_dir(seeded_dir: Path, tmp_path: Path) -> Path:
 def client(seeded_dir: Path, tmp_path_factory: pytest.TempPathFactory) -> Iterator[TestClient]:
     """One app per test module on its own copy of the seeded folder (default limits)."""
     data = copy_seed(seeded_dir, tmp_path_factory.mktemp("api") / "data")
-    with TestClient(create_app(Settings(data_dir=data))) as c:
+    with TestClient(create_app(Settings(data_dir=data, admin_password=ADMIN_PASSWORD))) as c:
+        log_in(c)
         yield c
 
 
 @pytest.fixture
 def make_client(tmp_path: Path) -> Iterator[Callable[..., TestClient]]:
-    """Start an app with custom settings (no demo unless asked) on a fresh folder."""
+    """Start an app with custom settings (no demo unless asked) on a fresh folder, logged in
+    as the administrator."""
     clients: list[TestClient] = []
 
     def start(**overrides: Any) -> TestClient:
-        values = {"data_dir": tmp_path / f"data{len(clients)}", "demo": False} | overrides
+        values = {"data_dir": tmp_path / f"data{len(clients)}", "demo": False}
+        values |= {"admin_password": ADMIN_PASSWORD} | overrides
         c = TestClient(create_app(Settings(**values)))
         c.__enter__()
         clients.append(c)
+        log_in(c)
         return c
 
     yield start
@@ -107,3 +141,74 @@ def dicom_zip(datasets: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
         for f in sorted(folder.iterdir()):
             zf.write(f, f"series/{f.name}")
     return path
+
+
+def bearer(token: str) -> dict[str, str]:
+    return {"Authorization": f"Bearer {token}"}
+
+
+@pytest.fixture(scope="module")
+def people(client: TestClient) -> dict[str, dict[str, str]]:
+    """Two ordinary users of the module's app, alice and bob: name -> request headers."""
+    out = {}
+    for name in ("alice", "bob"):
+        r = client.post("/api/users", json={"name": name, "password": f"{name}-password"})
+        assert r.status_code == 201, r.text
+        login = client.post(
+            "/api/auth/login",
+            json={"username": name, "password": f"{name}-password"},
+            headers={"Authorization": ""},
+        )
+        client.cookies.clear()  # this client stays the admin's, by bearer token
+        out[name] = bearer(login.json()["token"])
+    return out
+
+
+@pytest.fixture(scope="session")
+def small_nifti(tmp_path_factory: pytest.TempPathFactory) -> bytes:
+    """A 24^3 CT-like ball (HU) as .nii.gz: an upload that reads and meshes in no time."""
+    import nibabel as nib
+    import numpy as np
+
+    i, j, k = np.mgrid[:24, :24, :24]
+    ball = np.where((i - 12) ** 2 + (j - 12) ** 2 + (k - 12) ** 2 < 64, 1000, -1000)
+    path = tmp_path_factory.mktemp("nifti") / "ball.nii.gz"
+    nib.save(nib.Nifti1Image(ball.astype(np.int16), np.diag([1.5, 1.5, 2.0, 1.0])), path)
+    return path.read_bytes()
+
+
+def upload_as(
+    client: TestClient, headers: dict[str, str], content: bytes, name: str = "ball.nii.gz"
+) -> dict[str, Any]:
+    r = client.post("/api/volumes", files={"file": (name, content)}, headers=headers)
+    assert r.status_code == 201, r.text
+    return r.json()
+
+
+@pytest.fixture(scope="session")
+def upload_for() -> Callable[..., dict[str, Any]]:
+    """``upload_for(client, headers, content)``: the new volume's JSON."""
+    return upload_as
+
+
+def make_model(
+    client: TestClient, headers: dict[str, str], volume_id: str, level: float = 0.0
+) -> dict[str, Any]:
+    """A finished model (sample rate 1, no decimation) of a volume."""
+    body = {"volume": volume_id, "level": level, "decimate": "none"}
+    r = client.post("/api/models", json=body, headers=headers)
+    assert r.status_code in (200, 202), r.text
+    deadline = time.monotonic() + JOB_TIMEOUT
+    while (model := client.get(f"/api/models/{r.json()['id']}", headers=headers).json())[
+        "status"
+    ] not in ("done", "failed"):
+        assert time.monotonic() < deadline, model
+        time.sleep(0.1)
+    assert model["status"] == "done", model
+    return model
+
+
+@pytest.fixture(scope="session")
+def model_for() -> Callable[..., dict[str, Any]]:
+    """``model_for(client, headers, volume_id, level=0)``: a finished model's JSON."""
+    return make_model

@@ -53,16 +53,16 @@ def zip_bytes(members: dict[str, bytes], symlink: str | None = None) -> bytes:
 # -- volumes ------------------------------------------------------------------------------
 
 
-def test_demo_volume_registered_once(data_dir: Path) -> None:
-    settings = Settings(data_dir=data_dir)
+def test_demo_volume_registered_once(data_dir: Path, login, admin_password: str) -> None:
+    settings = Settings(data_dir=data_dir, admin_password=admin_password)
     with TestClient(create_app(settings)) as c:
-        volumes = c.get("/api/volumes").json()
+        volumes = login(c).get("/api/volumes").json()
     assert [v["name"] for v in volumes] == [DEMO]
     demo = volumes[0]
     assert demo["dims"] == [128, 128, 128] and demo["modality"] == "CT" and demo["units"] == "HU"
     assert {p["name"]: p["level"] for p in demo["presets"]} == {"bone": 300, "skin": -500}
     with TestClient(create_app(settings)) as c:  # a restart does not add a second demo
-        assert len(c.get("/api/volumes").json()) == 1
+        assert len(login(c).get("/api/volumes").json()) == 1
 
 
 def test_demo_registered_on_empty_store(make_client) -> None:

@@ -23,6 +23,7 @@ from miss.server.settings import Settings
 from miss.server.store import Store
 
 JOBS = [{"level": level, "sample_rate": 4, "decimate": "none"} for level in (200, 260, 320)]
+ADMIN_PASSWORD = "admin-password-for-restarts"
 
 
 def free_port() -> int:
@@ -63,10 +64,23 @@ class Server:
                 stdout=out,
                 stderr=subprocess.STDOUT,
                 stdin=subprocess.DEVNULL,
-                env={**os.environ, "MISS_WORKERS": str(workers)},
+                env={
+                    **os.environ,
+                    "MISS_WORKERS": str(workers),
+                    "MISS_ADMIN_PASSWORD": ADMIN_PASSWORD,
+                },
             )
         self.http = httpx.Client(base_url=self.url, timeout=10)
         self._wait_ready()
+        self._log_in()
+
+    def _log_in(self) -> None:
+        r = self.http.post(
+            "/api/auth/login", json={"username": "admin", "password": ADMIN_PASSWORD}
+        )
+        assert r.status_code == 200, r.text
+        self.http.cookies.clear()
+        self.http.headers["Authorization"] = f"Bearer {r.json()['token']}"
 
     def _wait_ready(self, timeout: float = 60) -> None:
         deadline = time.monotonic() + timeout

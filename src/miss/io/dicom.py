@@ -16,7 +16,9 @@ from typing import Any
 import pydicom
 from pydicom.dataset import Dataset
 from pydicom.errors import InvalidDicomError
+from pydicom.multival import MultiValue
 
+from miss.deid import IDENTIFYING
 from miss.errors import BadParameter, MissError, UnreadableVolume, UnsupportedFormat
 from miss.io import dicom_stack
 from miss.io.common import make_volume, recorded_warnings
@@ -24,16 +26,8 @@ from miss.io.dicom_files import Entry, open_source
 from miss.types import Volume
 
 EXTENSIONS = {".dcm", ".dicom", ".ima", ".zip"}
-PATIENT_TAGS = (
-    "PatientName",
-    "PatientID",
-    "PatientBirthDate",
-    "PatientSex",
-    "InstitutionName",
-    "AccessionNumber",
-    "ReferringPhysicianName",
-    "StudyDate",
-)
+#: Identifying attributes go to ``Volume.patient``, apart from ``meta`` (see miss.deid).
+PATIENT_TAGS = IDENTIFYING
 #: Volume formats people drop into a folder next to (or instead of) DICOM slices.
 OTHER_VOLUMES = ("*.nhdr", "*.nrrd", "*.mhd", "*.mha", "*.nii", "*.nii.gz")
 
@@ -74,7 +68,7 @@ def read(path: Path, series: str | None) -> Volume:
         stack.affine,
         "dicom",
         notes=notes + stack.notes,
-        patient={tag: str(first.get(tag, "") or "") for tag in PATIENT_TAGS},
+        patient={tag: _text(first.get(tag, "") or "") for tag in PATIENT_TAGS},
         modality=str(first.get("Modality", "")),
         units="HU" if first.get("Modality") == "CT" else "",
         rescale=stack.rescale,
@@ -83,7 +77,21 @@ def read(path: Path, series: str | None) -> Volume:
         study_uid=str(first.get("StudyInstanceUID", "")),
         frame_of_reference=str(first.get("FrameOfReferenceUID", "")),
         series=[_describe(u, h) for u, h in groups.items()],
+        burned_in_annotation=any(_burned_in(h.ds) for h in groups[uid]),
+        private_tags=sum(1 for element in first if element.tag.is_private),
     )
+
+
+def _text(value: Any) -> str:
+    """A header value as text; multi-valued ones joined by backslash, as DICOM stores them."""
+    if isinstance(value, MultiValue | list | tuple):
+        return "\\".join(str(v) for v in value)
+    return str(value)
+
+
+def _burned_in(ds: Dataset) -> bool:
+    """The slice says its pixels show text (patient name, dates) burned into the image."""
+    return str(ds.get("BurnedInAnnotation", "") or "").strip().upper() == "YES"
 
 
 def _grouped_headers(path: Path, entries: list[Entry]) -> tuple[dict[str, list[Header]], list[str]]:

@@ -1,8 +1,10 @@
-"""The application factory: ``create_app(settings)`` wires store, job queue and routes."""
+"""The application factory: ``create_app(settings)`` wires store, job queue, rooms and
+routes."""
 
 from __future__ import annotations
 
 import logging
+import sys
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
@@ -11,9 +13,11 @@ from starlette.concurrency import run_in_threadpool
 
 from miss import __version__
 from miss.server import errors
+from miss.server.accounts import ADMIN_NAME, ensure_admin
 from miss.server.ingest import register_demo
 from miss.server.jobs import JobQueue
-from miss.server.routes import models, pages, volumes
+from miss.server.rooms import Hub
+from miss.server.routes import audit, auth, models, pages, rooms, shares, volumes
 from miss.server.settings import Settings
 from miss.server.store import Store
 
@@ -21,15 +25,31 @@ log = logging.getLogger("miss.server")
 
 
 def _open(settings: Settings) -> tuple[Store, JobQueue]:
-    """Prepare the data folder and database, register the demo, start the job threads."""
+    """Prepare the data folder and database, make the first administrator, register the
+    demo, start the job threads."""
     store = Store(settings.data_dir, settings.database_url)
     store.init()
     if settings.demo and store.count_volumes() == 0:
         log.info("first start: registering the demo phantom")
         register_demo(store)
+    _first_admin(store, settings)
     queue = JobQueue(store, settings.workers)
     queue.start()
     return store, queue
+
+
+def _first_admin(store: Store, settings: Settings) -> None:
+    """Create ``admin`` on a database without users; a made-up password is printed once,
+    to the console only (never to the log file)."""
+    made_up = ensure_admin(store, settings.admin_password)
+    if made_up:
+        print(
+            f"\nMISS: created the administrator '{ADMIN_NAME}' with the password:  {made_up}\n"
+            "      It is shown only this once; log in with it and keep it somewhere safe "
+            "(or set MISS_ADMIN_PASSWORD before the first start).\n",
+            file=sys.stderr,
+            flush=True,
+        )
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
@@ -40,6 +60,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         store, queue = await run_in_threadpool(_open, settings)
         app.state.store, app.state.queue = store, queue
+        app.state.rooms = Hub(store)
         try:
             yield
         finally:
@@ -49,13 +70,20 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app = FastAPI(
         title="MISS - Medical Image Sharing System",
         version=__version__,
-        description="Upload a CT/MRI scan, make 3-D surface models of it, view and download them.",
+        description="Upload a CT/MRI scan, make 3-D surface models of it, view and download "
+        "them, share them by link and discuss them live. Log in with POST /api/auth/login and "
+        "send 'Authorization: Bearer TOKEN'.",
         lifespan=lifespan,
     )
     app.state.settings = settings
+    app.state.failed_logins = auth.failed_login_limits()
     errors.install(app)
+    app.include_router(auth.router)
     app.include_router(volumes.router)
     app.include_router(models.router)
+    app.include_router(rooms.router)
+    app.include_router(shares.router)
+    app.include_router(audit.router)
     app.include_router(pages.router)
 
     @app.get("/api/health", tags=["server"])

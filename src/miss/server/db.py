@@ -1,7 +1,10 @@
-"""Database tables (SQLAlchemy 2): volumes and models (the jobs that make them).
+"""Database tables (SQLAlchemy 2): volumes and models (the jobs that make them), users and
+their sessions, the owner-only identity records, share links, the audit log and the
+consultation rooms' events.
 
 Voxel arrays and model files live on disk under the data folder; the database holds
 what lists, looks up and survives a restart: names, sizes, job state and statistics.
+Patient identity lives in one table only (``identities``), never beside the volume.
 """
 
 from __future__ import annotations
@@ -18,6 +21,8 @@ from sqlalchemy import (
     UniqueConstraint,
     create_engine,
     event,
+    inspect,
+    text,
 )
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, sessionmaker
 
@@ -33,12 +38,40 @@ class Base(DeclarativeBase):
     type_annotation_map = {dict[str, Any]: JSON, list[Any]: JSON}
 
 
+class UserRow(Base):
+    """An account; ``password`` is an argon2 hash (the PHC string, salt included)."""
+
+    __tablename__ = "users"
+
+    id: Mapped[str] = mapped_column(String(32), primary_key=True)
+    name: Mapped[str] = mapped_column(String(64), unique=True)
+    password: Mapped[str] = mapped_column(String(200))
+    is_admin: Mapped[bool] = mapped_column(default=False)
+    created_at: Mapped[datetime] = mapped_column(default=utcnow)
+
+
+class SessionRow(Base):
+    """A login: ``id`` is the SHA-256 of the bearer token, so a leaked database holds no
+    usable token; ``csrf`` is the value cookie-authenticated writes must echo."""
+
+    __tablename__ = "sessions"
+
+    id: Mapped[str] = mapped_column(String(64), primary_key=True)
+    user_id: Mapped[str] = mapped_column(ForeignKey("users.id", ondelete="CASCADE"), index=True)
+    csrf: Mapped[str] = mapped_column(String(64))
+    created_at: Mapped[datetime] = mapped_column(default=utcnow)
+    expires_at: Mapped[datetime] = mapped_column(index=True)
+
+
 class VolumeRow(Base):
     """An uploaded (or demo) volume; its voxels are in ``volumes/<id>/data.npy``."""
 
     __tablename__ = "volumes"
 
     id: Mapped[str] = mapped_column(String(32), primary_key=True)
+    owner_id: Mapped[str | None] = mapped_column(
+        ForeignKey("users.id", ondelete="SET NULL"), index=True, default=None
+    )
     name: Mapped[str] = mapped_column(String(200))
     slug: Mapped[str] = mapped_column(String(64))
     created_at: Mapped[datetime] = mapped_column(default=utcnow)
@@ -72,6 +105,102 @@ class ModelRow(Base):
     updated_at: Mapped[datetime] = mapped_column(default=utcnow, onupdate=utcnow)
 
 
+class IdentityRow(Base):
+    """The original patient identity of a volume and its UID mapping, for its owner only.
+
+    Kept out of ``volumes.info`` and the data folder on purpose: everything else may be
+    shared, this row never is.
+    """
+
+    __tablename__ = "identities"
+
+    volume_id: Mapped[str] = mapped_column(
+        ForeignKey("volumes.id", ondelete="CASCADE"), primary_key=True
+    )
+    owner_id: Mapped[str | None] = mapped_column(String(32), default=None)
+    data: Mapped[dict[str, Any]] = mapped_column(default=dict)
+    created_at: Mapped[datetime] = mapped_column(default=utcnow)
+
+
+class ShareRow(Base):
+    """A share link to a model, or to a volume with its models. ``token_hash`` is the
+    SHA-256 of the link's token: the token itself is shown once, at creation."""
+
+    __tablename__ = "shares"
+
+    id: Mapped[str] = mapped_column(String(32), primary_key=True)
+    token_hash: Mapped[str] = mapped_column(String(64), unique=True)
+    owner_id: Mapped[str] = mapped_column(ForeignKey("users.id", ondelete="CASCADE"), index=True)
+    model_id: Mapped[str | None] = mapped_column(
+        ForeignKey("models.id", ondelete="CASCADE"), index=True, default=None
+    )
+    volume_id: Mapped[str | None] = mapped_column(
+        ForeignKey("volumes.id", ondelete="CASCADE"), index=True, default=None
+    )
+    label: Mapped[str] = mapped_column(String(200), default="")
+    can_download: Mapped[bool] = mapped_column(default=False)
+    can_annotate: Mapped[bool] = mapped_column(default=False)
+    created_at: Mapped[datetime] = mapped_column(default=utcnow)
+    expires_at: Mapped[datetime] = mapped_column()
+    revoked_at: Mapped[datetime | None] = mapped_column(default=None)
+
+
+class AuditRow(Base):
+    """Who did what, when, from where. ``actor`` is a user name or ``link:<share id>``."""
+
+    __tablename__ = "audit"
+
+    id: Mapped[int] = mapped_column(primary_key=True, autoincrement=True)
+    at: Mapped[datetime] = mapped_column(default=utcnow, index=True)
+    actor: Mapped[str] = mapped_column(String(80))
+    action: Mapped[str] = mapped_column(String(32), index=True)
+    target: Mapped[str] = mapped_column(String(80), default="")
+    address: Mapped[str] = mapped_column(String(64), default="")
+    detail: Mapped[dict[str, Any]] = mapped_column(default=dict)
+
+
+class RoomEventRow(Base):
+    """One thing that happened in a model's consultation room (pin, measurement, chat,
+    join, presenter ...). Pins and measurements are rebuilt from these rows, so the room's
+    state and its replay come from the same record. ``session`` numbers the periods
+    during which the room had anyone in it."""
+
+    __tablename__ = "room_events"
+
+    id: Mapped[int] = mapped_column(primary_key=True, autoincrement=True)
+    model_id: Mapped[str] = mapped_column(ForeignKey("models.id", ondelete="CASCADE"), index=True)
+    session: Mapped[int] = mapped_column(default=1)
+    at: Mapped[datetime] = mapped_column(default=utcnow)
+    kind: Mapped[str] = mapped_column(String(16))
+    author: Mapped[str] = mapped_column(String(80), default="")
+    data: Mapped[dict[str, Any]] = mapped_column(default=dict)
+
+
+class SecretRow(Base):
+    """Server-wide random keys made on first use (the UID remapping key)."""
+
+    __tablename__ = "secrets"
+
+    name: Mapped[str] = mapped_column(String(32), primary_key=True)
+    value: Mapped[str] = mapped_column(String(128))
+
+
+#: Columns added after a table first shipped: (table, column, SQL type). ``create_all``
+#: makes new tables but never alters old ones, so a data folder from an earlier version
+#: gets these by ALTER TABLE.
+ADDED_COLUMNS = (("volumes", "owner_id", "VARCHAR(32)"),)
+
+
+def migrate(engine: Engine) -> None:
+    """Add the columns of ``ADDED_COLUMNS`` that an older database lacks."""
+    inspector = inspect(engine)
+    tables = set(inspector.get_table_names())
+    with engine.begin() as conn:
+        for table, column, sql_type in ADDED_COLUMNS:
+            if table in tables and column not in {c["name"] for c in inspector.get_columns(table)}:
+                conn.execute(text(f"ALTER TABLE {table} ADD COLUMN {column} {sql_type}"))
+
+
 def make_engine(url: str) -> Engine:
     """An engine; SQLite gets WAL and a busy timeout because worker processes write too."""
     if not url.startswith("sqlite"):
@@ -84,6 +213,9 @@ def make_engine(url: str) -> Engine:
         cur.execute("PRAGMA journal_mode=WAL")
         cur.execute("PRAGMA busy_timeout=30000")
         cur.execute("PRAGMA foreign_keys=ON")
+        # Deleted rows (an identity record, a revoked link) are overwritten, not left in
+        # free pages of the file.
+        cur.execute("PRAGMA secure_delete=ON")
         cur.close()
 
     return engine

@@ -5,9 +5,11 @@ from __future__ import annotations
 from typing import Annotated
 
 from fastapi import Depends, Request
-from starlette.concurrency import run_in_threadpool
 
+from miss.server.accounts import User
+from miss.server.auth import can_see, user_for_request
 from miss.server.db import ModelRow, VolumeRow
+from miss.server.errors import Forbidden, NotFound
 from miss.server.jobs import JobQueue
 from miss.server.settings import Settings
 from miss.server.store import Store
@@ -30,13 +32,49 @@ StoreDep = Annotated[Store, Depends(get_store)]
 QueueDep = Annotated[JobQueue, Depends(get_queue)]
 
 
-async def get_volume_row(volume_id: str, store: StoreDep) -> VolumeRow:
+# Plain ``def``: FastAPI runs these in its threadpool, so the database look-up (and the
+# argon2-free token hash) never blocks the event loop.
+def current_user(request: Request, store: StoreDep) -> User:
+    """The logged-in user (bearer token or session cookie + CSRF); 401 otherwise."""
+    return user_for_request(request, store)
+
+
+UserDep = Annotated[User, Depends(current_user)]
+
+
+def current_admin(user: UserDep) -> User:
+    if not user.is_admin:
+        raise Forbidden("only administrators may do this.")
+    return user
+
+
+AdminDep = Annotated[User, Depends(current_admin)]
+
+
+def visible_volume(store: Store, user: User, volume_id: str) -> VolumeRow:
+    """The volume if ``user`` may see it; otherwise the same 404 as for no volume at all,
+    so nobody learns what exists."""
+    row = store.get_volume(volume_id)
+    if not can_see(user, row.owner_id):
+        raise NotFound(f"no volume {volume_id!r}; GET /api/volumes lists the volumes.")
+    return row
+
+
+def visible_model(store: Store, user: User, model_id: str) -> ModelRow:
+    row = store.get_model(model_id)
+    owner = store.get_volume(row.volume_id).owner_id
+    if not can_see(user, owner):
+        raise NotFound(f"no model {model_id!r}; GET /api/models lists the models.")
+    return row
+
+
+def get_volume_row(volume_id: str, store: StoreDep, user: UserDep) -> VolumeRow:
     """The volume named in the path, or 404 before the route (or its stream) starts."""
-    return await run_in_threadpool(store.get_volume, volume_id)
+    return visible_volume(store, user, volume_id)
 
 
-async def get_model_row(model_id: str, store: StoreDep) -> ModelRow:
-    return await run_in_threadpool(store.get_model, model_id)
+def get_model_row(model_id: str, store: StoreDep, user: UserDep) -> ModelRow:
+    return visible_model(store, user, model_id)
 
 
 VolumeDep = Annotated[VolumeRow, Depends(get_volume_row)]

@@ -13,6 +13,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 
 from miss.errors import MissError, UnreadableVolume, UnsupportedFormat
+from miss.server.logmask import mask
 
 log = logging.getLogger("miss.server")
 
@@ -33,9 +34,29 @@ class NotReady(MissError, RuntimeError):
     """A model file asked for before its job is done."""
 
 
+class Unauthorized(MissError, PermissionError):
+    """No credentials, or ones that name no live session (log in again)."""
+
+
+class Forbidden(MissError, PermissionError):
+    """Credentials that are valid but not enough: a missing CSRF token, a non-admin."""
+
+
+class Gone(MissError, LookupError):
+    """A share link that has expired or was revoked."""
+
+
+class TooManyRequests(MissError, RuntimeError):
+    """A client over its rate limit (failed logins)."""
+
+
 #: Most specific first; anything else from the engine is a bad request body (422).
 STATUS: tuple[tuple[type[MissError], int], ...] = (
     (NotFound, 404),
+    (Unauthorized, 401),
+    (Forbidden, 403),
+    (Gone, 410),
+    (TooManyRequests, 429),
     (UploadTooLarge, 413),
     (UnsupportedFormat, 415),
     (NotReady, 409),
@@ -52,9 +73,14 @@ def status_of(exc: MissError) -> int:
 async def miss_error_handler(request: Request, exc: Exception) -> JSONResponse:
     assert isinstance(exc, MissError)
     code = status_of(exc)
-    if code != 404:
-        log.info("%s %s -> %d: %s", request.method, request.url.path, code, exc)
-    return JSONResponse({"detail": str(exc)}, status_code=code)
+    if code not in (401, 404, 410):  # the everyday ones would drown the log
+        # An upload's error may quote names from inside it (a folder called after the
+        # patient): the client gets the message, the log only the kind of error.
+        upload = request.method == "POST" and request.url.path == "/api/volumes"
+        said = type(exc).__name__ if upload else str(exc)
+        log.info("%s %s -> %d: %s", request.method, mask(request.url.path), code, said)
+    headers = {"WWW-Authenticate": 'Bearer realm="miss"'} if code == 401 else None
+    return JSONResponse({"detail": str(exc)}, status_code=code, headers=headers)
 
 
 async def validation_handler(request: Request, exc: Exception) -> JSONResponse:

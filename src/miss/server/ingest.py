@@ -3,11 +3,14 @@
 The scan is parsed here and never again: the voxels go to ``data.npy`` (real units,
 (X, Y, Z), Fortran order) that jobs and slice images memory-map, and everything the
 pages need (affine, spacing, range, histogram, presets, thumbnail) is computed while
-the array is in memory. Patient-identifying fields are dropped here, at the door.
+the array is in memory. Patient identity is taken off here, at the door (``miss.deid``):
+what is stored for sharing carries none, and the original identity goes to the owner's
+record in its own table.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import re
 from pathlib import Path
@@ -15,8 +18,9 @@ from typing import Any
 
 import numpy as np
 
+from miss.deid import deidentify, identity_values, remap_uid, scrub
 from miss.errors import MissError
-from miss.io import load_volume
+from miss.io import list_series, load_volume
 from miss.server import imaging
 from miss.server.db import VolumeRow
 from miss.server.errors import UploadTooLarge
@@ -26,6 +30,8 @@ from miss.types import Volume
 
 DEMO_NAME = "Demo head phantom (synthetic CT)"
 DEMO_SLUG = "demo-head"
+#: Name of the server key under which DICOM UIDs are remapped (``Store.secret``).
+UID_KEY = "uid-remap"
 _META_KEYS = (
     "modality",
     "units",
@@ -35,6 +41,14 @@ _META_KEYS = (
     "source_format",
     "notes",
 )
+
+
+def source_hash(data: np.ndarray, affine: np.ndarray) -> str:
+    """SHA-256 of the voxels (Fortran order, as stored) and the affine: the provenance
+    "hash of the source series", which names the data without naming the patient."""
+    digest = hashlib.sha256(np.ascontiguousarray(np.asfortranarray(data).T).data)
+    digest.update(np.ascontiguousarray(affine, dtype="<f8").data)
+    return digest.hexdigest()
 
 
 def describe(volume: Volume, hist: dict[str, Any]) -> dict[str, Any]:
@@ -51,6 +65,8 @@ def describe(volume: Volume, hist: dict[str, Any]) -> dict[str, Any]:
         "window": imaging.default_window(hist),
         "presets": imaging.presets(hist, str(volume.meta.get("units", ""))),
         "views": imaging.views(volume.affine, volume.dims),
+        "burned_in_annotation": bool(volume.meta.get("burned_in_annotation", False)),
+        "source_sha256": source_hash(volume.data, volume.affine),
     }
     info["series"] = [_jsonable(s) for s in info["series"] or []]
     return _jsonable(info)
@@ -63,11 +79,13 @@ def _jsonable(value: Any) -> Any:
     )
 
 
-def stage(store: Store, volume: Volume) -> tuple[Path, dict[str, Any]]:
+def stage(
+    store: Store, volume: Volume, deid: dict[str, Any] | None = None
+) -> tuple[Path, dict[str, Any]]:
     """Write a volume's files into a fresh folder under ``tmp/``; returns (folder, info)."""
     folder = store.tmp_dir()
     hist = imaging.histogram(volume.data)
-    info = describe(volume, hist)
+    info = describe(volume, hist) | {"deidentification": deid or {}}
     np.save(folder / "data.npy", np.asfortranarray(volume.data), allow_pickle=False)
     write_atomic(folder / "meta.json", json.dumps(info).encode())
     write_atomic(folder / "histogram.json", json.dumps(hist).encode())
@@ -77,8 +95,10 @@ def stage(store: Store, volume: Volume) -> tuple[Path, dict[str, Any]]:
     return folder, info
 
 
-def ingest(store: Store, upload: Upload, work: Path, max_unzipped: int) -> VolumeRow:
-    """Read an uploaded file once and store it; returns the new volume's row."""
+def ingest(
+    store: Store, upload: Upload, work: Path, max_unzipped: int, owner_id: str | None = None
+) -> VolumeRow:
+    """Read an uploaded file once, de-identify it and store it for ``owner_id``."""
     assert upload.path is not None
     source = upload.path
     if is_zip(source):
@@ -88,31 +108,52 @@ def ingest(store: Store, upload: Upload, work: Path, max_unzipped: int) -> Volum
         source.unlink()  # the zip is no longer needed: halve the disk used meanwhile
         source = pick_source(unpacked)
     try:
-        volume = load_volume(source, series=upload.fields.get("series") or None)
+        series = original_series(store, source, upload.fields.get("series") or None)
+        volume = load_volume(source, series=series)
     except MissError as exc:  # the server's folders are none of the client's business
         raise type(exc)(str(exc).replace(f"{work}/", "")) from None
     except MemoryError:
         raise UploadTooLarge(
             "the volume does not fit in the server's memory; upload fewer slices."
         ) from None
-    name = display_name(upload, volume)
-    staged, info = stage(store, volume)
-    return store.add_volume(staged, name=name, slug=slugify(name), info=info)
+    clean = deidentify(volume, store.secret(UID_KEY))
+    identity = clean.identity
+    if identity:  # the file name people give a series often is the patient's name
+        identity = {**identity, "upload_filename": upload.filename}
+    name = display_name(upload, clean.volume, identity_values(clean.identity.get("patient", {})))
+    staged, info = stage(store, clean.volume, clean.report)
+    return store.add_volume(
+        staged, name=name, slug=slugify(name), info=info, owner_id=owner_id, identity=identity
+    )
 
 
-def register_demo(store: Store) -> None:
+def original_series(store: Store, source: Path, wanted: str | None) -> str | None:
+    """The original UID of the series asked for. The API lists series by their remapped
+    UIDs (``2.25.``...), so a client that picks one from a listing sends that; the reader
+    needs the UID in the files."""
+    if not wanted or not wanted.startswith("2.25."):
+        return wanted
+    key = store.secret(UID_KEY)
+    for entry in list_series(source):
+        if remap_uid(str(entry.get("uid", "")), key) == wanted:
+            return str(entry["uid"])
+    return wanted
+
+
+def register_demo(store: Store, owner_id: str | None = None) -> None:
     """Register the synthetic phantom, so a fresh install has something to show."""
     from miss.demo import phantom
 
     staged, info = stage(store, phantom())
-    store.add_volume(staged, name=DEMO_NAME, slug=DEMO_SLUG, info=info)
+    store.add_volume(staged, name=DEMO_NAME, slug=DEMO_SLUG, info=info, owner_id=owner_id)
 
 
-def display_name(upload: Upload, volume: Volume) -> str:
+def display_name(upload: Upload, volume: Volume, identity: list[str]) -> str:
     """The name to list: the ``name`` field, else the file name without its extensions.
 
-    A file name that contains the patient's name (``SMITH_JOHN.zip``) is replaced by the
-    modality and series description: shared models must not carry identity.
+    A name that contains any identity value (``SMITH_JOHN.zip``, an accession number) is
+    replaced by the modality and series description: shared models must not carry
+    identity. ``identity`` is ``miss.deid.identity_values`` of the original header.
     """
     name = upload.fields.get("name", "").strip()
     if not name:
@@ -121,12 +162,12 @@ def display_name(upload: Upload, volume: Volume) -> str:
             ".zip" if filename.lower().endswith(".zip") else ""
         )
         name = filename[: len(filename) - len(suffix)] if suffix else filename
-    tokens = re.split(r"[\^\s,]+", str(volume.patient.get("PatientName", "") or ""))
-    if any(len(t) >= 3 and t.lower() in name.lower() for t in tokens):
+    # File names use "_" and "-" where the header has "^" and spaces.
+    spaced = re.sub(r"[_\-.]+", " ", name)
+    if scrub(name, identity) != name or scrub(spaced, identity) != spaced:
         meta = volume.meta
-        name = (
-            " ".join(filter(None, [meta.get("modality"), meta.get("series_description")])) or "Scan"
-        )
+        parts = [meta.get("modality"), meta.get("series_description")]
+        name = " ".join(p for p in parts if p and "[removed]" not in p) or "Scan"
     return name[:200] or "Scan"
 
 

@@ -7,7 +7,9 @@ import sys
 
 import uvicorn
 
+from miss.server import logmask
 from miss.server.app import create_app
+from miss.server.rooms import MAX_MESSAGE_BYTES
 from miss.server.settings import Settings
 from miss.server.store import DataDirInUse, Store
 
@@ -31,5 +33,16 @@ def serve(host: str | None = None, port: int | None = None, data_dir: str | None
     shown = "localhost" if settings.host in ("127.0.0.1", "0.0.0.0", "::") else settings.host
     url = f"http://{shown}:{settings.port}/"
     print(f"MISS serving {settings.data_dir} at {url}  (API docs: {url}docs)", flush=True)
-    uvicorn.run(create_app(settings), host=settings.host, port=settings.port, log_level="info")
+    config = uvicorn.Config(
+        create_app(settings),
+        host=settings.host,
+        port=settings.port,
+        log_level="info",
+        # Frames far beyond a room's message limit are cut off by the protocol (1009)
+        # before they are buffered whole; the room refuses the ones in between itself.
+        ws_max_size=4 * MAX_MESSAGE_BYTES,
+    )
+    # After uvicorn set up its loggers: share tokens in paths never reach the log.
+    logmask.install("uvicorn.access", "uvicorn.error", "miss.server")
+    uvicorn.Server(config).run()
     return 0

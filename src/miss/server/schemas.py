@@ -63,6 +63,23 @@ class VolumeOut(BaseModel):
     presets: list[dict[str, Any]] = Field(description="suggested levels: bone, skin")
     views: dict[str, Any] = Field(description="per view: voxel axes across/down, flips, mm size")
     thumbnail: str
+    owner: str = Field("", description="user name of the owner")
+    burned_in_annotation: bool = Field(
+        False, description="the scanner flagged text burned into the pixels (may show identity)"
+    )
+    deidentification: dict[str, Any] = Field(
+        default_factory=dict,
+        description="what was removed (attribute names only), UIDs remapped, private tags dropped",
+    )
+
+
+class IdentityOut(BaseModel):
+    """The original identity of a volume, for its owner."""
+
+    volume: str
+    patient: dict[str, str] = Field(description="DICOM keyword -> original value")
+    uids: dict[str, str] = Field(description="original UID -> the UID MISS uses")
+    upload_filename: str = ""
 
 
 class ModelOut(BaseModel):
@@ -88,7 +105,7 @@ def _utc(value: datetime | None) -> datetime | None:
     return value.replace(tzinfo=UTC) if value is not None else None
 
 
-def volume_out(row: VolumeRow) -> VolumeOut:
+def volume_out(row: VolumeRow, owner: str = "") -> VolumeOut:
     info = row.info
     keys = (
         "dims",
@@ -108,6 +125,9 @@ def volume_out(row: VolumeRow) -> VolumeOut:
         name=row.name,
         created=_utc(row.created_at),
         thumbnail=f"/api/volumes/{row.id}/thumbnail.png",
+        owner=owner,
+        burned_in_annotation=bool(info.get("burned_in_annotation", False)),
+        deidentification=info.get("deidentification", {}),
         **{k: info[k] for k in keys},
     )
 

@@ -9,13 +9,16 @@ Environment variables (all optional):
 ``MISS_WORKERS``          jobs run at the same time, each in its own process (1)
 ``MISS_DEMO``             register the demo phantom on first start ("1"; "0" to skip)
 ``MISS_HOST``, ``MISS_PORT``  where ``miss serve`` listens (127.0.0.1, 8000)
+``MISS_ADMIN_PASSWORD``   password of the ``admin`` account made on first start (random,
+                          printed once, when unset)
+``MISS_SESSION_HOURS``    how long a login lasts, hours (12)
 """
 
 from __future__ import annotations
 
 import os
 from collections.abc import Mapping
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -34,6 +37,8 @@ class Settings:
     demo: bool = True
     host: str = "127.0.0.1"
     port: int = 8000
+    admin_password: str = field(default="", repr=False)
+    session_hours: float = 12.0
 
     def __post_init__(self) -> None:
         # Resolve once so the worker subprocesses, which get these as arguments, see the
@@ -45,6 +50,8 @@ class Settings:
             object.__setattr__(self, "max_unzipped_mb", 4.0 * self.max_upload_mb)
         if self.workers < 1:
             raise ValueError(f"MISS_WORKERS must be at least 1, got {self.workers}.")
+        if self.session_hours <= 0:
+            raise ValueError(f"MISS_SESSION_HOURS must be positive, got {self.session_hours}.")
 
     @classmethod
     def from_env(cls, env: Mapping[str, str] | None = None, **overrides: Any) -> Settings:
@@ -86,6 +93,8 @@ _ENV: tuple[tuple[str, str, Any], ...] = (
     ("demo", "MISS_DEMO", _bool),
     ("host", "MISS_HOST", str),
     ("port", "MISS_PORT", int),
+    ("admin_password", "MISS_ADMIN_PASSWORD", str),
+    ("session_hours", "MISS_SESSION_HOURS", float),
 )
 
 

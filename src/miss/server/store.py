@@ -2,7 +2,8 @@
 
 Layout of the data folder::
 
-    miss.sqlite3              the database (unless MISS_DATABASE_URL points elsewhere)
+    miss.sqlite3              the database (unless MISS_DATABASE_URL points elsewhere); the
+                              only place a patient's original identity is kept (its own table)
     volumes/<id>/data.npy     voxels, real units (HU for CT), (X, Y, Z) Fortran order
     volumes/<id>/meta.json    affine, spacing, range, modality, series, presets (no patient data)
     volumes/<id>/histogram.json, thumbnail.png
@@ -33,10 +34,13 @@ from miss.server.db import (
     FAILED,
     QUEUED,
     Base,
+    IdentityRow,
     ModelRow,
+    SecretRow,
     VolumeRow,
     make_engine,
     make_sessionmaker,
+    migrate,
 )
 from miss.server.errors import NotFound
 from miss.types import Volume
@@ -110,7 +114,7 @@ class Store:
         self.lock()
         for sub in ("volumes", "models", "tmp"):
             (self.data_dir / sub).mkdir(parents=True, exist_ok=True)
-        Base.metadata.create_all(self.engine)
+        self.init_schema()
         shutil.rmtree(self.data_dir / "tmp", ignore_errors=True)
         (self.data_dir / "tmp").mkdir()
         with self.session() as s:
@@ -118,6 +122,30 @@ class Store:
             models = set(s.scalars(select(ModelRow.id)))
         _remove_unknown(self.data_dir / "volumes", volumes)
         _remove_unknown(self.data_dir / "models", models)
+
+    def init_schema(self) -> None:
+        """Create missing tables and columns; safe beside a running server (``miss user``)."""
+        if self.database_url.startswith("sqlite:///"):
+            Path(self.database_url.removeprefix("sqlite:///")).parent.mkdir(
+                parents=True, exist_ok=True
+            )
+        Base.metadata.create_all(self.engine)
+        migrate(self.engine)
+
+    def secret(self, name: str) -> bytes:
+        """A server-wide random key, made on first use and kept in the database."""
+        with self.session() as s:
+            row = s.get(SecretRow, name)
+        if row is None:
+            try:
+                with self.session.begin() as s:
+                    s.add(SecretRow(name=name, value=secrets.token_hex(32)))
+            except IntegrityError:  # made by another process meanwhile; use theirs
+                pass
+            with self.session() as s:
+                row = s.get(SecretRow, name)
+        assert row is not None
+        return bytes.fromhex(row.value)
 
     def close(self) -> None:
         self.engine.dispose()
@@ -127,9 +155,13 @@ class Store:
 
     # -- volumes --------------------------------------------------------------------------
 
-    def list_volumes(self) -> list[VolumeRow]:
+    def list_volumes(self, owner_id: str | None = None) -> list[VolumeRow]:
+        """Every volume, or only those of ``owner_id``."""
+        query = select(VolumeRow).order_by(VolumeRow.created_at)
+        if owner_id is not None:
+            query = query.where(VolumeRow.owner_id == owner_id)
         with self.session() as s:
-            return list(s.scalars(select(VolumeRow).order_by(VolumeRow.created_at)))
+            return list(s.scalars(query))
 
     def count_volumes(self) -> int:
         with self.session() as s:
@@ -142,14 +174,26 @@ class Store:
             raise NotFound(f"no volume {volume_id!r}; GET /api/volumes lists the volumes.")
         return row
 
-    def add_volume(self, staged: Path, name: str, slug: str, info: dict[str, Any]) -> VolumeRow:
-        """Move a staged folder (data.npy, meta.json ...) into place and record it."""
-        row = VolumeRow(id=new_id(), name=name, slug=slug, info=info)
+    def add_volume(
+        self,
+        staged: Path,
+        name: str,
+        slug: str,
+        info: dict[str, Any],
+        owner_id: str | None = None,
+        identity: dict[str, Any] | None = None,
+    ) -> VolumeRow:
+        """Move a staged folder (data.npy, meta.json ...) into place and record it; the
+        original patient identity, if kept, goes to its own owner-only row."""
+        row = VolumeRow(id=new_id(), name=name, slug=slug, info=info, owner_id=owner_id)
         final = self.volume_dir(row.id)
         os.replace(staged, final)
         try:
             with self.session.begin() as s:
                 s.add(row)
+                if identity:
+                    s.flush()  # the volume before the row that refers to it
+                    s.add(IdentityRow(volume_id=row.id, owner_id=owner_id, data=identity))
         except BaseException:
             shutil.rmtree(final, ignore_errors=True)
             raise
@@ -186,10 +230,20 @@ class Store:
             raise NotFound(f"no model {model_id!r}; GET /api/models lists the models.")
         return row
 
-    def list_models(self, volume_id: str | None = None) -> list[ModelRow]:
+    def get_identity(self, volume_id: str) -> IdentityRow | None:
+        with self.session() as s:
+            return s.get(IdentityRow, volume_id)
+
+    def list_models(
+        self, volume_id: str | None = None, owner_id: str | None = None
+    ) -> list[ModelRow]:
+        """Models of one volume, or of the volumes of ``owner_id``, or all."""
         query = select(ModelRow).order_by(ModelRow.created_at)
         if volume_id is not None:
             query = query.where(ModelRow.volume_id == volume_id)
+        if owner_id is not None:
+            owned = select(VolumeRow.id).where(VolumeRow.owner_id == owner_id)
+            query = query.where(ModelRow.volume_id.in_(owned))
         with self.session() as s:
             return list(s.scalars(query))
 

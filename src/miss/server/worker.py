@@ -20,6 +20,7 @@ import signal
 import sys
 import time
 import traceback
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -27,6 +28,7 @@ from miss import __version__
 from miss.errors import MissError
 from miss.export import FORMATS, WRITERS
 from miss.pipeline import JobResult, JobSpec, run
+from miss.server.db import VolumeRow
 from miss.server.jobstate import JobState
 from miss.server.store import Store, write_atomic
 
@@ -81,12 +83,31 @@ def write_files(folder: Path, artifacts: dict[str, bytes]) -> dict[str, Any]:
 
 
 def summarize(result: JobResult, load_seconds: float, total_seconds: float) -> dict[str, Any]:
-    """The stats the API shows: triangles, vertices, seconds per stage, bytes, error in mm."""
+    """The stats the API shows: triangles, vertices, seconds per stage, bytes, error in mm,
+    and the bounding box in patient mm (the rooms check pins against it)."""
     stats = result.stats()
     stats["seconds"] = {"load": load_seconds, **stats["seconds"], "total": total_seconds}
     stats["max_error_mm"] = result.report.max_error_mm
     stats["mean_error_mm"] = result.report.mean_error_mm
+    if result.mesh.n_vertices:
+        stats["bounds_mm"] = result.mesh.bounds().tolist()
     return json.loads(json.dumps(stats, default=float))
+
+
+def provenance(volume_row: VolumeRow, spec: JobSpec) -> dict[str, str]:
+    """What a model file says about where it came from: software, parameters, the hash of
+    the (de-identified) source voxels. Strings only (every exporter takes str -> str);
+    never a patient name, ID or original UID."""
+    params = {k: v for k, v in spec.to_dict().items() if k != "formats"}
+    return {
+        "software": f"MISS {__version__}",
+        "parameters": json.dumps(params, sort_keys=True),
+        "source": volume_row.slug,
+        "source_sha256": str(volume_row.info.get("source_sha256", "")),
+        "modality": str(volume_row.info.get("modality", "")),
+        "deidentified": "yes" if volume_row.info.get("deidentification") else "no patient data",
+        "created": datetime.now(UTC).isoformat(timespec="seconds"),
+    }
 
 
 def run_job(store: Store, model_id: str, parent: int) -> None:
@@ -100,12 +121,19 @@ def run_job(store: Store, model_id: str, parent: int) -> None:
     volume = store.open_volume(row.volume_id)
     spec = JobSpec.from_dict({**row.spec, "formats": list(FORMATS)})
     load_seconds = time.perf_counter() - t0
-    params = json.dumps({k: v for k, v in spec.to_dict().items() if k != "formats"})
-    metadata = {"software": f"MISS {__version__}", "parameters": params, "volume": volume_row.slug}
-    result = run(volume, spec, progress=reporter, title=volume_row.name, metadata=metadata)
+    metadata = provenance(volume_row, spec)
+    result = run(
+        volume,
+        spec,
+        progress=reporter,
+        title=volume_row.name,
+        metadata=metadata,
+        export_options={"glb": {"compress": True}},  # meshopt: ~4 bytes/triangle to the viewer
+    )
     reporter("store", 1.0)
     files = write_files(store.model_dir(model_id), result.artifacts)
-    if not state.finish(model_id, summarize(result, load_seconds, time.perf_counter() - t0), files):
+    stats = summarize(result, load_seconds, time.perf_counter() - t0) | {"provenance": metadata}
+    if not state.finish(model_id, stats, files):
         raise Stop
 
 

@@ -14,8 +14,9 @@ from starlette.concurrency import run_in_threadpool
 from miss.errors import BadParameter, EmptySurface
 from miss.export import FORMATS, WRITERS
 from miss.pipeline import JobSpec, slice_range
-from miss.server.db import DONE, FAILED, VolumeRow
-from miss.server.deps import ModelDep, QueueDep, StoreDep
+from miss.server import audit
+from miss.server.db import DONE, FAILED, ModelRow, VolumeRow
+from miss.server.deps import ModelDep, QueueDep, StoreDep, UserDep, visible_volume
 from miss.server.errors import NotFound, NotReady
 from miss.server.schemas import ModelOut, ModelRequest, download_name, mime_for, model_out
 from miss.server.store import Store
@@ -83,15 +84,18 @@ class _Dims:
         422: {"description": "bad parameters, or no surface at this level"},
     },
 )
-def create_model(body: ModelRequest, store: StoreDep, queue: QueueDep) -> JSONResponse:
+def create_model(
+    body: ModelRequest, store: StoreDep, queue: QueueDep, user: UserDep, request: Request
+) -> JSONResponse:
     """Queue a surface job (202); identical parameters on the same volume return the
     existing model: 202 while it is queued or running, 200 once done."""
-    volume = store.get_volume(body.volume)
+    volume = visible_volume(store, user, body.volume)
     spec = body.spec()
     check_against_volume(spec, volume, store)
     row, created = store.find_or_create_model(volume.id, spec.key(), spec.to_dict())
     if created:
         queue.submit()
+        audit.record(store, "generate", user.name, row.id, audit.address(request), volume=volume.id)
     code = 200 if row.status == DONE else 202
     return JSONResponse(
         model_out(row, volume).model_dump(mode="json"),
@@ -103,12 +107,16 @@ def create_model(body: ModelRequest, store: StoreDep, queue: QueueDep) -> JSONRe
 @router.get("", response_model=list[ModelOut])
 def list_models(
     store: StoreDep,
+    user: UserDep,
     volume: Annotated[str | None, Query(description="only the models of this volume")] = None,
 ) -> list[ModelOut]:
+    """Your models (an administrator's list holds everyone's)."""
     if volume is not None:
-        store.get_volume(volume)
-    volumes = {v.id: v for v in store.list_volumes()}
-    return [model_out(row, volumes.get(row.volume_id)) for row in store.list_models(volume)]
+        visible_volume(store, user, volume)
+    owner = None if user.is_admin else user.id
+    volumes = {v.id: v for v in store.list_volumes(owner)}
+    rows = store.list_models(volume, owner_id=owner)
+    return [model_out(row, volumes.get(row.volume_id)) for row in rows]
 
 
 @router.get("/{model_id}", response_model=ModelOut)
@@ -157,9 +165,19 @@ def _etag_matches(header: str | None, etag: str) -> bool:
     response_class=FileResponse,
     responses={304: {"description": "not modified (ETag)"}, 409: {"description": "not done yet"}},
 )
-def download(model: ModelDep, fmt: str, request: Request, store: StoreDep) -> Response:
+def download(
+    model: ModelDep, fmt: str, request: Request, store: StoreDep, user: UserDep
+) -> Response:
     """The model file, as an attachment with a readable name; ``Accept: x-world/x-vrml``
     gets VRML under its 1998 type."""
+    response = model_file(model, fmt, request, store)
+    if response.status_code == 200 and request.method == "GET":
+        audit.record(store, "download", user.name, model.id, audit.address(request), format=fmt)
+    return response
+
+
+def model_file(model: ModelRow, fmt: str, request: Request, store: Store) -> Response:
+    """A model's file with type, name, ETag (304 when unchanged): for owners and links."""
     if fmt not in WRITERS:
         raise NotFound(f"no format {fmt!r}; choose one of {', '.join(FORMATS)}.")
     if model.status != DONE or not model.files or fmt not in model.files:

@@ -1,15 +1,22 @@
-"""The browser pages and their files: the library, a volume, the viewer; static JS/CSS;
-three.js from ``web/node_modules`` (installed by ``make`` from npm, served locally)."""
+"""The browser pages and their files: the login, the library, a volume, the viewer;
+static JS/CSS; three.js from ``web/node_modules`` (installed by ``make`` from npm, served
+locally). Pages other than the login need a session; without one they redirect to it."""
 
 from __future__ import annotations
 
 from pathlib import Path
+from urllib.parse import quote
 
-from fastapi import APIRouter
-from fastapi.responses import FileResponse
+from fastapi import APIRouter, Request
+from fastapi.responses import FileResponse, RedirectResponse, Response
 
 import miss
+from miss.server import audit
+from miss.server.accounts import User
+from miss.server.auth import page_user
+from miss.server.deps import StoreDep, visible_model
 from miss.server.errors import NotFound
+from miss.server.store import Store
 
 WEB = Path(miss.__file__).parent / "web"
 THREE = WEB / "node_modules" / "three"
@@ -55,19 +62,42 @@ def _asset(path: Path) -> FileResponse:
     )
 
 
+def _login_first(request: Request) -> RedirectResponse:
+    target = request.url.path + (f"?{request.url.query}" if request.url.query else "")
+    return RedirectResponse(f"/login?next={quote(target, safe='')}", status_code=303)
+
+
+@router.get("/login")
+def login_page() -> FileResponse:
+    return _page("login.html")
+
+
 @router.get("/")
-def library_page() -> FileResponse:
-    return _page("index.html")
+def library_page(request: Request, store: StoreDep) -> Response:
+    return _page("index.html") if page_user(request, store) else _login_first(request)
 
 
 @router.get("/volumes/{volume_id}")
-def volume_page(volume_id: str) -> FileResponse:
-    return _page("volume.html")
+def volume_page(volume_id: str, request: Request, store: StoreDep) -> Response:
+    return _page("volume.html") if page_user(request, store) else _login_first(request)
 
 
 @router.get("/models/{model_id}")
-def viewer_page(model_id: str) -> FileResponse:
+def viewer_page(model_id: str, request: Request, store: StoreDep) -> Response:
+    """The viewer; opening it is a "view" in the audit log (when the model is yours)."""
+    user = page_user(request, store)
+    if user is None:
+        return _login_first(request)
+    _audit_view(store, request, user, model_id)
     return _page("viewer.html")
+
+
+def _audit_view(store: Store, request: Request, user: User, model_id: str) -> None:
+    try:
+        visible_model(store, user, model_id)
+    except NotFound:
+        return  # the page will say so; nothing was viewed
+    audit.record(store, "view", user.name, model_id, audit.address(request))
 
 
 @router.get("/static/{path:path}")

@@ -1,4 +1,5 @@
-"""``/api/volumes``: upload a scan, list and delete volumes, slice images, histogram."""
+"""``/api/volumes``: upload a scan, list and delete volumes, slice images, histogram, and
+the owner-only identity record."""
 
 from __future__ import annotations
 
@@ -11,11 +12,14 @@ from fastapi import APIRouter, Query, Request, Response, status
 from fastapi.responses import FileResponse, JSONResponse
 from starlette.concurrency import run_in_threadpool
 
-from miss.server import imaging
-from miss.server.deps import QueueDep, SettingsDep, StoreDep, VolumeDep
+from miss.server import audit, imaging
+from miss.server.accounts import get_user
+from miss.server.db import VolumeRow
+from miss.server.deps import QueueDep, SettingsDep, StoreDep, UserDep, VolumeDep
 from miss.server.errors import NotFound
 from miss.server.ingest import ingest
-from miss.server.schemas import VolumeOut, volume_out
+from miss.server.schemas import IdentityOut, VolumeOut, volume_out
+from miss.server.store import Store
 from miss.server.uploads import receive
 
 router = APIRouter(prefix="/api/volumes", tags=["volumes"])
@@ -64,37 +68,77 @@ class Axis(StrEnum):
     openapi_extra=_UPLOAD_BODY,
     responses={413: {"description": "over the size limit"}, 415: {"description": "not a scan"}},
 )
-async def upload_volume(request: Request, store: StoreDep, settings: SettingsDep) -> JSONResponse:
-    """Upload a scan; it is read once and stored for slicing and jobs."""
+async def upload_volume(
+    request: Request, store: StoreDep, settings: SettingsDep, user: UserDep
+) -> JSONResponse:
+    """Upload a scan; it is read once, de-identified and stored for slicing and jobs."""
     work = await run_in_threadpool(store.tmp_dir)
     try:
         upload = await receive(request, work, settings.max_upload_bytes)
-        row = await run_in_threadpool(ingest, store, upload, work, settings.max_unzipped_bytes)
+        row = await run_in_threadpool(
+            ingest, store, upload, work, settings.max_unzipped_bytes, user.id
+        )
     finally:
         # Whatever happened, the upload and its unpacked files go; a stored volume was
         # moved out of tmp/ before this point.
         await run_in_threadpool(shutil.rmtree, work, True)
-    body = volume_out(row).model_dump(mode="json")
+    await run_in_threadpool(
+        audit.record, store, "upload", user.name, row.id, audit.address(request), name=row.name
+    )
+    body = volume_out(row, user.name).model_dump(mode="json")
     return JSONResponse(body, status_code=201, headers={"Location": f"/api/volumes/{row.id}"})
 
 
+def owner_name(store: Store, row: VolumeRow, cache: dict[str, str] | None = None) -> str:
+    """The owner's user name ("" for none); ``cache`` saves look-ups over a list."""
+    if row.owner_id is None:
+        return ""
+    cache = {} if cache is None else cache
+    if row.owner_id not in cache:
+        found = get_user(store, row.owner_id)
+        cache[row.owner_id] = found.name if found else ""
+    return cache[row.owner_id]
+
+
 @router.get("", response_model=list[VolumeOut])
-def list_volumes(store: StoreDep) -> list[VolumeOut]:
-    return [volume_out(row) for row in store.list_volumes()]
+def list_volumes(store: StoreDep, user: UserDep) -> list[VolumeOut]:
+    """Your volumes (an administrator's list holds everyone's)."""
+    rows = store.list_volumes(None if user.is_admin else user.id)
+    names: dict[str, str] = {}
+    return [volume_out(row, owner_name(store, row, names)) for row in rows]
 
 
 @router.get("/{volume_id}", response_model=VolumeOut)
-def get_volume(volume: VolumeDep) -> VolumeOut:
-    return volume_out(volume)
+def get_volume(volume: VolumeDep, store: StoreDep) -> VolumeOut:
+    return volume_out(volume, owner_name(store, volume))
 
 
 @router.delete("/{volume_id}", status_code=status.HTTP_204_NO_CONTENT)
-def delete_volume(volume: VolumeDep, store: StoreDep, queue: QueueDep) -> Response:
-    """Delete a volume with all its models (running jobs are stopped)."""
+def delete_volume(
+    volume: VolumeDep, store: StoreDep, queue: QueueDep, user: UserDep, request: Request
+) -> Response:
+    """Delete a volume with all its models (running jobs are stopped), its identity
+    record and its share links."""
     for model in store.list_models(volume.id):
         queue.cancel(model.id)
     store.delete_volume(volume.id)
+    audit.record(store, "delete", user.name, volume.id, audit.address(request), name=volume.name)
     return Response(status_code=204)
+
+
+@router.get(
+    "/{volume_id}/identity",
+    response_model=IdentityOut,
+    responses={404: {"description": "not your volume, or no identity was kept"}},
+)
+def identity(volume: VolumeDep, store: StoreDep, user: UserDep, request: Request) -> IdentityOut:
+    """The original patient identity and UID mapping, for the volume's owner only (not
+    even administrators: they run the server, they are not the patient's physician)."""
+    record = store.get_identity(volume.id) if volume.owner_id == user.id else None
+    if record is None or not record.data:
+        raise NotFound(f"volume {volume.id!r} has no identity record of yours.")
+    audit.record(store, "identity", user.name, volume.id, audit.address(request))
+    return IdentityOut(volume=volume.id, **record.data)
 
 
 @router.get("/{volume_id}/thumbnail.png", response_class=FileResponse)

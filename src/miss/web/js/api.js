@@ -1,5 +1,7 @@
 // The MISS REST API as small functions. Every failure becomes an ApiError whose
 // message is the server's `detail`, because that text already says what to fix.
+// The pages authenticate with the session cookie; every write echoes the CSRF
+// cookie in X-CSRF-Token, and a 401 sends the browser to the login page.
 
 export class ApiError extends Error {
 	constructor( status, detail ) {
@@ -20,8 +22,20 @@ export function detailText( body, status ) {
 	return `request failed (HTTP ${status})`;
 }
 
+// The value the server wants back in X-CSRF-Token (a cookie the page may read,
+// which another site's page cannot).
+export function csrfToken() {
+	const found = document.cookie.split( '; ' ).find( ( c ) => c.startsWith( 'miss_csrf=' ) );
+	return found ? decodeURIComponent( found.slice( 'miss_csrf='.length ) ) : '';
+}
+
+export function loginUrl() {
+	return `/login?next=${encodeURIComponent( location.pathname + location.search )}`;
+}
+
 async function request( method, path, body ) {
 	const init = { method, headers: { Accept: 'application/json' } };
+	if ( method !== 'GET' ) init.headers[ 'X-CSRF-Token' ] = csrfToken();
 	if ( body !== undefined ) {
 		init.headers[ 'Content-Type' ] = 'application/json';
 		init.body = JSON.stringify( body );
@@ -39,6 +53,7 @@ async function request( method, path, body ) {
 	} catch ( err ) {
 		data = { detail: text };
 	}
+	if ( response.status === 401 && ! path.startsWith( '/api/auth/login' ) ) location.assign( loginUrl() );
 	if ( ! response.ok ) throw new ApiError( response.status, detailText( data, response.status ) );
 	return data;
 }
@@ -53,6 +68,15 @@ export const api = {
 	models: ( volumeId ) => request( 'GET', `/api/models?volume=${enc( volumeId )}` ),
 	model: ( id ) => request( 'GET', `/api/models/${enc( id )}` ),
 	createModel: ( params ) => request( 'POST', '/api/models', params ),
+	identity: ( id ) => request( 'GET', `/api/volumes/${enc( id )}/identity` ),
+	me: () => request( 'GET', '/api/auth/me' ),
+	login: ( username, password ) => request( 'POST', '/api/auth/login', { username, password } ),
+	logout: () => request( 'POST', '/api/auth/logout' ),
+	shares: ( modelId ) => request( 'GET', `/api/shares?model=${enc( modelId )}` ),
+	createShare: ( params ) => request( 'POST', '/api/shares', params ),
+	revokeShare: ( id ) => request( 'DELETE', `/api/shares/${enc( id )}` ),
+	roomSessions: ( modelId ) => request( 'GET', `/api/models/${enc( modelId )}/room/sessions` ),
+	roomEvents: ( modelId, session ) => request( 'GET', `/api/models/${enc( modelId )}/room/events?session=${enc( session )}` ),
 };
 
 export const urls = {

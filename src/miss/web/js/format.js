@@ -1,6 +1,6 @@
 // Small helpers shared by the pages: DOM building and number formatting.
 
-// el('a.button.small', {href}, 'text', child) — enough of a hyperscript to keep
+// el('a#id.button.small', {href}, 'text', child) — enough of a hyperscript to keep
 // page code declarative without a framework.
 // The attributes object may be left out: el('div.facts', 'text').
 export function el( spec, attrs = {}, ...children ) {
@@ -8,8 +8,10 @@ export function el( spec, attrs = {}, ...children ) {
 		children.unshift( attrs );
 		attrs = {};
 	}
-	const [ tag, ...classes ] = spec.split( '.' );
+	const [ head, ...classes ] = spec.split( '.' );
+	const [ tag, id ] = head.split( '#' );
 	const node = document.createElement( tag || 'div' );
+	if ( id ) node.id = id;
 	if ( classes.length ) node.className = classes.join( ' ' );
 	for ( const [ key, value ] of Object.entries( attrs ) ) {
 		if ( value == null || value === false ) continue;
@@ -21,6 +23,13 @@ export function el( spec, attrs = {}, ...children ) {
 		if ( child == null || child === false ) continue;
 		node.append( child instanceof Node ? child : document.createTextNode( String( child ) ) );
 	}
+	return node;
+}
+
+// node.replaceChildren, skipping null/false children (optional rows) instead of
+// writing them as text.
+export function fill( node, ...children ) {
+	node.replaceChildren( ...children.flat().filter( ( c ) => c != null && c !== false ) );
 	return node;
 }
 

@@ -1,5 +1,6 @@
 // Library page: the list of volumes as cards, upload by picker or drag and drop.
 
+import { showSession } from './session.js';
 import { api, urls } from './api.js';
 import { describeVolume, el } from './format.js';
 import { looksLikeVolume, uploadVolume } from './upload.js';
@@ -107,5 +108,6 @@ function setupUpload() {
 	} );
 }
 
+showSession();
 setupUpload();
 refresh();

@@ -1,7 +1,7 @@
 // Volume upload. XMLHttpRequest rather than fetch because only XHR reports
 // upload progress (upload.onprogress), and a 500 MB DICOM zip needs a bar.
 
-import { ApiError, detailText } from './api.js';
+import { ApiError, csrfToken, detailText, loginUrl } from './api.js';
 
 // Resolves with the new volume's JSON; onProgress(fraction, phase) where
 // phase is 'sending' while bytes go out and 'reading' once they are all sent
@@ -11,6 +11,7 @@ export function uploadVolume( file, onProgress = () => {} ) {
 		const xhr = new XMLHttpRequest();
 		xhr.open( 'POST', '/api/volumes' );
 		xhr.setRequestHeader( 'Accept', 'application/json' );
+		xhr.setRequestHeader( 'X-CSRF-Token', csrfToken() );
 		xhr.responseType = 'text';
 		xhr.upload.onprogress = ( event ) => {
 			if ( event.lengthComputable ) onProgress( event.loaded / event.total, 'sending' );
@@ -23,6 +24,7 @@ export function uploadVolume( file, onProgress = () => {} ) {
 			} catch ( err ) {
 				body = { detail: xhr.responseText };
 			}
+			if ( xhr.status === 401 ) location.assign( loginUrl() );
 			if ( xhr.status >= 200 && xhr.status < 300 ) resolve( body );
 			else reject( new ApiError( xhr.status, detailText( body, xhr.status ) ) );
 		};

@@ -1,5 +1,7 @@
 // The 3-D viewer: a three.js scene that draws only when the view changes
 // (OrbitControls 'change', a resize, a new model), never in a busy loop.
+// Positions shared with other people (pins, pointers, cameras) are patient LPS
+// millimetres: toLps/toWorld convert with the GLB root's matrix and its inverse.
 
 import * as THREE from 'three';
 import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
@@ -53,6 +55,12 @@ export class ModelViewer {
 		this.gizmo.setFrame( this.lpsToWorld );
 		this.model = null;
 		this.background = 'dark';
+		// Annotations (pins, pointers, measurements) live here, apart from the model.
+		this.overlay = new THREE.Group();
+		this.overlay.name = 'annotations';
+		this.scene.add( this.overlay );
+		this.changeListeners = [];
+		this.raycaster = new THREE.Raycaster();
 		this.makeControls();
 		this.pending = false;
 		new ResizeObserver( () => this.resize() ).observe( container );
@@ -74,8 +82,64 @@ export class ModelViewer {
 	// patient's superior direction (the camera's up) changes.
 	makeControls() {
 		this.controls?.dispose();
+		const enabled = this.controls ? this.controls.enabled : true;
 		this.controls = new OrbitControls( this.camera, this.renderer.domElement );
-		this.controls.addEventListener( 'change', () => this.requestRender() );
+		this.controls.enabled = enabled;
+		this.controls.addEventListener( 'change', () => {
+			this.requestRender();
+			for ( const fn of this.changeListeners ) fn();
+		} );
+	}
+
+	// fn() after every camera change made by the user's orbit controls.
+	onCameraChange( fn ) {
+		this.changeListeners.push( fn );
+	}
+
+	toLps( world ) {
+		const inverse = this.lpsToWorld.clone().invert();
+		const p = world.clone().applyMatrix4( inverse );
+		return [ p.x, p.y, p.z ];
+	}
+
+	toWorld( lps ) {
+		return new THREE.Vector3( ...lps ).applyMatrix4( this.lpsToWorld );
+	}
+
+	// The surface point under a pixel of the canvas: {world, lps} or null.
+	pick( clientX, clientY ) {
+		if ( ! this.model ) return null;
+		const rect = this.renderer.domElement.getBoundingClientRect();
+		const ndc = new THREE.Vector2( ( ( clientX - rect.left ) / rect.width ) * 2 - 1, - ( ( clientY - rect.top ) / rect.height ) * 2 + 1 );
+		this.raycaster.setFromCamera( ndc, this.camera );
+		const hit = this.raycaster.intersectObject( this.model, true )[ 0 ];
+		return hit ? { world: hit.point.clone(), lps: this.toLps( hit.point ) } : null;
+	}
+
+	// The camera as patient LPS mm: where it is, what it looks at, which way is up.
+	pose() {
+		const inverse = this.lpsToWorld.clone().invert();
+		const up = this.camera.up.clone().transformDirection( inverse );
+		return { position: this.toLps( this.camera.position ), target: this.toLps( this.controls.target ), up: [ up.x, up.y, up.z ] };
+	}
+
+	// Places the camera at a pose in world units (see follow.js for the smooth way).
+	setWorldPose( position, target, up ) {
+		this.camera.position.copy( position );
+		this.camera.up.copy( up ).normalize();
+		this.controls.target.copy( target );
+		this.camera.lookAt( target );
+		const dist = position.distanceTo( target ) || 1;
+		this.camera.near = dist / 100;
+		this.camera.far = dist * 10;
+		this.camera.updateProjectionMatrix();
+		this.requestRender();
+	}
+
+	// Radius of the model's bounding sphere in world units (sizes of markers).
+	radius() {
+		if ( ! this.model ) return 0.1;
+		return new THREE.Box3().setFromObject( this.model ).getBoundingSphere( new THREE.Sphere() ).radius || 0.1;
 	}
 
 	requestRender() {

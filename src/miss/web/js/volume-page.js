@@ -2,11 +2,13 @@
 // threshold, the 1998 form's choices (start/end slice, sample rate,
 // decimation, error bound, reduce rate) and Generate with live progress.
 
+import { showSession } from './session.js';
 import { api, urls, watchModel } from './api.js';
 import { describeVolume, el, formatCount } from './format.js';
 import { Histogram, binEdges } from './histogram.js';
 import { percent, renderStages, stageLabel } from './job.js';
 import { SliceRange } from './range.js';
+import { showPrivacy } from './privacy.js';
 import { SliceView } from './slices.js';
 
 const $ = ( id ) => document.getElementById( id );
@@ -234,6 +236,7 @@ async function loadModels() {
 }
 
 async function main() {
+	showSession();
 	try {
 		const [ volume, hist ] = await Promise.all( [ api.volume( volumeId ), api.histogram( volumeId ) ] );
 		hist.bins = binEdges( hist );
@@ -243,6 +246,7 @@ async function main() {
 		setupWindowLevel( volume, hist );
 		setupThreshold( hist, volume );
 		setupViews( volume );
+		showPrivacy( $( 'privacy' ), volume );
 		$( 'generate' ).addEventListener( 'click', () => generate( volume ) );
 		document.body.dataset.ready = '1';
 		loadModels();

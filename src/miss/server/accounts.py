@@ -1,0 +1,159 @@
+"""Users and their login sessions, in the database.
+
+Passwords are stored as argon2id hashes (argon2-cffi's defaults: 64 MiB, 3 passes),
+the salt inside the hash string. A session is a 256-bit random token handed to the
+client once; the database keeps only its SHA-256, so a copy of the database opens
+nothing. Each session also carries a CSRF value that cookie-authenticated writes echo.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import re
+import secrets
+from dataclasses import dataclass
+from datetime import datetime, timedelta
+
+from argon2 import PasswordHasher
+from argon2.exceptions import InvalidHashError, VerificationError
+from sqlalchemy import delete, func, select, update
+from sqlalchemy.exc import IntegrityError
+
+from miss.errors import BadParameter
+from miss.server.db import SessionRow, UserRow, VolumeRow, utcnow
+from miss.server.store import Store, new_id
+
+_HASHER = PasswordHasher()
+#: A hash to verify against when the user does not exist, so a wrong name takes as long
+#: as a wrong password and response times do not reveal which names exist.
+_DUMMY_HASH = _HASHER.hash(secrets.token_urlsafe(16))
+NAME_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._@-]{0,63}$")
+MIN_PASSWORD = 8
+ADMIN_NAME = "admin"
+
+
+@dataclass(frozen=True)
+class User:
+    """Who a request acts for."""
+
+    id: str
+    name: str
+    is_admin: bool
+
+
+def _user(row: UserRow) -> User:
+    return User(id=row.id, name=row.name, is_admin=row.is_admin)
+
+
+def token_hash(token: str) -> str:
+    """SHA-256 hex of a bearer or share token: what the database stores and looks up."""
+    return hashlib.sha256(token.encode("utf-8", "replace")).hexdigest()
+
+
+def check_name(name: str) -> str:
+    if not NAME_PATTERN.match(name):
+        raise BadParameter(
+            f"user name {name!r} is not valid; use 1-64 letters, digits, '.', '_', '@' or '-', "
+            "starting with a letter or digit."
+        )
+    return name
+
+
+def check_password(password: str) -> str:
+    if len(password) < MIN_PASSWORD:
+        raise BadParameter(f"the password is too short; use at least {MIN_PASSWORD} characters.")
+    return password
+
+
+def create_user(store: Store, name: str, password: str, is_admin: bool = False) -> User:
+    """Add an account; raises BadParameter for a bad or taken name, a short password."""
+    row = UserRow(
+        id=new_id(),
+        name=check_name(name),
+        password=_HASHER.hash(check_password(password)),
+        is_admin=is_admin,
+    )
+    try:
+        with store.session.begin() as s:
+            s.add(row)
+    except IntegrityError:
+        raise BadParameter(f"a user named {name!r} exists already; choose another name.") from None
+    return _user(row)
+
+
+def count_users(store: Store) -> int:
+    with store.session() as s:
+        return s.scalar(select(func.count()).select_from(UserRow)) or 0
+
+
+def list_users(store: Store) -> list[User]:
+    with store.session() as s:
+        return [_user(r) for r in s.scalars(select(UserRow).order_by(UserRow.created_at))]
+
+
+def get_user(store: Store, user_id: str) -> User | None:
+    with store.session() as s:
+        row = s.get(UserRow, user_id)
+    return _user(row) if row else None
+
+
+def authenticate(store: Store, name: str, password: str) -> User | None:
+    """The user whose name and password these are, else None (in constant-ish time)."""
+    with store.session() as s:
+        row = s.scalars(select(UserRow).where(UserRow.name == name)).first()
+    try:
+        _HASHER.verify(row.password if row else _DUMMY_HASH, password)
+    except (VerificationError, InvalidHashError):
+        return None
+    if row is None:
+        return None
+    if _HASHER.check_needs_rehash(row.password):  # the library's defaults grew stronger
+        with store.session.begin() as s:
+            s.execute(
+                update(UserRow).where(UserRow.id == row.id).values(password=_HASHER.hash(password))
+            )
+    return _user(row)
+
+
+def start_session(store: Store, user: User, hours: float) -> tuple[str, str, datetime]:
+    """A new login for ``user``: (token, csrf, expires); only the token's hash is kept."""
+    token, csrf = secrets.token_urlsafe(32), secrets.token_urlsafe(24)
+    expires = utcnow() + timedelta(hours=hours)
+    with store.session.begin() as s:
+        s.execute(delete(SessionRow).where(SessionRow.expires_at < utcnow()))
+        s.add(SessionRow(id=token_hash(token), user_id=user.id, csrf=csrf, expires_at=expires))
+    return token, csrf, expires
+
+
+def session_for(store: Store, token: str) -> tuple[User, SessionRow] | None:
+    """The user and live session of a bearer token, or None (unknown or expired)."""
+    with store.session() as s:
+        found = s.execute(
+            select(UserRow, SessionRow)
+            .join(SessionRow, SessionRow.user_id == UserRow.id)
+            .where(SessionRow.id == token_hash(token), SessionRow.expires_at > utcnow())
+        ).first()
+    return (_user(found[0]), found[1]) if found else None
+
+
+def end_session(store: Store, token: str) -> None:
+    with store.session.begin() as s:
+        s.execute(delete(SessionRow).where(SessionRow.id == token_hash(token)))
+
+
+def ensure_admin(store: Store, password: str = "") -> str | None:
+    """On a database without administrators, create ``admin``; returns the password when it was
+    made up here (to be shown once), None otherwise. Volumes without an owner (the demo,
+    uploads from before accounts) are given to the first admin."""
+    made_up = None
+    if not any(u.is_admin for u in list_users(store)):
+        made_up = None if password else secrets.token_urlsafe(12)
+        create_user(store, ADMIN_NAME, password or made_up or "", is_admin=True)
+    with store.session() as s:
+        admin = s.scalars(
+            select(UserRow.id).where(UserRow.is_admin).order_by(UserRow.created_at)
+        ).first()
+    if admin is not None:
+        with store.session.begin() as s:
+            s.execute(update(VolumeRow).where(VolumeRow.owner_id.is_(None)).values(owner_id=admin))
+    return made_up

@@ -1,0 +1,215 @@
+"""Share links: ``/api/shares`` for their owners, and ``/s/{token}`` -- the page, its
+model description and the model's files -- for whoever holds the link.
+
+A link authenticates only the ``/s/{token}`` routes and the room of its model; it is no
+session, so it opens no ``/api`` route: no listing, no other model, no upload.
+"""
+
+from __future__ import annotations
+
+import html
+from datetime import UTC
+from string import Template
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Query, Request, Response
+from fastapi.responses import FileResponse, HTMLResponse, JSONResponse
+from pydantic import BaseModel, ConfigDict, Field
+from starlette.concurrency import run_in_threadpool
+
+from miss import __version__
+from miss.export import WRITERS
+from miss.server import audit, shares
+from miss.server.accounts import User
+from miss.server.db import DONE, ModelRow, ShareRow, VolumeRow
+from miss.server.deps import StoreDep, UserDep, visible_model, visible_volume
+from miss.server.errors import Forbidden, Gone, MissError, NotFound, status_of
+from miss.server.routes.models import model_file
+from miss.server.routes.pages import WEB
+from miss.server.schemas import params_of
+from miss.server.store import Store
+
+router = APIRouter(tags=["shares"])
+#: Share pages must not leak their URL (the token) to anything they link to, nor be kept
+#: by a shared cache.
+PRIVATE = {"Referrer-Policy": "no-referrer", "Cache-Control": "no-store"}
+
+
+class ShareRequest(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    model: str | None = Field(None, description="model id to share")
+    volume: str | None = Field(None, description="or a volume id: the volume's models")
+    expires_in: int = Field(shares.DEFAULT_SECONDS, description="seconds until the link expires")
+    can_download: bool = Field(False, description="model files may be downloaded")
+    can_annotate: bool = Field(False, description="may join the room: pins, chat, measure")
+    label: str = Field("", max_length=200, description="a note for yourself (who it is for)")
+
+
+@router.post("/api/shares", status_code=201)
+def create_share(body: ShareRequest, store: StoreDep, user: UserDep, request: Request) -> Any:
+    """Make a link; the answer's ``url`` (``/s/{token}``) is shown this once: only a hash
+    of the token is kept."""
+    if body.model is not None:
+        visible_model(store, user, body.model)
+    if body.volume is not None:
+        visible_volume(store, user, body.volume)
+    row, token = shares.create(
+        store,
+        user,
+        model_id=body.model,
+        volume_id=body.volume,
+        expires_in=body.expires_in,
+        can_download=body.can_download,
+        can_annotate=body.can_annotate,
+        label=body.label,
+    )
+    target = body.model or body.volume or ""
+    audit.record(store, "share", user.name, target, audit.address(request), share=row.id)
+    out = shares.as_dict(row, store) | {"url": f"/s/{token}"}
+    return JSONResponse(out, status_code=201, headers={"Location": f"/api/shares/{row.id}"})
+
+
+@router.get("/api/shares")
+def list_shares(
+    store: StoreDep,
+    user: UserDep,
+    model: Annotated[str | None, Query(description="only links to this model")] = None,
+    volume: Annotated[str | None, Query(description="only links to this volume")] = None,
+) -> list[dict[str, Any]]:
+    """Your links (an administrator sees all), newest first; never their tokens."""
+    return [shares.as_dict(r, store) for r in shares.list_for(store, user, model, volume)]
+
+
+def _own_share(store: Store, user: User, share_id: str) -> ShareRow:
+    row = shares.get(store, share_id)
+    if not (user.is_admin or row.owner_id == user.id):
+        raise NotFound(f"no share {share_id!r}; GET /api/shares lists yours.")
+    return row
+
+
+@router.delete("/api/shares/{share_id}", status_code=204)
+async def revoke_share(share_id: str, store: StoreDep, user: UserDep, request: Request) -> Response:
+    """Revoke a link: its page, files and room close to it at once."""
+    row = await run_in_threadpool(_own_share, store, user, share_id)
+    await run_in_threadpool(shares.revoke, store, row.id)
+    await request.app.state.rooms.revoke_share(row.id)
+    where = audit.address(request)
+    await run_in_threadpool(audit.record, store, "revoke", user.name, row.id, where)
+    return Response(status_code=204)
+
+
+# -- what a link opens ---------------------------------------------------------------------
+
+
+def gone_page(exc: MissError) -> HTMLResponse:
+    """A plain page for a link that is unknown (404), expired or revoked (410)."""
+    code = status_of(exc)
+    title = "This link is no longer valid" if code == 410 else "This link does not exist"
+    page = Template((WEB / "share-gone.html").read_text(encoding="utf-8"))
+    body = page.substitute(title=html.escape(title), message=html.escape(str(exc)))
+    return HTMLResponse(body, status_code=code, headers=PRIVATE)
+
+
+@router.get("/s/{token}", include_in_schema=False)
+def share_page(token: str, store: StoreDep, request: Request) -> Response:
+    """The viewer for what the link shares, without an account."""
+    try:
+        share = shares.resolve(store, token)
+    except (NotFound, Gone) as exc:
+        return gone_page(exc)
+    target = share.model_id or share.volume_id or ""
+    audit.record(store, "view", f"link:{share.id}", target, audit.address(request))
+    return FileResponse(WEB / "share.html", media_type="text/html", headers=PRIVATE)
+
+
+def provenance(model: ModelRow, volume: VolumeRow) -> dict[str, Any]:
+    """How the model was made, without identity: the worker's record, or (for models made
+    before it kept one) what the database still knows."""
+    kept = (model.stats or {}).get("provenance")
+    if kept:
+        return dict(kept)
+    return {
+        "software": f"MISS {__version__}",
+        "parameters": params_of(model),
+        "source": volume.slug,
+        "source_sha256": volume.info.get("source_sha256", ""),
+        "modality": volume.info.get("modality", ""),
+    }
+
+
+def model_entry(model: ModelRow, volume: VolumeRow, share: ShareRow, token: str) -> dict[str, Any]:
+    """One shared model as the share page needs it; files limited to what the link allows."""
+    files = {}
+    if model.status == DONE and model.files:
+        for fmt, meta in model.files.items():
+            if fmt == "glb" or share.can_download:
+                url = f"/s/{token}/models/{model.id}/model.{fmt}"
+                files[fmt] = {"url": url, "bytes": meta["bytes"], "mime": meta["mime"]}
+    stats = {k: v for k, v in (model.stats or {}).items() if k != "provenance"}
+    return {
+        "id": model.id,
+        "status": model.status,
+        "progress": model.progress,
+        "stage": model.stage,
+        "error": model.error,
+        "params": params_of(model),
+        "stats": stats,
+        "provenance": provenance(model, volume),
+        "files": files,
+        "created": model.created_at.replace(tzinfo=UTC).isoformat(),
+    }
+
+
+@router.get("/s/{token}/info")
+def share_info(token: str, store: StoreDep) -> JSONResponse:
+    """Who shared what until when, the volume (de-identified) and its model(s)."""
+    share = shares.resolve(store, token)
+    found = shares.models(store, share)
+    volume = store.get_volume(share.volume_id or found[0].volume_id)
+    info = volume.info
+    body = {
+        "share": shares.as_dict(share, store),
+        "volume": {
+            "name": volume.name,
+            "modality": info.get("modality", ""),
+            "dims": info.get("dims"),
+            "spacing": info.get("spacing"),
+            "burned_in_annotation": bool(info.get("burned_in_annotation", False)),
+            "source_sha256": info.get("source_sha256", ""),
+        },
+        "models": [model_entry(m, volume, share, token) for m in found],
+    }
+    return JSONResponse(body, headers=PRIVATE)
+
+
+@router.head("/s/{token}/model.{fmt}", include_in_schema=False)
+@router.get("/s/{token}/model.{fmt}")
+def share_default_file(token: str, fmt: str, request: Request, store: StoreDep) -> Response:
+    """The shared model's file (a volume link: its newest finished model)."""
+    return _share_file(store, request, token, fmt, None)
+
+
+@router.head("/s/{token}/models/{model_id}/model.{fmt}", include_in_schema=False)
+@router.get("/s/{token}/models/{model_id}/model.{fmt}")
+def share_file(token: str, model_id: str, fmt: str, request: Request, store: StoreDep) -> Response:
+    """One file of a model the link covers: the GLB always (the viewer draws it), every
+    other format only when the link allows downloads."""
+    return _share_file(store, request, token, fmt, model_id)
+
+
+def _share_file(
+    store: Store, request: Request, token: str, fmt: str, model_id: str | None
+) -> Response:
+    share = shares.resolve(store, token)
+    model = shares.granted_model(store, share, model_id)
+    if fmt != "glb" and fmt in WRITERS and not share.can_download:
+        raise Forbidden(
+            f"this link allows viewing only, not downloading .{fmt}; ask for a link with downloads."
+        )
+    response = model_file(model, fmt, request, store)
+    response.headers.update(PRIVATE)  # revoked means gone: no copy kept by a cache
+    if response.status_code == 200 and request.method == "GET":
+        actor = f"link:{share.id}"
+        audit.record(store, "download", actor, model.id, audit.address(request), format=fmt)
+    return response

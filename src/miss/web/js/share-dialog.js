@@ -1,0 +1,110 @@
+// The owner's share dialog on the viewer: make a link (expiry, download and
+// annotate permissions, a label), copy its URL -- shown this once, since the
+// server keeps only a hash of the token -- and list or revoke the links made.
+
+import { api } from './api.js';
+import { el } from './format.js';
+
+const EXPIRIES = [ [ 3600, '1 hour' ], [ 86400, '1 day' ], [ 7 * 86400, '7 days' ], [ 30 * 86400, '30 days' ] ];
+
+function when( iso ) {
+	return new Date( iso ).toLocaleString( [], { dateStyle: 'medium', timeStyle: 'short' } );
+}
+
+export class ShareDialog {
+	constructor( modelId, { burnedIn = false } = {} ) {
+		this.modelId = modelId;
+		this.dialog = el( 'dialog#share-dialog.share-dialog', {},
+			el( 'form', { method: 'dialog', onsubmit: ( e ) => this.create( e ) },
+				el( 'h2', {}, 'Share this model' ),
+				burnedIn ? el( 'div.notice.error', {}, 'The scanner flagged text burned into these images; it may show patient identity in the pixels. Check before sharing.' ) : null,
+				el( 'label.field', {}, el( 'span', {}, 'Label (who it is for)' ), el( 'input#share-label', { type: 'text', maxlength: 200, placeholder: 'e.g. Dr Lee, island clinic' } ) ),
+				el( 'label.field', {}, el( 'span', {}, 'Expires after' ),
+					el( 'select#share-expiry', {}, ...EXPIRIES.map( ( [ s, label ] ) => el( 'option', { value: s, selected: s === 86400 }, label ) ) ) ),
+				el( 'label.check', {}, el( 'input#share-annotate', { type: 'checkbox', checked: true } ), ' may join the consultation (pins, chat, measure)' ),
+				el( 'label.check', {}, el( 'input#share-download', { type: 'checkbox' } ), ' may download the model files' ),
+				el( 'div.row', {},
+					el( 'button#share-create.primary', { type: 'submit' }, 'Create link' ),
+					el( 'button', { type: 'button', onclick: () => this.dialog.close() }, 'Close' ) ),
+				el( 'div#share-result.share-result', { hidden: true },
+					el( 'span.muted', {}, 'Copy the link now: it is shown only once.' ),
+					el( 'div.row', {}, el( 'input#share-url', { type: 'text', readonly: true } ),
+						el( 'button#share-copy.small', { type: 'button', onclick: () => this.copy() }, 'Copy' ) ) ),
+				el( 'div#share-error.notice.error', { role: 'alert', hidden: true } ),
+				el( 'h3', {}, 'Links to this model' ),
+				el( 'ul#share-list.share-list' ) ) );
+		document.body.append( this.dialog );
+	}
+
+	$( id ) {
+		return this.dialog.querySelector( `#${id}` );
+	}
+
+	async open() {
+		this.$( 'share-result' ).hidden = true;
+		this.dialog.showModal();
+		await this.refresh();
+	}
+
+	async create( event ) {
+		event.preventDefault();
+		this.$( 'share-error' ).hidden = true;
+		try {
+			const link = await api.createShare( {
+				model: this.modelId,
+				expires_in: Number( this.$( 'share-expiry' ).value ),
+				can_annotate: this.$( 'share-annotate' ).checked,
+				can_download: this.$( 'share-download' ).checked,
+				label: this.$( 'share-label' ).value,
+			} );
+			this.$( 'share-url' ).value = new URL( link.url, location.origin ).href;
+			this.$( 'share-result' ).hidden = false;
+			this.$( 'share-url' ).select();
+			await this.refresh();
+		} catch ( err ) {
+			this.showError( err );
+		}
+	}
+
+	async copy() {
+		const input = this.$( 'share-url' );
+		input.select();
+		try {
+			await navigator.clipboard.writeText( input.value );
+			this.$( 'share-copy' ).textContent = 'Copied';
+		} catch ( err ) {
+			document.execCommand?.( 'copy' ); // http:// pages on another host have no clipboard API
+		}
+	}
+
+	showError( err ) {
+		this.$( 'share-error' ).textContent = err.message || String( err );
+		this.$( 'share-error' ).hidden = false;
+	}
+
+	async refresh() {
+		try {
+			const links = await api.shares( this.modelId );
+			this.$( 'share-list' ).replaceChildren( ...links.map( ( link ) => this.item( link ) ) );
+			if ( ! links.length ) this.$( 'share-list' ).append( el( 'li.muted', {}, 'none yet' ) );
+		} catch ( err ) {
+			this.showError( err );
+		}
+	}
+
+	item( link ) {
+		const rights = [ link.can_annotate ? 'consult' : 'view', link.can_download ? 'download' : null ].filter( Boolean ).join( ' + ' );
+		const revoke = async () => {
+			try {
+				await api.revokeShare( link.id );
+				await this.refresh();
+			} catch ( err ) {
+				this.showError( err );
+			}
+		};
+		return el( 'li', { dataset: { id: link.id, status: link.status } },
+			el( 'strong', {}, link.label || '(no label)' ),
+			el( 'span.muted.small-print', {}, ` ${rights} · ${link.status === 'active' ? 'until ' + when( link.expires ) : link.status}` ),
+			link.status === 'active' ? el( 'button.small.danger', { type: 'button', onclick: revoke }, 'Revoke' ) : null );
+	}
+}

@@ -1,0 +1,105 @@
+// A share link's page (/s/{token}): the viewer without an account. Everything
+// comes from /s/{token}/...: who shared what until when, the model's provenance
+// and the files the link allows; a link that allows annotating joins the room.
+
+import { Consultation } from './consult.js';
+import { el, fill } from './format.js';
+import { fillDownloads, fillStats, overlay, setupDisplay, status } from './viewer-ui.js';
+import { ModelViewer } from './viewer.js';
+
+const $ = ( id ) => document.getElementById( id );
+const token = decodeURIComponent( location.pathname.split( '/' )[ 2 ] || '' );
+const base = `/s/${encodeURIComponent( token )}`;
+
+function row( label, value, title ) {
+	return el( 'tr', {}, el( 'th', {}, label ), el( 'td', title ? { title } : {}, value ) );
+}
+
+function when( iso ) {
+	return new Date( iso ).toLocaleString( [], { dateStyle: 'medium', timeStyle: 'short' } );
+}
+
+async function info() {
+	const response = await fetch( `${base}/info`, { headers: { Accept: 'application/json' } } );
+	const body = await response.json().catch( () => ( {} ) );
+	if ( ! response.ok ) throw new Error( body.detail || `the link cannot be opened (HTTP ${response.status})` );
+	return body;
+}
+
+function showShare( data ) {
+	const s = data.share;
+	const rights = [ 'view', s.can_annotate ? 'consult' : null, s.can_download ? 'download' : null ].filter( Boolean ).join( ', ' );
+	fill( $( 'share-facts' ),
+		row( 'Shared by', s.shared_by ),
+		s.label ? row( 'Label', s.label ) : null,
+		row( 'Expires', when( s.expires ) ),
+		row( 'You may', rights ),
+		row( 'Scan', `${data.volume.modality || 'volume'} · ${( data.volume.dims || [] ).join( '×' )}` ) );
+	$( 'share-title' ).textContent = `Shared by ${s.shared_by} · until ${when( s.expires )}`;
+	$( 'burned-in' ).hidden = ! data.volume.burned_in_annotation;
+	$( 'download-section' ).hidden = ! s.can_download;
+}
+
+function showProvenance( p ) {
+	let params = p.parameters;
+	try {
+		params = typeof params === 'string' ? JSON.parse( params ) : params;
+	} catch ( err ) { /* shown as it came */ }
+	const brief = params && typeof params === 'object'
+		? Object.entries( params ).filter( ( [ , v ] ) => v != null ).map( ( [ k, v ] ) => `${k}=${Array.isArray( v ) ? v.join( ',' ) : v}` ).join( ' ' )
+		: String( params ?? '' );
+	const hash = p.source_sha256 || '';
+	fill( $( 'provenance' ),
+		row( 'Software', p.software || '–' ),
+		row( 'Made', p.created ? when( p.created ) : '–' ),
+		row( 'Source hash', hash ? `sha256:${hash.slice( 0, 16 )}…` : '–', hash ),
+		row( 'Parameters', el( 'span.wrap', {}, brief ) ) );
+}
+
+// A volume link covers several models: ?model=ID picks one, the newest by default.
+function pickModel( models ) {
+	const done = models.filter( ( m ) => m.status === 'done' );
+	const wanted = new URLSearchParams( location.search ).get( 'model' );
+	const chosen = done.find( ( m ) => m.id === wanted ) || done[ done.length - 1 ] || models[ 0 ];
+	if ( done.length > 1 ) {
+		$( 'model-choice' ).hidden = false;
+		$( 'model-select' ).replaceChildren( ...done.map( ( m ) => el( 'option', { value: m.id, selected: m === chosen },
+			`level ${m.params.level}, sample rate ${m.params.sample_rate}, ${m.params.decimate}` ) ) );
+		$( 'model-select' ).addEventListener( 'change', ( e ) => {
+			const url = new URL( location.href );
+			url.searchParams.set( 'model', e.target.value );
+			location.assign( url );
+		} );
+	}
+	return chosen;
+}
+
+async function main() {
+	const viewer = new ModelViewer( $( 'stage' ) );
+	let model = null;
+	let consult = null;
+	const urlOf = ( fmt ) => model.files[ fmt ]?.url || `${base}/models/${model.id}/model.${fmt}`;
+	const display = setupDisplay( viewer, urlOf, { canVrml: () => Boolean( model?.files.wrl ), onLoaded: () => consult?.modelLoaded() } );
+	try {
+		const data = await info();
+		showShare( data );
+		model = pickModel( data.models );
+		if ( ! model || model.status !== 'done' ) throw new Error( 'the shared model is not finished yet; reload this page in a minute.' );
+		document.title = `MISS · Shared model · ${data.share.shared_by}`;
+		fillStats( model );
+		fillDownloads( model.files );
+		const vrml = document.querySelector( '[data-mode=vrml]' );
+		vrml.disabled = ! model.files.wrl;
+		if ( vrml.disabled ) vrml.title = 'This link includes the GLB only (no downloads).';
+		showProvenance( model.provenance );
+		if ( data.share.can_annotate ) consult = new Consultation( { viewer, modelId: model.id, container: $( 'room' ), share: token, guest: true } );
+		$( 'room' ).hidden = ! data.share.can_annotate;
+		$( 'view-only' ).hidden = data.share.can_annotate;
+		await display( new URLSearchParams( location.search ).get( 'mode' ) );
+	} catch ( err ) {
+		overlay( 'This shared model cannot be shown', err.message || String( err ) );
+		status.error = err.message || String( err );
+	}
+}
+
+main();

@@ -1,0 +1,120 @@
+// What the owner's viewer and a share link's viewer have in common: the loading
+// overlay, the statistics and parameters, the download buttons, GLB/VRML mode
+// and the background. window.__miss is what browser tests read.
+
+import { el, fill, formatBytes, formatCount, formatMm, formatSeconds } from './format.js';
+import { renderStages } from './job.js';
+import { BACKGROUNDS } from './viewer.js';
+
+const $ = ( id ) => document.getElementById( id );
+
+export const FORMAT_NAMES = {
+	glb: 'glTF binary', wrl: 'VRML 97', wrz: 'VRML gzip', x3d: 'X3D', stl: 'STL', ply: 'PLY', obj: 'OBJ',
+};
+const MODE_NOTES = {
+	glb: 'glTF binary, as browsers load 3-D today.',
+	vrml: 'The 1998 deliverable: the VRML 97 file, drawn by three.js’s VRMLLoader with no plug-in.',
+};
+
+// Set once a model is drawn; the room panel adds `room`, the page `cameraLps`.
+export const status = { ready: false, mode: null, triangles: 0, background: 'dark', backgroundColor: BACKGROUNDS.dark };
+window.__miss = status;
+
+export function overlay( title, text = '', { progress = null, model = null } = {} ) {
+	$( 'overlay' ).hidden = false;
+	$( 'overlay-title' ).textContent = title;
+	$( 'overlay-text' ).textContent = text;
+	$( 'overlay-progress' ).hidden = progress == null;
+	if ( progress != null ) $( 'overlay-progress' ).value = progress;
+	$( 'overlay-stages' ).hidden = ! model;
+	if ( model ) renderStages( $( 'overlay-stages' ), model );
+}
+
+function row( label, value ) {
+	return el( 'tr', {}, el( 'th', {}, label ), el( 'td', {}, value ) );
+}
+
+export function fillStats( model ) {
+	const s = model.stats || {};
+	const d = s.decimation || {};
+	const seconds = s.seconds || {};
+	const total = seconds.total ?? Object.values( seconds ).reduce( ( a, b ) => a + b, 0 );
+	fill( $( 'stats' ),
+		row( 'Triangles', formatCount( s.triangles ) ),
+		row( 'Vertices', formatCount( s.vertices ) ),
+		d.triangles_before != null ? row( 'Before decimation', formatCount( d.triangles_before ) ) : null,
+		row( 'Max error', formatMm( d.max_error_mm ) ),
+		row( 'Mean error', formatMm( d.mean_error_mm, 4 ) ),
+		...Object.entries( seconds ).filter( ( [ k ] ) => k !== 'total' ).map( ( [ k, v ] ) => row( `Time: ${k}`, formatSeconds( v ) ) ),
+		row( 'Time: total', formatSeconds( total ) ),
+		row( 'Drawn now', el( 'span', { id: 'drawn' }, '–' ) ),
+	);
+	const p = model.params || {};
+	const slices = p.start_slice || p.end_slice ? `${p.start_slice ?? 1} – ${p.end_slice ?? 'last'}` : 'all';
+	fill( $( 'params' ),
+		row( 'Threshold', p.level ),
+		row( 'Sample rate', Array.isArray( p.sample_rate ) ? p.sample_rate.join( ', ' ) : p.sample_rate ),
+		row( 'Slices', slices ),
+		row( 'Decimation', p.decimate ),
+		row( 'Error bound', p.error_bound ),
+		row( 'Reduce', p.reduce ),
+	);
+	$( 'model-meta' ).textContent = `${formatCount( s.triangles )} triangles`;
+}
+
+// files: {fmt: {url, bytes}} -- every format for the owner, what a link allows for a guest.
+export function fillDownloads( files ) {
+	const formats = Object.keys( FORMAT_NAMES ).filter( ( fmt ) => files?.[ fmt ] );
+	$( 'downloads' ).replaceChildren( ...formats.map( ( fmt ) => el( 'a.button.small', {
+		href: files[ fmt ].url, download: '', dataset: { format: fmt }, title: FORMAT_NAMES[ fmt ],
+	}, el( 'span', {}, `.${fmt}` ), el( 'span.size', {}, formatBytes( files[ fmt ].bytes ) ) ) ) );
+}
+
+// Loads the GLB or the VRML file (urlOf(fmt)) into the viewer; resolves once
+// drawn, after calling onLoaded().
+export async function show( viewer, mode, urlOf, onLoaded = () => {} ) {
+	status.ready = false;
+	status.mode = mode;
+	for ( const b of document.querySelectorAll( '[data-mode]' ) ) b.setAttribute( 'aria-pressed', String( b.dataset.mode === mode ) );
+	$( 'mode-note' ).textContent = MODE_NOTES[ mode ];
+	const url = new URL( location.href );
+	url.searchParams.set( 'mode', mode );
+	history.replaceState( null, '', url );
+	const file = mode === 'vrml' ? 'wrl' : 'glb';
+	overlay( `Loading ${file.toUpperCase()}…`, '', { progress: 0 } );
+	try {
+		const triangles = await viewer.load( urlOf( file ), mode, ( e ) => {
+			if ( e.lengthComputable ) $( 'overlay-progress' ).value = e.loaded / e.total;
+			$( 'overlay-text' ).textContent = formatBytes( e.loaded );
+		} );
+		if ( status.mode !== mode ) return; // the user switched again meanwhile
+		$( 'overlay' ).hidden = true;
+		$( 'drawn' ).textContent = `${formatCount( triangles )} △ (${mode.toUpperCase()})`;
+		onLoaded();
+		Object.assign( status, { ready: true, triangles } );
+	} catch ( err ) {
+		overlay( `Could not show the ${file.toUpperCase()} file`, err.message || String( err ) );
+		status.error = err.message || String( err );
+	}
+}
+
+function setBackground( viewer, name ) {
+	viewer.setBackground( name );
+	status.background = name;
+	status.backgroundColor = BACKGROUNDS[ name ];
+	$( 'background' ).textContent = name === 'dark' ? 'Light background' : 'Dark background';
+	localStorage.setItem( 'miss.background', name );
+}
+
+// Wires Fit, the background toggle and the GLB/VRML buttons; returns
+// show(mode). canVrml(): is the .wrl there (a view-only link has the GLB alone)?
+export function setupDisplay( viewer, urlOf, { canVrml = () => true, onLoaded = () => {} } = {} ) {
+	setBackground( viewer, localStorage.getItem( 'miss.background' ) === 'light' ? 'light' : 'dark' );
+	$( 'fit' ).addEventListener( 'click', () => viewer.fit() );
+	$( 'background' ).addEventListener( 'click', () => setBackground( viewer, status.background === 'dark' ? 'light' : 'dark' ) );
+	for ( const b of document.querySelectorAll( '[data-mode]' ) ) {
+		b.addEventListener( 'click', () => status.mode !== b.dataset.mode && canVrml() && show( viewer, b.dataset.mode, urlOf, onLoaded ) );
+	}
+	status.cameraLps = () => viewer.pose();
+	return ( mode ) => show( viewer, mode === 'vrml' && canVrml() ? 'vrml' : 'glb', urlOf, onLoaded );
+}

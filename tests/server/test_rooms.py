@@ -1,0 +1,269 @@
+"""Consultation rooms over WebSocket: presence, presenter and camera, laser, pins,
+measurements and chat stored and restored, the replay record, and every kind of bad
+input refused with a clear message while the room goes on.
+
+All sockets go through the module's one running TestClient (one event loop, as under
+uvicorn); who connects is said by headers or the ``share`` query alone.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import time
+from collections.abc import Iterator
+from datetime import timedelta
+from typing import Any
+
+import pytest
+from fastapi.testclient import TestClient
+from sqlalchemy import update
+from starlette.websockets import WebSocketDisconnect
+
+from miss.server import rooms
+from miss.server.db import ShareRow, utcnow
+from miss.server.rooms import BURST, MAX_MESSAGE_BYTES
+
+NOBODY = {"Authorization": ""}  # overrides the client's own admin token
+
+
+@pytest.fixture(scope="module")
+def room(client: TestClient, people: dict, small_nifti: bytes, upload_for, model_for) -> dict:
+    """alice's model (a ball of radius 8 voxels) and a link to it that allows annotating."""
+    alice = people["alice"]
+    volume = upload_for(client, alice, small_nifti)
+    model = model_for(client, alice, volume["id"])
+    lo, hi = model["stats"]["bounds_mm"]
+    link = link_for(client, alice, model["id"])
+    centre = [(a + b) / 2 for a, b in zip(lo, hi, strict=True)]
+    return {"alice": alice, "model": model["id"], "token": link, "centre": centre}
+
+
+def link_for(
+    client: TestClient, headers: dict, model_id: str, annotate: bool = True, hours: int = 168
+) -> str:
+    body = {"model": model_id, "can_annotate": annotate, "expires_in": hours * 3600}
+    r = client.post("/api/shares", json=body, headers=headers)
+    assert r.status_code == 201, r.text
+    return r.json()["url"][3:]
+
+
+def url(model_id: str, token: str = "", name: str = "") -> str:
+    query = f"?share={token}&name={name}" if token else ""
+    return f"/ws/rooms/{model_id}{query}"
+
+
+@contextlib.contextmanager
+def joined(client: TestClient, path: str, headers: dict | None = None) -> Iterator[Any]:
+    """A connection that has read its welcome (kept as ``ws.welcome``)."""
+    with client.websocket_connect(path, headers=headers or NOBODY) as ws:
+        ws.welcome = ws.receive_json()
+        assert ws.welcome["type"] == "welcome", ws.welcome
+        yield ws
+
+
+def until(ws: Any, kind: str, limit: int = 50) -> dict:
+    """The next message of ``kind``, skipping others (presence, broadcasts)."""
+    for _ in range(limit):
+        message = ws.receive_json()
+        if message["type"] == kind:
+            return message
+    raise AssertionError(f"no {kind!r} message in {limit}")
+
+
+def refusal(client: TestClient, path: str, headers: dict | None = None) -> tuple[str, int]:
+    """(error text, close code) of a connection the room will not take."""
+    with client.websocket_connect(path, headers=headers or NOBODY) as ws:
+        first = ws.receive_json()
+        assert first["type"] == "error" and first["code"] == "refused", first
+        with pytest.raises(WebSocketDisconnect) as closed:
+            ws.receive_json()
+    return first["error"], closed.value.code
+
+
+def test_presence_pins_chat_measure_and_replay(client: TestClient, room: dict) -> None:
+    model, centre = room["model"], room["centre"]
+    with joined(client, url(model), room["alice"]) as alice:
+        assert alice.welcome["you"]["name"] == "alice" and alice.welcome["you"]["owner"]
+        with joined(client, url(model, room["token"], "Dr Lee")) as guest:
+            you = guest.welcome["you"]
+            assert you["name"] == "Dr Lee (guest)" and you["guest"] and not you["owner"]
+            assert len(guest.welcome["participants"]) == 2
+            assert until(alice, "joined")["participant"]["colour"] != alice.welcome["you"]["colour"]
+            guest.send_json({"type": "pin", "model": model, "point": centre, "note": "lesion?"})
+            pin = until(alice, "pin")["item"]
+            assert pin == until(guest, "pin")["item"]
+            assert pin["note"] == "lesion?" and pin["author"] == "Dr Lee (guest)" and pin["at"]
+            alice.send_json({"type": "chat", "text": "I see it"})
+            assert until(guest, "chat")["item"]["text"] == "I see it"
+            b = [centre[0] + 3, centre[1] + 4, centre[2]]
+            alice.send_json({"type": "measure", "a": centre, "b": b})
+            assert until(guest, "measure")["item"]["mm"] == pytest.approx(5.0)
+            presenting_and_pointing(alice, guest, centre)
+    with joined(client, url(model), room["alice"]) as again:  # a later session
+        assert [p["note"] for p in again.welcome["pins"]] == ["lesion?"]
+        assert [c["text"] for c in again.welcome["chat"]] == ["I see it"]
+        assert [m["mm"] for m in again.welcome["measurements"]] == [5.0]
+        assert again.welcome["session"] >= 2
+    events = replay(client, model, room["alice"], leaves=3)
+    kinds = [e["kind"] for e in events if e["session"] == 1]
+    assert kinds[:2] == ["join", "join"] and kinds[-2:] == ["leave", "leave"]
+    assert {"pin", "chat", "measure", "presenter", "view"} <= set(kinds)
+    assert [e["at"] for e in events] == sorted(e["at"] for e in events)
+    sessions = client.get(f"/api/models/{model}/room/sessions", headers=room["alice"]).json()
+    assert sessions[0]["session"] == 1 and "alice" in sessions[0]["people"]
+
+
+def replay(client: TestClient, model: str, headers: dict, leaves: int) -> list[dict]:
+    """The room's events once ``leaves`` leave events are in (written as sockets close)."""
+    deadline = time.monotonic() + 5
+    while True:
+        events = client.get(f"/api/models/{model}/room/events", headers=headers).json()
+        if sum(e["kind"] == "leave" for e in events) >= leaves or time.monotonic() > deadline:
+            return events
+        time.sleep(0.05)
+
+
+def presenting_and_pointing(alice: Any, guest: Any, centre: list[float]) -> None:
+    """Presenter mode: others receive the presenter's camera; a non-presenter's is refused;
+    a laser point reaches the others with the pointer's colour."""
+    alice.send_json({"type": "presenter", "on": True})
+    assert until(guest, "presenter")["id"] == alice.welcome["you"]["id"]
+    view = {"position": [0, -300, 0], "target": centre, "up": [0, 0, 1]}
+    alice.send_json({"type": "camera", **view})
+    camera = until(guest, "camera")
+    assert camera["position"] == [0, -300, 0] and camera["from"] == alice.welcome["you"]["id"]
+    guest.send_json({"type": "camera", **view})
+    assert until(guest, "error")["code"] == "not_presenter"
+    guest.send_json({"type": "laser", "point": centre})
+    laser = until(alice, "laser")
+    assert laser["point"] == centre and laser["colour"] == guest.welcome["you"]["colour"]
+
+
+BAD = [
+    ("not json at all", "malformed"),
+    ("[1, 2, 3]", "malformed"),
+    ('{"type": "dance"}', "unknown_type"),
+    ('{"type": "chat", "text": ""}', "invalid"),
+    ('{"type": "chat", "text": 12}', "invalid"),
+    ('{"type": "pin", "point": ["a", 0, 0], "note": "x"}', "invalid"),
+    ('{"type": "pin", "point": [1e308, 0, 0], "note": "x"}', "invalid"),
+    ('{"type": "pin", "point": [5000, 0, 0], "note": "far away"}', "off_model"),
+    ('{"type": "pin", "model": "another-model", "point": [0, 0, 0]}', "wrong_model"),
+    ('{"type": "unpin", "id": 999999}', "invalid"),
+    ('{"type": "presenter", "on": "yes"}', "invalid"),
+]
+
+
+def test_bad_messages_are_refused_and_the_room_goes_on(client: TestClient, room: dict) -> None:
+    model = room["model"]
+    with (
+        joined(client, url(model), room["alice"]) as alice,
+        joined(client, url(model, room["token"], "Guest")) as guest,
+    ):
+        until(alice, "joined")
+        for raw, code in BAD:
+            alice.send_text(raw)
+            error = until(alice, "error")
+            assert error["code"] == code and error["error"], (raw, error)
+        alice.send_text('{"type": "chat", "text": "' + "x" * (MAX_MESSAGE_BYTES + 10) + '"}')
+        error = until(alice, "error")
+        assert error["code"] == "too_large" and str(MAX_MESSAGE_BYTES) in error["error"]
+        alice.send_bytes(b"\x00\x01binary")
+        assert until(alice, "error")["code"] == "malformed"
+        alice.send_json({"type": "pin", "point": room["centre"], "note": "mine"})
+        pin = until(guest, "pin")["item"]
+        guest.send_json({"type": "unpin", "id": pin["id"]})  # not the guest's pin
+        assert until(guest, "error")["code"] == "forbidden"
+        alice.send_json({"type": "ping"})
+        assert until(alice, "pong") == {"type": "pong"}
+        alice.send_json({"type": "chat", "text": "still here"})
+        assert until(guest, "chat")["item"]["text"] == "still here"
+        alice.send_json({"type": "unpin", "id": pin["id"]})
+        assert until(guest, "unpin")["id"] == pin["id"]
+
+
+def test_a_flood_is_cut_off_and_the_others_go_on(client: TestClient, room: dict) -> None:
+    model = room["model"]
+    with (
+        joined(client, url(model), room["alice"]) as alice,
+        joined(client, url(model, room["token"], "Quiet")) as quiet,
+    ):
+        with joined(client, url(model, room["token"], "Noisy")) as noisy:
+            for _ in range(400):
+                noisy.send_json({"type": "ping"})
+            seen: list[dict] = []
+            with pytest.raises(WebSocketDisconnect) as closed:
+                while True:
+                    seen.append(noisy.receive_json())
+            assert closed.value.code == 1008
+            codes = [m.get("code") for m in seen if m["type"] == "error"]
+            assert "rate_limited" in codes and codes[-1] == "flood"
+            pongs = sum(m["type"] == "pong" for m in seen)
+            assert BURST <= pongs < BURST + 20, pongs
+        alice.send_json({"type": "chat", "text": "after the storm"})
+        assert until(quiet, "chat")["item"]["text"] == "after the storm"
+
+
+def expire(client: TestClient, token: str) -> None:
+    from miss.server.accounts import token_hash
+
+    with client.app.state.store.session.begin() as s:
+        past = utcnow() - timedelta(seconds=1)
+        s.execute(
+            update(ShareRow).where(ShareRow.token_hash == token_hash(token)).values(expires_at=past)
+        )
+
+
+def test_who_may_not_enter(
+    client: TestClient, room: dict, people: dict, admin_password: str
+) -> None:
+    model, alice = room["model"], room["alice"]
+    assert refusal(client, url(model))[1] == 4401  # no credentials
+    assert refusal(client, url(model, "x" * 43))[1] == 4401  # no such link
+    view_only = link_for(client, alice, model, annotate=False)
+    text, code = refusal(client, url(model, view_only))
+    assert code == 4403 and "viewing only" in text
+    assert refusal(client, url(model), people["bob"])[1] == 4404  # not bob's model
+    assert refusal(client, url("no-such-model"), alice)[1] == 4404
+    demo = client.get("/api/models").json()  # the admin's list has models of others
+    other = next((m["id"] for m in demo if m["id"] != model), None)
+    if other is not None:
+        assert refusal(client, url(other, room["token"]))[1] == 4404  # link is for one model
+    expired = link_for(client, alice, model)
+    expire(client, expired)
+    text, code = refusal(client, url(model, expired))
+    assert code == 4410 and "expired" in text
+    # A cookie session, but the socket opened by another site's page.
+    client.post("/api/auth/login", json={"username": "admin", "password": admin_password})
+    try:
+        foreign = {**NOBODY, "Origin": "http://evil.example"}
+        text, code = refusal(client, url(model), foreign)
+        assert code == 4403 and "cross-site" in text
+    finally:
+        client.cookies.clear()
+
+
+def test_revoking_or_expiring_a_link_closes_its_guests(
+    client: TestClient, room: dict, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    model, alice = room["model"], room["alice"]
+    for how in ("revoke", "expire"):
+        token = link_for(client, alice, model, hours=1)
+        with (
+            joined(client, url(model), alice) as owner,
+            joined(client, url(model, token, "Soon gone")) as guest,
+        ):
+            until(owner, "joined")
+            if how == "revoke":
+                share_id = client.get("/api/shares", headers=alice).json()[0]["id"]
+                assert client.delete(f"/api/shares/{share_id}", headers=alice).status_code == 204
+            else:  # two hours later: the link has run out, the owner's login has not
+                monkeypatch.setattr(rooms, "utcnow", lambda: utcnow() + timedelta(hours=2))
+                guest.send_json({"type": "ping"})
+            assert until(guest, "error")["code"] == {"revoke": "revoked", "expire": "expired"}[how]
+            with pytest.raises(WebSocketDisconnect) as closed:
+                until(guest, "never")
+            assert closed.value.code == 4410
+            monkeypatch.undo()
+            owner.send_json({"type": "ping"})
+            assert until(owner, "pong")["type"] == "pong"
