@@ -256,7 +256,14 @@ def test_zip_bomb_stops_at_unzipped_limit(make_client) -> None:
 
 def check_download(fmt: str, content: bytes, triangles: int) -> None:
     """Parse each format with an independent reader."""
-    if fmt in ("glb", "stl", "ply", "obj"):
+    if fmt == "glb":  # served meshopt-compressed: read the glTF JSON chunk itself
+        assert content[:4] == b"glTF"
+        length = int.from_bytes(content[12:16], "little")
+        document = json.loads(content[20 : 20 + length])
+        assert "EXT_meshopt_compression" in document["extensionsRequired"]
+        prims = [p for m in document["meshes"] for p in m["primitives"]]
+        assert sum(document["accessors"][p["indices"]]["count"] for p in prims) == 3 * triangles
+    elif fmt in ("stl", "ply", "obj"):
         mesh = trimesh.load(io.BytesIO(content), file_type=fmt, force="mesh", process=False)
         assert len(mesh.faces) == triangles
     elif fmt == "x3d":
