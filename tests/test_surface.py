@@ -46,7 +46,9 @@ def ellipsoid_volume(
 def test_sphere_area_volume_and_orientation() -> None:
     vol, centre = ellipsoid_volume(np.diag([1.0, 1.0, 1.0, 1.0]), (64, 64, 64), (20.0, 20.0, 20.0))
     mesh = extract_surface(vol, 0.0)
-    assert enclosed_volume(mesh.vertices, mesh.faces) == pytest.approx(4 / 3 * np.pi * 20**3, rel=0.01)
+    assert enclosed_volume(mesh.vertices, mesh.faces) == pytest.approx(
+        4 / 3 * np.pi * 20**3, rel=0.01
+    )
     assert surface_area(mesh.vertices, mesh.faces) == pytest.approx(4 * np.pi * 20**2, rel=0.01)
     assert boundary_edge_count(mesh.faces) == 0
     outward = np.einsum("ij,ij->i", mesh.normals, mesh.vertices - centre)

@@ -90,9 +90,7 @@ def _existing(path: str | os.PathLike[str]) -> Path:
     """The path, checked to exist and (for a file) to be non-empty."""
     p = Path(path)
     if not p.exists():
-        raise UnreadableVolume(
-            f"{p}: no such file or folder; check the path."
-        )
+        raise UnreadableVolume(f"{p}: no such file or folder; check the path.")
     if p.is_file() and p.stat().st_size == 0:
         raise UnreadableVolume(
             f"{p.name}: the file is empty (0 bytes); the upload or copy was probably "
