@@ -21,8 +21,10 @@ class ModelRequest(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     volume: str = Field(description="volume id (GET /api/volumes)")
-    level: float = Field(
-        allow_inf_nan=False, description="threshold in the volume's units (HU for CT)"
+    level: float | None = Field(
+        None,
+        allow_inf_nan=False,
+        description="threshold in the volume's units (HU for CT); or give 'levels'",
     )
     sample_rate: int | list[int] = Field(
         _DEFAULTS["sample_rate"], description="voxels per cube: n or [x, y, z]"
@@ -41,9 +43,30 @@ class ModelRequest(BaseModel):
         description="target fraction of triangles removed, 0 <= reduce < 1",
     )
 
+    levels: list[float] | None = Field(
+        None,
+        description="several thresholds, one structure each (a scene), e.g. [-500, 300]",
+    )
+    components: str = Field(
+        _DEFAULTS["components"], description='"all", "largest" or "split" (one part per piece)'
+    )
+    min_size_mm3: float = Field(
+        _DEFAULTS["min_size_mm3"],
+        allow_inf_nan=False,
+        description="pieces smaller than this (mm³) are dropped",
+    )
+    smooth: int | None = Field(
+        _DEFAULTS["smooth"], description="windowed-sinc smoothing iterations (keeps volume)"
+    )
+    passband: float = Field(
+        _DEFAULTS["passband"], allow_inf_nan=False, description="smoothing passband, 0..2"
+    )
+
     def spec(self) -> JobSpec:
         """The engine's validated spec (raises BadParameter); every format is produced."""
         values = self.model_dump(exclude={"volume"})
+        if values["level"] is None:
+            del values["level"]
         return JobSpec.from_dict({**values, "formats": list(FORMATS)})
 
 
@@ -171,10 +194,20 @@ def _number(value: float) -> str:
 def download_name(volume: VolumeRow, row: ModelRow, fmt: str) -> str:
     """A readable file name without identity: ``demo-head_level300_bone.wrl``."""
     spec = row.spec
-    parts = [volume.slug, f"level{_number(spec['level'])}"]
+    levels = spec.get("levels") or ([spec["level"]] if spec.get("level") is not None else [])
+    parts = [volume.slug, "levels" + "_".join(_number(v) for v in levels)]
+    if len(levels) == 1:
+        parts[1] = f"level{_number(levels[0])}"
     preset = next(
-        (p["name"] for p in volume.info.get("presets", []) if p["level"] == spec["level"]), None
+        (
+            p["name"]
+            for p in volume.info.get("presets", [])
+            if len(levels) == 1 and p["level"] == levels[0]
+        ),
+        None,
     )
+    if spec.get("components", "all") != "all":
+        parts.append(spec["components"])
     if preset:
         parts.append(preset)
     steps = spec["sample_rate"] if isinstance(spec["sample_rate"], list) else [spec["sample_rate"]]

@@ -33,11 +33,12 @@ def check_against_volume(spec: JobSpec, volume: VolumeRow, store: Store) -> None
     info = volume.info
     lo, hi = info["range"]
     units = f" {info['units']}" if info["units"] else ""
-    if not lo < spec.level < hi:
-        raise EmptySurface(
-            f"level {spec.level:g} is outside this volume's values {lo:g}..{hi:g}{units}; "
-            "pick a level inside that range (see the histogram's presets)."
-        )
+    for level in _levels(spec):
+        if not lo < level < hi:
+            raise EmptySurface(
+                f"level {level:g} is outside this volume's values {lo:g}..{hi:g}{units}; "
+                "pick a level inside that range (see the histogram's presets)."
+            )
     slices = info["dims"][2]
     for name in ("start_slice", "end_slice"):
         value = getattr(spec, name)
@@ -61,11 +62,19 @@ def _check_region(spec: JobSpec, volume: VolumeRow, store: Store, units: str) ->
             "a surface needs at least 2 along each axis: lower the sample rate or widen the slices."
         )
     bmin, bmax = float(block.min()), float(block.max())
-    if not bmin < spec.level < bmax:
-        raise EmptySurface(
-            f"no surface at level {spec.level:g} in slices {first}..{last}: they hold values "
-            f"{bmin:g}..{bmax:g}{units}; pick a level inside that range or other slices."
-        )
+    for level in _levels(spec):
+        if not bmin < level < bmax:
+            raise EmptySurface(
+                f"no surface at level {level:g} in slices {first}..{last}: they hold values "
+                f"{bmin:g}..{bmax:g}{units}; pick a level inside that range or other slices."
+            )
+
+
+def _levels(spec: JobSpec) -> tuple[float, ...]:
+    """The thresholds a job surfaces: ``levels`` when given, else ``level``."""
+    if spec.levels:
+        return tuple(spec.levels)
+    return () if spec.level is None else (spec.level,)
 
 
 class _Dims:

@@ -8,6 +8,7 @@ import { percent, stageLabel } from './job.js';
 import { Replay } from './replay.js';
 import { showSession } from './session.js';
 import { ShareDialog } from './share-dialog.js';
+import { StructuresPanel } from './structures-panel.js';
 import { fillDownloads, fillStats, overlay, setupDisplay, status } from './viewer-ui.js';
 import { ModelViewer } from './viewer.js';
 
@@ -34,12 +35,18 @@ async function main() {
 	showSession();
 	const viewer = new ModelViewer( $( 'stage' ) );
 	let consult = null;
-	const display = setupDisplay( viewer, ( fmt ) => urls.download( modelId, fmt ), { onLoaded: () => consult?.modelLoaded() } );
+	const structures = new StructuresPanel( viewer, { modelId } );
+	const onLoaded = () => {
+		structures.refresh();
+		consult?.modelLoaded();
+	};
+	const display = setupDisplay( viewer, ( fmt ) => urls.download( modelId, fmt ), { onLoaded } );
 	try {
 		let model = await api.model( modelId );
 		api.volume( model.volume ).then( showVolume ).catch( () => {} );
 		model = await waitUntilBuilt( model );
 		fillStats( model );
+		structures.setStats( model.stats );
 		fillDownloads( model.files );
 		consult = new Consultation( { viewer, modelId, container: $( 'room' ) } );
 		const replay = new Replay( viewer, modelId, $( 'history' ), consult );

@@ -52,7 +52,9 @@ export function fillStats( model ) {
 	const p = model.params || {};
 	const slices = p.start_slice || p.end_slice ? `${p.start_slice ?? 1} – ${p.end_slice ?? 'last'}` : 'all';
 	fill( $( 'params' ),
-		row( 'Threshold', p.level ),
+		row( p.levels?.length ? 'Thresholds' : 'Threshold', p.levels?.length ? p.levels.join( ', ' ) : p.level ),
+		p.components && p.components !== 'all' ? row( 'Components', `${p.components}${p.min_size_mm3 ? ` ≥ ${p.min_size_mm3} mm³` : ''}` ) : null,
+		s.parts ? row( 'Parts', s.parts.length ) : null,
 		row( 'Sample rate', Array.isArray( p.sample_rate ) ? p.sample_rate.join( ', ' ) : p.sample_rate ),
 		row( 'Slices', slices ),
 		row( 'Decimation', p.decimate ),

@@ -26,6 +26,17 @@ function boneMaterial() {
 	return new THREE.MeshStandardMaterial( { color: 0xe9dfc8, roughness: 0.6, metalness: 0, side: THREE.DoubleSide } );
 }
 
+// A part's own glTF material as the viewer draws it: its colour and opacity,
+// both sides lit, translucent parts blended without hiding what lies behind.
+function partMaterial( source ) {
+	const opacity = source?.opacity ?? 1;
+	return new THREE.MeshStandardMaterial( {
+		color: source?.color ? source.color.clone() : new THREE.Color( 0xe9dfc8 ),
+		roughness: 0.6, metalness: 0, side: THREE.DoubleSide,
+		opacity, transparent: opacity < 1, depthWrite: opacity >= 1,
+	} );
+}
+
 export function countTriangles( object ) {
 	let n = 0;
 	object.traverse( ( o ) => {
@@ -42,6 +53,7 @@ export class ModelViewer {
 		this.renderer = new THREE.WebGLRenderer( { antialias: true } );
 		this.renderer.setPixelRatio( Math.min( window.devicePixelRatio, 2 ) );
 		this.renderer.autoClear = false;
+		this.renderer.localClippingEnabled = true;
 		container.prepend( this.renderer.domElement );
 
 		this.scene = new THREE.Scene();
@@ -54,6 +66,12 @@ export class ModelViewer {
 		this.gizmo = new OrientationGizmo();
 		this.gizmo.setFrame( this.lpsToWorld );
 		this.model = null;
+		// A scene's named parts ({name, mesh, material, extras}); one entry for a plain surface.
+		this.parts = [];
+		this.selected = null;
+		// The clipping plane (world space), shared by every part's material; off until set.
+		this.clipPlane = new THREE.Plane( new THREE.Vector3( 0, - 1, 0 ), 0 );
+		this.clipping = null;
 		this.background = 'dark';
 		// Annotations (pins, pointers, measurements) live here, apart from the model.
 		this.overlay = new THREE.Group();
@@ -112,8 +130,16 @@ export class ModelViewer {
 		const rect = this.renderer.domElement.getBoundingClientRect();
 		const ndc = new THREE.Vector2( ( ( clientX - rect.left ) / rect.width ) * 2 - 1, - ( ( clientY - rect.top ) / rect.height ) * 2 + 1 );
 		this.raycaster.setFromCamera( ndc, this.camera );
-		const hit = this.raycaster.intersectObject( this.model, true )[ 0 ];
-		return hit ? { world: hit.point.clone(), lps: this.toLps( hit.point ) } : null;
+		const hit = this.raycaster.intersectObject( this.model, true ).find( ( h ) => this.isShown( h ) );
+		return hit ? { world: hit.point.clone(), lps: this.toLps( hit.point ), object: hit.object } : null;
+	}
+
+	// A ray hit on a part that is drawn there: visible, not faded out, not cut away.
+	isShown( hit ) {
+		let o = hit.object;
+		for ( ; o; o = o.parent ) if ( ! o.visible ) return false;
+		if ( hit.object.material?.opacity === 0 ) return false;
+		return ! this.clipping || this.clipPlane.distanceToPoint( hit.point ) >= 0;
 	}
 
 	// The camera as patient LPS mm: where it is, what it looks at, which way is up.
@@ -178,11 +204,20 @@ export class ModelViewer {
 	// mode 'glb' or 'vrml'; resolves with the number of triangles drawn.
 	async load( url, mode, onProgress ) {
 		const object = mode === 'vrml' ? await this.loadVRML( url, onProgress ) : await this.loadGLB( url, onProgress );
+		const meshes = [];
 		object.traverse( ( o ) => {
 			if ( ! o.isMesh ) return;
 			if ( ! o.geometry.attributes.normal ) o.geometry.computeVertexNormals();
-			o.material = this.material;
+			meshes.push( o );
 		} );
+		// A scene (several parts, or measures in the node extras) keeps each part's
+		// colour and opacity; a plain surface is drawn in bone ivory as always.
+		const scene = meshes.length > 1 || meshes.some( ( o ) => o.userData?.volume_ml != null );
+		this.parts = meshes.map( ( o, i ) => {
+			o.material = scene ? partMaterial( o.material ) : this.material;
+			return { name: o.name || `part ${i + 1}`, mesh: o, material: o.material, extras: { ...o.userData } };
+		} );
+		for ( const p of this.parts ) p.material.clippingPlanes = this.clipping ? [ this.clipPlane ] : null;
 		this.clear();
 		this.model = object;
 		this.scene.add( object );
@@ -203,6 +238,14 @@ export class ModelViewer {
 			if ( o.isMesh && ! mesh ) mesh = o;
 		} );
 		if ( mesh?.parent ) this.lpsToWorld.copy( mesh.parent.matrixWorld );
+		// three sanitises node names ("bone (300 HU)" -> "bone_(300_HU)"); keep the file's own.
+		const nodes = gltf.parser.json.nodes || [];
+		root.traverse( ( o ) => {
+			const index = gltf.parser.associations.get( o )?.nodes;
+			if ( ! o.isMesh || index == null || ! nodes[ index ] ) return;
+			o.name = nodes[ index ].name ?? o.name;
+			Object.assign( o.userData, nodes[ index ].extras || {} );
+		} );
 		return root;
 	}
 
@@ -229,8 +272,108 @@ export class ModelViewer {
 	clear() {
 		if ( ! this.model ) return;
 		this.scene.remove( this.model );
-		this.model.traverse( ( o ) => o.geometry?.dispose() );
+		this.model.traverse( ( o ) => {
+			o.geometry?.dispose();
+			if ( o.material && o.material !== this.material && ! this.parts.some( ( p ) => p.mesh === o ) ) o.material.dispose?.();
+		} );
 		this.model = null;
+		this.selected = null;
+	}
+
+	// --- structures: visibility, colour, opacity, selection, clipping ---
+
+	setPartVisible( index, visible ) {
+		this.parts[ index ].mesh.visible = visible;
+		this.requestRender();
+	}
+
+	setPartColor( index, css ) {
+		const p = this.parts[ index ];
+		if ( p.material === this.material ) p.material = p.mesh.material = this.material.clone();
+		p.material.color.set( css );
+		this.requestRender();
+	}
+
+	setPartOpacity( index, opacity ) {
+		const p = this.parts[ index ];
+		if ( p.material === this.material ) p.material = p.mesh.material = this.material.clone();
+		p.material.opacity = opacity;
+		p.material.transparent = opacity < 1;
+		p.material.depthWrite = opacity >= 1;
+		p.material.needsUpdate = true;
+		this.requestRender();
+	}
+
+	// Highlights one part (index) or none (null): an amber glow on its material.
+	select( index ) {
+		for ( const [ i, p ] of this.parts.entries() ) {
+			if ( p.material.emissive ) p.material.emissive.set( i === index ? 0x7a4a00 : 0x000000 );
+		}
+		this.selected = index;
+		this.requestRender();
+	}
+
+	// The index of the part under a canvas pixel, or null.
+	pickPart( clientX, clientY ) {
+		const hit = this.pick( clientX, clientY );
+		if ( ! hit ) return null;
+		const i = this.parts.findIndex( ( p ) => p.mesh === hit.object );
+		return i < 0 ? null : i;
+	}
+
+	// axis 'axial' | 'coronal' | 'sagittal' | null (off); fraction 0..1 of the model's
+	// extent along it: what lies beyond (superior, anterior, left) is cut away, 1 cuts nothing.
+	setClipping( axis, fraction = 1 ) {
+		this.clipping = axis || null;
+		if ( axis && this.model ) {
+			const lps = { axial: [ 0, 0, 1 ], coronal: [ 0, - 1, 0 ], sagittal: [ 1, 0, 0 ] }[ axis ];
+			const normal = new THREE.Vector3( ...lps ).transformDirection( this.lpsToWorld );
+			const box = new THREE.Box3().setFromObject( this.model );
+			let lo = Infinity;
+			let hi = - Infinity;
+			for ( let i = 0; i < 8; i ++ ) {
+				const c = new THREE.Vector3( i & 1 ? box.max.x : box.min.x, i & 2 ? box.max.y : box.min.y, i & 4 ? box.max.z : box.min.z );
+				lo = Math.min( lo, c.dot( normal ) );
+				hi = Math.max( hi, c.dot( normal ) );
+			}
+			const at = lo + ( hi - lo ) * fraction + ( fraction >= 1 ? 1e-6 : 0 );
+			// Keeps points with normal·x <= at (three clips the negative side).
+			this.clipPlane.set( normal.clone().negate(), at );
+		}
+		const planes = this.clipping ? [ this.clipPlane ] : null;
+		const materials = new Set( [ this.material, ...this.parts.map( ( p ) => p.material ) ] );
+		for ( const m of materials ) {
+			m.clippingPlanes = planes;
+			m.needsUpdate = true;
+		}
+		this.requestRender();
+	}
+
+	// One part baked to world space (glTF metres) or patient LPS mm, as a new Mesh.
+	partMesh( index, frame = 'world' ) {
+		const p = this.parts[ index ];
+		p.mesh.updateWorldMatrix( true, false );
+		const matrix = p.mesh.matrixWorld.clone();
+		if ( frame === 'lps' ) matrix.premultiply( this.lpsToWorld.clone().invert() );
+		const src = p.mesh.geometry.attributes.position;
+		const positions = new Float32Array( src.count * 3 );
+		const v = new THREE.Vector3();
+		for ( let i = 0; i < src.count; i ++ ) {
+			v.fromBufferAttribute( src, i ).applyMatrix4( matrix );
+			positions.set( [ v.x, v.y, v.z ], i * 3 );
+		}
+		const geometry = new THREE.BufferGeometry();
+		geometry.setAttribute( 'position', new THREE.BufferAttribute( positions, 3 ) );
+		if ( p.mesh.geometry.index ) geometry.setIndex( Array.from( p.mesh.geometry.index.array ) );
+		geometry.computeVertexNormals();
+		const material = new THREE.MeshStandardMaterial( {
+			color: p.material.color, opacity: p.material.opacity, transparent: p.material.transparent,
+			roughness: 0.6, metalness: 0, side: THREE.DoubleSide,
+		} );
+		const mesh = new THREE.Mesh( geometry, material );
+		mesh.name = p.name;
+		mesh.userData = { ...p.extras };
+		return mesh;
 	}
 
 	// Frames the whole model, the patient upright (superior up) and facing

@@ -10,6 +10,7 @@ import { percent, renderStages, stageLabel } from './job.js';
 import { SliceRange } from './range.js';
 import { showPrivacy } from './privacy.js';
 import { SliceView } from './slices.js';
+import { saveStyles } from './structures.js';
 
 const $ = ( id ) => document.getElementById( id );
 const volumeId = decodeURIComponent( location.pathname.split( '/' ).filter( Boolean ).pop() );
@@ -110,6 +111,8 @@ function setupThreshold( hist, volume ) {
 		const active = names.find( ( n ) => presets[ n ] === value ) || 'custom';
 		for ( const b of buttons ) b.setAttribute( 'aria-pressed', String( b.dataset.preset === active ) );
 		if ( histogram && histogram.value !== value ) histogram.setValue( value );
+		const first = document.querySelector( '#structure-list [data-first] .structure-level' );
+		if ( first ) first.value = value;
 		refreshSlices( delay );
 	};
 
@@ -159,6 +162,48 @@ function setupViews( volume ) {
 	$( 'end-slice' ).value = nz;
 }
 
+// Default colours of added structures: skin, bone, then a palette.
+const STRUCTURE_COLORS = [ '#e8b89a', '#e9dfc8', '#c0504d', '#4f81bd', '#9bbb59', '#8064a2', '#f79646' ];
+
+function structureRow( { level = '', name = '', color = '#e9dfc8', first = false } = {} ) {
+	const remove = first ? el( 'span.muted', {}, 'threshold' ) : el( 'button.small', {
+		type: 'button', title: 'Remove this structure', 'aria-label': 'Remove structure',
+		onclick: ( e ) => e.target.closest( 'li' ).remove(),
+	}, '×' );
+	const levelInput = el( 'input.structure-level', {
+		type: 'number', step: 'any', value: level, required: true, 'aria-label': 'Structure level', disabled: first,
+	} );
+	return el( 'li.structure-row.row', { dataset: first ? { first: '1' } : {} },
+		el( 'input.structure-name', { type: 'text', value: name, placeholder: first ? 'name (optional)' : 'name', 'aria-label': 'Structure name' } ),
+		levelInput,
+		// Untouched colours stay the server's (skin, bone, soft tissue by level).
+		el( 'input.structure-color', {
+			type: 'color', value: color, 'aria-label': 'Structure colour', title: 'Colour (left as is: the server picks one by level)',
+			oninput: ( e ) => { e.target.dataset.touched = '1'; },
+		} ),
+		remove );
+}
+
+function setupStructures() {
+	const list = $( 'structure-list' );
+	list.replaceChildren( structureRow( { level: state.threshold, first: true } ) );
+	$( 'add-structure' ).addEventListener( 'click', () => {
+		const n = list.children.length;
+		list.append( structureRow( { color: STRUCTURE_COLORS[ ( n - 1 ) % STRUCTURE_COLORS.length ] } ) );
+		list.lastElementChild.querySelector( '.structure-name' ).focus();
+	} );
+}
+
+// [{level, name, color}]: the threshold first, then the added rows in order.
+function structures() {
+	return [ ...$( 'structure-list' ).children ].map( ( li ) => ( {
+		level: li.dataset.first ? state.threshold : Number( li.querySelector( '.structure-level' ).value ),
+		name: li.querySelector( '.structure-name' ).value.trim(),
+		color: li.querySelector( '.structure-color' ).dataset.touched ? li.querySelector( '.structure-color' ).value : null,
+		first: Boolean( li.dataset.first ),
+	} ) );
+}
+
 function sampleRate() {
 	const parts = $( 'sample-rate' ).value.split( ',' ).map( ( s ) => Number( s.trim() ) );
 	return parts.length === 1 ? parts[ 0 ] : parts;
@@ -174,6 +219,14 @@ function modelParams( volume ) {
 		error_bound: Number( $( 'error-bound' ).value ),
 		reduce: Number( $( 'reduce' ).value ),
 	};
+	const list = structures();
+	if ( list.length > 1 ) {
+		delete params.level;
+		params.levels = list.map( ( s ) => s.level );
+	}
+	if ( $( 'components' ).value !== 'all' ) params.components = $( 'components' ).value;
+	const minSize = Number( $( 'min-size' ).value );
+	if ( minSize > 0 ) params.min_size_mm3 = minSize;
 	// The whole stack is sent as no range at all, so it shares the cache with API clients that omit it.
 	if ( range.start !== 1 || range.end !== nz ) {
 		params.start_slice = range.start;
@@ -200,6 +253,9 @@ async function generate( volume ) {
 	$( 'job-link' ).hidden = true;
 	try {
 		const job = await api.createModel( modelParams( volume ) );
+		const styles = structures();
+		// Names and colours the user gave (the server has no field for them) stay in this browser.
+		if ( styles.some( ( s ) => s.name || s.color ) ) saveStyles( job.id, styles.map( ( { level, name, color } ) => ( { level, name, color } ) ) );
 		showJob( { progress: 0, ...job } );
 		const model = await watchModel( job.id, showJob );
 		showJob( model );
@@ -220,7 +276,9 @@ async function generate( volume ) {
 function modelItem( m ) {
 	const p = m.params || {};
 	const sr = Array.isArray( p.sample_rate ) ? p.sample_rate.join( ',' ) : p.sample_rate;
-	const what = `level ${p.level} · rate ${sr} · ${p.decimate}`;
+	const levels = p.levels?.length ? `levels ${p.levels.join( ', ' )}` : `level ${p.level}`;
+	const parts = m.stats?.parts ? ` · ${m.stats.parts.length} parts` : '';
+	const what = `${levels}${p.components && p.components !== 'all' ? ` · ${p.components}` : ''} · rate ${sr} · ${p.decimate}${parts}`;
 	const tail = m.status === 'done' ? `${formatCount( m.stats?.triangles )} △` : m.status;
 	return el( 'li', {}, el( 'a', { href: urls.viewerPage( m.id ) }, what ), el( 'span.muted', {}, tail ) );
 }
@@ -246,6 +304,7 @@ async function main() {
 		setupWindowLevel( volume, hist );
 		setupThreshold( hist, volume );
 		setupViews( volume );
+		setupStructures();
 		showPrivacy( $( 'privacy' ), volume );
 		$( 'generate' ).addEventListener( 'click', () => generate( volume ) );
 		document.body.dataset.ready = '1';
