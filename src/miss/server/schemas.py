@@ -11,6 +11,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from miss.export import FORMATS, WRITERS
 from miss.pipeline import JobSpec
 from miss.server.db import DONE, ModelRow, VolumeRow
+from miss.structures import parse_labels
 
 _DEFAULTS = {f.name: f.default for f in fields(JobSpec)}
 
@@ -61,12 +62,18 @@ class ModelRequest(BaseModel):
     passband: float = Field(
         _DEFAULTS["passband"], allow_inf_nan=False, description="smoothing passband, 0..2"
     )
+    labels: str | list[int] | None = Field(
+        None,
+        description='label-map labels to build, one part each: "all" or ids such as [1, 4] '
+        "(from the volume's uploaded label map, or the volume itself when it is one)",
+    )
 
     def spec(self) -> JobSpec:
         """The engine's validated spec (raises BadParameter); every format is produced."""
         values = self.model_dump(exclude={"volume"})
         if values["level"] is None:
             del values["level"]
+        values["labels"] = parse_labels(values["labels"])
         return JobSpec.from_dict({**values, "formats": list(FORMATS)})
 
 
@@ -93,6 +100,11 @@ class VolumeOut(BaseModel):
     deidentification: dict[str, Any] = Field(
         default_factory=dict,
         description="what was removed (attribute names only), UIDs remapped, private tags dropped",
+    )
+    labelmap: dict[str, Any] | None = Field(
+        None,
+        description="the uploaded label map: {labels: [{label, name, voxels, color}], table}; "
+        "shown by GET /api/volumes/{id}, null when there is none",
     )
 
 
@@ -198,6 +210,10 @@ def download_name(volume: VolumeRow, row: ModelRow, fmt: str) -> str:
     parts = [volume.slug, "levels" + "_".join(_number(v) for v in levels)]
     if len(levels) == 1:
         parts[1] = f"level{_number(levels[0])}"
+    if spec.get("labels") is not None:
+        labels = spec["labels"]
+        named = "labels" + ("all" if labels == "all" else "_".join(str(n) for n in labels))
+        parts[1:2] = [parts[1], named] if levels else [named]
     preset = next(
         (
             p["name"]

@@ -28,6 +28,7 @@ from miss import __version__
 from miss.errors import MissError
 from miss.export import FORMATS, WRITERS
 from miss.pipeline import JobResult, JobSpec, run
+from miss.server import labelmaps
 from miss.server.db import VolumeRow
 from miss.server.jobstate import JobState
 from miss.server.store import Store, write_atomic
@@ -120,11 +121,15 @@ def run_job(store: Store, model_id: str, parent: int) -> None:
     volume_row = store.get_volume(row.volume_id)
     volume = store.open_volume(row.volume_id)
     spec = JobSpec.from_dict({**row.spec, "formats": list(FORMATS)})
+    stored = labelmaps.load(store, row.volume_id) if spec.labels is not None else None
+    label_map, table = stored if stored else (None, None)
     load_seconds = time.perf_counter() - t0
     metadata = provenance(volume_row, spec)
     result = run(
         volume,
         spec,
+        label_map=label_map,
+        table=table,
         progress=reporter,
         title=volume_row.name,
         metadata=metadata,

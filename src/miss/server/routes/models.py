@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import AsyncIterator
-from typing import Annotated
+from typing import Annotated, Any
 
 import anyio
 from fastapi import APIRouter, Query, Request, Response
@@ -13,8 +13,9 @@ from starlette.concurrency import run_in_threadpool
 
 from miss.errors import BadParameter, EmptySurface
 from miss.export import FORMATS, WRITERS
+from miss.labelmap import label_counts
 from miss.pipeline import JobSpec, slice_range
-from miss.server import audit
+from miss.server import audit, labelmaps
 from miss.server.db import DONE, FAILED, ModelRow, VolumeRow
 from miss.server.deps import ModelDep, QueueDep, StoreDep, UserDep, visible_volume
 from miss.server.errors import NotFound, NotReady
@@ -70,6 +71,17 @@ def _check_region(spec: JobSpec, volume: VolumeRow, store: Store, units: str) ->
             )
 
 
+def _label_source(volume: VolumeRow, store: Store) -> dict[str, Any] | None:
+    """The stored label map a ``labels`` job reads; None when the volume is its own map."""
+    meta = labelmaps.info(store, volume.id)
+    if meta is None and label_counts(store.open_volume(volume.id)) is None:
+        raise BadParameter(
+            "this volume has no label map: upload one (POST /api/volumes/{id}/labelmap) "
+            "before asking for 'labels', or give a 'level'."
+        )
+    return meta
+
+
 def _levels(spec: JobSpec) -> tuple[float, ...]:
     """The thresholds a job surfaces: ``levels`` when given, else ``level``."""
     if spec.levels:
@@ -101,7 +113,10 @@ def create_model(
     volume = visible_volume(store, user, body.volume)
     spec = body.spec()
     check_against_volume(spec, volume, store)
-    row, created = store.find_or_create_model(volume.id, spec.key(), spec.to_dict())
+    key = spec.key()
+    if spec.labels is not None:
+        key = labelmaps.cache_key(key, _label_source(volume, store))
+    row, created = store.find_or_create_model(volume.id, key, spec.to_dict())
     if created:
         queue.submit()
         audit.record(store, "generate", user.name, row.id, audit.address(request), volume=volume.id)

@@ -12,11 +12,11 @@ from fastapi import APIRouter, Query, Request, Response, status
 from fastapi.responses import FileResponse, JSONResponse
 from starlette.concurrency import run_in_threadpool
 
-from miss.server import audit, imaging
-from miss.server.accounts import get_user
+from miss.server import audit, imaging, labelmaps
+from miss.server.accounts import User, get_user
 from miss.server.db import VolumeRow
 from miss.server.deps import QueueDep, SettingsDep, StoreDep, UserDep, VolumeDep
-from miss.server.errors import NotFound
+from miss.server.errors import Forbidden, NotFound
 from miss.server.ingest import ingest
 from miss.server.schemas import IdentityOut, VolumeOut, volume_out
 from miss.server.store import Store
@@ -110,7 +110,80 @@ def list_volumes(store: StoreDep, user: UserDep) -> list[VolumeOut]:
 
 @router.get("/{volume_id}", response_model=VolumeOut)
 def get_volume(volume: VolumeDep, store: StoreDep) -> VolumeOut:
-    return volume_out(volume, owner_name(store, volume))
+    out = volume_out(volume, owner_name(store, volume))
+    out.labelmap = labelmaps.public(labelmaps.info(store, volume.id))
+    return out
+
+
+_LABELMAP_BODY = {
+    "requestBody": {
+        "required": True,
+        "content": {
+            "multipart/form-data": {
+                "schema": {
+                    "type": "object",
+                    "required": ["file"],
+                    "properties": {
+                        "file": {
+                            "type": "string",
+                            "format": "binary",
+                            "description": "a label map of this volume (.nii/.nii.gz/.nrrd/.mha, "
+                            "whole numbers, 0 = background), e.g. TotalSegmentator output",
+                        }
+                    },
+                }
+            }
+        },
+    }
+}
+
+
+def _check_owner(volume: VolumeRow, user: User) -> None:
+    """Only the owner changes a volume (an administrator, a volume nobody owns)."""
+    if volume.owner_id != user.id and not (volume.owner_id is None and user.is_admin):
+        raise Forbidden(f"volume {volume.id!r} is not yours; only its owner may change it.")
+
+
+@router.post(
+    "/{volume_id}/labelmap",
+    response_model=VolumeOut,
+    openapi_extra=_LABELMAP_BODY,
+    responses={
+        403: {"description": "not your volume"},
+        422: {"description": "not a label map, or it does not overlap the volume"},
+    },
+)
+async def upload_labelmap(
+    volume: VolumeDep, request: Request, store: StoreDep, settings: SettingsDep, user: UserDep
+) -> VolumeOut:
+    """Lay a label map over the volume (replacing any earlier one); jobs with ``labels``
+    then build its labels, resampled onto the volume's grid in patient mm."""
+    _check_owner(volume, user)
+    work = await run_in_threadpool(store.tmp_dir)
+    try:
+        upload = await receive(request, work, settings.max_upload_bytes)
+        assert upload.path is not None
+        scan = await run_in_threadpool(store.open_volume, volume.id)
+        labels, meta = await run_in_threadpool(labelmaps.read_labelmap, upload.path, scan, work)
+        await run_in_threadpool(labelmaps.save, store, volume.id, labels, meta)
+    finally:
+        await run_in_threadpool(shutil.rmtree, work, True)
+    out = volume_out(volume, owner_name(store, volume))
+    out.labelmap = labelmaps.public(meta)
+    return out
+
+
+@router.delete(
+    "/{volume_id}/labelmap",
+    status_code=status.HTTP_204_NO_CONTENT,
+    responses={403: {"description": "not your volume"}, 404: {"description": "no label map"}},
+)
+def delete_labelmap(volume: VolumeDep, store: StoreDep, user: UserDep) -> Response:
+    """Remove the volume's label map (models built from it stay)."""
+    _check_owner(volume, user)
+    if not labelmaps.remove(store, volume.id):
+        raise NotFound(f"volume {volume.id!r} has no label map.")
+    return Response(status_code=204)
 
 
 @router.delete("/{volume_id}", status_code=status.HTTP_204_NO_CONTENT)

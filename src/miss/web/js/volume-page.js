@@ -6,6 +6,7 @@ import { showSession } from './session.js';
 import { api, urls, watchModel } from './api.js';
 import { describeVolume, el, formatCount } from './format.js';
 import { Histogram, binEdges } from './histogram.js';
+import { LabelMapPanel } from './labelmap.js';
 import { percent, renderStages, stageLabel } from './job.js';
 import { SliceRange } from './range.js';
 import { showPrivacy } from './privacy.js';
@@ -19,6 +20,7 @@ const state = { window: 400, level: 40, threshold: 0 };
 let views = [];
 let histogram = null;
 let range = null;
+let labelMap = null;
 
 function showError( err ) {
 	$( 'form-error' ).textContent = err ? err.message || String( err ) : '';
@@ -224,6 +226,11 @@ function modelParams( volume ) {
 		delete params.level;
 		params.levels = list.map( ( s ) => s.level );
 	}
+	const labels = labelMap?.labels();
+	if ( labels ) {
+		params.labels = labels;
+		if ( list.length <= 1 ) delete params.level; // the label parts alone, no threshold surface
+	}
 	if ( $( 'components' ).value !== 'all' ) params.components = $( 'components' ).value;
 	const minSize = Number( $( 'min-size' ).value );
 	if ( minSize > 0 ) params.min_size_mm3 = minSize;
@@ -276,7 +283,8 @@ async function generate( volume ) {
 function modelItem( m ) {
 	const p = m.params || {};
 	const sr = Array.isArray( p.sample_rate ) ? p.sample_rate.join( ',' ) : p.sample_rate;
-	const levels = p.levels?.length ? `levels ${p.levels.join( ', ' )}` : `level ${p.level}`;
+	let levels = p.levels?.length ? `levels ${p.levels.join( ', ' )}` : `level ${p.level}`;
+	if ( p.labels != null ) levels = `labels ${p.labels === 'all' ? 'all' : p.labels.join( ', ' )}`;
 	const parts = m.stats?.parts ? ` · ${m.stats.parts.length} parts` : '';
 	const what = `${levels}${p.components && p.components !== 'all' ? ` · ${p.components}` : ''} · rate ${sr} · ${p.decimate}${parts}`;
 	const tail = m.status === 'done' ? `${formatCount( m.stats?.triangles )} △` : m.status;
@@ -306,6 +314,7 @@ async function main() {
 		setupViews( volume );
 		setupStructures();
 		showPrivacy( $( 'privacy' ), volume );
+		labelMap = new LabelMapPanel( $( 'labelmap' ), volume, showError );
 		$( 'generate' ).addEventListener( 'click', () => generate( volume ) );
 		document.body.dataset.ready = '1';
 		loadModels();

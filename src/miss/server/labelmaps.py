@@ -1,0 +1,121 @@
+"""A label map laid over a stored volume (e.g. TotalSegmentator output).
+
+Stored beside the volume as ``volumes/<id>/labels.npy`` (the map's own voxels, (X, Y, Z)
+Fortran order) and ``labels.json`` (its affine, the labels with voxel counts, names and
+colours, and a hash that enters the cache key of jobs built on it). The pipeline resamples
+it onto the volume's grid in patient mm when a job asks for ``labels``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from miss.errors import BadParameter, MissError
+from miss.io import load_volume
+from miss.labelmap import align_labels, label_counts
+from miss.labels import LabelInfo, LabelTable, describe, find_label_table
+from miss.server.ingest import source_hash
+from miss.server.store import Store, new_id, write_atomic
+from miss.types import Volume
+
+DATA, INFO = "labels.npy", "labels.json"
+
+
+def read_labelmap(path: Path, volume: Volume, work: Path) -> tuple[Volume, dict[str, Any]]:
+    """Read an uploaded label map; refuse a non-label volume or one that misses ``volume``."""
+    try:
+        labels = load_volume(path)
+    except MissError as exc:  # the server's folders are none of the client's business
+        raise type(exc)(str(exc).replace(f"{work}/", "")) from None
+    counts = label_counts(labels)
+    if counts is None:
+        raise BadParameter(
+            f"{path.name} is not a label map: it needs whole numbers 0..65535 "
+            f"(0 = background) with few distinct values; it holds {labels.data.dtype} data."
+        )
+    if not counts:
+        raise BadParameter(f"{path.name} holds no labels (every voxel is 0, the background).")
+    align_labels(labels, volume)  # raises BadParameter when the two do not overlap in mm
+    found = find_label_table(path)
+    table: LabelTable = found[0] if found else {}
+    entries = []
+    for label, voxels in sorted(counts.items()):
+        info = describe(label, table)
+        entries.append(
+            {"label": label, "name": info.name, "voxels": voxels, "color": list(info.color or ())}
+        )
+    meta = {
+        "affine": labels.affine.tolist(),
+        "dims": list(labels.dims),
+        "labels": entries,
+        "table": found[1] if found else "",
+        "sha256": source_hash(labels.data, labels.affine),
+    }
+    return labels, meta
+
+
+def save(store: Store, volume_id: str, labels: Volume, meta: dict[str, Any]) -> None:
+    """Write both files; ``labels.json`` last, so it only names a complete ``labels.npy``."""
+    folder = store.volume_dir(volume_id)
+    tmp = folder / f".{DATA}.{new_id()}.part"
+    try:
+        with open(tmp, "wb") as f:
+            np.save(f, np.asfortranarray(labels.data), allow_pickle=False)
+        os.replace(tmp, folder / DATA)
+    finally:
+        tmp.unlink(missing_ok=True)
+    write_atomic(folder / INFO, json.dumps(meta).encode())
+
+
+def info(store: Store, volume_id: str) -> dict[str, Any] | None:
+    """``labels.json`` of the volume, or None when it has no label map."""
+    path = store.volume_dir(volume_id) / INFO
+    try:
+        return json.loads(path.read_text())
+    except FileNotFoundError:
+        return None
+
+
+def remove(store: Store, volume_id: str) -> bool:
+    """Delete the label map; False when there was none."""
+    folder = store.volume_dir(volume_id)
+    existed = (folder / INFO).exists()
+    (folder / INFO).unlink(missing_ok=True)  # first: the map is gone as soon as this is
+    (folder / DATA).unlink(missing_ok=True)
+    return existed
+
+
+def load(store: Store, volume_id: str) -> tuple[Volume, LabelTable] | None:
+    """The stored map (memory-mapped) and its table, for a job; None when there is none."""
+    meta = info(store, volume_id)
+    if meta is None:
+        return None
+    data = np.load(store.volume_dir(volume_id) / DATA, mmap_mode="r")
+    table = {
+        e["label"]: LabelInfo(e["name"], tuple(e["color"]) if e.get("color") else None)
+        for e in meta["labels"]
+    }
+    return Volume(data=data, affine=np.array(meta["affine"]), meta={}), table
+
+
+def public(meta: dict[str, Any] | None) -> dict[str, Any] | None:
+    """What ``GET /api/volumes/{id}`` shows of a label map."""
+    if meta is None:
+        return None
+    return {
+        "labels": [{k: e[k] for k in ("label", "name", "voxels", "color")} for e in meta["labels"]],
+        "table": meta.get("table", ""),
+    }
+
+
+def cache_key(spec_key: str, meta: dict[str, Any] | None) -> str:
+    """A job's key: a labels job also depends on which map it reads."""
+    if meta is None:
+        return spec_key
+    return hashlib.sha256(f"{spec_key}:{meta['sha256']}".encode()).hexdigest()[:32]
