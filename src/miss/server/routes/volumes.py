@@ -24,35 +24,25 @@ from miss.server.uploads import receive
 
 router = APIRouter(prefix="/api/volumes", tags=["volumes"])
 
-_UPLOAD_BODY = {
-    "requestBody": {
-        "required": True,
-        "content": {
-            "multipart/form-data": {
-                "schema": {
-                    "type": "object",
-                    "required": ["file"],
-                    "properties": {
-                        "file": {
-                            "type": "string",
-                            "format": "binary",
-                            "description": "a .zip of a DICOM series (or folder tree), or one "
-                            ".nii/.nii.gz/.nrrd/.mha file",
-                        },
-                        "name": {
-                            "type": "string",
-                            "description": "name to list (default: the file name)",
-                        },
-                        "series": {
-                            "type": "string",
-                            "description": "DICOM SeriesInstanceUID to read",
-                        },
-                    },
-                }
-            }
-        },
+
+def _multipart_body(file_description: str, **fields: str) -> dict[str, Any]:
+    """OpenAPI for a streamed multipart upload (read by hand, so FastAPI can't infer it):
+    a required ``file`` plus optional string ``fields`` (name -> description)."""
+    properties: dict[str, Any] = {
+        "file": {"type": "string", "format": "binary", "description": file_description},
+        **{name: {"type": "string", "description": text} for name, text in fields.items()},
     }
-}
+    schema = {"type": "object", "required": ["file"], "properties": properties}
+    return {
+        "requestBody": {"required": True, "content": {"multipart/form-data": {"schema": schema}}}
+    }
+
+
+_UPLOAD_BODY = _multipart_body(
+    "a .zip of a DICOM series (or folder tree), or one .nii/.nii.gz/.nrrd/.mha file",
+    name="name to list (default: the file name)",
+    series="DICOM SeriesInstanceUID to read",
+)
 
 
 class Axis(StrEnum):
@@ -115,27 +105,10 @@ def get_volume(volume: VolumeDep, store: StoreDep) -> VolumeOut:
     return out
 
 
-_LABELMAP_BODY = {
-    "requestBody": {
-        "required": True,
-        "content": {
-            "multipart/form-data": {
-                "schema": {
-                    "type": "object",
-                    "required": ["file"],
-                    "properties": {
-                        "file": {
-                            "type": "string",
-                            "format": "binary",
-                            "description": "a label map of this volume (.nii/.nii.gz/.nrrd/.mha, "
-                            "whole numbers, 0 = background), e.g. TotalSegmentator output",
-                        }
-                    },
-                }
-            }
-        },
-    }
-}
+_LABELMAP_BODY = _multipart_body(
+    "a label map of this volume (.nii/.nii.gz/.nrrd/.mha, whole numbers, 0 = background), "
+    "e.g. TotalSegmentator output"
+)
 
 
 def _check_owner(volume: VolumeRow, user: User) -> None:
