@@ -72,3 +72,18 @@ export function debounce( fn, ms ) {
 		timer = setTimeout( () => fn( ...args ), ms );
 	};
 }
+
+const CLICK_SLOP = 5; // pixels a press may move and still count as a click, not a turn
+
+// Calls handler(event) for a press released where it started: a click, not an orbit drag.
+export function onClick( target, handler ) {
+	let down = null;
+	target.addEventListener( 'pointerdown', ( e ) => {
+		down = { x: e.clientX, y: e.clientY };
+	} );
+	target.addEventListener( 'pointerup', ( e ) => {
+		const click = down && Math.hypot( e.clientX - down.x, e.clientY - down.y ) < CLICK_SLOP;
+		down = null;
+		if ( click ) handler( e );
+	} );
+}

@@ -4,12 +4,11 @@
 // axial, coronal or sagittal cut; the selected part downloaded on its own.
 // Everything only asks the viewer to draw again (render on demand).
 
-import { el } from './format.js';
+import { el, onClick } from './format.js';
 import { loadStyles, styleFor } from './structures.js';
 import { status } from './viewer-ui.js';
 
 const $ = ( id ) => document.getElementById( id );
-const CLICK_SLOP = 5;
 
 function hex( color ) {
 	return `#${color.getHexString()}`;
@@ -95,15 +94,8 @@ export class StructuresPanel {
 	}
 
 	bindCanvas() {
-		const canvas = this.viewer.renderer.domElement;
-		let down = null;
-		canvas.addEventListener( 'pointerdown', ( e ) => {
-			down = { x: e.clientX, y: e.clientY };
-		} );
-		canvas.addEventListener( 'pointerup', ( e ) => {
-			const click = down && Math.hypot( e.clientX - down.x, e.clientY - down.y ) < CLICK_SLOP;
-			down = null;
-			if ( click && this.viewer.parts.length ) this.showSelected( this.viewer.pickPart( e.clientX, e.clientY ) );
+		onClick( this.viewer.renderer.domElement, ( e ) => {
+			if ( this.viewer.parts.length ) this.showSelected( this.viewer.pickPart( e.clientX, e.clientY ) );
 		} );
 	}
 

@@ -3,7 +3,7 @@
 // note) and Measure (click two surface points). Points are ray-picked on the
 // mesh and sent in patient LPS millimetres.
 
-const CLICK_SLOP = 5; // pixels a press may move and still count as a click, not a turn
+import { onClick } from './format.js';
 
 export class PointerTools {
 	constructor( consultation ) {
@@ -35,15 +35,7 @@ export class PointerTools {
 	// Clicks (not drags) place pins and measurement ends; hovering moves the laser.
 	bindCanvas() {
 		const canvas = this.c.viewer.renderer.domElement;
-		let down = null;
-		canvas.addEventListener( 'pointerdown', ( e ) => {
-			down = { x: e.clientX, y: e.clientY };
-		} );
-		canvas.addEventListener( 'pointerup', ( e ) => {
-			const click = down && Math.hypot( e.clientX - down.x, e.clientY - down.y ) < CLICK_SLOP;
-			down = null;
-			if ( click ) this.click( e.clientX, e.clientY );
-		} );
+		onClick( canvas, ( e ) => this.click( e.clientX, e.clientY ) );
 		canvas.addEventListener( 'pointermove', ( e ) => {
 			if ( this.tool !== 'laser' || ! this.c.state.you ) return;
 			const hit = this.c.viewer.pick( e.clientX, e.clientY );
