@@ -12,6 +12,11 @@ Environment variables (all optional):
 ``MISS_ADMIN_PASSWORD``   password of the ``admin`` account made on first start (random,
                           printed once, when unset)
 ``MISS_SESSION_HOURS``    how long a login lasts, hours (12)
+``MISS_MAX_JOBS_PER_USER`` jobs one account may have queued or running at once (2)
+``MISS_API_RATE``         sustained API requests per second per account or address (20)
+``MISS_API_BURST``        API requests allowed at once before the rate applies (200)
+``MISS_MIN_FREE_MB``      uploads and jobs are refused while the data folder's disk has
+                          less free space than this, MB (256)
 """
 
 from __future__ import annotations
@@ -39,6 +44,10 @@ class Settings:
     port: int = 8000
     admin_password: str = field(default="", repr=False)
     session_hours: float = 12.0
+    max_jobs_per_user: int = 2
+    api_rate: float = 20.0
+    api_burst: float = 200.0
+    min_free_mb: float = 256.0
 
     def __post_init__(self) -> None:
         # Resolve once so the worker subprocesses, which get these as arguments, see the
@@ -52,6 +61,17 @@ class Settings:
             raise ValueError(f"MISS_WORKERS must be at least 1, got {self.workers}.")
         if self.session_hours <= 0:
             raise ValueError(f"MISS_SESSION_HOURS must be positive, got {self.session_hours}.")
+        if self.max_jobs_per_user < 1:
+            raise ValueError(
+                f"MISS_MAX_JOBS_PER_USER must be at least 1, got {self.max_jobs_per_user}."
+            )
+        if self.api_rate <= 0 or self.api_burst < 1:
+            raise ValueError(
+                f"MISS_API_RATE must be positive and MISS_API_BURST at least 1, "
+                f"got {self.api_rate} and {self.api_burst}."
+            )
+        if self.min_free_mb < 0:
+            raise ValueError(f"MISS_MIN_FREE_MB must be 0 or more, got {self.min_free_mb}.")
 
     @classmethod
     def from_env(cls, env: Mapping[str, str] | None = None, **overrides: Any) -> Settings:
@@ -75,6 +95,10 @@ class Settings:
     def max_unzipped_bytes(self) -> int:
         return int(self.max_unzipped_mb * MB)
 
+    @property
+    def min_free_bytes(self) -> int:
+        return int(self.min_free_mb * MB)
+
 
 def _bool(text: str) -> bool:
     if text.lower() in ("1", "true", "yes", "on"):
@@ -95,6 +119,10 @@ _ENV: tuple[tuple[str, str, Any], ...] = (
     ("port", "MISS_PORT", int),
     ("admin_password", "MISS_ADMIN_PASSWORD", str),
     ("session_hours", "MISS_SESSION_HOURS", float),
+    ("max_jobs_per_user", "MISS_MAX_JOBS_PER_USER", int),
+    ("api_rate", "MISS_API_RATE", float),
+    ("api_burst", "MISS_API_BURST", float),
+    ("min_free_mb", "MISS_MIN_FREE_MB", float),
 )
 
 
