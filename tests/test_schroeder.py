@@ -276,6 +276,43 @@ def test_random_height_fields_keep_their_boundary(seed, reduce, bound):
     assert euler_characteristic(new) == 1
 
 
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), passes=st.integers(1, 6), bound=st.floats(0.001, 0.02))
+def test_paper_schedule_runs_whole_passes_at_rising_bounds(seed, passes, bound):
+    # vtkDecimate's iterations: pass k at k x bound, each pass to its end, at most N passes
+    unit, faces = icosphere(3)
+    vertices = unit * (1.0 + 0.1 * np.random.default_rng(seed).random(len(unit)))[:, None]
+    one, info_one = schroeder_decimate(
+        vertices, faces, reduce=0.9, error_bound=bound, paper_passes=1
+    )
+    new, info = schroeder_decimate(
+        vertices, faces, reduce=0.9, error_bound=bound, paper_passes=passes
+    )
+    assert_valid_mesh(vertices, faces, new)
+    assert euler_characteristic(new) == 2
+    assert 1 <= info["passes"] <= passes
+    assert info["final_bound_mm"] == pytest.approx(info["passes"] * bound)
+    # stopping only between passes: the first pass removes all it can at the bound, so more
+    # passes remove at least as much, and a run that ends early has met the target
+    assert info_one["passes"] == 1 and len(new) <= len(one)
+    if info["passes"] < passes:
+        assert info["reduction"] >= 0.9
+    strict, _ = schroeder_decimate(
+        vertices, faces, reduce=0.999, error_bound=bound, max_error=bound
+    )
+    assert len(strict) <= len(one) < len(faces)  # strict mode repeats passes at the bound
+
+
+def test_paper_schedule_is_for_the_papers_decimation_only():
+    from miss.decimate import decimate
+    from miss.errors import BadParameter
+    from miss.types import Mesh
+
+    vertices, faces = icosphere(2)
+    with pytest.raises(BadParameter, match="schroeder"):
+        decimate(Mesh(vertices.astype(np.float32), faces), "quadric", paper_passes=6)
+
+
 @pytest.mark.parametrize(
     ("kwargs", "message"),
     [

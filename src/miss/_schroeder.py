@@ -670,15 +670,29 @@ def _check_inputs(
         raise ValueError(f"max_error is a distance in mm and must be >= 0; got {max_error}")
 
 
-def _run_passes(pts, faces, target, error_bound, max_error, feature_cos):
+def _run_passes(pts, faces, target, error_bound, max_error, feature_cos, whole_passes=0):
     """Passes with a rising bound until n_alive <= target or a pass at max_error removes
-    nothing. Edits faces in place; returns (alive mask, passes, last bound, vertices removed)."""
+    nothing. Edits faces in place; returns (alive mask, passes, last bound, vertices removed).
+
+    ``whole_passes`` > 0: the paper's schedule instead (vtkDecimate's iterations): at most that
+    many passes at k x error_bound (k = 1, 2, ...), each run to its end; the target is
+    looked at only between passes."""
     alive = np.ones(len(faces), dtype=bool)
     vf, vdeg = _vertex_faces(faces, len(pts), _VALENCE_CAP)
     vmin = np.zeros(len(pts), dtype=np.float64)
     # Distances within round-off of zero count as zero, so a flat region goes at bound 0.
     slack = _ROUND_OFF * float(np.linalg.norm(np.ptp(pts, axis=0))) if len(pts) else 0.0
     bound, n_alive, passes, removed_total = error_bound, len(faces), 0, 0
+    if whole_passes > 0:
+        for k in range(1, whole_passes + 1):
+            bound = k * error_bound
+            n_alive, removed = _decimate_pass(
+                pts, faces, alive, vf, vdeg, bound + slack, feature_cos, n_alive, -1, vmin
+            )
+            passes, removed_total = passes + 1, removed_total + removed
+            if n_alive <= target:
+                break
+        return alive, passes, bound, removed_total
     while True:
         n_alive, removed = _decimate_pass(
             pts, faces, alive, vf, vdeg, bound + slack, feature_cos, n_alive, target, vmin
@@ -699,6 +713,7 @@ def schroeder_decimate(
     error_bound: float,
     max_error: float | None = None,
     feature_angle: float = 75.0,
+    paper_passes: int = 0,
 ) -> tuple[np.ndarray, dict]:
     """Decimate a triangle mesh by vertex removal (Schroeder, Zarge & Lorensen 1992).
 
@@ -719,6 +734,11 @@ def schroeder_decimate(
         removes nothing, so the target may be missed.
     feature_angle : float
         Dihedral angle in degrees above which an edge is a feature edge.
+    paper_passes : int
+        0 (default): the schedule above. N > 0: the 1998 pipeline's (VTK's ``vtkDecimate``
+        iterations, its error increment equal to the initial bound): at most N whole passes
+        at bounds 1, 2, ..., N x ``error_bound``, the target looked at only between passes,
+        so a pass may overshoot it and the last may fall short; ``max_error`` is not used.
 
     Returns
     -------
@@ -739,7 +759,7 @@ def schroeder_decimate(
     target = math.floor(len(work) * (1.0 - reduce) + 1e-9)
     feature_cos = float(np.cos(np.radians(feature_angle)))
     alive, passes, bound, removed = _run_passes(
-        pts, work, target, error_bound, max(max_error, error_bound), feature_cos
+        pts, work, target, error_bound, max(max_error, error_bound), feature_cos, paper_passes
     )
     new_faces = work[alive]
     info = {

@@ -33,7 +33,7 @@ from numba import njit
 from miss.deviation import deviation
 from miss.errors import BadParameter
 from miss.geometry import compact, vertex_normals
-from miss.types import Mesh
+from miss.types import Mesh, column_bounds
 
 Method = Literal["none", "quadric", "schroeder"]
 METHODS: tuple[str, ...] = ("none", "quadric", "schroeder")
@@ -79,9 +79,11 @@ def _check(method: str, reduce: float, error_bound: float, max_error: float) -> 
 _PARALLEL_MIN_TRIANGLES = 200_000
 # Slabs for the first, parallel phase; more slabs than cores evens out uneven slabs.
 _SLABS = 8
-# The parallel phase keeps this fraction of each slab; the whole mesh is then finished in one
+# The parallel phase keeps this multiple of the final share of each slab (and is skipped when
+# that would be more than _FIRST_PHASE_MAX_KEEP); the whole mesh is then finished in one
 # call, so the seams (locked in the first phase) get simplified like everything else.
-_FIRST_PHASE_KEEP = 0.3
+_FIRST_PHASE_FACTOR = 1.5
+_FIRST_PHASE_MAX_KEEP = 0.6
 
 
 def _bind_simplify_with_attributes() -> Any:
@@ -137,13 +139,41 @@ def _simplify(
 
 
 def _slabs(faces: np.ndarray, positions: np.ndarray, count: int) -> list[np.ndarray]:
-    """The flat index arrays of ``count`` slabs of triangles with equal numbers of triangles,
-    cut across the mesh's longest axis by triangle centroid."""
-    axis = int(np.argmax(positions.max(axis=0) - positions.min(axis=0)))
-    coord = positions[:, axis]
-    centre = coord[faces[:, 0]] + coord[faces[:, 1]] + coord[faces[:, 2]]
-    cuts = [-np.inf, *np.quantile(centre, np.linspace(0.0, 1.0, count + 1)[1:-1]), np.inf]
-    return [faces[(centre >= lo) & (centre < hi)].ravel() for lo, hi in itertools.pairwise(cuts)]
+    """The flat index arrays of ``count`` slabs of triangles with about equal numbers of
+    triangles, cut across the mesh's longest axis by triangle centroid."""
+    lo, hi = column_bounds(positions)
+    axis = int(np.argmax(hi - lo))
+    coord = np.ascontiguousarray(positions[:, axis], dtype=np.float64)
+    # the cuts from a sample of at most ~64 k triangles: equal enough, and no sort of all
+    sample = faces[:: max(1, len(faces) // 65_536)]
+    centre = coord[sample[:, 0]] + coord[sample[:, 1]] + coord[sample[:, 2]]
+    cuts = np.quantile(centre, np.linspace(0.0, 1.0, count + 1)[1:-1])
+    flat, starts = _partition(faces, coord, cuts)
+    return [flat[3 * a : 3 * b] for a, b in itertools.pairwise(starts)]
+
+
+@njit(cache=True)
+def _partition(
+    faces: np.ndarray, coord: np.ndarray, cuts: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Faces (F, 3) bucketed by the slab (between ``cuts``) of their centroid's ``coord``:
+    flat uint32 indices slab after slab, and the slabs' first faces (len(cuts) + 2)."""
+    n = faces.shape[0]
+    slab = np.empty(n, dtype=np.int64)
+    starts = np.zeros(len(cuts) + 2, dtype=np.int64)
+    for f in range(n):
+        c = coord[faces[f, 0]] + coord[faces[f, 1]] + coord[faces[f, 2]]
+        s = np.searchsorted(cuts, c, side="right")
+        slab[f] = s
+        starts[s + 1] += 1
+    starts = np.cumsum(starts)
+    at = starts[:-1].copy()
+    out = np.empty(3 * n, dtype=np.uint32)
+    for f in range(n):
+        p = 3 * at[slab[f]]
+        at[slab[f]] += 1
+        out[p], out[p + 1], out[p + 2] = faces[f, 0], faces[f, 1], faces[f, 2]
+    return out, starts
 
 
 @njit(cache=True)
@@ -244,18 +274,18 @@ def _quadric_all(
     positions = np.ascontiguousarray(vertices, dtype=np.float32)
     target = int(round(3 * len(faces) * (1.0 - reduce)))
     lock = np.zeros(len(positions), dtype=np.uint8)
-    cores = os.cpu_count() or 1
-    if len(faces) < _PARALLEL_MIN_TRIANGLES or cores < 2 or (1.0 - reduce) >= _FIRST_PHASE_KEEP:
+    first_keep = _FIRST_PHASE_FACTOR * (1.0 - reduce)
+    if len(faces) < _PARALLEL_MIN_TRIANGLES or first_keep > _FIRST_PHASE_MAX_KEEP:
         kept, error = _simplify(faces.ravel(), positions, target, max_error, 0, lock)
         return kept.reshape(-1, 3).astype(np.int32), error
     # SPARSE: each slab touches an eighth of the vertex buffer; LOCK_BORDER: its cut edges
     # must stay as they are so that the slabs still meet
     options = meshoptimizer.SIMPLIFY_LOCK_BORDER | meshoptimizer.SIMPLIFY_SPARSE
-    with ThreadPoolExecutor(min(cores, _SLABS)) as pool:
+    with ThreadPoolExecutor(min(os.cpu_count() or 1, _SLABS)) as pool:
         phase = list(
             pool.map(
                 lambda idx: _simplify(
-                    idx, positions, int(len(idx) * _FIRST_PHASE_KEEP), max_error, options, lock
+                    idx, positions, int(len(idx) * first_keep), max_error, options, lock
                 ),
                 _slabs(faces, positions, _SLABS),
             )
@@ -269,7 +299,7 @@ def _quadric_all(
 
 
 def _schroeder(
-    mesh: Mesh, reduce: float, bound_mm: float, max_mm: float
+    mesh: Mesh, reduce: float, bound_mm: float, max_mm: float, paper_passes: int = 0
 ) -> tuple[np.ndarray, float]:
     from miss._schroeder import schroeder_decimate  # numba: compiled on first use
 
@@ -279,6 +309,7 @@ def _schroeder(
         reduce=reduce,
         error_bound=bound_mm,
         max_error=max_mm,
+        paper_passes=paper_passes,
     )
     return faces, float(info["final_bound_mm"])
 
@@ -292,6 +323,7 @@ def decimate(
     max_error: float = 0.01,
     measure: bool = True,
     samples: int = 100_000,
+    paper_passes: int = 0,
 ) -> tuple[Mesh, DecimationReport]:
     """Decimate ``mesh``; returns the new mesh and a report with the measured error.
 
@@ -308,8 +340,17 @@ def decimate(
     measure : bool
         Measure the two-sided deviation from the input surface (mm), from
         ``samples`` points on each surface.
+    paper_passes : int
+        ``schroeder`` only: N > 0 runs the 1998 pipeline's schedule instead of raising the
+        bound until the target is met: at most N whole passes at 1..N x ``error_bound``
+        (vtkDecimate's iterations), the reduce target looked at between passes only.
     """
     _check(method, reduce, error_bound, max_error)
+    if paper_passes and method != "schroeder":
+        raise BadParameter(
+            f"paper_passes is the schedule of the paper's own decimation; use method "
+            f"'schroeder' with it, not {method!r}."
+        )
     diag = mesh.diagonal()
     start = time.perf_counter()
     if method == "none" or mesh.n_triangles == 0:
@@ -318,7 +359,9 @@ def decimate(
         faces, rel = _quadric(mesh, reduce, max_error)
         final_mm = rel * diag
     else:
-        faces, final_mm = _schroeder(mesh, reduce, error_bound * diag, max_error * diag)
+        faces, final_mm = _schroeder(
+            mesh, reduce, error_bound * diag, max_error * diag, paper_passes
+        )
     if method != "none":
         vertices, faces = compact(mesh.vertices, faces)
         out = Mesh(vertices=vertices, faces=faces, normals=vertex_normals(vertices, faces))

@@ -25,7 +25,7 @@ import vtk
 from numba import njit, prange
 from vtk.util import numpy_support
 
-from miss.types import Mesh
+from miss.types import Mesh, column_bounds
 
 
 @dataclass(frozen=True)
@@ -153,7 +153,7 @@ def _grid_shape(verts: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, float
     Cells about twice the median edge hold a few triangles each; the floor on the size keeps
     the number of cells within about twice the number of triangles whatever the mesh's shape.
     """
-    lo, hi = verts.min(axis=0).astype(np.float64), verts.max(axis=0).astype(np.float64)
+    lo, hi = (b.astype(np.float64) for b in column_bounds(verts))
     some = faces[:: max(1, len(faces) // 100_000)]  # a median needs no million edges
     edge = np.linalg.norm(verts[some[:, 0]].astype(np.float64) - verts[some[:, 1]], axis=1)
     extent = np.maximum(hi - lo, 1e-9)

@@ -39,7 +39,7 @@ import numpy as np
 from miss.export.vrml import BONE_RGB, DEFAULT_TITLE
 from miss.geometry import mesh_normals
 from miss.scene import Part, Scene, linear_rgb
-from miss.types import Mesh
+from miss.types import Mesh, column_bounds
 
 # Rows: glTF X, Y, Z in LPS coordinates (see the module docstring).
 LPS_TO_GLTF = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
@@ -127,8 +127,8 @@ def _quantized_streams(
     almost nothing compressed). The matrix maps q back: ``v = lo + step * q``.
     """
     vertices, normals, faces = _locality_order(vertices, normals, faces)
-    lo = vertices.min(axis=0).astype(np.float64)
-    extent = float((vertices.max(axis=0) - lo).max())
+    lo, hi = (b.astype(np.float64) for b in column_bounds(vertices))
+    extent = float((hi - lo).max())
     step = extent / 65535 if extent > 0 else 1.0  # one step for all axes: a uniform scale
     quantized = np.zeros((len(vertices), 4), dtype="<u2")
     quantized[:, :3] = np.clip(np.rint((vertices - lo) / step), 0, 65535)
@@ -206,8 +206,8 @@ def _vec3(component_type: int, values: np.ndarray | None = None) -> dict[str, An
     accessor: dict[str, Any] = {"componentType": component_type, "type": "VEC3"}
     if values is not None:
         # .tolist() gives Python numbers equal to the stored float32/uint16 values, as glTF asks.
-        accessor["min"] = values.min(axis=0).tolist()
-        accessor["max"] = values.max(axis=0).tolist()
+        lo, hi = column_bounds(values)
+        accessor["min"], accessor["max"] = lo.tolist(), hi.tolist()
     return accessor
 
 
