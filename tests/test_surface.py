@@ -55,6 +55,16 @@ def test_sphere_area_volume_and_orientation() -> None:
     assert (outward > 0).mean() > 0.999
 
 
+def test_without_normals_the_same_surface() -> None:
+    # tall enough for three slabs, so the welding without normal columns is covered too
+    vol, _ = ellipsoid_volume(np.diag([0.8, 0.8, 0.8, 1.0]), (160, 160, 400), (50.0, 50.0, 140.0))
+    full = extract_surface(vol, 0.0)
+    bare = extract_surface(vol, 0.0, normals=False)
+    assert bare.normals is None and full.normals is not None
+    np.testing.assert_array_equal(bare.vertices, full.vertices)
+    np.testing.assert_array_equal(bare.faces, full.faces)
+
+
 @pytest.mark.parametrize("spacing", [(0.7, 0.9, 1.3), (0.5, 0.5, 2.5)])
 @pytest.mark.parametrize("mirror", [False, True])
 def test_ellipsoid_under_oblique_anisotropic_affine(spacing, mirror) -> None:

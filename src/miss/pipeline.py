@@ -277,7 +277,14 @@ def run(
     seconds: dict[str, float] = {}
     t0 = time.perf_counter()
     report_progress("surface", 0.0)
-    mesh = extract_surface(volume, spec.level, spec.steps, slice_range(spec, volume), spec.roi)
+    mesh = extract_surface(
+        volume,
+        spec.level,
+        spec.steps,
+        slice_range(spec, volume),
+        spec.roi,
+        normals=spec.decimate == "none",  # a decimated mesh gets new normals from its faces
+    )
     seconds["surface"] = time.perf_counter() - t0
     report_progress("decimate", 0.35)
     t1 = time.perf_counter()

@@ -159,14 +159,16 @@ class _SeamMismatch(Exception):
     """Two slabs disagree on a seam's vertices (float data at a knife's edge): don't weld."""
 
 
-def _surface_whole(block: np.ndarray, level: float, span: float) -> _Arrays:
+def _surface_whole(block: np.ndarray, level: float, span: float, normals: bool = True) -> _Arrays:
     """One padded copy, one flying-edges run; vertices in block index coordinates."""
-    verts, faces, normals = _flying_edges(_pad_below(block, level, span), level)
+    verts, faces, normals = _flying_edges(_pad_below(block, level, span), level, normals)
     verts -= np.float32(1.0)  # the pad shifted every index by one
     return verts, faces, normals
 
 
-def _surface_in_slabs(block: np.ndarray, level: float, span: float) -> _Arrays:
+def _surface_in_slabs(
+    block: np.ndarray, level: float, span: float, normals: bool = True
+) -> _Arrays:
     """The padded block's surface, made slab by slab and welded along the seams.
 
     Each slab is copied with one context plane beyond each inner seam, so that the gradient
@@ -176,14 +178,14 @@ def _surface_in_slabs(block: np.ndarray, level: float, span: float) -> _Arrays:
     """
     seams = _seam_planes(block, level)
     if not seams:
-        return _surface_whole(block, level, span)
+        return _surface_whole(block, level, span, normals)
     pad, bounds = _pad_value(block.dtype, level, span), [-1, *seams, block.shape[2]]
     welder = _Welder()
     for j in range(len(bounds) - 1):
         inner_lo, inner_hi = j > 0, j < len(bounds) - 2
         first = bounds[j] - 1 if inner_lo else -1
         last = bounds[j + 1] + 1 if inner_hi else block.shape[2]
-        verts, faces, normals = _flying_edges(_slab(block, first, last, pad), level)
+        verts, faces, slab_normals = _flying_edges(_slab(block, first, last, pad), level, normals)
         # seams in the slab's own (small) coordinates, where float32 still tells a vertex
         # a hair off the seam plane from one on it
         z_lo = bounds[j] - first if inner_lo else -np.inf
@@ -192,9 +194,9 @@ def _surface_in_slabs(block: np.ndarray, level: float, span: float) -> _Arrays:
         # never lies flat in a cell face, so each cell keeps exactly its own triangles
         beyond = (verts[:, 2] < z_lo) | (verts[:, 2] > z_hi)
         try:
-            welder.add(verts, faces, normals, beyond, (z_lo, z_hi))
+            welder.add(verts, faces, slab_normals, beyond, (z_lo, z_hi))
         except _SeamMismatch:
-            return _surface_whole(block, level, span)
+            return _surface_whole(block, level, span, normals)
         welder.parts[-1][0][:] += np.array([-1.0, -1.0, first], dtype=np.float32)
     return welder.result()
 
@@ -280,6 +282,7 @@ def extract_surface(
     roi: Roi | None = None,
     *,
     closed: bool = True,
+    normals: bool = True,
 ) -> Mesh:
     """Marching-cubes isosurface of ``volume`` at ``level``, in LPS millimetres.
 
@@ -298,6 +301,9 @@ def extract_surface(
     closed : bool
         Pad the region with one voxel below the level so that surfaces cut by the
         region's faces are capped and every surface is closed.
+    normals : bool
+        Compute gradient normals. A mesh that is decimated next gets new normals from its
+        faces, so a caller that decimates can skip them (``normals`` is then None).
 
     Returns
     -------
@@ -326,9 +332,9 @@ def extract_surface(
     offset = np.array([b[0] for b in box], dtype=np.float64)
     contour = _contour_level(block.dtype, level)
     if closed:
-        verts, faces, index_normals = _surface_in_slabs(block, contour, hi - lo)
+        verts, faces, index_normals = _surface_in_slabs(block, contour, hi - lo, normals)
     else:
-        verts, faces, index_normals = _flying_edges(np.asfortranarray(block), contour)
+        verts, faces, index_normals = _flying_edges(np.asfortranarray(block), contour, normals)
     if len(faces) == 0:
         raise EmptySurface(
             f"no surface at level {level:g} in the chosen region; pick another level."
@@ -338,7 +344,9 @@ def extract_surface(
     return Mesh(
         vertices=_points_to_patient(verts, volume.affine, steps, offset),
         faces=faces,
-        normals=_normals_to_patient(index_normals, volume.affine[:3, :3], steps),
+        normals=_normals_to_patient(index_normals, volume.affine[:3, :3], steps)
+        if normals
+        else None,
     )
 
 
@@ -389,18 +397,20 @@ def _use_both_cores() -> None:
             smp.SetBackend("STDThread")
 
 
-def _flying_edges(block: np.ndarray, level: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _flying_edges(
+    block: np.ndarray, level: float, normals: bool = True
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Flying-edges isosurface of an (X, Y, Z) array in index coordinates.
 
     Returns vertices (N, 3) float32, outward-wound faces (F, 3) int32 and gradient normals
-    (N, 3) float32, all in index space; VTK computes the normals in parallel, cheaper than
-    from faces.
+    (N, 3) float32 ((N, 0) when not ``normals``), all in index space; VTK computes the
+    normals in parallel, cheaper than from faces.
     """
     _use_both_cores()
     fe = vtk.vtkFlyingEdges3D()
     fe.SetInputData(_to_vtk_image(block))
     fe.SetValue(0, float(level))
-    fe.ComputeNormalsOn()
+    fe.SetComputeNormals(normals)
     fe.ComputeGradientsOff()
     fe.ComputeScalarsOff()
     fe.Update()
@@ -409,14 +419,17 @@ def _flying_edges(block: np.ndarray, level: float) -> tuple[np.ndarray, np.ndarr
         return (
             np.zeros((0, 3), np.float32),
             np.zeros((0, 3), np.int32),
-            np.zeros((0, 3), np.float32),
+            np.zeros((0, 3 if normals else 0), np.float32),
         )
     # copies, so that VTK's arrays (int64 connectivity: twice our faces) go with the filter
     verts = numpy_support.vtk_to_numpy(out.GetPoints().GetData()).astype(np.float32)
     conn = numpy_support.vtk_to_numpy(out.GetPolys().GetConnectivityArray())
     faces = conn.astype(np.int32).reshape(-1, 3)
-    normals = numpy_support.vtk_to_numpy(out.GetPointData().GetNormals()).astype(np.float32)
+    if normals:
+        vectors = numpy_support.vtk_to_numpy(out.GetPointData().GetNormals()).astype(np.float32)
+    else:
+        vectors = np.zeros((len(verts), 0), np.float32)
     # VTK winds flying-edges triangles counter-clockwise seen from the lower values and
     # its normals point down the gradient: both outward for a structure above the level
     # (checked by the sphere and ellipsoid tests).
-    return verts, faces, normals
+    return verts, faces, vectors
