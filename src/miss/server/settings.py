@@ -17,6 +17,8 @@ Environment variables (all optional):
 ``MISS_API_BURST``        API requests allowed at once before the rate applies (200)
 ``MISS_MIN_FREE_MB``      uploads and jobs are refused while the data folder's disk has
                           less free space than this, MB (256)
+``MISS_WORKER_MEMORY_MB`` address space one job's worker may use, MB (physical memory; 0:
+                          no cap); read by the worker itself (see ``miss.server.worker``)
 """
 
 from __future__ import annotations
