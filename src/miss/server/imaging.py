@@ -54,7 +54,11 @@ def views(affine: np.ndarray, dims: tuple[int, int, int]) -> dict[str, dict[str,
 
 def slice_plane(data: np.ndarray, view: dict[str, Any], index: int) -> np.ndarray:
     """The slice as a float32 (rows, columns) image in display orientation."""
-    plane = np.asarray(np.take(data, index, axis=view["axis"]), dtype=np.float32).T
+    # basic indexing reads one plane of the memory map; np.take copied the whole volume
+    # (29 MB, 100 ms for CThead) for every slice
+    where: list[Any] = [slice(None)] * data.ndim
+    where[view["axis"]] = index
+    plane = np.asarray(data[tuple(where)], dtype=np.float32).T
     if view["vertical"]["flipped"]:
         plane = plane[::-1, :]
     if view["horizontal"]["flipped"]:
