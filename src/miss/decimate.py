@@ -78,11 +78,11 @@ def _check(method: str, reduce: float, error_bound: float, max_error: float) -> 
 # Below this many triangles one meshoptimizer call is fast enough (< 0.1 s) to not split.
 _PARALLEL_MIN_TRIANGLES = 200_000
 # Slabs for the first, parallel phase; more slabs than cores evens out uneven slabs.
-_SLABS = 8
+_SLABS = 16
 # The parallel phase keeps this multiple of the final share of each slab (and is skipped when
 # that would be more than _FIRST_PHASE_MAX_KEEP); the whole mesh is then finished in one
 # call, so the seams (locked in the first phase) get simplified like everything else.
-_FIRST_PHASE_FACTOR = 1.5
+_FIRST_PHASE_FACTOR = 2.0
 _FIRST_PHASE_MAX_KEEP = 0.6
 
 
@@ -261,12 +261,13 @@ def _quadric_all(
     """meshoptimizer simplify of ``faces`` (F, 3) to the reduce target.
 
     Large meshes go in two phases: slabs simplified on all cores with their cut borders
-    locked, then the merged mesh in one call. The first phase does most of the collapses
-    (the cheap ones), so the serial second phase runs on under a third of the triangles.
-    Measured on CThead (817 k triangles to 10 %): the same CPU time as one call, so about
-    half the wall time when the second core is free; the mean deviation a few per cent
-    higher (the second phase starts its error quadrics afresh), the maximum the same.
-    Eight slabs, two at a time, also keep meshoptimizer's working memory to a third.
+    locked, each to twice its final share, then the merged mesh in one call. The first
+    phase does most of the collapses (the cheap ones), so the serial second phase runs on a
+    fifth of the triangles. Measured on CThead (817 k triangles to 10 %, 2 cores): 0.24 s
+    against 0.50 s for one call, with less CPU time in all (meshoptimizer's cost grows faster
+    than the triangle count); the mean deviation the same (0.063 mm), the maximum 2.7 mm
+    where one call loses a bone chip (70 mm). Sixteen slabs, two at a time, also keep
+    meshoptimizer's working memory to a fraction.
     """
     if faces.dtype == np.int32 and faces.flags.c_contiguous:
         faces = faces.view(np.uint32)  # indices are >= 0: the same bits, no copy
