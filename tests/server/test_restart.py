@@ -3,18 +3,12 @@ mid-job and started again on the same data folder finishes every job."""
 
 from __future__ import annotations
 
-import os
 import signal
-import socket
-import subprocess
-import sys
 import time
-from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
 
-import httpx
 import pytest
+from realserver import Server, alive, free_port, serving
 
 from miss.server.db import FAILED, QUEUED, RUNNING, ModelRow, VolumeRow
 from miss.server.jobstate import JobState
@@ -23,105 +17,6 @@ from miss.server.settings import Settings
 from miss.server.store import Store
 
 JOBS = [{"level": level, "sample_rate": 4, "decimate": "none"} for level in (200, 260, 320)]
-ADMIN_PASSWORD = "admin-password-for-restarts"
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def alive(pid: int) -> bool:
-    """True while ``pid`` runs (a zombie waiting for its reaper counts as dead)."""
-    try:
-        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
-    except (FileNotFoundError, IndexError):
-        return False
-    return state not in ("Z", "X")
-
-
-class Server:
-    """``miss serve`` in a subprocess on a free loopback port."""
-
-    def __init__(self, data_dir: Path, log: Path, workers: int = 1) -> None:
-        self.data_dir, self.log = data_dir, log
-        self.port = free_port()
-        self.url = f"http://127.0.0.1:{self.port}"
-        cmd = [
-            sys.executable,
-            "-m",
-            "miss.cli",
-            "serve",
-            "--port",
-            str(self.port),
-            "--data-dir",
-            str(data_dir),
-        ]
-        with open(log, "ab") as out:
-            self.proc = subprocess.Popen(
-                cmd,
-                stdout=out,
-                stderr=subprocess.STDOUT,
-                stdin=subprocess.DEVNULL,
-                env={
-                    **os.environ,
-                    "MISS_WORKERS": str(workers),
-                    "MISS_ADMIN_PASSWORD": ADMIN_PASSWORD,
-                },
-            )
-        self.http = httpx.Client(base_url=self.url, timeout=10)
-        self._wait_ready()
-        self._log_in()
-
-    def _log_in(self) -> None:
-        r = self.http.post(
-            "/api/auth/login", json={"username": "admin", "password": ADMIN_PASSWORD}
-        )
-        assert r.status_code == 200, r.text
-        self.http.cookies.clear()
-        self.http.headers["Authorization"] = f"Bearer {r.json()['token']}"
-
-    def _wait_ready(self, timeout: float = 60) -> None:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            assert self.proc.poll() is None, f"server exited early:\n{self.log.read_text()}"
-            try:
-                if self.http.get("/api/health").status_code == 200:
-                    return
-            except httpx.TransportError:
-                pass
-            time.sleep(0.2)
-        raise AssertionError(f"server not ready after {timeout} s:\n{self.log.read_text()}")
-
-    def model(self, model_id: str) -> dict:
-        return self.http.get(f"/api/models/{model_id}").json()
-
-    def wait(self, model_id: str, until: tuple[str, ...], timeout: float = 90) -> dict:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            body = self.model(model_id)
-            if body["status"] in until:
-                return body
-            time.sleep(0.1)
-        raise AssertionError(
-            f"{model_id} not {until} after {timeout} s: {body}\n{self.log.read_text()}"
-        )
-
-    def stop(self, sig: int) -> int:
-        self.http.close()
-        self.proc.send_signal(sig)
-        return self.proc.wait(timeout=30)
-
-
-@contextmanager
-def serving(data_dir: Path, log: Path, workers: int = 1) -> Iterator[Server]:
-    server = Server(data_dir, log, workers)
-    try:
-        yield server
-    finally:
-        if server.proc.poll() is None:
-            server.stop(signal.SIGTERM)
 
 
 def submit_all(server: Server) -> list[str]:

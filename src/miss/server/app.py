@@ -8,7 +8,8 @@ import sys
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
-from fastapi import FastAPI
+from fastapi import FastAPI, Request
+from fastapi.responses import JSONResponse
 from starlette.concurrency import run_in_threadpool
 
 from miss import __version__
@@ -16,6 +17,7 @@ from miss.server import errors
 from miss.server.accounts import ADMIN_NAME, ensure_admin
 from miss.server.ingest import register_demo
 from miss.server.jobs import JobQueue
+from miss.server.ratelimit import ApiLimits, JobLimit, OverLimit, RateLimitMiddleware, too_many
 from miss.server.rooms import Hub
 from miss.server.routes import audit, auth, models, pages, rooms, shares, volumes
 from miss.server.settings import Settings
@@ -52,6 +54,12 @@ def _first_admin(store: Store, settings: Settings) -> None:
         )
 
 
+async def _over_limit(request: Request, exc: Exception) -> JSONResponse:
+    assert isinstance(exc, OverLimit)
+    log.info("%s %s -> 429: %s", request.method, request.url.path, exc)
+    return too_many(str(exc), exc.wait)
+
+
 def create_app(settings: Settings | None = None) -> FastAPI:
     """A MISS server app; ``settings`` default to the environment (``Settings.from_env``)."""
     settings = settings or Settings.from_env()
@@ -77,7 +85,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     )
     app.state.settings = settings
     app.state.failed_logins = auth.failed_login_limits()
+    app.state.api_limits = ApiLimits(settings.api_rate, settings.api_burst)
+    app.state.job_limit = JobLimit(settings.max_jobs_per_user)
+    app.add_middleware(RateLimitMiddleware, limits=app.state.api_limits)
     errors.install(app)
+    app.add_exception_handler(OverLimit, _over_limit)
     app.include_router(auth.router)
     app.include_router(volumes.router)
     app.include_router(models.router)
@@ -87,7 +99,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(pages.router)
 
     @app.get("/api/health", tags=["server"])
-    def health() -> dict[str, str]:
+    async def health() -> dict[str, str]:
+        """Answered on the event loop itself (no thread, no database): its latency is the
+        loop's, which load tests watch while jobs and uploads run."""
         return {"status": "ok", "version": __version__}
 
     return app

@@ -202,7 +202,13 @@ def migrate(engine: Engine) -> None:
 
 
 def make_engine(url: str) -> Engine:
-    """An engine; SQLite gets WAL and a busy timeout because worker processes write too."""
+    """An engine; SQLite gets WAL and a busy timeout because worker processes write too.
+
+    ``synchronous=FULL``: each commit is on disk (the WAL fsynced) before it returns, so
+    what the server has acknowledged (a share link shown once, an audit record, a pin)
+    survives a power cut as well as a killed process. It costs one fsync per commit
+    (about 0.3 ms on the development machine's SSD), at a rate set by people clicking.
+    """
     if not url.startswith("sqlite"):
         return create_engine(url, pool_pre_ping=True)
     engine = create_engine(url, connect_args={"check_same_thread": False, "timeout": 30})
@@ -211,6 +217,7 @@ def make_engine(url: str) -> Engine:
     def _sqlite_pragmas(dbapi_conn: Any, _record: Any) -> None:
         cur = dbapi_conn.cursor()
         cur.execute("PRAGMA journal_mode=WAL")
+        cur.execute("PRAGMA synchronous=FULL")
         cur.execute("PRAGMA busy_timeout=30000")
         cur.execute("PRAGMA foreign_keys=ON")
         # Deleted rows (an identity record, a revoked link) are overwritten, not left in

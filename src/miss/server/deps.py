@@ -7,42 +7,55 @@ from typing import Annotated
 from fastapi import Depends, Request
 
 from miss.server.accounts import User
-from miss.server.auth import can_see, user_for_request
+from miss.server.auth import can_see, presented_token, user_for_request
 from miss.server.db import ModelRow, VolumeRow
 from miss.server.errors import Forbidden, NotFound
 from miss.server.jobs import JobQueue
+from miss.server.ratelimit import ApiLimits, JobLimit
 from miss.server.settings import Settings
 from miss.server.store import Store
 
 
-def get_settings(request: Request) -> Settings:
+# ``async``: a look-up on the app, answered on the event loop. FastAPI would otherwise
+# run each of these in its threadpool, one thread hop per dependency per request.
+async def get_settings(request: Request) -> Settings:
     return request.app.state.settings
 
 
-def get_store(request: Request) -> Store:
+async def get_store(request: Request) -> Store:
     return request.app.state.store
 
 
-def get_queue(request: Request) -> JobQueue:
+async def get_queue(request: Request) -> JobQueue:
     return request.app.state.queue
+
+
+async def get_job_limit(request: Request) -> JobLimit:
+    return request.app.state.job_limit
 
 
 SettingsDep = Annotated[Settings, Depends(get_settings)]
 StoreDep = Annotated[Store, Depends(get_store)]
 QueueDep = Annotated[JobQueue, Depends(get_queue)]
+JobLimitDep = Annotated[JobLimit, Depends(get_job_limit)]
 
 
 # Plain ``def``: FastAPI runs these in its threadpool, so the database look-up (and the
 # argon2-free token hash) never blocks the event loop.
 def current_user(request: Request, store: StoreDep) -> User:
     """The logged-in user (bearer token or session cookie + CSRF); 401 otherwise."""
-    return user_for_request(request, store)
+    user = user_for_request(request, store)
+    # The API's rate limit counts this session's next requests against its account.
+    limits: ApiLimits | None = getattr(request.app.state, "api_limits", None)
+    if limits is not None:
+        limits.remember(presented_token(request.headers, request.cookies)[0], user.id)
+    return user
 
 
 UserDep = Annotated[User, Depends(current_user)]
 
 
-def current_admin(user: UserDep) -> User:
+async def current_admin(user: UserDep) -> User:
     if not user.is_admin:
         raise Forbidden("only administrators may do this.")
     return user

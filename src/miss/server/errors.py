@@ -6,11 +6,16 @@ picks the status code. Nothing a client sends should produce a 500 with a traceb
 
 from __future__ import annotations
 
+import json
 import logging
+from typing import Any
 
 from fastapi import FastAPI, Request
+from fastapi.exception_handlers import http_exception_handler
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse
+from fastapi.responses import JSONResponse, Response
+from python_multipart.exceptions import FormParserError
+from starlette.exceptions import HTTPException
 
 from miss.errors import MissError, UnreadableVolume, UnsupportedFormat
 from miss.server.logmask import mask
@@ -24,6 +29,10 @@ class NotFound(MissError, LookupError):
 
 class UploadTooLarge(MissError, ValueError):
     """An upload, or the files a zip expands to, over the configured limit."""
+
+
+class BodyTooLarge(MissError, ValueError):
+    """A JSON request body over the few kilobytes any request of the API needs."""
 
 
 class UnsafeArchive(UnreadableVolume):
@@ -50,6 +59,10 @@ class TooManyRequests(MissError, RuntimeError):
     """A client over its rate limit (failed logins)."""
 
 
+class DiskFull(MissError, RuntimeError):
+    """No room left for an upload or a job in the data folder: 507 Insufficient Storage."""
+
+
 #: Most specific first; anything else from the engine is a bad request body (422).
 STATUS: tuple[tuple[type[MissError], int], ...] = (
     (NotFound, 404),
@@ -58,8 +71,10 @@ STATUS: tuple[tuple[type[MissError], int], ...] = (
     (Gone, 410),
     (TooManyRequests, 429),
     (UploadTooLarge, 413),
+    (BodyTooLarge, 413),
     (UnsupportedFormat, 415),
     (NotReady, 409),
+    (DiskFull, 507),
 )
 
 
@@ -84,20 +99,162 @@ async def miss_error_handler(request: Request, exc: Exception) -> JSONResponse:
 
 
 async def validation_handler(request: Request, exc: Exception) -> JSONResponse:
-    """FastAPI's 422, with ``detail`` as one readable sentence and the list kept as ``errors``."""
+    """FastAPI's 422, with ``detail`` as readable sentences (which field, what it should
+    be, what came) and the raw list kept as ``errors``."""
     assert isinstance(exc, RequestValidationError)
-    parts = []
-    for err in exc.errors():
-        where = ".".join(str(p) for p in err.get("loc", ()) if p not in ("body", "query", "path"))
-        parts.append(f"{where}: {err.get('msg', 'invalid')}" if where else str(err.get("msg")))
-    detail = "; ".join(parts) or "invalid request"
+    found = list(exc.errors())
+    detail = "; ".join(_explain(found, request)) or "the request is not valid; see /docs."
     errors = [
-        {"loc": list(e.get("loc", ())), "msg": e.get("msg"), "type": e.get("type")}
-        for e in exc.errors()
+        {"loc": list(e.get("loc", ())), "msg": e.get("msg"), "type": e.get("type")} for e in found
     ]
     return JSONResponse({"detail": detail, "errors": errors}, status_code=422)
+
+
+#: What a value should be, by pydantic error type (and union branch tag).
+_EXPECTED = {
+    "int_type": "a whole number",
+    "int_parsing": "a whole number",
+    "int_from_float": "a whole number",
+    "float_type": "a number",
+    "float_parsing": "a number",
+    "finite_number": "a finite number (not NaN or Infinity)",
+    "string_type": "a string",
+    "bool_type": "true or false",
+    "bool_parsing": "true or false",
+    "list_type": "a list",
+    "dict_type": "an object",
+    "model_type": "an object",
+    "model_attributes_type": "an object",
+    "int": "a whole number",
+    "float": "a number",
+    "str": "a string",
+    "bool": "true or false",
+    "list[int]": "a list of whole numbers",
+    "list[float]": "a list of numbers",
+}
+_SOURCES = ("body", "query", "path", "header", "cookie")
+_JSON_TYPES = ("application/json",)
+
+
+def _is_branch(part: object) -> bool:
+    """A union member's tag in a location (``int``, ``list[int]``), not a field name."""
+    return isinstance(part, str) and (part in _EXPECTED or "[" in part or "-" in part)
+
+
+def _where(loc: tuple[Any, ...]) -> tuple[str, str]:
+    """(source, field path) of an error location: ``("body", "levels[2]")``."""
+    source = loc[0] if loc and loc[0] in _SOURCES else ""
+    rest = loc[1:] if source else loc
+    path = ""
+    for i, part in enumerate(rest):
+        if isinstance(part, int):
+            path += f"[{part}]"
+        elif not (i > 0 and _is_branch(part)):
+            path += f".{part}" if path else str(part)
+    return str(source), path
+
+
+def _shown(value: Any) -> str:
+    """A short JSON rendering of what the client sent."""
+    try:
+        text = json.dumps(value, allow_nan=True, default=str)
+    except (TypeError, ValueError):
+        text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def _explain(found: list[Any], request: Request) -> list[str]:
+    """One sentence per field; the members of a union (``sample_rate``: n or [x, y, z])
+    are merged into one "should be A or B"."""
+    groups: dict[tuple[str, str], list[Any]] = {}
+    for err in found:
+        loc = tuple(err.get("loc", ()))
+        source, path = _where(loc)
+        top = path.split(".")[0].split("[")[0] if any(_is_branch(p) for p in loc[2:]) else path
+        groups.setdefault((source, top), []).append(err)
+    return [_sentence(source, field, errs, request) for (source, field), errs in groups.items()]
+
+
+def _sentence(source: str, field: str, errs: list[Any], request: Request) -> str:
+    err = errs[0]
+    kind, ctx = err.get("type", ""), err.get("ctx") or {}
+    if source == "body" and (not field or kind == "json_invalid"):
+        return _body_sentence(kind, err, ctx, request)
+    name = f"{field!r}" + (f" ({source} parameter)" if source in ("query", "path") else "")
+    if kind == "missing":
+        return f"{name} is required"
+    if kind == "extra_forbidden":
+        return f"{name} is not a field of this request; remove it (see /docs for the fields)"
+    got = _shown(min(errs, key=lambda e: len(e.get("loc", ()))).get("input"))
+    if "password" in field or "token" in field:  # never echoed, not even to its sender
+        got = "(not shown)"
+    if len(errs) > 1:  # a union: name each alternative once
+        tags = [next((p for p in e.get("loc", ())[2:] if _is_branch(p)), "") for e in errs]
+        ways = list(dict.fromkeys(_EXPECTED.get(t, t) for t in tags if t))
+        if ways:
+            return f"{name} should be {' or '.join(ways)}, got {got}"
+    if kind in _EXPECTED:
+        return f"{name} should be {_EXPECTED[kind]}, got {got}"
+    msg = str(err.get("msg", "is not valid"))
+    said = msg.replace("Input should", "should", 1) if msg.startswith("Input should") else msg
+    return f"{name} {said[0].lower() + said[1:]}, got {got}"
+
+
+def _body_sentence(kind: str, err: Any, ctx: dict[str, Any], request: Request) -> str:
+    """The body as a whole: missing, not JSON, or JSON that is no object."""
+    sent = request.headers.get("content-type", "").split(";")[0].strip().lower()
+    hint = "send a JSON object ({...}) with Content-Type: application/json (see /docs)"
+    if kind == "json_invalid":
+        at = err.get("loc", ("body", 0))[-1]
+        why = ctx.get("error", "decode error")
+        return f"the request body is not valid JSON ({why} at character {at}); {hint}"
+    if kind == "missing":
+        return f"the request body is empty; {hint}"
+    if sent not in _JSON_TYPES and not sent.endswith("+json"):
+        return f"the request body is not JSON (Content-Type: {sent or 'none'}); {hint}"
+    got = err.get("input")
+    what = {list: "a list", str: "a string", bool: "true or false", type(None): "null"}.get(
+        type(got), "a number" if isinstance(got, int | float) else _shown(got)
+    )
+    return f"the request body must be a JSON object, got {what}; {hint}"
+
+
+async def multipart_handler(request: Request, exc: Exception) -> JSONResponse:
+    """A multipart body that does not parse (no boundary where one should be, headers
+    too long): the client's mistake, a 400 that says so."""
+    log.info("%s %s -> 400: malformed multipart", request.method, mask(request.url.path))
+    return JSONResponse(
+        {
+            "detail": f"the multipart/form-data body is malformed ({exc}); send the file as "
+            "a form upload in the field 'file' (e.g. curl -F file=@series.zip)."
+        },
+        status_code=400,
+    )
+
+
+#: Starlette's and FastAPI's own short answers, said with what to do.
+_HTTP_DETAILS = {
+    (400, "There was an error parsing the body"): "the request body could not be parsed as "
+    "JSON (malformed, or nested too deeply); send a JSON object with "
+    "Content-Type: application/json (see /docs).",
+    (404, "Not Found"): "no such page or API route: {method} {path}; see /docs for the API.",
+    (405, "Method Not Allowed"): "{method} is not allowed on {path}; see /docs for the methods.",
+}
+
+
+async def http_error_handler(request: Request, exc: Exception) -> Response:
+    """Starlette's HTTP errors (unknown route, wrong method, unparsable body) as JSON
+    with a ``detail`` that says what to do; anything else unchanged."""
+    assert isinstance(exc, HTTPException)
+    text = _HTTP_DETAILS.get((exc.status_code, str(exc.detail)))
+    if text is not None:
+        detail = text.format(method=request.method, path=mask(request.url.path))
+        exc = HTTPException(exc.status_code, detail, exc.headers)
+    return await http_exception_handler(request, exc)
 
 
 def install(app: FastAPI) -> None:
     app.add_exception_handler(MissError, miss_error_handler)
     app.add_exception_handler(RequestValidationError, validation_handler)
+    app.add_exception_handler(FormParserError, multipart_handler)
+    app.add_exception_handler(HTTPException, http_error_handler)

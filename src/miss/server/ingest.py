@@ -13,13 +13,14 @@ from __future__ import annotations
 import hashlib
 import json
 import re
+import shutil
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from miss.deid import deidentify, identity_values, remap_uid, scrub
-from miss.errors import MissError
+from miss.errors import EmptySurface, MissError, UnreadableVolume
 from miss.io import list_series, load_volume
 from miss.server import imaging
 from miss.server.db import VolumeRow
@@ -84,14 +85,18 @@ def stage(
 ) -> tuple[Path, dict[str, Any]]:
     """Write a volume's files into a fresh folder under ``tmp/``; returns (folder, info)."""
     folder = store.tmp_dir()
-    hist = imaging.histogram(volume.data)
-    info = describe(volume, hist) | {"deidentification": deid or {}}
-    np.save(folder / "data.npy", np.asfortranarray(volume.data), allow_pickle=False)
-    write_atomic(folder / "meta.json", json.dumps(info).encode())
-    write_atomic(folder / "histogram.json", json.dumps(hist).encode())
-    write_atomic(
-        folder / "thumbnail.png", imaging.thumbnail(volume.data, volume.affine, info["window"])
-    )
+    try:
+        hist = imaging.histogram(volume.data)
+        info = describe(volume, hist) | {"deidentification": deid or {}}
+        np.save(folder / "data.npy", np.asfortranarray(volume.data), allow_pickle=False)
+        write_atomic(folder / "meta.json", json.dumps(info).encode())
+        write_atomic(folder / "histogram.json", json.dumps(hist).encode())
+        write_atomic(
+            folder / "thumbnail.png", imaging.thumbnail(volume.data, volume.affine, info["window"])
+        )
+    except BaseException:  # a full disk, a bad volume: no half-written folder stays behind
+        shutil.rmtree(folder, ignore_errors=True)
+        raise
     return folder, info
 
 
@@ -110,8 +115,9 @@ def ingest(
     try:
         series = original_series(store, source, upload.fields.get("series") or None)
         volume = load_volume(source, series=series)
+        check_storable(volume, upload.filename)
     except MissError as exc:  # the server's folders are none of the client's business
-        raise type(exc)(str(exc).replace(f"{work}/", "")) from None
+        raise type(exc)(public_message(str(exc), work)) from None
     except MemoryError:
         raise UploadTooLarge(
             "the volume does not fit in the server's memory; upload fewer slices."
@@ -125,6 +131,36 @@ def ingest(
     return store.add_volume(
         staged, name=name, slug=slugify(name), info=info, owner_id=owner_id, identity=identity
     )
+
+
+def public_message(message: str, work: Path) -> str:
+    """A reader's message without the server's folders: paths inside the upload are
+    shown relative to it, the folder a zip was unpacked into is called "the zip"."""
+    said = message.replace(f"{work}/unzipped/", "").replace(f"{work}/", "")
+    return said.replace("folder unzipped:", "the zip:").replace("unzipped: ", "")
+
+
+def check_storable(volume: Volume, name: str) -> None:
+    """Refuse what no reader should hand on but the pages could not show: a geometry
+    that is not finite or has no extent, values that are not finite or all the same."""
+    affine = np.asarray(volume.affine, dtype=float)
+    spacing = np.linalg.norm(affine[:3, :3], axis=0)
+    if not np.isfinite(affine).all() or not (spacing > 0).all():
+        steps = ", ".join(f"{s:g}" for s in spacing)
+        raise UnreadableVolume(
+            f"{name}: the voxel geometry is unusable (voxel steps {steps} mm); fix the "
+            "voxel spacing and orientation in its header."
+        )
+    lo, hi = volume.value_range()
+    if not (np.isfinite(lo) and np.isfinite(hi)):
+        raise UnreadableVolume(
+            f"{name}: the voxel values are not finite ({lo:g}..{hi:g}); re-export the volume."
+        )
+    if lo == hi:
+        raise EmptySurface(
+            f"{name}: every voxel has the value {lo:g}; there is no surface to draw in it. "
+            "Check that the file holds the image, not an empty mask."
+        )
 
 
 def original_series(store: Store, source: Path, wanted: str | None) -> str | None:

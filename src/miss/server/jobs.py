@@ -3,8 +3,12 @@
 State lives in the database, not in these threads: a thread claims the oldest queued
 row, starts ``python -m miss.server.worker`` for it and waits. The child writes
 progress and the result; when it dies by a signal (a segfault in native code, the
-out-of-memory killer) the thread records why. On start, rows left ``running`` by a
-previous server are queued again, or failed once they were interrupted twice.
+out-of-memory killer) the thread records why, reading the worker's log for the signs of
+an allocation that failed in native code. On start, rows left ``running`` by a previous
+server are queued again, or failed once they were interrupted twice.
+
+Workers inherit the server's environment, so ``MISS_WORKER_MEMORY_MB`` reaches them
+(see ``miss.server.worker``).
 """
 
 from __future__ import annotations
@@ -15,6 +19,7 @@ import signal
 import subprocess
 import sys
 import threading
+from pathlib import Path
 
 from miss.server.jobstate import JobState
 from miss.server.store import Store
@@ -27,18 +32,53 @@ MAX_ATTEMPTS = 2
 POLL_SECONDS = 2.0
 
 
-def crash_reason(returncode: int) -> str:
-    """Why a worker ended without recording an outcome, in words."""
+#: What native code and Python print when an allocation fails: the worker hit its memory
+#: cap (``MISS_WORKER_MEMORY_MB``) where no ``MemoryError`` could be caught.
+_OUT_OF_MEMORY_SIGNS = (
+    "MemoryError",
+    "std::bad_alloc",
+    "Unable to allocate",
+    "Cannot allocate memory",
+    "Memory allocation",
+    "out of memory",
+)
+#: How much of the end of a worker's log is read for those signs, bytes.
+_LOG_TAIL = 64 * 1024
+
+
+def crash_reason(returncode: int, log_tail: str = "") -> str:
+    """Why a worker ended without recording an outcome, in words; ``log_tail`` is what it
+    wrote to its worker.log during this run."""
     if returncode < 0:
         sig = -returncode
         name = signal.Signals(sig).name if sig in signal.Signals._value2member_map_ else "?"
+        ended = f"signal {sig} ({name})"
+    else:
+        ended = f"code {returncode}"
+    if any(sign in log_tail for sign in _OUT_OF_MEMORY_SIGNS):
+        return (
+            f"out of memory (the worker ended with {ended}); "
+            "choose a larger sample rate or fewer slices."
+        )
+    if returncode < 0:
         hint = (
             " (most likely out of memory; choose a larger sample rate or fewer slices)"
             if sig == signal.SIGKILL
             else ""
         )
-        return f"worker crashed with signal {sig} ({name}){hint}."
-    return f"worker exited with code {returncode} without a result; see its worker.log."
+        return f"worker crashed with {ended}{hint}."
+    return f"worker exited with {ended} without a result; see its worker.log."
+
+
+def read_log(path: Path, offset: int) -> str:
+    """The end of what was written to ``path`` after ``offset`` ("" if unreadable)."""
+    try:
+        with open(path, "rb") as f:
+            size = f.seek(0, os.SEEK_END)
+            f.seek(max(offset, size - _LOG_TAIL))
+            return f.read().decode("utf-8", "replace")
+    except OSError:
+        return ""
 
 
 #: The worker's first lines, run before it imports VTK and numba (seconds): Linux is asked
@@ -117,6 +157,8 @@ class JobQueue:
                 self._stopping.wait(POLL_SECONDS)
 
     def _run(self, model_id: str) -> None:
+        log_path = self.store.model_dir(model_id) / "worker.log"
+        offset = log_path.stat().st_size if log_path.exists() else 0
         proc = self._spawn(model_id)
         self._running[model_id] = proc
         if self._stopping.is_set():  # claimed while stop() was killing the others
@@ -132,9 +174,11 @@ class JobQueue:
             self.state.requeue(model_id, count_attempt=False)
             return
         # The child records its own outcome; a row still running means it could not.
-        if code != 0 and self.state.fail(model_id, crash_reason(code)):
-            log.warning("job %s: %s", model_id, crash_reason(code))
-        elif code == 0:
+        if code != 0:
+            reason = crash_reason(code, read_log(log_path, offset))
+            if self.state.fail(model_id, reason):
+                log.warning("job %s: %s", model_id, reason)
+        else:
             self.state.fail(
                 model_id, "worker ended without recording a result; see its worker.log."
             )

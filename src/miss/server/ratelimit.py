@@ -1,14 +1,34 @@
-"""Token buckets: a burst of ``capacity`` at once, then ``rate`` per second.
+"""Limits that keep one client from starving the others.
 
-Used per WebSocket connection (room messages) and per client address (failed logins);
-the hardening work reuses them for the REST API.
+- :class:`TokenBucket` and :class:`KeyedBuckets`: a burst of ``capacity`` at once, then
+  ``rate`` per second; per WebSocket connection (room messages), per client address
+  (failed logins).
+- :class:`ApiLimits` and :class:`RateLimitMiddleware`: the REST API's bucket per account,
+  or per client address for requests without a known session (share-link viewers).
+- :class:`JobLimit`: how many surface jobs one account may have queued or running.
+
+Over a limit the answer is 429 with a JSON ``detail`` and a ``Retry-After`` header.
 """
 
 from __future__ import annotations
 
+import hashlib
+import math
 import threading
 import time
 from collections import OrderedDict
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+from sqlalchemy import select
+from starlette.requests import HTTPConnection
+from starlette.responses import JSONResponse
+from starlette.types import ASGIApp, Receive, Scope, Send
+
+from miss.server.auth import presented_token
+from miss.server.db import FAILED, QUEUED, RUNNING, AuditRow, ModelRow
+from miss.server.errors import TooManyRequests
+from miss.server.store import Store
 
 
 class TokenBucket:
@@ -46,6 +66,13 @@ class KeyedBuckets:
         with self._lock:
             return self._bucket(key).take(cost)
 
+    def take_or_wait(self, key: str, cost: float = 1.0) -> float:
+        """Take ``cost`` tokens: 0.0 when they were there, else the seconds until they
+        will be (and nothing is taken)."""
+        with self._lock:
+            bucket = self._bucket(key)
+            return 0.0 if bucket.take(cost) else max(bucket.seconds_until(cost), 1e-3)
+
     def allowed(self, key: str) -> tuple[bool, float]:
         """(a token is there now, seconds until one is) without taking it."""
         with self._lock:
@@ -59,3 +86,171 @@ class KeyedBuckets:
         while len(self._buckets) > self.max_keys:
             self._buckets.popitem(last=False)
         return bucket
+
+
+def too_many(detail: str, wait: float) -> JSONResponse:
+    """The 429 answer: ``detail`` and ``Retry-After`` in whole seconds (at least 1)."""
+    return JSONResponse(
+        {"detail": detail}, status_code=429, headers={"Retry-After": str(retry_after(wait))}
+    )
+
+
+def retry_after(wait: float) -> int:
+    return max(1, math.ceil(wait)) if math.isfinite(wait) else 3600
+
+
+class OverLimit(TooManyRequests):
+    """A client over one of these limits; ``wait`` seconds until it may try again."""
+
+    def __init__(self, message: str, wait: float) -> None:
+        super().__init__(message)
+        self.wait = wait
+
+
+# -- the REST API ------------------------------------------------------------------------
+
+#: Paths the API limit covers: the REST API and what a share link opens. Not the pages,
+#: not ``/web/`` assets, not WebSockets (rooms limit their messages themselves).
+LIMITED_PREFIXES = ("/api/", "/s/")
+#: Monitoring must see the server's state, not the limit's.
+UNLIMITED_PATHS = frozenset({"/api/health"})
+
+
+class ApiLimits:
+    """One bucket (``burst`` at once, then ``rate`` per second) per account; requests with
+    no session known to belong to an account (anonymous share-link viewers, logins, a
+    token never seen or made up) share their client address's bucket.
+
+    Accounts are learnt from the sessions the routes authenticate (:meth:`remember`), so
+    the limit itself never touches the database; only a digest of each token is kept."""
+
+    def __init__(self, rate: float, burst: float, max_keys: int = 10_000) -> None:
+        self.rate, self.burst = rate, burst
+        self.buckets = KeyedBuckets(burst, rate, max_keys)
+        self.max_keys = max_keys
+        self._accounts: OrderedDict[bytes, str] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def remember(self, token: str, user_id: str) -> None:
+        """``token`` is a live session of account ``user_id``."""
+        digest = _digest(token)
+        with self._lock:
+            if self._accounts.get(digest) == user_id:
+                self._accounts.move_to_end(digest)
+                return
+            self._accounts[digest] = user_id
+            while len(self._accounts) > self.max_keys:
+                self._accounts.popitem(last=False)
+
+    def key(self, token: str, address: str) -> str:
+        if token:
+            with self._lock:
+                user_id = self._accounts.get(_digest(token))
+            if user_id is not None:
+                return f"user:{user_id}"
+        return f"addr:{address}"
+
+    def check(self, token: str, address: str) -> tuple[str, float] | None:
+        """None when the request may go on (a token taken); else the 429's detail and the
+        seconds to wait (nothing taken)."""
+        key = self.key(token, address)
+        wait = self.buckets.take_or_wait(key)
+        if wait <= 0.0:
+            return None
+        who = "this account" if key.startswith("user:") else f"the address {address}"
+        detail = (
+            f"too many requests: {who} may make {self.rate:g} per second (bursts of "
+            f"{self.burst:g}); retry in {retry_after(wait)} s."
+        )
+        return detail, wait
+
+
+def _digest(token: str) -> bytes:
+    return hashlib.sha256(token.encode("utf-8", "replace")).digest()
+
+
+class RateLimitMiddleware:
+    """ASGI middleware applying :class:`ApiLimits` to ``LIMITED_PREFIXES``; a refused
+    request gets 429 before any route, database or body read."""
+
+    def __init__(self, app: ASGIApp, limits: ApiLimits) -> None:
+        self.app, self.limits = app, limits
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        path = scope.get("path", "")
+        if (
+            scope["type"] != "http"
+            or not path.startswith(LIMITED_PREFIXES)
+            or path in UNLIMITED_PATHS
+        ):
+            await self.app(scope, receive, send)
+            return
+        conn = HTTPConnection(scope)
+        token, _ = presented_token(conn.headers, conn.cookies)
+        refused = self.limits.check(token, conn.client.host if conn.client else "")
+        if refused is not None:
+            await too_many(*refused)(scope, receive, send)
+            return
+        await self.app(scope, receive, send)
+
+
+# -- surface jobs --------------------------------------------------------------------------
+
+#: Seconds a client told to wait for a job slot is asked to wait before asking again.
+JOB_RETRY_SECONDS = 15.0
+
+
+class JobLimit:
+    """At most ``limit`` jobs queued or running per account.
+
+    A job belongs to whoever last queued it (the audit log's ``generate`` entry), so the
+    count survives a restart. A request that finds its model already made, queued or
+    running queues nothing and is never refused. One lock makes the check and the
+    queuing one step, so two requests at once cannot both take the last slot."""
+
+    def __init__(self, limit: int) -> None:
+        self.limit = limit
+        self._lock = threading.Lock()
+
+    @contextmanager
+    def slot(self, store: Store, user_name: str, volume_id: str, key: str) -> Iterator[None]:
+        """Hold the lock while the body queues the job (and records its ``generate``);
+        raises :class:`OverLimit` when it would be one too many."""
+        with self._lock:
+            if would_queue(store, volume_id, key):
+                active = active_jobs(store, user_name)
+                if len(active) >= self.limit:
+                    raise OverLimit(self._refusal(active), JOB_RETRY_SECONDS)
+            yield
+
+    def _refusal(self, active: list[str]) -> str:
+        n = len(active)
+        return (
+            f"you already have {n} model{'s' if n != 1 else ''} being generated "
+            f"({', '.join(active)}); wait for one to finish or cancel it "
+            "(DELETE /api/models/{id}), then submit again."
+        )
+
+
+def would_queue(store: Store, volume_id: str, key: str) -> bool:
+    """True when no model with these parameters exists, or only a failed one (queued anew)."""
+    query = select(ModelRow.status).where(ModelRow.volume_id == volume_id, ModelRow.key == key)
+    with store.session() as s:
+        status = s.scalars(query).first()
+    return status is None or status == FAILED
+
+
+def active_jobs(store: Store, user_name: str) -> list[str]:
+    """Ids of the models queued or running whose last ``generate`` was by ``user_name``."""
+    query = (
+        select(ModelRow.id, AuditRow.id, AuditRow.actor)
+        .join(AuditRow, AuditRow.target == ModelRow.id)
+        .where(ModelRow.status.in_((QUEUED, RUNNING)), AuditRow.action == "generate")
+    )
+    with store.session() as s:
+        rows = s.execute(query).all()
+    last: dict[str, tuple[int, str]] = {}
+    for model_id, entry, actor in rows:
+        if model_id not in last or entry > last[model_id][0]:
+            last[model_id] = (entry, actor)
+    return sorted(m for m, (_, actor) in last.items() if actor == user_name)

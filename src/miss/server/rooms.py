@@ -43,6 +43,9 @@ RATE, BURST = 30.0, 60
 #: Dropped messages within ``FLOOD_WINDOW`` seconds after which a client is cut off.
 FLOOD_LIMIT, FLOOD_WINDOW = 200, 10.0
 OUTBOX = 512
+#: Connections one room takes at once (a consultation, not a broadcast): a leaked link
+#: opened thousands of times must not hold thousands of sockets and queues.
+MAX_PEOPLE = 50
 MAX_NOTE, MAX_CHAT, MAX_NAME = 500, 2000, 40
 #: The presenter's camera goes to the replay at most this often (seconds).
 VIEW_EVERY = 1.0
@@ -70,6 +73,7 @@ class Close:
     FORBIDDEN = 4403
     NOT_FOUND = 4404
     GONE = 4410
+    FULL = 4429  # the room has MAX_PEOPLE connections
 
 
 class Refused(Exception):
@@ -269,14 +273,19 @@ Handler = Callable[["Hub", Room, Participant, dict[str, Any]], Awaitable[None]]
 class Hub:
     """All open rooms of the server (in memory; their lasting content is in the database)."""
 
-    def __init__(self, store: Store) -> None:
-        self.store = store
+    def __init__(self, store: Store, max_people: int = MAX_PEOPLE) -> None:
+        self.store, self.max_people = store, max_people
         self.rooms: dict[str, Room] = {}
         self._lock = asyncio.Lock()
 
     async def run(self, ws: WebSocket, model_id: str, visitor: Visitor, bounds: Any) -> None:
         """Serve one accepted connection until it closes."""
-        room, person = await self._enter(ws, model_id, visitor, bounds)
+        try:
+            room, person = await self._enter(ws, model_id, visitor, bounds)
+        except Refused as refused:
+            await ws.send_json({"type": "error", "code": "full", "error": refused.reason})
+            await ws.close(code=refused.code, reason=refused.reason[:120])
+            return
         sender = asyncio.create_task(self._send_loop(person))
         receiver = asyncio.create_task(self._receive_loop(room, person))
         try:
@@ -293,6 +302,10 @@ class Hub:
     ) -> tuple[Room, Participant]:
         async with self._lock:
             room = self.rooms.get(model_id)
+            if room is not None and len(room.people) >= self.max_people:
+                raise Refused(
+                    Close.FULL, f"this room is full ({self.max_people} people); try again later."
+                )
             if room is None:
                 state = await run_in_threadpool(roomlog.load_state, self.store, model_id)
                 session = await run_in_threadpool(roomlog.next_session, self.store, model_id)

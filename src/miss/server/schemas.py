@@ -2,18 +2,64 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable, Coroutine
 from dataclasses import fields
 from datetime import UTC, datetime
-from typing import Any
+from typing import Annotated, Any
 
+from fastapi import Request, Response
+from fastapi.routing import APIRoute
 from pydantic import BaseModel, ConfigDict, Field
+from starlette.requests import ClientDisconnect
 
+from miss.errors import BadParameter
 from miss.export import FORMATS, WRITERS
 from miss.pipeline import JobSpec
 from miss.server.db import DONE, ModelRow, VolumeRow
+from miss.server.errors import BodyTooLarge
 from miss.structures import parse_labels
 
 _DEFAULTS = {f.name: f.default for f in fields(JobSpec)}
+#: Largest JSON request body: the biggest real one (a job with many labels) is under 2 KB.
+MAX_JSON_BYTES = 64 * 1024
+#: Most thresholds one model may have (skin, soft tissue, bone ... each is a full surface).
+MAX_LEVELS = 16
+_Finite = Annotated[float, Field(allow_inf_nan=False)]
+
+
+class JSONRoute(APIRoute):
+    """A route whose JSON body is read with a cap: over :data:`MAX_JSON_BYTES` it is a
+    413 that says so, before more is read (FastAPI would hold any size in memory)."""
+
+    def get_route_handler(self) -> Callable[[Request], Coroutine[Any, Any, Response]]:
+        handler = super().get_route_handler()
+        if self.body_field is None:
+            return handler
+
+        async def capped(request: Request) -> Response:
+            length = request.headers.get("content-length", "")
+            if length.isdigit() and int(length) > MAX_JSON_BYTES:
+                raise BodyTooLarge(_body_too_large(int(length)))
+            body = bytearray()
+            try:
+                async for chunk in request.stream():
+                    body += chunk
+                    if len(body) > MAX_JSON_BYTES:
+                        raise BodyTooLarge(_body_too_large(None))
+            except ClientDisconnect:
+                raise BadParameter("the request was interrupted before its end.") from None
+            request._body = bytes(body)  # what request.body() returns from now on
+            return await handler(request)
+
+        return capped
+
+
+def _body_too_large(size: int | None) -> str:
+    sent = f" ({size} bytes)" if size is not None else ""
+    return (
+        f"the request body{sent} is larger than the {MAX_JSON_BYTES // 1024} KB a JSON request "
+        "may have; send only the documented fields (see /docs)."
+    )
 
 
 class ModelRequest(BaseModel):
@@ -44,9 +90,10 @@ class ModelRequest(BaseModel):
         description="target fraction of triangles removed, 0 <= reduce < 1",
     )
 
-    levels: list[float] | None = Field(
+    levels: list[_Finite] | None = Field(
         None,
-        description="several thresholds, one structure each (a scene), e.g. [-500, 300]",
+        description=f"several thresholds, one structure each (a scene), e.g. [-500, 300]; "
+        f"at most {MAX_LEVELS}",
     )
     components: str = Field(
         _DEFAULTS["components"], description='"all", "largest" or "split" (one part per piece)'
@@ -71,6 +118,11 @@ class ModelRequest(BaseModel):
     def spec(self) -> JobSpec:
         """The engine's validated spec (raises BadParameter); every format is produced."""
         values = self.model_dump(exclude={"volume"})
+        if values["levels"] is not None and len(values["levels"]) > MAX_LEVELS:
+            raise BadParameter(
+                f"{len(values['levels'])} levels is too many; a model takes at most "
+                f"{MAX_LEVELS} (each is a whole surface): make several models."
+            )
         if values["level"] is None:
             del values["level"]
         values["labels"] = parse_labels(values["labels"])

@@ -12,17 +12,22 @@ Layout of the data folder::
     tmp/                      uploads and half-made volumes; emptied on start
 
 Files appear by rename only (``tmp`` and ``volumes`` share a file system), so a reader
-never sees half of one.
+never sees half of one; they are flushed to disk (fsync) before the rename, so a crash
+leaves either the old file or the whole new one. After a crash, ``Store.init`` empties
+``tmp/``, drops ``volumes/`` and ``models/`` folders that have no database row, and the
+``.part`` files of writes cut short.
 """
 
 from __future__ import annotations
 
+import errno
 import fcntl
 import json
 import os
 import secrets
 import shutil
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 from typing import IO, Any
 
@@ -42,7 +47,7 @@ from miss.server.db import (
     make_sessionmaker,
     migrate,
 )
-from miss.server.errors import NotFound
+from miss.server.errors import DiskFull, NotFound
 from miss.types import Volume
 
 
@@ -50,19 +55,44 @@ class DataDirInUse(RuntimeError):
     """Another MISS server already uses this data folder."""
 
 
+#: Suffix of a file being written; ``Store.init`` removes the ones a crash left behind.
+PART = ".part"
+
+
 def new_id() -> str:
     return secrets.token_hex(8)
 
 
+def is_disk_full(exc: BaseException) -> bool:
+    """True for "no space left on device" (or over a disk quota)."""
+    if not isinstance(exc, OSError):
+        return False
+    # numpy's np.save / tofile says it in words, without an errno.
+    return exc.errno in (errno.ENOSPC, errno.EDQUOT) or str(exc).startswith(
+        "Not enough free space to write"
+    )
+
+
+def fsync_dir(path: Path) -> None:
+    """Make a rename or a new entry in the folder ``path`` survive a crash of the machine."""
+    fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
 def write_atomic(path: Path, data: bytes) -> None:
-    """Write beside ``path`` and rename, so nobody reads a half-written file."""
-    tmp = path.with_name(f".{path.name}.{secrets.token_hex(4)}.part")
+    """Write beside ``path``, flush to disk and rename, so nobody reads a half-written
+    file, not even after a crash; a full disk raises ``OSError`` and leaves nothing."""
+    tmp = path.with_name(f".{path.name}.{secrets.token_hex(4)}{PART}")
     try:
         with open(tmp, "wb") as f:
             f.write(data)
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
+        fsync_dir(path.parent)
     finally:
         tmp.unlink(missing_ok=True)
 
@@ -110,18 +140,51 @@ class Store:
 
     def init(self) -> None:
         """Lock the folder, create folders and tables, drop leftovers of an interrupted
-        upload or delete."""
+        upload, job or delete (the server may have been killed at any point)."""
         self.lock()
         for sub in ("volumes", "models", "tmp"):
             (self.data_dir / sub).mkdir(parents=True, exist_ok=True)
         self.init_schema()
-        shutil.rmtree(self.data_dir / "tmp", ignore_errors=True)
-        (self.data_dir / "tmp").mkdir()
+        _empty(self.data_dir / "tmp")  # its contents only: tmp/ may be a mount point
         with self.session() as s:
             volumes = set(s.scalars(select(VolumeRow.id)))
             models = set(s.scalars(select(ModelRow.id)))
+        # A volume moved into place whose row was never committed, a deleted model's folder.
         _remove_unknown(self.data_dir / "volumes", volumes)
         _remove_unknown(self.data_dir / "models", models)
+        for folder in (self.data_dir / "volumes", self.data_dir / "models"):
+            for part in folder.glob(f"*/.*{PART}"):  # write_atomic cut short
+                part.unlink(missing_ok=True)
+
+    def free_bytes(self) -> int:
+        """Free space on the data folder's disk for this (unprivileged) process, bytes."""
+        stat = os.statvfs(self.data_dir)
+        return stat.f_bavail * stat.f_frsize
+
+    def check_free_space(self, min_free: int) -> None:
+        """Refuse (507) new uploads and jobs while the data folder's disk has less than
+        ``min_free`` bytes free: better a clear answer now than a full disk mid-write."""
+        free = self.free_bytes()
+        if free < min_free:
+            raise DiskFull(
+                f"disk full: only {free / 2**20:.0f} MB free in the server's data folder, "
+                f"below its minimum of {min_free / 2**20:.0f} MB (MISS_MIN_FREE_MB); ask the "
+                "administrator to free space there, then try again."
+            )
+
+    @contextmanager
+    def disk_full_as_507(self) -> Iterator[None]:
+        """Turn "no space left on device" inside the block into a 507 with a clear detail."""
+        try:
+            yield
+        except OSError as exc:
+            if not is_disk_full(exc):
+                raise
+            raise DiskFull(
+                "disk full: the server's data folder ran out of space while storing this "
+                "upload, and nothing of it was kept; ask the administrator to free space "
+                "there, then send it again."
+            ) from None
 
     def init_schema(self) -> None:
         """Create missing tables and columns; safe beside a running server (``miss user``)."""
@@ -187,7 +250,9 @@ class Store:
         original patient identity, if kept, goes to its own owner-only row."""
         row = VolumeRow(id=new_id(), name=name, slug=slug, info=info, owner_id=owner_id)
         final = self.volume_dir(row.id)
+        _sync_tree(staged)  # the files on disk before the row that says they are there
         os.replace(staged, final)
+        fsync_dir(final.parent)
         try:
             with self.session.begin() as s:
                 s.add(row)
@@ -301,4 +366,27 @@ def _remove_tree(path: Path, data_dir: Path) -> None:
 def _remove_unknown(parent: Path, known: set[str] | Sequence[str]) -> None:
     for child in parent.iterdir():
         if child.name not in known:
-            shutil.rmtree(child, ignore_errors=True)
+            _remove_path(child)
+
+
+def _empty(folder: Path) -> None:
+    for child in folder.iterdir():
+        _remove_path(child)
+
+
+def _remove_path(path: Path) -> None:
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path, ignore_errors=True)
+    else:
+        path.unlink(missing_ok=True)
+
+
+def _sync_tree(folder: Path) -> None:
+    """fsync every file under ``folder`` and the folders themselves."""
+    for path in sorted(folder.rglob("*"), reverse=True):  # files before their folders
+        if path.is_file():
+            with open(path, "rb") as f:
+                os.fsync(f.fileno())
+        elif path.is_dir():
+            fsync_dir(path)
+    fsync_dir(folder)

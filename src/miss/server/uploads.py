@@ -9,6 +9,7 @@ member would land outside the folder (``../``, absolute paths, symbolic links).
 
 from __future__ import annotations
 
+import contextlib
 import re
 import stat
 import zipfile
@@ -22,7 +23,9 @@ from starlette.concurrency import run_in_threadpool
 from starlette.requests import ClientDisconnect, Request
 
 from miss.errors import BadParameter, UnreadableVolume, UnsupportedFormat
+from miss.io.dicom_files import MAX_ZIP_RATIO, RATIO_FLOOR
 from miss.server.errors import UnsafeArchive, UploadTooLarge
+from miss.server.store import is_disk_full
 
 CHUNK = 1 << 20
 FIELD_LIMIT = 64 * 1024
@@ -46,8 +49,11 @@ class Upload:
 def safe_filename(name: str) -> str:
     """The base name with only harmless characters; keeps the suffixes readers sniff."""
     base = PurePosixPath(name.replace("\\", "/")).name
-    clean = _UNSAFE_CHARS.sub("_", base).strip("._")[-120:]
-    return clean or "upload.bin"
+    clean = _UNSAFE_CHARS.sub("_", base)[-120:].rstrip("._")
+    if not clean.strip("._"):
+        return "upload.bin"
+    # A name of foreign letters only ("снимок.nii.gz" -> "_.nii.gz") must keep its suffix.
+    return "upload" + clean if clean[0] in "._" else clean
 
 
 class _MultipartSink:
@@ -134,8 +140,15 @@ class _MultipartSink:
 
     def close(self) -> None:
         if self._out is not None:
-            self._out.close()
-            self._out = None
+            out, self._out = self._out, None
+            out.close()
+
+    def discard(self) -> None:
+        """Close and delete the file part (a full disk: give the space back now)."""
+        with contextlib.suppress(OSError):  # closing flushes, which fails on a full disk
+            self.close()
+        if self.upload.path is not None:
+            self.upload.path.unlink(missing_ok=True)
 
 
 def _too_large(what: str, limit: int) -> str:
@@ -158,19 +171,36 @@ async def receive(request: Request, folder: Path, limit: int) -> Upload:
         raise UploadTooLarge(_too_large("upload", limit))
     sink = _MultipartSink(params[b"boundary"], folder, limit)
     pending = bytearray()
+    full: OSError | None = None
     try:
         # Parsing and disk writes run in the threadpool, a megabyte at a time, so the event
         # loop keeps serving other requests during a long upload.
         async for chunk in request.stream():
+            if full is not None:
+                continue  # read to the end, so the client hears "disk full", not a reset
             pending += chunk
             if len(pending) >= CHUNK:
-                await run_in_threadpool(sink.write, bytes(pending))
+                full = await run_in_threadpool(_write_unless_full, sink, bytes(pending))
                 pending.clear()
-        return await run_in_threadpool(sink.finish, bytes(pending))
+        if full is None:
+            return await run_in_threadpool(sink.finish, bytes(pending))
+        raise full
     except ClientDisconnect:
         raise BadParameter("the upload was interrupted before the end; send it again.") from None
     finally:
         sink.close()
+
+
+def _write_unless_full(sink: _MultipartSink, data: bytes) -> OSError | None:
+    """Write; on a full disk drop the partial file at once and return the error."""
+    try:
+        sink.write(data)
+    except OSError as exc:
+        if not is_disk_full(exc):
+            raise
+        sink.discard()
+        return exc
+    return None
 
 
 def is_zip(path: Path) -> bool:
@@ -213,10 +243,12 @@ def extract_zip(path: Path, dest: Path, max_bytes: int) -> None:
             members = [(info, rel) for info in infos if (rel := _member_path(info)) is not None]
             if sum(info.file_size for info, _ in members) > max_bytes:
                 raise UploadTooLarge(_too_large("unzipped content", max_bytes))
+            _refuse_bombs([info for info, _ in members])
             total = 0
             for info, rel in members:
                 total = _extract_member(zf, info, dest / rel, total, max_bytes)
-    except (zipfile.BadZipFile, zlib.error, EOFError) as exc:
+    except (zipfile.BadZipFile, zlib.error, EOFError, UnicodeDecodeError) as exc:
+        # UnicodeDecodeError: names flagged UTF-8 that are not (a damaged directory).
         raise UnreadableVolume(
             f"{path.name}: not a valid zip archive ({exc}); create the zip again."
         ) from None
@@ -224,6 +256,19 @@ def extract_zip(path: Path, dest: Path, max_bytes: int) -> None:
         raise UnreadableVolume(
             f"{path.name}: cannot unpack ({exc}); use a plain, unencrypted zip."
         ) from None
+
+
+def _refuse_bombs(infos: list[zipfile.ZipInfo]) -> None:
+    """Members that would inflate far beyond what scans compress to, refused from the
+    declared sizes before anything is written (the DICOM reader's rule for zips)."""
+    for info in infos:
+        size, packed = info.file_size, max(info.compress_size, 1)
+        if size > RATIO_FLOOR and size > MAX_ZIP_RATIO * packed:
+            raise UnsafeArchive(
+                f"zip member {info.filename!r} would inflate {packed} bytes to "
+                f"{size / 2**20:.0f} MB ({size / packed:.0f}:1), far beyond what scans "
+                "compress to (a zip bomb?); zip the slice files themselves again."
+            )
 
 
 def _extract_member(

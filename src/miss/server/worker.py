@@ -7,6 +7,18 @@ Marching cubes and decimation run in native code (VTK, numba) that can crash or 
 out of memory; in a child process that costs one job, never the server. The child
 reports progress straight to the database, writes every format atomically, and
 records its own failure when it can; the parent records the ones it cannot (signals).
+
+Memory: before the job starts, the worker caps its own address space (RLIMIT_AS) at what
+it has mapped so far (code, libraries), plus the volume's memory-mapped voxels, plus
+``MISS_WORKER_MEMORY_MB`` (read from the environment the server passes on; default the
+machine's physical memory, 0 for no cap). An allocation past the cap fails inside the
+worker (``MemoryError``, or an abort in native code), and the job fails with "out of
+memory", rather than the kernel's out-of-memory killer choosing a victim, perhaps the
+server itself.
+
+Disk: a full disk while writing the model fails the job with "disk full", removes the
+files it had written, and leaves the model's state unfinished: a model is ``done`` only
+once every file is in place.
 """
 
 from __future__ import annotations
@@ -16,25 +28,31 @@ import ctypes
 import hashlib
 import json
 import os
+import resource
 import signal
 import sys
 import time
 import traceback
+from collections.abc import Mapping
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
 from miss import __version__
-from miss.errors import MissError
+from miss.errors import BadParameter, MissError
 from miss.export import FORMATS, WRITERS
 from miss.pipeline import JobResult, JobSpec, run
 from miss.server import labelmaps
 from miss.server.db import VolumeRow
 from miss.server.jobstate import JobState
-from miss.server.store import Store, write_atomic
+from miss.server.store import PART, Store, is_disk_full, write_atomic
 
 #: Seconds between progress writes within one stage: enough for a live bar, light on the DB.
 PROGRESS_INTERVAL = 0.3
+#: Memory a job may use, MB, beyond the worker's code and the volume's mapped voxels.
+MEMORY_ENV = "MISS_WORKER_MEMORY_MB"
+OUT_OF_MEMORY = "out of memory; choose a larger sample rate or fewer slices."
+MB = 1 << 20
 
 
 class Stop(Exception):
@@ -67,6 +85,55 @@ class Reporter:
         self.stage, self.last = stage, now
         if not self.state.set_progress(self.model_id, stage, fraction):
             raise Stop
+
+
+def memory_cap(env: Mapping[str, str]) -> int:
+    """Bytes a job may allocate (``MISS_WORKER_MEMORY_MB``; default: physical memory;
+    0: no cap). Raises ``BadParameter`` for a value that is not a number of MB."""
+    text = env.get(MEMORY_ENV, "").strip()
+    if not text:
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    try:
+        mb = float(text)
+    except ValueError:
+        mb = -1.0
+    if not mb >= 0:
+        raise BadParameter(
+            f"{MEMORY_ENV}={text!r} on the server is not a size in MB; set it to a "
+            "number (0 for no cap) and restart the server."
+        )
+    return int(mb * MB)
+
+
+def mapped_bytes() -> int | None:
+    """The address space this process uses now (VmSize), None where /proc is missing."""
+    try:
+        status = Path("/proc/self/status").read_text()
+    except OSError:
+        return None
+    line = next((x for x in status.splitlines() if x.startswith("VmSize:")), None)
+    return int(line.split()[1]) * 1024 if line else None
+
+
+def limit_memory(store: Store, volume_id: str, cap: int) -> None:
+    """Cap the address space: mapped now + the volume's .npy files (memory-mapped by the
+    job) + ``cap``; 0 leaves it alone."""
+    now = mapped_bytes()
+    if cap <= 0 or now is None:
+        return
+    files = sum(p.stat().st_size for p in store.volume_dir(volume_id).glob("*.npy"))
+    soft, hard = resource.getrlimit(resource.RLIMIT_AS)
+    limit = now + files + cap
+    if hard != resource.RLIM_INFINITY:
+        limit = min(limit, hard)
+    if soft == resource.RLIM_INFINITY or limit < soft:
+        resource.setrlimit(resource.RLIMIT_AS, (limit, hard))
+
+
+def remove_outputs(folder: Path) -> None:
+    """Drop the model files of a failed run: no half set stays, a full disk gets room."""
+    for path in (*folder.glob("model.*"), *folder.glob(f".*{PART}")):
+        path.unlink(missing_ok=True)
 
 
 def write_files(folder: Path, artifacts: dict[str, bytes]) -> dict[str, Any]:
@@ -115,6 +182,7 @@ def run_job(store: Store, model_id: str, parent: int) -> None:
     """Compute one model and record it as done (or raise)."""
     t0 = time.perf_counter()
     row = store.get_model(model_id)
+    limit_memory(store, row.volume_id, memory_cap(os.environ))
     state = JobState(store)
     reporter = Reporter(state, model_id, parent)
     reporter("load", 0.0)
@@ -142,31 +210,48 @@ def run_job(store: Store, model_id: str, parent: int) -> None:
         raise Stop
 
 
+def failure_reason(exc: Exception, model_id: str, data_dir: Path) -> str:
+    """What to tell the physician (and the administrator) about a failed job."""
+    if isinstance(exc, MissError):
+        return str(exc)
+    if isinstance(exc, MemoryError):
+        return OUT_OF_MEMORY
+    if is_disk_full(exc):
+        return f"disk full: free space in {data_dir}, then submit the same parameters again."
+    return (
+        f"internal error ({type(exc).__name__}: {exc}); "
+        f"see models/{model_id}/worker.log in the data folder."
+    )
+
+
 def main(argv: list[str]) -> int:
     """Exit 0 when the outcome (done or a failure reason) is in the database."""
     model_id, data_dir, db_url, parent = argv[0], Path(argv[1]), argv[2], int(argv[3])
     store = Store(data_dir, db_url)
-    state = JobState(store)
+    try:
+        return attempt(store, model_id, parent)
+    finally:
+        store.close()
+
+
+def attempt(store: Store, model_id: str, parent: int) -> int:
+    """Run the job; record a failure with its reason. Returns the exit code."""
     try:
         die_with_parent(parent)
         run_job(store, model_id, parent)
+        return 0
     except Stop:
         return 3
-    except MissError as exc:
-        state.fail(model_id, str(exc))
-    except MemoryError:
-        state.fail(model_id, "out of memory; choose a larger sample rate or fewer slices.")
     except Exception as exc:
-        traceback.print_exc()
-        state.fail(
-            model_id,
-            f"internal error ({type(exc).__name__}: {exc}); "
-            f"see models/{model_id}/worker.log in the data folder.",
-        )
-        return 1
-    finally:
-        store.close()
-    return 0
+        expected = isinstance(exc, MissError | MemoryError) or is_disk_full(exc)
+        if not expected:
+            traceback.print_exc()
+        reason = failure_reason(exc, model_id, store.data_dir)
+    # Outside the except block: the traceback, and the arrays its frames hold, are gone,
+    # so recording an out-of-memory failure has its memory back.
+    remove_outputs(store.model_dir(model_id))
+    JobState(store).fail(model_id, reason)
+    return 0 if expected else 1
 
 
 if __name__ == "__main__":

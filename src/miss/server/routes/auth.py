@@ -13,10 +13,11 @@ from miss.errors import UnsupportedFormat
 from miss.server import accounts, audit
 from miss.server.auth import CSRF_COOKIE, SESSION_COOKIE, presented_token
 from miss.server.deps import AdminDep, SettingsDep, StoreDep, UserDep
-from miss.server.errors import TooManyRequests, Unauthorized
-from miss.server.ratelimit import KeyedBuckets
+from miss.server.errors import Unauthorized
+from miss.server.ratelimit import KeyedBuckets, OverLimit
+from miss.server.schemas import JSONRoute
 
-router = APIRouter(tags=["accounts"])
+router = APIRouter(tags=["accounts"], route_class=JSONRoute)
 
 
 def failed_login_limits() -> KeyedBuckets:
@@ -71,7 +72,7 @@ def login(
     limits: KeyedBuckets = request.app.state.failed_logins
     allowed, wait = limits.allowed(where)
     if not allowed:
-        raise TooManyRequests(f"too many failed logins from {where}; try again in {wait:.0f} s.")
+        raise OverLimit(f"too many failed logins from {where}; try again in {wait:.0f} s.", wait)
     user = accounts.authenticate(store, body.username, body.password)
     if user is None:
         limits.take(where)

@@ -17,12 +17,27 @@ from miss.labelmap import label_counts
 from miss.pipeline import JobSpec, slice_range
 from miss.server import audit, labelmaps
 from miss.server.db import DONE, FAILED, ModelRow, VolumeRow
-from miss.server.deps import ModelDep, QueueDep, StoreDep, UserDep, visible_volume
+from miss.server.deps import (
+    JobLimitDep,
+    ModelDep,
+    QueueDep,
+    SettingsDep,
+    StoreDep,
+    UserDep,
+    visible_volume,
+)
 from miss.server.errors import NotFound, NotReady
-from miss.server.schemas import ModelOut, ModelRequest, download_name, mime_for, model_out
+from miss.server.schemas import (
+    JSONRoute,
+    ModelOut,
+    ModelRequest,
+    download_name,
+    mime_for,
+    model_out,
+)
 from miss.server.store import Store
 
-router = APIRouter(prefix="/api/models", tags=["models"])
+router = APIRouter(prefix="/api/models", tags=["models"], route_class=JSONRoute)
 
 #: Seconds between looks at a job's row while streaming its progress.
 EVENT_POLL = 0.25
@@ -71,13 +86,27 @@ def _check_region(spec: JobSpec, volume: VolumeRow, store: Store, units: str) ->
             )
 
 
-def _label_source(volume: VolumeRow, store: Store) -> dict[str, Any] | None:
-    """The stored label map a ``labels`` job reads; None when the volume is its own map."""
+def _label_source(
+    volume: VolumeRow, store: Store, wanted: str | tuple[int, ...] | None
+) -> dict[str, Any] | None:
+    """The stored label map a ``labels`` job reads; None when the volume is its own map.
+    Refuses labels none of which the map holds (the job would only fail later)."""
     meta = labelmaps.info(store, volume.id)
-    if meta is None and label_counts(store.open_volume(volume.id)) is None:
+    if meta is not None:
+        present = sorted(int(e["label"]) for e in meta["labels"])
+    else:
+        counts = label_counts(store.open_volume(volume.id))
+        if counts is None:
+            raise BadParameter(
+                "this volume has no label map: upload one (POST /api/volumes/{id}/labelmap) "
+                "before asking for 'labels', or give a 'level'."
+            )
+        present = sorted(counts)
+    if isinstance(wanted, tuple) and not set(wanted) & set(present):
+        shown = ", ".join(map(str, present[:30])) + (" ..." if len(present) > 30 else "")
         raise BadParameter(
-            "this volume has no label map: upload one (POST /api/volumes/{id}/labelmap) "
-            "before asking for 'labels', or give a 'level'."
+            f"none of the labels {list(wanted)[:10]} is in this volume's label map; "
+            f"it holds {shown} (GET /api/volumes/{{id}} lists them with names)."
         )
     return meta
 
@@ -103,10 +132,18 @@ class _Dims:
     responses={
         200: {"description": "the same parameters were done before: that model"},
         422: {"description": "bad parameters, or no surface at this level"},
+        429: {"description": "this account already has its most jobs queued or running"},
+        507: {"description": "the server's disk is full"},
     },
 )
 def create_model(
-    body: ModelRequest, store: StoreDep, queue: QueueDep, user: UserDep, request: Request
+    body: ModelRequest,
+    store: StoreDep,
+    queue: QueueDep,
+    user: UserDep,
+    request: Request,
+    jobs: JobLimitDep,
+    settings: SettingsDep,
 ) -> JSONResponse:
     """Queue a surface job (202); identical parameters on the same volume return the
     existing model: 202 while it is queued or running, 200 once done."""
@@ -115,11 +152,15 @@ def create_model(
     check_against_volume(spec, volume, store)
     key = spec.key()
     if spec.labels is not None:
-        key = labelmaps.cache_key(key, _label_source(volume, store))
-    row, created = store.find_or_create_model(volume.id, key, spec.to_dict())
+        key = labelmaps.cache_key(key, _label_source(volume, store, spec.labels))
+    store.check_free_space(settings.min_free_bytes)  # 507 while the disk is nearly full
+    with jobs.slot(store, user.name, volume.id, key):  # 429 when one job too many
+        row, created = store.find_or_create_model(volume.id, key, spec.to_dict())
+        if created:
+            where = audit.address(request)
+            audit.record(store, "generate", user.name, row.id, where, volume=volume.id)
     if created:
         queue.submit()
-        audit.record(store, "generate", user.name, row.id, audit.address(request), volume=volume.id)
     code = 200 if row.status == DONE else 202
     return JSONResponse(
         model_out(row, volume).model_dump(mode="json"),

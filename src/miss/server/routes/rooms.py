@@ -114,7 +114,9 @@ def room_sessions(model: ModelDep, store: StoreDep) -> list[dict[str, Any]]:
 def room_events(
     model: ModelDep,
     store: StoreDep,
-    session: Annotated[int | None, Query(ge=1, description="one session; default all")] = None,
+    session: Annotated[
+        int | None, Query(ge=1, le=2**31 - 1, description="one session; default all")
+    ] = None,
 ) -> list[dict[str, Any]]:
     """The room's events in order, with times, to replay a consultation: join, leave,
     presenter, view (the presenter's camera, once a second), pin, unpin, measure,

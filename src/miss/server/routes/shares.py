@@ -18,6 +18,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from starlette.concurrency import run_in_threadpool
 
 from miss import __version__
+from miss.errors import BadParameter
 from miss.export import WRITERS
 from miss.server import audit, shares
 from miss.server.accounts import User
@@ -26,10 +27,10 @@ from miss.server.deps import StoreDep, UserDep, visible_model, visible_volume
 from miss.server.errors import Forbidden, Gone, MissError, NotFound, status_of
 from miss.server.routes.models import model_file
 from miss.server.routes.pages import WEB
-from miss.server.schemas import params_of
+from miss.server.schemas import JSONRoute, params_of
 from miss.server.store import Store
 
-router = APIRouter(tags=["shares"])
+router = APIRouter(tags=["shares"], route_class=JSONRoute)
 #: Share pages must not leak their URL (the token) to anything they link to, nor be kept
 #: by a shared cache.
 PRIVATE = {"Referrer-Policy": "no-referrer", "Cache-Control": "no-store"}
@@ -50,6 +51,8 @@ class ShareRequest(BaseModel):
 def create_share(body: ShareRequest, store: StoreDep, user: UserDep, request: Request) -> Any:
     """Make a link; the answer's ``url`` (``/s/{token}``) is shown this once: only a hash
     of the token is kept."""
+    if (body.model is None) == (body.volume is None):  # before any look-up: say this first
+        raise BadParameter('name exactly one of "model" or "volume" to share.')
     if body.model is not None:
         visible_model(store, user, body.model)
     if body.volume is not None:

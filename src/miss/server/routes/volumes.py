@@ -45,6 +45,12 @@ _UPLOAD_BODY = _multipart_body(
 )
 
 
+#: Window, level and threshold beyond this (volume units) are no image setting, only a way
+#: to overflow the grey-value arithmetic.
+VALUE_LIMIT = 1e12
+_VALUE: dict[str, Any] = {"ge": -VALUE_LIMIT, "le": VALUE_LIMIT, "allow_inf_nan": False}
+
+
 class Axis(StrEnum):
     axial = "axial"
     coronal = "coronal"
@@ -56,18 +62,24 @@ class Axis(StrEnum):
     status_code=201,
     response_model=VolumeOut,
     openapi_extra=_UPLOAD_BODY,
-    responses={413: {"description": "over the size limit"}, 415: {"description": "not a scan"}},
+    responses={
+        413: {"description": "over the size limit"},
+        415: {"description": "not a scan"},
+        507: {"description": "the server's disk is full"},
+    },
 )
 async def upload_volume(
     request: Request, store: StoreDep, settings: SettingsDep, user: UserDep
 ) -> JSONResponse:
     """Upload a scan; it is read once, de-identified and stored for slicing and jobs."""
+    await run_in_threadpool(store.check_free_space, settings.min_free_bytes)  # else 507
     work = await run_in_threadpool(store.tmp_dir)
     try:
-        upload = await receive(request, work, settings.max_upload_bytes)
-        row = await run_in_threadpool(
-            ingest, store, upload, work, settings.max_unzipped_bytes, user.id
-        )
+        with store.disk_full_as_507():
+            upload = await receive(request, work, settings.max_upload_bytes)
+            row = await run_in_threadpool(
+                ingest, store, upload, work, settings.max_unzipped_bytes, user.id
+            )
     finally:
         # Whatever happened, the upload and its unpacked files go; a stored volume was
         # moved out of tmp/ before this point.
@@ -132,13 +144,15 @@ async def upload_labelmap(
     """Lay a label map over the volume (replacing any earlier one); jobs with ``labels``
     then build its labels, resampled onto the volume's grid in patient mm."""
     _check_owner(volume, user)
+    await run_in_threadpool(store.check_free_space, settings.min_free_bytes)  # else 507
     work = await run_in_threadpool(store.tmp_dir)
     try:
-        upload = await receive(request, work, settings.max_upload_bytes)
-        assert upload.path is not None
-        scan = await run_in_threadpool(store.open_volume, volume.id)
-        labels, meta = await run_in_threadpool(labelmaps.read_labelmap, upload.path, scan, work)
-        await run_in_threadpool(labelmaps.save, store, volume.id, labels, meta)
+        with store.disk_full_as_507():
+            upload = await receive(request, work, settings.max_upload_bytes)
+            assert upload.path is not None
+            scan = await run_in_threadpool(store.open_volume, volume.id)
+            labels, meta = await run_in_threadpool(labelmaps.read_labelmap, upload.path, scan, work)
+            await run_in_threadpool(labelmaps.save, store, volume.id, labels, meta)
     finally:
         await run_in_threadpool(shutil.rmtree, work, True)
     out = volume_out(volume, owner_name(store, volume))
@@ -220,14 +234,11 @@ def slice_png(
     axis: Axis,
     index: int,
     window: Annotated[
-        float | None, Query(gt=0, allow_inf_nan=False, description="width, volume units")
+        float | None,
+        Query(ge=1e-6, le=VALUE_LIMIT, allow_inf_nan=False, description="width, volume units"),
     ] = None,
-    level: Annotated[
-        float | None, Query(allow_inf_nan=False, description="centre, volume units")
-    ] = None,
-    threshold: Annotated[
-        float | None, Query(allow_inf_nan=False, description="tint voxels above")
-    ] = None,
+    level: Annotated[float | None, Query(**_VALUE, description="centre, volume units")] = None,
+    threshold: Annotated[float | None, Query(**_VALUE, description="tint voxels above")] = None,
     size: Annotated[
         int, Query(ge=16, le=4096, description="longest side, pixels")
     ] = imaging.MAX_SIDE,
