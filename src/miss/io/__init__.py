@@ -63,7 +63,7 @@ def load_volume(path: str | os.PathLike[str], series: str | None = None) -> Volu
         except MissError:  # a diagnosis (broken file, bad series=): final
             raise
         except Exception as exc:  # library internals: report, let the next reader try
-            failures.append(f"{_name(reader)}: {type(exc).__name__}: {_first_line(exc)}")
+            failures.append(f"{_name(reader)}: {_first_line(exc)}")
     raise _all_failed(p, failures)
 
 
@@ -118,7 +118,10 @@ def _all_failed(path: Path, failures: list[str]) -> MissError:
             "(.nii, .nii.gz), NRRD (.nrrd, .nhdr), MetaImage (.mha, .mhd) or another "
             "format SimpleITK reads."
         )
-    return UnreadableVolume(f"{path.name}: no reader could read it; " + "; ".join(failures))
+    return UnreadableVolume(
+        f"{path.name}: no reader could read it ({'; '.join(failures)}); check that it is a "
+        "complete, undamaged scan file, or copy it again."
+    )
 
 
 def _name(reader: Any) -> str:
@@ -126,8 +129,11 @@ def _name(reader: Any) -> str:
 
 
 def _first_line(exc: BaseException) -> str:
+    """The exception's first line, or a plain phrase when it has no message."""
     text = str(exc).strip()
-    return text.splitlines()[0] if text else type(exc).__name__
+    if text:
+        return text.splitlines()[0]
+    return "not enough memory" if isinstance(exc, MemoryError) else "an internal error"
 
 
 __all__ = ["READERS", "list_series", "load_volume"]

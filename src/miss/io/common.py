@@ -8,6 +8,7 @@ least two voxels along every axis, native byte order, Fortran order) and fills e
 
 from __future__ import annotations
 
+import math
 import warnings
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
@@ -21,6 +22,21 @@ from miss.types import Volume
 
 #: Flips the first two axes: RAS <-> LPS (its own inverse).
 RAS_TO_LPS = np.diag([-1.0, -1.0, 1.0, 1.0])
+#: Most voxels a header may declare (a 1024 x 1024 x 4096 scan, 8 GB as int16): a sanity
+#: bound that refuses absurd sizes before anything is allocated.
+MAX_VOXELS = 2**32
+#: DEFLATE (gzip, zlib) cannot do better than about 1032:1, so n compressed bytes never
+#: inflate to more than this many times n; a header declaring more is damaged.
+DEFLATE_MAX_RATIO = 1032
+#: Largest coordinate or step (mm) an affine may hold: 1000 km, far beyond any scanner.
+MAX_MM = 1e9
+#: Where each format keeps the geometry a degenerate affine comes from (for messages).
+GEOMETRY_FIELDS = {
+    "dicom": "PixelSpacing, ImageOrientationPatient and ImagePositionPatient",
+    "nifti": "pixdim, qform and sform",
+    "nrrd": "space directions, spacings and space origin",
+    "metaimage": "ElementSpacing, TransformMatrix and Offset",
+}
 
 
 def make_volume(
@@ -56,21 +72,121 @@ def make_volume(
     if data.ndim != 3:
         raise UnreadableVolume(
             f"{path.name}: holds a {data.ndim}-D image of shape {data.shape}; "
-            "MISS needs a 3-D volume (a stack of slices)."
+            "MISS needs a 3-D volume (a stack of slices): pass the whole scan instead."
         )
     if min(data.shape) < 2:
         raise UnreadableVolume(
             f"{path.name}: the volume is {'x'.join(map(str, data.shape))} voxels; "
-            "a surface needs at least 2 voxels along every axis (at least 2 slices)."
+            "a surface needs at least 2 voxels along every axis (at least 2 slices): pass "
+            "the whole scan, not a single slice."
         )
+    notes = list(notes)
+    data = finite_values(path, _real(path, data), notes)
+    affine = _checked_affine(path, affine, source_format)
     if not data.dtype.isnative:
         data = data.astype(data.dtype.newbyteorder("="))
     data = np.asfortranarray(data)
     full = default_meta(source_format) | meta
-    full["notes"] = list(notes)
+    full["notes"] = notes
     if not full["series"]:
         full["series"] = [describe(full, data.shape)]
-    return Volume(data=data, affine=np.asarray(affine, float), meta=full, patient=patient or {})
+    return Volume(data=data, affine=affine, meta=full, patient=patient or {})
+
+
+def _real(path: Path, data: np.ndarray) -> np.ndarray:
+    """Real numbers per voxel: booleans become uint8; complex, colour or records are refused."""
+    if data.dtype.kind == "b":
+        return data.astype(np.uint8)
+    if data.dtype.kind not in "iuf":
+        raise UnreadableVolume(
+            f"{path.name}: its voxels are {data.dtype} ({_KIND_NAMES.get(data.dtype.kind, 'not numbers')}), "
+            "not one real value each; convert it to a greyscale (scalar) volume first."
+        )
+    return data
+
+
+_KIND_NAMES = {"c": "complex numbers", "V": "several values, e.g. colour", "O": "objects"}
+
+
+def _checked_affine(path: Path, affine: np.ndarray, source_format: str) -> np.ndarray:
+    """The affine as float64, refused when non-finite or degenerate (a flat or empty grid)."""
+    aff = np.asarray(affine, float)
+    fields = GEOMETRY_FIELDS.get(source_format, "voxel spacing and orientation")
+    if aff.shape != (4, 4) or not np.isfinite(aff).all() or np.abs(aff).max() > MAX_MM:
+        raise UnreadableVolume(
+            f"{path.name}: the voxel-to-millimetre geometry is not finite or beyond "
+            f"{MAX_MM / 1e6:g} km; fix the header's {fields}."
+        )
+    steps = np.linalg.norm(aff[:3, :3], axis=0)
+    # |det| / product of step lengths is 1 for orthogonal axes, ~cos(tilt) under a gantry tilt.
+    if steps.min() <= 0 or abs(np.linalg.det(aff[:3, :3])) <= 1e-6 * float(np.prod(steps)):
+        raise UnreadableVolume(
+            f"{path.name}: the voxel-to-millimetre geometry is degenerate (voxel steps "
+            f"{', '.join(f'{s:g}' for s in steps)} mm, or axes parallel); fix the header's {fields}."
+        )
+    return aff
+
+
+def finite_values(path: Path, values: np.ndarray, notes: list[str]) -> np.ndarray:
+    """Replace NaN by the smallest finite value and +/-Inf by the extreme finite values.
+
+    Checked slice by slice so that a large float volume needs no full-size mask when it is
+    all finite (the usual case).
+    """
+    if values.dtype.kind != "f" or all(
+        np.isfinite(values[..., k]).all() for k in range(values.shape[-1])
+    ):
+        return values
+    finite = values[np.isfinite(values)]
+    if finite.size == 0:
+        raise UnreadableVolume(
+            f"{path.name}: every voxel is NaN or infinite; there is nothing to draw. Check "
+            "that the file holds the image itself, not an empty result of a failed computation."
+        )
+    lo, hi = finite.min(), finite.max()
+    notes.append(
+        f"replaced {int(np.isnan(values).sum())} NaN voxel(s) by the minimum {lo:g} and "
+        f"{int(np.isinf(values).sum())} infinite voxel(s) by the finite extremes"
+    )
+    return np.nan_to_num(values, nan=lo, posinf=hi, neginf=lo)
+
+
+def check_declared_size(
+    path: Path,
+    shape: Sequence[int],
+    itemsize: int,
+    compressed_bytes: int | None = None,
+    fix: str = "fix the sizes in its header",
+) -> None:
+    """Refuse header sizes that are absurd, before anything is allocated or inflated.
+
+    Parameters
+    ----------
+    shape : the declared voxel counts (any number of axes, components included)
+    itemsize : bytes per value
+    compressed_bytes : for gzip/zlib data, the compressed bytes on disk; the declared
+        size must fit in ``DEFLATE_MAX_RATIO`` times that.
+    """
+    count = math.prod(int(n) for n in shape)  # Python ints: no int64 overflow
+    size = "x".join(str(int(n)) for n in shape)
+    if count > MAX_VOXELS:
+        raise UnreadableVolume(
+            f"{path.name}: the header declares {size} = {count:.3g} voxels, more than the "
+            f"{MAX_VOXELS:.3g} MISS reads; the header is damaged or this is not a scan: {fix}."
+        )
+    if compressed_bytes is not None and count * itemsize > DEFLATE_MAX_RATIO * compressed_bytes:
+        raise UnreadableVolume(
+            f"{path.name}: the header declares {size} voxels ({_bytes(count * itemsize)}), "
+            f"which {_bytes(compressed_bytes)} of compressed data cannot hold; the header is "
+            f"damaged or the data incomplete: copy the file again or {fix}."
+        )
+
+
+def _bytes(n: int) -> str:
+    for unit, scale in (("GB", 1024**3), ("MB", 1024**2), ("KB", 1024)):
+        if n >= scale:
+            return f"{n / scale:.3g} {unit}"
+    return f"{n} bytes"
 
 
 def default_meta(source_format: str) -> dict[str, Any]:

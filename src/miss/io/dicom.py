@@ -13,16 +13,14 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import pydicom
 from pydicom.dataset import Dataset
-from pydicom.errors import InvalidDicomError
 from pydicom.multival import MultiValue
 
 from miss.deid import IDENTIFYING
 from miss.errors import BadParameter, MissError, UnreadableVolume, UnsupportedFormat
 from miss.io import dicom_stack
 from miss.io.common import make_volume, recorded_warnings
-from miss.io.dicom_files import Entry, open_source
+from miss.io.dicom_files import Entry, number, open_source, read_dataset
 from miss.types import Volume
 
 EXTENSIONS = {".dcm", ".dicom", ".ima", ".zip"}
@@ -119,33 +117,22 @@ def _grouped_headers(path: Path, entries: list[Entry]) -> tuple[dict[str, list[H
 def _read_header(entry: Entry) -> Dataset | None:
     """The header of an image file, or None for non-DICOM files and non-image objects."""
     try:
-        ds = pydicom.dcmread(entry.fetch(), stop_before_pixels=True)
-    except InvalidDicomError:
-        ds = _read_without_preamble(entry)
-    except Exception:  # a damaged header: skip the file, the caller counts it
+        ds = read_dataset(entry, header_only=True)
+        for _ in ds:  # convert every value now: a damaged one skips the file here, not later
+            pass
+    except MissError:  # an archive member that cannot even be opened: final
+        raise
+    except Exception:  # not DICOM, or a damaged header: skip the file, the caller counts it
         return None
-    if ds is None or "Rows" not in ds or "Columns" not in ds:
+    if "Rows" not in ds or "Columns" not in ds:
         return None
     return ds
-
-
-def _read_without_preamble(entry: Entry) -> Dataset | None:
-    """Old files start straight with group 0008 (no 128-byte preamble, no ``DICM``)."""
-    source = entry.fetch()
-    with open(source, "rb") if isinstance(source, str) else source as stream:
-        start = stream.read(2)
-    if start not in (b"\x08\x00", b"\x02\x00"):
-        return None
-    try:
-        return pydicom.dcmread(entry.fetch(), stop_before_pixels=True, force=True)
-    except Exception:
-        return None
 
 
 def _refuse_multiframe(headers: list[Header]) -> None:
     """Enhanced (multi-frame) objects keep geometry per frame; SimpleITK may still read them."""
     for header in headers:
-        if int(header.ds.get("NumberOfFrames", 1) or 1) > 1:
+        if number(header.ds, "NumberOfFrames", 1) > 1:
             raise UnsupportedFormat(
                 f"{header.entry.label} is a multi-frame (enhanced) DICOM object, which this "
                 "reader does not stack; export the series as one file per slice."
@@ -174,7 +161,7 @@ def _describe(uid: str, headers: list[Header]) -> dict[str, Any]:
         "description": str(ds.get("SeriesDescription", "")),
         "modality": str(ds.get("Modality", "")),
         "slices": len(headers),
-        "dims": (int(ds.Columns), int(ds.Rows), len(headers)),
+        "dims": (int(number(ds, "Columns")), int(number(ds, "Rows")), len(headers)),
     }
 
 

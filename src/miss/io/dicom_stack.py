@@ -7,18 +7,18 @@ uneven gaps are resampled onto a regular grid (see :mod:`miss.io.slices`).
 
 from __future__ import annotations
 
+import re
 from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import pydicom
 from pydicom.dataset import Dataset
 
-from miss.errors import UnreadableVolume
+from miss.errors import MissError, UnreadableVolume
 from miss.io import slices
-from miss.io.common import integer_dtype, recorded_warnings, zyx_to_xyz
-from miss.io.dicom_files import Entry
+from miss.io.common import MAX_MM, check_declared_size, integer_dtype, recorded_warnings, zyx_to_xyz
+from miss.io.dicom_files import Entry, number, read_dataset
 
 
 @dataclass(frozen=True)
@@ -51,21 +51,41 @@ def assemble(path: Path, files: list[tuple[Entry, Dataset]]) -> Stack:
     """
     notes: list[str] = []
     files = _placed(path, _consistent(files, notes), notes)
-    normal = slices.slice_normal(np.asarray(files[0][1].ImageOrientationPatient, float))
-    origins = np.array([np.asarray(ds.ImagePositionPatient, float) for _, ds in files])
+    normal = slices.slice_normal(_orientation(files[0][1]))
+    origins = np.array([_position(ds) for _, ds in files])
     order, positions = slices.order_along(origins, normal)
     duplicate = slices.duplicate_mask(positions)
     if duplicate.any():
         notes.append(f"dropped {int(duplicate.sum())} slice(s) at the same position as another")
     keep, positions = order[~duplicate], positions[~duplicate]
     _need_two(path, len(keep), " at distinct positions")
+    first = files[keep[0]][1]
+    check_declared_size(
+        path,
+        (number(first, "Columns"), number(first, "Rows"), len(keep)),
+        2,
+        fix="check the series' Rows and Columns",
+    )
+    try:
+        grid = slices.plan_grid(positions, origins[keep])
+    except ValueError as exc:
+        raise UnreadableVolume(
+            f"{path.name}: {exc}; export the series again, or pass only the slices of one stack."
+        ) from exc
     pixels, scales = _decode(path, [files[i][0] for i in keep], notes)
     zyx, rescale = rescaled_stack(pixels, scales, notes)
-    grid = slices.plan_grid(positions, origins[keep])
     if grid.resampled:
         zyx = slices.resample(zyx, positions, grid.positions)
-    affine = _affine(files[keep[0]][1], origins[keep[0]], grid.step, normal, notes)
+    affine = _affine(first, origins[keep[0]], grid.step, normal, notes)
     return Stack(zyx_to_xyz(zyx), affine, rescale, notes + grid.notes)
+
+
+def _position(ds: Dataset) -> np.ndarray:
+    return np.asarray(ds.ImagePositionPatient, float).ravel()
+
+
+def _orientation(ds: Dataset) -> np.ndarray:
+    return np.asarray(ds.ImageOrientationPatient, float).ravel()
 
 
 def _consistent(
@@ -74,12 +94,13 @@ def _consistent(
     """Keep the slices sharing the commonest size and orientation (drops scouts mixed in)."""
 
     def key(ds: Dataset) -> tuple:
-        iop = ds.get("ImageOrientationPatient")
-        return (
-            int(ds.Rows),
-            int(ds.Columns),
-            None if iop is None else tuple(np.round(np.asarray(iop, float), 3)),
-        )
+        try:
+            iop = tuple(np.round(_orientation(ds), 3)) if "ImageOrientationPatient" in ds else None
+        except (TypeError, ValueError):
+            iop = None
+        if iop is not None and not np.isfinite(iop).all():
+            iop = None  # NaN never equals itself: it would split every slice into its own group
+        return (int(number(ds, "Rows")), int(number(ds, "Columns")), iop)
 
     counts = Counter(key(ds) for _, ds in files)
     best, _ = counts.most_common(1)[0]
@@ -95,20 +116,49 @@ def _placed(
     path: Path, files: list[tuple[Entry, Dataset]], notes: list[str]
 ) -> list[tuple[Entry, Dataset]]:
     """Keep slices that say where they are (ImagePositionPatient + ImageOrientationPatient)."""
-    placed = [
-        (e, ds)
-        for e, ds in files
-        if "ImagePositionPatient" in ds and "ImageOrientationPatient" in ds
-    ]
+    placed, problems = [], []
+    for entry, ds in files:
+        problem = _geometry_problem(ds)
+        if problem:
+            problems.append(f"{entry.label}: {problem}")
+        else:
+            placed.append((entry, ds))
     if not placed:
+        if all("no ImagePositionPatient" in p for p in problems):
+            raise UnreadableVolume(
+                f"{path.name}: the slices carry no ImagePositionPatient/ImageOrientationPatient, "
+                "so they cannot be stacked in space; export the series with geometry tags."
+            )
         raise UnreadableVolume(
-            f"{path.name}: the slices carry no ImagePositionPatient/ImageOrientationPatient, "
-            "so they cannot be stacked in space; export the series with geometry tags."
+            f"{path.name}: no slice has a usable position and orientation ({problems[0]}), so "
+            "they cannot be stacked in space; export the series again with valid "
+            "ImagePositionPatient/ImageOrientationPatient."
         )
     if len(placed) < len(files):
         notes.append(f"skipped {len(files) - len(placed)} slice(s) without position or orientation")
     _need_two(path, len(placed), "")
     return placed
+
+
+def _geometry_problem(ds: Dataset) -> str:
+    """Why a slice's position/orientation cannot place it ("" when they can)."""
+    if "ImagePositionPatient" not in ds or "ImageOrientationPatient" not in ds:
+        return "no ImagePositionPatient/ImageOrientationPatient"
+    try:
+        position, orientation = _position(ds), _orientation(ds)
+    except (TypeError, ValueError):
+        return "position or orientation values that are not numbers"
+    if position.shape != (3,) or orientation.shape != (6,):
+        return f"{position.size} position and {orientation.size} orientation values, not 3 and 6"
+    if not (np.isfinite(position).all() and np.isfinite(orientation).all()):
+        return "position or orientation values that are NaN or infinite"
+    if np.abs(position).max() > MAX_MM or np.abs(orientation).max() > MAX_MM:
+        return "position or orientation values beyond 1000 km"
+    try:
+        slices.slice_normal(orientation)
+    except ValueError:
+        return "row and column directions that are parallel or zero"
+    return ""
 
 
 def _need_two(path: Path, count: int, qualifier: str) -> None:
@@ -127,28 +177,55 @@ def _decode(
     with recorded_warnings("pydicom") as caught:
         for entry in entries:
             try:
-                ds = pydicom.dcmread(entry.fetch())
+                ds = read_dataset(entry)
                 array = ds.pixel_array
+            except MissError:
+                raise
             except Exception as exc:
                 raise _undecodable(path, entry, exc) from exc
             if array.ndim != 2:
                 raise UnreadableVolume(
                     f"{path.name}: {entry.label} has pixel shape {array.shape}; only "
-                    "single-channel (greyscale) slices can be stacked."
+                    "single-channel (greyscale) slices can be stacked: export the series as "
+                    "MONOCHROME2, one frame per file."
                 )
             pixels.append(array)
-            scales.append(
-                (float(ds.get("RescaleSlope", 1) or 1), float(ds.get("RescaleIntercept", 0) or 0))
-            )
+            scales.append(_rescale(path, entry, ds))
     notes.extend(caught)
     return pixels, scales
 
 
+def _rescale(path: Path, entry: Entry, ds: Dataset) -> tuple[float, float]:
+    """(RescaleSlope, RescaleIntercept); absent, empty or 0 slope mean (1, 0)."""
+    try:
+        slope = float(ds.get("RescaleSlope", 1) or 1)
+        intercept = float(ds.get("RescaleIntercept", 0) or 0)
+    except (TypeError, ValueError) as exc:
+        raise UnreadableVolume(
+            f"{path.name}: {entry.label} has a RescaleSlope/RescaleIntercept that is not a number "
+            f"({exc}); fix or remove those tags."
+        ) from exc
+    if not (np.isfinite(slope) and np.isfinite(intercept)):
+        raise UnreadableVolume(
+            f"{path.name}: {entry.label} has RescaleSlope {slope} and RescaleIntercept "
+            f"{intercept}; they must be finite numbers: fix or remove those tags."
+        )
+    return slope, intercept
+
+
 def _undecodable(path: Path, entry: Entry, exc: Exception) -> UnreadableVolume:
-    text = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+    lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
+    # Decoder plug-ins name their input by repr ("<_io.BytesIO object at 0x7f...>").
+    text = re.sub(r"<[^<>]* at 0x[0-9a-fA-F]+>", "the data", " ".join(lines))[:300]
+    text = text or "the decoder gave no reason"
+    lower = text.lower()
     fix = "The file may be truncated or damaged; copy it again."
-    if "plugin" in text.lower() or "decod" in text.lower():
+    if "missing dependencies" in lower or "no pixel data decoders" in lower:
         fix = "Its compression needs a pixel decoder: install pylibjpeg with its openjpeg/libjpeg/rle plug-ins."
+    elif "no 'pixel data'" in lower:
+        fix = "It holds no image: remove it from the folder, or export the series again."
+    elif "plugins" in lower:
+        fix = "Its compressed pixel data is damaged; export the series again (uncompressed if possible)."
     return UnreadableVolume(
         f"{path.name}: cannot decode the pixels of {entry.label} ({text}). {fix}"
     )
@@ -169,7 +246,15 @@ def rescaled_stack(
     """
     slope, intercept = scales[0]
     uniform = all(s == scales[0] for s in scales)
-    integral = uniform and slope.is_integer() and intercept.is_integer()
+    # Exact integers only where int64 cannot overflow: integer pixels, modest slope.
+    integral = (
+        uniform
+        and slope.is_integer()
+        and intercept.is_integer()
+        and abs(slope) <= 2**16
+        and abs(intercept) <= 2**31
+        and all(p.dtype.kind in "iub" for p in pixels)
+    )
     if integral:
         raw = (min(int(p.min()) for p in pixels), max(int(p.max()) for p in pixels))
         dtype = integer_dtype(raw, slope, intercept)
@@ -186,14 +271,26 @@ def rescaled_stack(
     return stack, (slope, intercept)
 
 
+def _pixel_spacing(ds: Dataset) -> tuple[float, float] | None:
+    """(between rows, between columns) in mm; None when absent or not two positive numbers."""
+    value = ds.get("PixelSpacing") or ds.get("ImagerPixelSpacing")
+    try:
+        spacing = np.asarray(value, float).ravel() if value is not None else np.zeros(0)
+    except (TypeError, ValueError):
+        return None
+    if spacing.shape != (2,) or not (np.isfinite(spacing).all() and (spacing > 0).all()):
+        return None
+    return float(spacing[0]), float(spacing[1])
+
+
 def _affine(
     ds: Dataset, origin: np.ndarray, step: np.ndarray, normal: np.ndarray, notes: list[str]
 ) -> np.ndarray:
     """Voxel (i, j, k) to LPS mm: in-plane from IOP and PixelSpacing, k from the slice step."""
-    iop = np.asarray(ds.ImageOrientationPatient, float)
-    spacing = ds.get("PixelSpacing") or ds.get("ImagerPixelSpacing")
+    iop = _orientation(ds)
+    spacing = _pixel_spacing(ds)
     if spacing is None:
-        notes.append("no PixelSpacing: assumed 1 mm pixels")
+        notes.append("no usable PixelSpacing: assumed 1 mm pixels")
         spacing = (1.0, 1.0)
     affine = np.eye(4)
     # PixelSpacing is (between rows, between columns); i runs along a row.

@@ -7,15 +7,26 @@ MINC, GIPL, ...) ends up here when no dedicated reader claims it.
 
 from __future__ import annotations
 
+import math
+import re
 from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 import SimpleITK as sitk
 
-from miss.errors import UnsupportedFormat
-from miss.io.common import affine_from, make_volume, no_series, zyx_to_xyz
+from miss.errors import UnreadableVolume, UnsupportedFormat
+from miss.io.common import affine_from, check_declared_size, make_volume, no_series, zyx_to_xyz
 from miss.types import Volume
+
+# ITK prints its warnings ("unexpected scales in sform") straight to stderr, which would
+# put stray lines before the CLI's one-line message; MISS reports through notes instead.
+sitk.ProcessObject.SetGlobalWarningDisplay(False)
+
+#: Values per byte on disk beyond which a header for the catch-all formats is refused.
+#: Far above what real compression reaches (DEFLATE ~1000:1; LZW on empty masks more):
+#: it only stops headers that declare terabytes in a few kilobytes.
+MAX_RATIO = 100_000
 
 
 def sniff(path: Path, head: bytes) -> bool:
@@ -31,17 +42,47 @@ def sniff(path: Path, head: bytes) -> bool:
 def read(path: Path, series: str | None) -> Volume:
     """Read any image SimpleITK can; its errors become ``UnsupportedFormat``."""
     no_series(path, series, "non-DICOM")
-    return to_volume(path, read_image(path), "itk")
+    return to_volume(path, read_image(path, on_disk=_bytes_beside(path)), "itk")
 
 
-def read_image(path: Path) -> sitk.Image:
-    """``sitk.ReadImage`` with ITK's multi-line exception text cut to its message."""
+def read_image(path: Path, on_disk: int | None = None) -> sitk.Image:
+    """``sitk.ReadImage`` with ITK's multi-line exception text cut to its message.
+
+    The header is read first and its size checked (``MAX_VOXELS``; and, given the bytes
+    ``on_disk`` that can hold the voxels, ``MAX_RATIO``), so an absurd header is refused
+    before ITK allocates the image.
+    """
+    reader = sitk.ImageFileReader()
+    reader.SetFileName(str(path))
     try:
-        return sitk.ReadImage(str(path))
+        reader.ReadImageInformation()
+        shape = [*reader.GetSize(), reader.GetNumberOfComponents()]
+        check_declared_size(path, shape, 1)
+        if on_disk is not None and math.prod(shape) > MAX_RATIO * on_disk:
+            raise UnreadableVolume(
+                f"{path.name}: the header declares {'x'.join(map(str, shape))} values, which "
+                f"{on_disk} bytes on disk cannot hold; the header is damaged: fix its sizes."
+            )
+        return reader.Execute()
     except RuntimeError as exc:
         lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
-        reason = lines[-1] if lines else "unknown error"
+        reason = _without_addresses(lines[-1]) if lines else "unknown error"
         raise UnsupportedFormat(f"SimpleITK cannot read {path.name} ({reason})") from exc
+
+
+def _bytes_beside(path: Path) -> int:
+    """Bytes of the file and its companions sharing its stem (``x.hdr`` + ``x.img``)."""
+    stem = path.name.split(".")[0]
+    return sum(
+        p.stat().st_size
+        for p in path.parent.iterdir()
+        if p.is_file() and p.name.split(".")[0] == stem
+    )
+
+
+def _without_addresses(text: str) -> str:
+    """ITK's messages name C++ objects by address (``NiftiImageIO(0x55d6...)``): drop those."""
+    return re.sub(r"\(0x[0-9a-fA-F]+\)", "", text)
 
 
 def to_volume(

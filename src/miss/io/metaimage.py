@@ -1,17 +1,21 @@
 """MetaImage reader (``.mha``, ``.mhd`` + ``.raw``/``.zraw``).
 
-SimpleITK reads it first (geometry already LPS). If SimpleITK fails, MISS's own small
-parser (:mod:`miss.io.metaimage_header`) tries, which also produces the clear messages
-for a missing or truncated data file.
+MISS's own small parser (:mod:`miss.io.metaimage_header`) reads the header first and
+checks it: a data file outside the header's folder, sizes the data cannot hold and
+damaged compressed data are refused before anything is allocated. It then reads the
+voxels itself (raw or zlib, LOCAL or one data file); SimpleITK reads only the variants
+it lacks (ASCII data, lists of data files, 4-D images, element types it does not know).
 
-MISS's parser also goes first when ``CompressedDataSize`` disagrees with the bytes on
-disk: ITK inflates only the declared bytes and leaves the rest of the image buffer
+SimpleITK is kept away from the rest because hostile headers hang it (a TransformMatrix
+holding 1e308), crash the process (NDims = 100000), or make it print on stderr; and
+because it inflates only ``CompressedDataSize`` bytes and leaves the rest of the image
 uninitialised, without an error (frogtissue.mhd declares 260020 of its 262087 bytes,
-so its last four slices come back as random values).
+so its last four slices came back as random values).
 """
 
 from __future__ import annotations
 
+import math
 import zlib
 from pathlib import Path
 
@@ -19,9 +23,14 @@ import numpy as np
 
 from miss.errors import UnreadableVolume, UnsupportedFormat
 from miss.io import itk
-from miss.io.common import affine_from, make_volume, no_series, zyx_to_xyz
-from miss.io.metaimage_header import MetaHeader, parse
+from miss.io.common import affine_from, check_declared_size, make_volume, no_series, zyx_to_xyz
+from miss.io.metaimage_header import MetaHeader, data_file_outside, parse
 from miss.types import Volume
+
+#: Every MetaImage header fits in this many bytes at the start of its file.
+HEADER_BYTES = 1 << 20
+#: Bytes read (and inflated) at a time when checking compressed data.
+CHUNK = 1 << 20
 
 
 def sniff(path: Path, head: bytes) -> bool:
@@ -32,29 +41,53 @@ def sniff(path: Path, head: bytes) -> bool:
 
 
 def read(path: Path, series: str | None) -> Volume:
-    """Read with SimpleITK; on failure, with MISS's own parser (and note why)."""
+    """Read with MISS's own parser; SimpleITK only for the variants it lacks.
+
+    The header is checked first either way: a data file outside the header's folder,
+    sizes the data cannot hold and damaged compressed data are refused before anything
+    (SimpleITK included) allocates or reads the voxels.
+    """
     no_series(path, series, "MetaImage")
-    mismatch = _compressed_size_mismatch(path)
-    if mismatch:
-        return read_fallback(path, notes=[mismatch])
+    text = _header_text(path)
+    outside = data_file_outside(text)
+    if outside:
+        raise UnreadableVolume(
+            f"{path.name}: ElementDataFile {outside!r} is outside the header's folder "
+            "(absolute or '..'); put the data file beside the header and name it without a folder."
+        )
+    try:
+        header: MetaHeader | None = parse(path, text)
+    except UnsupportedFormat:
+        header = None  # an ElementType MISS's parser lacks (shape checked): SimpleITK may read it
+    if header is not None and not header.unsupported:
+        _check_data(path, header)
+        mismatch = _compressed_size_mismatch(path, header)
+        return read_fallback(path, notes=[mismatch] if mismatch else [])
+    if header is not None:
+        check_declared_size(path, [*header.sizes, header.channels], header.dtype.itemsize)
     try:
         return itk.to_volume(path, itk.read_image(path), "metaimage")
     except UnsupportedFormat as exc:
+        if header is not None:  # a variant MISS's reader lacks: it would read garbage
+            raise UnreadableVolume(
+                f"{exc}; MISS's own reader does not read {header.unsupported}: re-save the "
+                "image as one binary .mha."
+            ) from exc
         return read_fallback(path, notes=[f"{exc}; read with MISS's own MetaImage parser"])
 
 
 def read_fallback(path: Path, notes: list[str] | None = None) -> Volume:
-    """MISS's own reader: LOCAL or one detached data file, raw or zlib-compressed."""
+    """MISS's own reader: LOCAL or one detached data file, raw or zlib-compressed.
+
+    (Named for its first role, the fallback after SimpleITK; it now reads most files.)
+    """
     text = path.read_bytes()
     header = parse(path, text)
-    payload = _payload(path, header, text)
-    count = int(np.prod(header.sizes, dtype=np.int64)) * header.channels
-    need = count * header.dtype.itemsize
+    need = _need(header)
+    payload = _payload(path, header, text, need)
     if len(payload) < need:
-        raise UnreadableVolume(
-            f"{path.name}: the voxel data is truncated: {len(payload)} of {need} bytes; copy "
-            "the data file again or fix DimSize."
-        )
+        raise _truncated(path, len(payload), need)
+    count = need // header.dtype.itemsize
     values = np.frombuffer(payload, dtype=header.dtype, count=count).astype(
         header.dtype.newbyteorder("=")
     )
@@ -66,39 +99,108 @@ def read_fallback(path: Path, notes: list[str] | None = None) -> Volume:
     return make_volume(path, zyx_to_xyz(zyx), affine, "metaimage", notes=notes)
 
 
-def _compressed_size_mismatch(path: Path) -> str:
-    """Why SimpleITK would silently misread this file, or "" when it will not."""
-    text = path.read_bytes()
-    try:
-        header = parse(path, text)
-    except UnreadableVolume:
-        return ""  # let SimpleITK have a go; the fallback reports header problems
-    if not header.compressed or header.compressed_size is None:
-        return ""
-    if header.data_file is None:
-        available = len(text) - header.data_offset
-    elif header.data_file.is_file():
-        available = header.data_file.stat().st_size
-    else:
-        return ""
-    available -= max(header.header_size, 0)
-    if available == header.compressed_size:
-        return ""
-    return (
-        f"the header's CompressedDataSize ({header.compressed_size}) disagrees with the "
-        f"{available} compressed bytes present; read with MISS's own MetaImage parser, "
-        "which inflates all of them"
+def _header_text(path: Path) -> bytes:
+    """The start of the file: every MetaImage header fits in its first MiB."""
+    with path.open("rb") as stream:
+        return stream.read(HEADER_BYTES)
+
+
+def _need(header: MetaHeader) -> int:
+    """Voxel bytes the header declares."""
+    return math.prod(header.sizes) * header.channels * header.dtype.itemsize
+
+
+def _truncated(path: Path, got: int, need: int) -> UnreadableVolume:
+    return UnreadableVolume(
+        f"{path.name}: the voxel data is truncated: {got} of {need} bytes; copy the data file "
+        "again or fix DimSize."
     )
 
 
-def _payload(path: Path, header: MetaHeader, text: bytes) -> bytes:
+def _missing(path: Path, header: MetaHeader) -> UnreadableVolume:
+    name = header.data_file.name if header.data_file else "?"
+    return UnreadableVolume(
+        f"{path.name}: data file {name} is missing; the header names it in ElementDataFile. "
+        "Put it beside the header."
+    )
+
+
+def _data_bytes(path: Path, header: MetaHeader) -> int | None:
+    """Bytes of voxel data on disk (after HeaderSize), None when the data file is missing."""
+    if header.data_file is None:
+        available = path.stat().st_size - header.data_offset
+    elif header.data_file.is_file():
+        available = header.data_file.stat().st_size
+    else:
+        return None
+    return available - max(header.header_size, 0)
+
+
+def _check_data(path: Path, header: MetaHeader) -> None:
+    """Refuse declared sizes the data cannot hold, and compressed data that does not inflate."""
+    available = _data_bytes(path, header)
+    shape = [*header.sizes, header.channels]
+    if available is None:  # before SimpleITK, which prints its own complaint on stderr
+        raise _missing(path, header)
+    if not header.compressed:
+        check_declared_size(path, shape, header.dtype.itemsize, fix="fix DimSize")
+        if available < _need(header):
+            raise _truncated(path, max(available, 0), _need(header))
+        return
+    check_declared_size(path, shape, header.dtype.itemsize, max(available, 0), fix="fix DimSize")
+    inflated = _inflated_bytes(path, header, _need(header))
+    if inflated < _need(header):
+        raise UnreadableVolume(
+            f"{path.name}: the compressed voxel data is truncated: it inflates to {inflated} of "
+            f"the {_need(header)} bytes DimSize calls for; copy the data file again."
+        )
+
+
+def _inflated_bytes(path: Path, header: MetaHeader, limit: int) -> int:
+    """How many bytes (up to ``limit``) the compressed data inflates to, in bounded memory.
+
+    SimpleITK fills what it cannot inflate with whatever memory held, without an error,
+    so a cut or damaged stream is caught here first.
+    """
+    source = path if header.data_file is None else header.data_file
+    skip = (header.data_offset if header.data_file is None else 0) + max(header.header_size, 0)
+    inflater = zlib.decompressobj(zlib.MAX_WBITS | 32)
+    produced = 0
+    try:
+        with source.open("rb") as stream:
+            stream.seek(skip)
+            while produced < limit and (chunk := stream.read(CHUNK)):
+                while chunk and produced < limit:
+                    produced += len(inflater.decompress(chunk, min(CHUNK, limit - produced)))
+                    chunk = inflater.unconsumed_tail
+                if inflater.eof:
+                    break
+    except zlib.error as exc:
+        raise UnreadableVolume(
+            f"{path.name}: the compressed voxel data is damaged ({exc}); copy it again."
+        ) from exc
+    return produced
+
+
+def _compressed_size_mismatch(path: Path, header: MetaHeader) -> str:
+    """Why SimpleITK would silently misread this file, or "" when it will not."""
+    if not header.compressed or header.compressed_size is None:
+        return ""
+    available = _data_bytes(path, header)
+    if available is None or available == header.compressed_size:
+        return ""
+    return (
+        f"the header's CompressedDataSize ({header.compressed_size}) disagrees with the "
+        f"{available} compressed bytes present; all of them were inflated"
+    )
+
+
+def _payload(path: Path, header: MetaHeader, text: bytes, need: int) -> bytes:
+    """The voxel bytes (at most ``need`` of them once inflated)."""
     if header.data_file is None:
         data = text[header.data_offset :]
     elif not header.data_file.is_file():
-        raise UnreadableVolume(
-            f"{path.name}: data file {header.data_file.name} is missing; the header names it "
-            "in ElementDataFile. Put it beside the header."
-        )
+        raise _missing(path, header)
     else:
         data = header.data_file.read_bytes()
     if header.header_size > 0:
@@ -106,7 +208,7 @@ def _payload(path: Path, header: MetaHeader, text: bytes) -> bytes:
     if not header.compressed:
         return data
     try:
-        return zlib.decompressobj(zlib.MAX_WBITS | 32).decompress(data)
+        return zlib.decompressobj(zlib.MAX_WBITS | 32).decompress(data, need)
     except zlib.error as exc:
         raise UnreadableVolume(
             f"{path.name}: the compressed voxel data is damaged ({exc}); copy it again."

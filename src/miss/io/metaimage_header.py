@@ -3,12 +3,16 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
+from pathlib import Path, PurePath
 
 import numpy as np
 
-from miss.errors import UnreadableVolume
+from miss.errors import UnreadableVolume, UnsupportedFormat
 
+#: Most axes a header may declare (MetaIO itself stops at 10).
+MAX_DIMS = 10
+#: Largest magnitude accepted for spacing, origin and direction values (mm; 1000 km).
+MAX_COORDINATE = 1e9
 #: MetaIO element types -> numpy kind and size (MET_LONG is 4 bytes in MetaIO).
 TYPES = {
     "MET_CHAR": "i1",
@@ -23,6 +27,13 @@ TYPES = {
     "MET_ULONG_LONG": "u8",
     "MET_FLOAT": "f4",
     "MET_DOUBLE": "f8",
+}
+
+#: The other MetaIO element types (vectors, strings): left to SimpleITK.
+OTHER_TYPES = {f"MET_{name}_ARRAY" for name in (t[4:] for t in TYPES)} | {
+    "MET_STRING",
+    "MET_ASCII_CHAR",
+    "MET_FLOAT_MATRIX",
 }
 
 
@@ -41,6 +52,7 @@ class MetaHeader:
     header_size: int
     data_file: Path | None  # None: data follows the header (LOCAL)
     data_offset: int
+    unsupported: str = ""  # what MISS's reader lacks for this file ("" when it reads it)
 
 
 def parse(path: Path, text: bytes) -> MetaHeader:
@@ -48,15 +60,86 @@ def parse(path: Path, text: bytes) -> MetaHeader:
     fields, offset = _fields(text)
     for required in ("NDims", "DimSize", "ElementType", "ElementDataFile"):
         if required not in fields:
-            raise UnreadableVolume(f"{path.name}: bad MetaImage header: '{required}' is missing.")
-    if fields["ElementType"] not in TYPES:
-        raise UnreadableVolume(
-            f"{path.name}: MetaImage ElementType {fields['ElementType']} is not supported."
-        )
+            raise UnreadableVolume(
+                f"{path.name}: bad MetaImage header: '{required}' is missing; add it or "
+                "re-save the image (ElementDataFile must be the last line)."
+            )
     try:
-        return _header(path, fields, offset)
+        ndims, sizes, channels = _shape(fields)
+        spacing, origin, direction = _geometry(fields, ndims)
+        compressed_size = fields.get("CompressedDataSize")
+        extra = (
+            int(compressed_size) if compressed_size else None,
+            int(fields.get("HeaderSize", "0")),
+        )
     except ValueError as exc:
-        raise UnreadableVolume(f"{path.name}: bad MetaImage header ({exc}).") from exc
+        raise UnreadableVolume(
+            f"{path.name}: bad MetaImage header ({exc}); fix that field or re-save the image."
+        ) from exc
+    if fields["ElementType"] not in TYPES.keys() | OTHER_TYPES:
+        raise UnreadableVolume(
+            f"{path.name}: bad MetaImage header: ElementType {fields['ElementType']!r} is not "
+            f"a MetaImage type; fix it (e.g. MET_SHORT) or re-save the image."
+        )
+    if fields["ElementType"] not in TYPES:  # checked last: SimpleITK may read it next
+        raise UnsupportedFormat(
+            f"{path.name}: MetaImage ElementType {fields['ElementType']} is not supported; "
+            f"re-save with one of {', '.join(TYPES)}."
+        )
+    msb = fields.get("BinaryDataByteOrderMSB", fields.get("ElementByteOrderMSB", "False"))
+    data = fields["ElementDataFile"]
+    return MetaHeader(
+        sizes=sizes,
+        dtype=np.dtype((">" if msb.lower() == "true" else "<") + TYPES[fields["ElementType"]]),
+        channels=channels,
+        spacing=spacing[:3],
+        origin=origin[:3],
+        direction=direction[:3, :3],
+        compressed=fields.get("CompressedData", "False").lower() == "true",
+        compressed_size=extra[0],
+        header_size=extra[1],
+        data_file=None if data.upper() == "LOCAL" else path.parent / data,
+        data_offset=offset,
+        unsupported=_unsupported(fields, ndims, extra[1]),
+    )
+
+
+def _unsupported(fields: dict[str, str], ndims: int, header_size: int) -> str:
+    """The MetaImage variants MISS's reader leaves to SimpleITK ("" for none)."""
+    words = fields["ElementDataFile"].split()
+    if words[:1] == ["LIST"] or (len(words) >= 4 and "%" in words[0]):
+        return "several data files"
+    if fields.get("BinaryData", "True").lower() == "false":
+        return "ASCII voxel data"
+    if ndims > 3:
+        return f"a {ndims}-D image"
+    return "HeaderSize -1" if header_size < 0 else ""
+
+
+def data_file_outside(text: bytes) -> str:
+    """The ``ElementDataFile`` name that points outside the header's folder, else "".
+
+    Checked on the raw field, before SimpleITK follows it: a header must not make MISS
+    read an arbitrary file (on a server, another user's data). Symbolic links inside
+    the folder are not resolved, so a folder of links still works. The names after
+    ``LIST`` and the pattern of ``NAME%03d.raw 1 10 1`` are checked too.
+    """
+    fields, offset = _fields(text)
+    value = fields.get("ElementDataFile", "LOCAL")
+    names = [value, *value.split()[:1]]
+    if value.split()[:1] == ["LIST"]:
+        names = text[offset:].decode("latin-1").split()
+    return next((n for n in names if n.upper() != "LOCAL" and _outside(n)), "")
+
+
+def _outside(name: str) -> bool:
+    parts = name.replace("\\", "/").split("/")
+    return (
+        name.startswith(("/", "\\"))
+        or PurePath(name).is_absolute()
+        or ".." in parts
+        or (len(name) > 1 and name[1] == ":")
+    )
 
 
 def _fields(text: bytes) -> tuple[dict[str, str], int]:
@@ -75,34 +158,54 @@ def _fields(text: bytes) -> tuple[dict[str, str], int]:
     return fields, pos
 
 
-def _header(path: Path, fields: dict[str, str], offset: int) -> MetaHeader:
+def _shape(fields: dict[str, str]) -> tuple[int, list[int], int]:
+    """NDims, DimSize and channels, checked before anything is sized by them.
+
+    SimpleITK crashes the process (segmentation fault) on some impossible headers such
+    as ``NDims = 100000``, so these are refused here, before it sees the file.
+    """
     ndims = int(fields["NDims"])
     sizes = [int(v) for v in fields["DimSize"].split()]
-    msb = fields.get("BinaryDataByteOrderMSB", fields.get("ElementByteOrderMSB", "False"))
-    dtype = np.dtype((">" if msb.lower() == "true" else "<") + TYPES[fields["ElementType"]])
+    channels = int(fields.get("ElementNumberOfChannels", "1"))
+    if not 1 <= ndims <= MAX_DIMS:
+        raise ValueError(f"NDims {ndims} is not 1 to {MAX_DIMS}")
+    if len(sizes) != ndims or min(sizes) < 1 or channels < 1:
+        raise ValueError(
+            f"DimSize {fields['DimSize']!r} must give {ndims} positive sizes and "
+            f"ElementNumberOfChannels ({channels}) must be at least 1"
+        )
+    if ndims < 3:
+        raise ValueError(f"a {ndims}-D image; MISS needs a 3-D volume (NDims = 3)")
+    return ndims, sizes, channels
+
+
+def _geometry(fields: dict[str, str], ndims: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """ElementSpacing, Offset and the direction matrix (one axis per column), checked.
+
+    SimpleITK hangs on a TransformMatrix holding 1e308, so values must be finite and
+    moderate, and the axes must span space, before it sees the file.
+    """
     spacing = _numbers(fields, ("ElementSpacing", "ElementSize"), [1.0] * ndims)
     origin = _numbers(fields, ("Offset", "Origin", "Position"), [0.0] * ndims)
     matrix = _numbers(
         fields, ("TransformMatrix", "Rotation", "Orientation"), list(np.eye(ndims).ravel())
     )
+    if len(matrix) != ndims * ndims:
+        raise ValueError(f"TransformMatrix has {len(matrix)} values, not NDims^2 = {ndims**2}")
+    spacing = np.array((spacing + [1.0] * ndims)[:ndims], float)  # short: MetaIO's defaults
+    origin = np.array((origin + [0.0] * ndims)[:ndims], float)
     # MetaIO stores one axis direction after another: those are the columns.
     direction = np.array(matrix, float).reshape(ndims, ndims).T
-    data = fields["ElementDataFile"]
-    return MetaHeader(
-        sizes=sizes,
-        dtype=dtype,
-        channels=int(fields.get("ElementNumberOfChannels", "1")),
-        spacing=np.array(spacing[:3], float),
-        origin=np.array(origin[:3], float),
-        direction=direction[:3, :3],
-        compressed=fields.get("CompressedData", "False").lower() == "true",
-        compressed_size=int(fields["CompressedDataSize"])
-        if "CompressedDataSize" in fields
-        else None,
-        header_size=int(fields.get("HeaderSize", "0")),
-        data_file=None if data.upper() == "LOCAL" else path.parent / data,
-        data_offset=offset,
-    )
+    values = np.concatenate([spacing, origin, direction.ravel()])
+    if not np.isfinite(values).all() or np.abs(values).max() > MAX_COORDINATE:
+        raise ValueError(
+            f"ElementSpacing, Offset and TransformMatrix must be finite numbers below "
+            f"{MAX_COORDINATE:g}"
+        )
+    lengths = np.linalg.norm(direction, axis=0)
+    if lengths.min() == 0 or abs(np.linalg.det(direction)) < 1e-6 * lengths.prod():
+        raise ValueError("TransformMatrix is degenerate (an axis is zero or two are parallel)")
+    return spacing, origin, direction
 
 
 def _numbers(fields: dict[str, str], keys: tuple[str, ...], default: list[float]) -> list[float]:

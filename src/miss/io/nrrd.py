@@ -9,7 +9,7 @@ or ``NAME.%d 1 113 1``), raw or compressed, in either byte order. Geometry comes
 from __future__ import annotations
 
 import bz2
-import gzip
+import math
 import re
 import zlib
 from pathlib import Path
@@ -18,7 +18,7 @@ import numpy as np
 
 from miss.errors import UnreadableVolume
 from miss.io import nrrd_header
-from miss.io.common import make_volume, no_series
+from miss.io.common import check_declared_size, make_volume, no_series
 from miss.io.nrrd_header import NrrdHeader
 from miss.types import Volume
 
@@ -45,6 +45,7 @@ def read(path: Path, series: str | None) -> Volume:
     no_series(path, series, "NRRD")
     text = path.read_bytes()
     header = nrrd_header.parse(path, text)
+    _check_sizes(path, header, text)
     values = _values(path, header, _payload(path, header, text))
     # NRRD lists the fastest axis first: a C-ordered reshape of the reversed sizes,
     # transposed back, is the Fortran-ordered (axis0, axis1, ...) view without a copy.
@@ -55,10 +56,27 @@ def read(path: Path, series: str | None) -> Volume:
     return make_volume(
         path,
         array,
-        _affine(header, spatial, notes),
+        _affine(path, header, spatial, notes),
         "nrrd",
         notes=notes,
         series_description=header.get("content", "") or "",
+    )
+
+
+def _check_sizes(path: Path, header: NrrdHeader, text: bytes) -> None:
+    """Refuse absurd sizes before reading, inflating or allocating anything."""
+    compressed = None
+    if header.encoding == "gzip":
+        if header.data.files:
+            compressed = sum(f.stat().st_size for f in header.data.files if f.is_file())
+        else:
+            compressed = len(text) - (header.data_offset or len(text))
+    check_declared_size(
+        path,
+        header.sizes,
+        header.dtype.itemsize,
+        compressed,
+        fix="fix 'sizes' (fastest axis first)",
     )
 
 
@@ -95,34 +113,87 @@ def _check_present(path: Path, header: NrrdHeader) -> None:
 
 
 def _decode(path: Path, name: str, chunk: bytes, header: NrrdHeader) -> bytes:
-    """Skip lines, decompress, skip bytes: the order the NRRD spec applies them in."""
-    for _ in range(int(header.get("line skip", "0"))):
-        chunk = chunk[chunk.index(b"\n") + 1 :]
-    try:
-        if header.encoding == "gzip":
-            chunk = gzip.decompress(chunk) if chunk[:2] == b"\x1f\x8b" else zlib.decompress(chunk)
-        elif header.encoding == "bzip2":
-            chunk = bz2.decompress(chunk)
-    except (EOFError, OSError, zlib.error, ValueError) as exc:
-        raise UnreadableVolume(
-            f"{path.name}: the {header.encoding} data in {name} is truncated or damaged ({exc}); "
-            "copy it again."
-        ) from exc
-    skip = int(header.get("byte skip", "0"))
+    """Skip lines, decompress, skip bytes: the order the NRRD spec applies them in.
+
+    Compressed data is inflated only as far as the header's sizes need, so trailing
+    data (or a bomb) never inflates in full.
+    """
+    lines, skip = _skips(path, header)
+    start = 0
+    for _ in range(lines):
+        start = chunk.find(b"\n", start) + 1
+        if start == 0:
+            raise UnreadableVolume(
+                f"{path.name}: 'line skip: {lines}' skips more lines than {name} has; fix "
+                "'line skip' or copy the data again."
+            )
+    chunk = chunk[start:]
+    share = _expected_bytes(header) // max(len(header.data.files), 1)
+    if header.encoding in ("gzip", "bzip2"):
+        if skip == -1:
+            raise UnreadableVolume(
+                f"{path.name}: 'byte skip: -1' (data at the end of the file) is only allowed "
+                "with raw encoding; fix 'byte skip' or 'encoding'."
+            )
+        chunk = _inflate(path, name, chunk, header.encoding, skip + share)
     if skip == -1:  # "the data is at the end of the file"
-        share = _expected_bytes(header) // max(len(header.data.files), 1)
         return chunk[len(chunk) - share :] if len(chunk) >= share else chunk
     return chunk[skip:]
 
 
+def _skips(path: Path, header: NrrdHeader) -> tuple[int, int]:
+    """``line skip`` and ``byte skip`` as integers (line skip >= 0, byte skip >= -1)."""
+    try:
+        lines, skip = int(header.get("line skip", "0")), int(header.get("byte skip", "0"))
+    except ValueError as exc:
+        raise UnreadableVolume(
+            f"{path.name}: bad NRRD header: 'line skip' and 'byte skip' must be integers "
+            f"({exc}); fix those lines."
+        ) from exc
+    if lines < 0 or skip < -1:
+        raise UnreadableVolume(
+            f"{path.name}: bad NRRD header: 'line skip: {lines}' / 'byte skip: {skip}' are out "
+            "of range (line skip >= 0, byte skip >= -1); fix those lines."
+        )
+    return lines, skip
+
+
+def _inflate(path: Path, name: str, chunk: bytes, encoding: str, limit: int) -> bytes:
+    """At most ``limit`` bytes of gzip/zlib or bzip2 data (concatenated streams included)."""
+    out = bytearray()
+    try:
+        while chunk and len(out) < limit:
+            if encoding == "gzip":  # wbits 47: a gzip or a zlib header, detected
+                inflater = zlib.decompressobj(zlib.MAX_WBITS | 32)
+                out += inflater.decompress(chunk, limit - len(out))
+            else:
+                inflater = bz2.BZ2Decompressor()
+                out += inflater.decompress(chunk, limit - len(out))
+            if len(out) < limit and not inflater.eof:
+                raise EOFError("the compressed stream ends before the data does")
+            chunk = inflater.unused_data
+    except (EOFError, OSError, zlib.error, ValueError) as exc:
+        raise UnreadableVolume(
+            f"{path.name}: the {encoding} data in {name} is truncated or damaged ({exc}); "
+            "copy it again."
+        ) from exc
+    return bytes(out)
+
+
 def _values(path: Path, header: NrrdHeader, payload: bytes) -> np.ndarray:
     """Flat voxel values in file order, native byte order, writable."""
-    count = int(np.prod(header.sizes, dtype=np.int64))
+    count = math.prod(header.sizes)
     if header.encoding == "ascii":
-        values = np.array(payload.split(), dtype=header.dtype.newbyteorder("="))
-        if values.size < count:
-            raise _truncated(path, path.name, values.size, count, unit="values")
-        return values[:count]
+        words = payload.split()
+        if len(words) < count:
+            raise _truncated(path, path.name, len(words), count, unit="values")
+        try:
+            return np.array(words[:count], dtype=header.dtype.newbyteorder("="))
+        except (ValueError, OverflowError) as exc:
+            raise UnreadableVolume(
+                f"{path.name}: the ASCII voxel data holds something that is not a "
+                f"{header.get('type')} number ({exc}); fix the data or the 'type' line."
+            ) from exc
     if len(payload) < count * header.dtype.itemsize:
         raise _truncated(path, path.name, len(payload), count * header.dtype.itemsize)
     values = np.frombuffer(payload, dtype=header.dtype, count=count)
@@ -130,7 +201,7 @@ def _values(path: Path, header: NrrdHeader, payload: bytes) -> np.ndarray:
 
 
 def _expected_bytes(header: NrrdHeader) -> int:
-    return int(np.prod(header.sizes, dtype=np.int64)) * header.dtype.itemsize
+    return math.prod(header.sizes) * header.dtype.itemsize
 
 
 def _truncated(path: Path, name: str, got: int, need: int, unit: str = "bytes") -> UnreadableVolume:
@@ -146,7 +217,13 @@ def _spatial_axes(path: Path, header: NrrdHeader, notes: list[str]) -> list[int]
     directions = header.get("space directions")
     kinds = (header.get("kinds") or "").split()
     if directions:
-        spatial = [a for a, v in enumerate(_vectors(directions)) if v is not None]
+        vectors = _vectors(path, "space directions", directions)
+        if len(vectors) != len(sizes):
+            raise UnreadableVolume(
+                f"{path.name}: bad NRRD header: 'space directions' gives {len(vectors)} entries "
+                f"for {len(sizes)} axes; give one vector (or none) per axis."
+            )
+        spatial = [a for a, v in enumerate(vectors) if v is not None]
     elif len(sizes) == 3:
         spatial = [0, 1, 2]
     elif len(kinds) == len(sizes):
@@ -156,7 +233,7 @@ def _spatial_axes(path: Path, header: NrrdHeader, notes: list[str]) -> list[int]
     if len(spatial) != 3:
         raise UnreadableVolume(
             f"{path.name}: the NRRD has {len(spatial)} spatial axes (sizes {sizes}); MISS "
-            "needs a 3-D volume."
+            "needs a 3-D volume: export the scan as one 3-D volume."
         )
     if len(sizes) > 3:
         notes.append(
@@ -165,12 +242,13 @@ def _spatial_axes(path: Path, header: NrrdHeader, notes: list[str]) -> list[int]
     return spatial
 
 
-def _affine(header: NrrdHeader, spatial: list[int], notes: list[str]) -> np.ndarray:
+def _affine(path: Path, header: NrrdHeader, spatial: list[int], notes: list[str]) -> np.ndarray:
     """Voxel (i, j, k) to LPS mm from the space fields, or from ``spacings`` when absent."""
     flips = _space_flips(header.get("space"), notes)
     directions = header.get("space directions")
     if directions:
-        steps = np.array([_vectors(directions)[a] for a in spatial], float).T
+        vectors = _vectors(path, "space directions", directions)
+        steps = np.array([vectors[a] for a in spatial], float).T
         if not header.get("space"):
             notes.append("`space directions` without `space`: axes taken as LPS")
     else:
@@ -183,8 +261,9 @@ def _affine(header: NrrdHeader, spatial: list[int], notes: list[str]) -> np.ndar
         else:
             notes.append("no `space` field: axes taken as LPS-aligned with the spacings")
     affine = np.eye(4)
-    affine[:3, :3] = np.diag(flips) @ steps
-    affine[:3, 3] = np.diag(flips) @ _origin(header, spatial)
+    with np.errstate(all="ignore"):  # inf/NaN in the header: make_volume refuses the result
+        affine[:3, :3] = np.diag(flips) @ steps
+        affine[:3, 3] = np.diag(flips) @ _origin(path, header, spatial)
     return affine
 
 
@@ -199,24 +278,49 @@ def _space_flips(space: str | None, notes: list[str]) -> tuple[int, int, int]:
 
 
 def _spacings(header: NrrdHeader, spatial: list[int], notes: list[str]) -> list[float]:
-    text = header.get("spacings")
-    values = [float(v) for v in text.split()] if text else []
-    steps = [values[a] if a < len(values) and np.isfinite(values[a]) else np.nan for a in spatial]
+    values = [_number(v) for v in (header.get("spacings") or "").split()]
+    steps = [values[a] if a < len(values) else np.nan for a in spatial]
     if any(not np.isfinite(s) or s == 0 for s in steps):
         notes.append("no usable `spacings`: 1 mm assumed where missing")
     return [s if np.isfinite(s) and s != 0 else 1.0 for s in steps]
 
 
-def _origin(header: NrrdHeader, spatial: list[int]) -> np.ndarray:
+def _origin(path: Path, header: NrrdHeader, spatial: list[int]) -> np.ndarray:
     if header.get("space origin"):
-        return np.array(_vectors(header.get("space origin"))[0], float)
+        vectors = _vectors(path, "space origin", header.get("space origin") or "")
+        if len(vectors) != 1 or vectors[0] is None:
+            raise UnreadableVolume(
+                f"{path.name}: bad NRRD header: 'space origin' must be one vector like "
+                "(0,0,0); fix that line."
+            )
+        return np.array(vectors[0], float)
     mins = (header.get("axis mins") or "").split()
     if len(mins) == len(header.sizes):
-        return np.nan_to_num(np.array([float(mins[a]) for a in spatial]))
+        return np.nan_to_num(np.array([_number(mins[a]) for a in spatial]))
     return np.zeros(3)
 
 
-def _vectors(text: str) -> list[list[float] | None]:
-    """Parse ``(1,0,0) (0,1,0) none`` into vectors (None for ``none``)."""
+def _number(text: str) -> float:
+    """A float, or NaN for text that is not one (``nan`` and unparsable alike)."""
+    try:
+        return float(text)
+    except ValueError:
+        return float("nan")
+
+
+def _vectors(path: Path, field: str, text: str) -> list[list[float] | None]:
+    """Parse ``(1,0,0) (0,1,0) none`` into 3-vectors (None for ``none``)."""
     found = re.findall(r"\(([^)]*)\)|(none)", text)
-    return [None if word else [float(v) for v in vec.split(",")] for vec, word in found]
+    try:
+        vectors = [None if word else [float(v) for v in vec.split(",")] for vec, word in found]
+    except ValueError as exc:
+        raise UnreadableVolume(
+            f"{path.name}: bad NRRD header: '{field}' holds something that is not a number "
+            f"({exc}); fix that line."
+        ) from exc
+    if any(v is not None and len(v) != 3 for v in vectors):
+        raise UnreadableVolume(
+            f"{path.name}: bad NRRD header: '{field}' needs 3-D vectors like (1,0,0) for a "
+            "3-D space; fix that line."
+        )
+    return vectors

@@ -43,6 +43,8 @@ TYPES = {
     "float": "f4",
     "double": "f8",
 }
+#: Most detached data files a header may list (one per slice of a very long scan).
+MAX_DATA_FILES = 100_000
 ENCODINGS = {"raw": "raw", "gzip": "gzip", "gz": "gzip", "bzip2": "bzip2", "bz2": "bzip2"}
 ENCODINGS |= dict.fromkeys(["ascii", "text", "txt"], "ascii")
 
@@ -100,11 +102,31 @@ def parse(path: Path, text: bytes) -> NrrdHeader:
     _validate(path, fields)
     try:
         data = _data_files(path, fields.get("data file"), listed)
-    except (ValueError, TypeError) as exc:
+    except (ValueError, TypeError, IndexError) as exc:
         raise UnreadableVolume(
-            f"{path.name}: bad NRRD header: cannot use 'data file: {fields['data file']}' ({exc})."
+            f"{path.name}: bad NRRD header: cannot use 'data file: {fields['data file']}' "
+            f"({exc}); fix that line."
         ) from exc
+    outside = [f.name for f in data.files if not _beside(path, f)]
+    if outside:
+        raise UnreadableVolume(
+            f"{path.name}: the data file {outside[0]!r} is outside the header's folder "
+            "(absolute or '..'); put the data beside the header and name it without a folder."
+        )
     return NrrdHeader(fields, data, offset)
+
+
+def _beside(header: Path, data: Path) -> bool:
+    """True when ``data`` names a file in the header's folder or below it, by name alone.
+
+    Symbolic links are not resolved: a folder of links to the real slices is fine, but a
+    header must not point MISS at an arbitrary file (on a server, another user's data).
+    """
+    try:
+        relative = data.relative_to(header.parent)
+    except ValueError:
+        return False
+    return ".." not in relative.parts
 
 
 def _validate(path: Path, fields: dict[str, str]) -> None:
@@ -112,7 +134,9 @@ def _validate(path: Path, fields: dict[str, str]) -> None:
     bad = f"{path.name}: bad NRRD header:"
     for required in ("type", "dimension", "sizes"):
         if required not in fields:
-            raise UnreadableVolume(f"{bad} the required field '{required}' is missing.")
+            raise UnreadableVolume(
+                f"{bad} the required field '{required}' is missing; add it or re-save the NRRD."
+            )
     if fields["type"] not in TYPES:
         raise UnreadableVolume(
             f"{bad} type '{fields['type']}' is not supported; use an integer or float type."
@@ -125,10 +149,13 @@ def _validate(path: Path, fields: dict[str, str]) -> None:
         sizes = [int(v) for v in fields["sizes"].split()]
         dimension = int(fields["dimension"])
     except ValueError as exc:
-        raise UnreadableVolume(f"{bad} 'sizes' and 'dimension' must be integers ({exc}).") from exc
-    if len(sizes) != dimension or min(sizes) < 1:
         raise UnreadableVolume(
-            f"{bad} 'sizes: {fields['sizes']}' does not give {dimension} positive sizes."
+            f"{bad} 'sizes' and 'dimension' must be integers ({exc}); fix those lines."
+        ) from exc
+    if len(sizes) != dimension or min(sizes, default=0) < 1:
+        raise UnreadableVolume(
+            f"{bad} 'sizes: {fields['sizes']}' does not give {dimension} positive sizes; fix "
+            "'sizes' (fastest axis first) or 'dimension'."
         )
 
 
@@ -171,6 +198,8 @@ def _data_files(header: Path, spec: str | None, listed: list[str]) -> DataFiles:
     if len(parts) >= 4 and "%" in parts[0]:
         first, last, step = (int(v) for v in parts[1:4])
         numbers = range(first, last + (1 if step > 0 else -1), step)
+        if not 0 < len(numbers) <= MAX_DATA_FILES:
+            raise ValueError(f"it numbers {len(numbers)} files, not 1 to {MAX_DATA_FILES}")
         names = [parts[0] % n for n in numbers]
         return DataFiles([folder / n for n in names], f"{names[0]}..{last}")
     return DataFiles([folder / spec], spec)

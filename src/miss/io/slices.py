@@ -21,6 +21,8 @@ DUPLICATE_MM = 0.01
 EVEN_TOLERANCE = 0.01
 #: Uneven stacks are resampled to at most this many times the original slice count.
 MAX_UPSAMPLING = 4
+#: No scan is longer than this (mm): a stack spanning more has a broken position.
+MAX_SPAN_MM = 5000.0
 
 
 @dataclass(frozen=True)
@@ -94,15 +96,23 @@ def plan_grid(positions: np.ndarray, origins: np.ndarray) -> Grid:
     """
     gaps = np.diff(positions)
     span = positions[-1] - positions[0]
+    if span > MAX_SPAN_MM:
+        raise ValueError(
+            f"the slices span {span:.0f} mm (gaps {gaps.min():.2f} to {gaps.max():.0f} mm), more "
+            f"than any scan ({MAX_SPAN_MM:.0f} mm): some ImagePositionPatient values are wrong"
+        )
     per_mm = (origins[-1] - origins[0]) / span
     notes = _collinearity_notes(positions, origins, per_mm)
     median = float(np.median(gaps))
     if np.ptp(gaps) <= EVEN_TOLERANCE * median:
         return Grid(positions, per_mm * span / (len(positions) - 1), False, notes)
     target, why = float(gaps.min()), "the smallest gap"
-    if _count(span, target) > MAX_UPSAMPLING * len(positions):
+    cap = MAX_UPSAMPLING * len(positions)
+    if _count(span, target) > cap:
         target, why = median, f"the median gap (the smallest would exceed {MAX_UPSAMPLING}x)"
     count = _count(span, target)
+    if count > cap:  # a few huge gaps among small ones: bound the memory, say so
+        count, why = cap, f"{MAX_UPSAMPLING}x the slice count (the median gap would need {count})"
     grid = np.linspace(positions[0], positions[-1], count)
     step = span / (count - 1)
     notes.append(

@@ -212,6 +212,10 @@ def is_zip(path: Path) -> bool:
 def _member_path(info: zipfile.ZipInfo) -> PurePosixPath | None:
     """The member's relative path, None for junk to skip; raises for unsafe members."""
     name = info.filename.replace("\\", "/")
+    if not name:
+        raise UnreadableVolume(
+            "the zip holds a member without a name: its directory is damaged; create the zip again."
+        )
     if name.startswith("/") or re.match(r"^[A-Za-z]:", name):
         raise UnsafeArchive(
             f"zip member {info.filename!r} has an absolute path; zip relative paths only."
