@@ -75,14 +75,14 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def start_server(data_dir: Path) -> tuple[subprocess.Popen[bytes], str]:
+def start_server(data_dir: Path, workers: int = 2) -> tuple[subprocess.Popen[bytes], str]:
     port = free_port()
     env = {
         **os.environ,
         "MISS_DATA_DIR": str(data_dir),
         "MISS_ADMIN_PASSWORD": PASSWORD,
         "MISS_DEMO": "0",
-        "MISS_WORKERS": "2",
+        "MISS_WORKERS": str(workers),
         "MISS_API_RATE": "1000000",
         "MISS_API_BURST": "1000000",
     }
@@ -399,7 +399,7 @@ def report(rows: list[dict[str, Any]], jobs: list[list[Any]], context: dict[str,
     return (
         f"{context['viewers']} viewers for {context['seconds']:g} s ({context['slices']} slice(s) "
         f"per loop, think {context['think']:g} s), "
-        f"4 jobs (2 workers), upload of {context['upload_mb']:.0f} MB during "
+        f"4 jobs ({context['workers']} job worker(s)), upload of {context['upload_mb']:.0f} MB during "
         f"{context['upload_s']:.1f} s. Load average before/after: {context['load_before']} / "
         f"{context['load_after']} on {os.cpu_count()} cores; the server process used "
         f"{context['server_cpu_s']:.1f} CPU s ({context['cpu_ms_per_request']:.1f} ms per "
@@ -441,6 +441,7 @@ def measure(url: str, pid: int, env: dict[str, Any], args: argparse.Namespace, w
         "seconds": args.seconds,
         "think": args.think,
         "slices": args.slices,
+        "workers": args.workers,
         "upload_mb": big.stat().st_size / 2**20,
         "upload_s": driven["upload_phase"][1] - driven["upload_phase"][0],
         "load_before": load_before,
@@ -470,11 +471,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--viewers", type=int, default=50, help="concurrent viewers (50)")
     parser.add_argument("--think", type=float, default=1.0, help="mean pause per loop, s (1)")
     parser.add_argument("--slices", type=int, default=1, help="slice images per loop (1)")
+    parser.add_argument(
+        "--workers", type=int, default=2, help="job workers (2; the server's default is 1)"
+    )
     args = parser.parse_args(argv)
     with tempfile.TemporaryDirectory(prefix="miss-load-") as tmp:
         work = Path(tmp)
         (work / "data").mkdir()
-        proc, url = start_server(work / "data")
+        proc, url = start_server(work / "data", args.workers)
         try:
             env = setup(url, args.viewers)
             result = measure(url, proc.pid, env, args, work)

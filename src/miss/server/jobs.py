@@ -81,10 +81,14 @@ def read_log(path: Path, offset: int) -> str:
         return ""
 
 
+#: Workers run at a lower priority than the server, so that a long conversion never makes
+#: viewers wait: the event loop gets a core whenever it has a request.
+WORKER_NICE = 10
+
 #: The worker's first lines, run before it imports VTK and numba (seconds): Linux is asked
 #: to kill it when the server dies (PR_SET_PDEATHSIG), so a server killed meanwhile never
 #: leaves a worker behind that finishes a job the restarted server has queued again.
-_BOOTSTRAP = """\
+_BOOTSTRAP = f"""\
 import ctypes, os, sys
 try:
     ctypes.CDLL(None).prctl(1, 9)
@@ -92,6 +96,7 @@ except (OSError, AttributeError):
     pass
 if os.getppid() != int(sys.argv[4]):
     sys.exit(3)
+os.nice({WORKER_NICE})
 from miss.server.worker import main
 sys.exit(main(sys.argv[1:]))
 """
