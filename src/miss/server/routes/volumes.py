@@ -223,6 +223,10 @@ def histogram(volume: VolumeDep, store: StoreDep) -> dict[str, Any]:
     }
 
 
+#: Rendered slices of this server process (stored volumes never change).
+_SLICES = imaging.PngCache()
+
+
 @router.get(
     "/{volume_id}/slices/{axis}/{index}.png",
     response_class=Response,
@@ -248,14 +252,15 @@ def slice_png(
     view = volume.info["views"][axis.value]
     if not 0 <= index < view["count"]:
         raise NotFound(f"{axis.value} slice {index} is outside 0..{view['count'] - 1} (0-based).")
-    data = store.open_volume(volume.id).data
-    plane = imaging.slice_plane(data, view, index)
     default = volume.info["window"]
-    png = imaging.render(
-        plane,
-        imaging.display_size(view, plane.shape, size),
-        window or default["window"],
-        default["level"] if level is None else level,
-        threshold,
-    )
+    window = window or default["window"]
+    level = default["level"] if level is None else level
+
+    def make() -> bytes:
+        plane = imaging.slice_plane(store.open_volume(volume.id).data, view, index)
+        size_px = imaging.display_size(view, plane.shape, size)
+        return imaging.render(plane, size_px, window, level, threshold)
+
+    key = (volume.id, axis.value, index, window, level, threshold, size)
+    png = _SLICES.get(key, make)
     return Response(png, media_type="image/png", headers={"Cache-Control": "private, max-age=3600"})
