@@ -279,7 +279,7 @@ def _quadric_all(
     if len(faces) < _PARALLEL_MIN_TRIANGLES or first_keep > _FIRST_PHASE_MAX_KEEP:
         kept, error = _simplify(faces.ravel(), positions, target, max_error, 0, lock)
         return kept.reshape(-1, 3).astype(np.int32), error
-    # SPARSE: each slab touches an eighth of the vertex buffer; LOCK_BORDER: its cut edges
+    # SPARSE: each slab touches a sixteenth of the vertex buffer; LOCK_BORDER: its cut edges
     # must stay as they are so that the slabs still meet
     options = meshoptimizer.SIMPLIFY_LOCK_BORDER | meshoptimizer.SIMPLIFY_SPARSE
     with ThreadPoolExecutor(min(os.cpu_count() or 1, _SLABS)) as pool:

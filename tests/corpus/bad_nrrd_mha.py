@@ -119,7 +119,7 @@ def _nrrd_fields(w: Writer) -> None:
         "error",
         "ASCII data with words in it",
     )
-    floats = " ".join(["nan", "inf", "-inf"] + ["1.5"] * 117).encode()
+    floats = " ".join(["nan", "inf", "-inf"] + ["1.5", "2.5"] * 58 + ["1.5"]).encode()
     add(
         "nrrd-ascii-nan",
         (nrrd_text(encoding="ascii").replace("short", "float") + "\n").encode() + floats,
