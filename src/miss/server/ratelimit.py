@@ -234,10 +234,8 @@ class JobLimit:
 
 def would_queue(store: Store, volume_id: str, key: str) -> bool:
     """True when no model with these parameters exists, or only a failed one (queued anew)."""
-    query = select(ModelRow.status).where(ModelRow.volume_id == volume_id, ModelRow.key == key)
-    with store.session() as s:
-        status = s.scalars(query).first()
-    return status is None or status == FAILED
+    model = store.find_model(volume_id, key)
+    return model is None or model.status == FAILED
 
 
 def active_jobs(store: Store, user_name: str) -> list[str]:

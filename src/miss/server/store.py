@@ -319,7 +319,7 @@ class Store:
 
         A failed one is queued again: the failure may have been a crash or a restart.
         """
-        existing = self._find_model(volume_id, key)
+        existing = self.find_model(volume_id, key)
         if existing is None:
             row = ModelRow(id=new_id(), volume_id=volume_id, key=key, spec=spec, status=QUEUED)
             try:
@@ -327,7 +327,7 @@ class Store:
                     s.add(row)
                 return row, True
             except IntegrityError:  # the same request raced us; theirs wins
-                existing = self._find_model(volume_id, key)
+                existing = self.find_model(volume_id, key)
                 assert existing is not None
         if existing.status == FAILED:
             self.update_model(
@@ -336,7 +336,8 @@ class Store:
             return self.get_model(existing.id), True
         return existing, False
 
-    def _find_model(self, volume_id: str, key: str) -> ModelRow | None:
+    def find_model(self, volume_id: str, key: str) -> ModelRow | None:
+        """The model of ``volume_id`` made with parameters ``key``, if any."""
         query = select(ModelRow).where(ModelRow.volume_id == volume_id, ModelRow.key == key)
         with self.session() as s:
             return s.scalars(query).first()
