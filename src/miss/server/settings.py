@@ -17,8 +17,8 @@ Environment variables (all optional):
 ``MISS_API_BURST``        API requests allowed at once before the rate applies (200)
 ``MISS_MIN_FREE_MB``      uploads and jobs are refused while the data folder's disk has
                           less free space than this, MB (256)
-``MISS_WORKER_MEMORY_MB`` address space one job's worker may use, MB (physical memory; 0:
-                          no cap); read by the worker itself (see ``miss.server.worker``)
+``MISS_WORKER_MEMORY_MB`` memory one job's worker may use beyond its code and the volume,
+                          MB (physical memory; 0: no cap; see ``miss.server.worker``)
 """
 
 from __future__ import annotations
@@ -50,6 +50,7 @@ class Settings:
     api_rate: float = 20.0
     api_burst: float = 200.0
     min_free_mb: float = 256.0
+    worker_memory_mb: float | None = None
 
     def __post_init__(self) -> None:
         # Resolve once so the worker subprocesses, which get these as arguments, see the
@@ -74,6 +75,11 @@ class Settings:
             )
         if self.min_free_mb < 0:
             raise ValueError(f"MISS_MIN_FREE_MB must be 0 or more, got {self.min_free_mb}.")
+        if self.worker_memory_mb is not None and not self.worker_memory_mb >= 0:
+            raise ValueError(
+                f"MISS_WORKER_MEMORY_MB must be a size in MB (0 for no cap), "
+                f"got {self.worker_memory_mb}."
+            )
 
     @classmethod
     def from_env(cls, env: Mapping[str, str] | None = None, **overrides: Any) -> Settings:
@@ -101,6 +107,13 @@ class Settings:
     def min_free_bytes(self) -> int:
         return int(self.min_free_mb * MB)
 
+    @property
+    def worker_memory_bytes(self) -> int:
+        """What a job may allocate: the setting, or the machine's physical memory; 0: no cap."""
+        if self.worker_memory_mb is None:
+            return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+        return int(self.worker_memory_mb * MB)
+
 
 def _bool(text: str) -> bool:
     if text.lower() in ("1", "true", "yes", "on"):
@@ -125,6 +138,7 @@ _ENV: tuple[tuple[str, str, Any], ...] = (
     ("api_rate", "MISS_API_RATE", float),
     ("api_burst", "MISS_API_BURST", float),
     ("min_free_mb", "MISS_MIN_FREE_MB", float),
+    ("worker_memory_mb", "MISS_WORKER_MEMORY_MB", float),
 )
 
 

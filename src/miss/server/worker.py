@@ -45,6 +45,7 @@ from miss.pipeline import JobResult, JobSpec, run
 from miss.server import labelmaps
 from miss.server.db import VolumeRow
 from miss.server.jobstate import JobState
+from miss.server.settings import Settings
 from miss.server.store import PART, Store, is_disk_full, write_atomic
 
 #: Seconds between progress writes within one stage: enough for a live bar, light on the DB.
@@ -52,7 +53,6 @@ PROGRESS_INTERVAL = 0.3
 #: Memory a job may use, MB, beyond the worker's code and the volume's mapped voxels.
 MEMORY_ENV = "MISS_WORKER_MEMORY_MB"
 OUT_OF_MEMORY = "out of memory; choose a larger sample rate or fewer slices."
-MB = 1 << 20
 
 
 class Stop(Exception):
@@ -88,21 +88,16 @@ class Reporter:
 
 
 def memory_cap(env: Mapping[str, str]) -> int:
-    """Bytes a job may allocate (``MISS_WORKER_MEMORY_MB``; default: physical memory;
-    0: no cap). Raises ``BadParameter`` for a value that is not a number of MB."""
-    text = env.get(MEMORY_ENV, "").strip()
-    if not text:
-        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    """Bytes a job may allocate (``MISS_WORKER_MEMORY_MB`` in ``env``, read by
+    :class:`Settings`). Raises ``BadParameter`` for a value that is not a number of MB."""
     try:
-        mb = float(text)
-    except ValueError:
-        mb = -1.0
-    if not mb >= 0:
+        settings = Settings.from_env({MEMORY_ENV: env.get(MEMORY_ENV, "")})
+    except ValueError as exc:
         raise BadParameter(
-            f"{MEMORY_ENV}={text!r} on the server is not a size in MB; set it to a "
-            "number (0 for no cap) and restart the server."
-        )
-    return int(mb * MB)
+            f"{str(exc).rstrip('.')}; set {MEMORY_ENV} on the server to a number (0 for no "
+            "cap) and restart it."
+        ) from None
+    return settings.worker_memory_bytes
 
 
 def mapped_bytes() -> int | None:
