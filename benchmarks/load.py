@@ -6,7 +6,7 @@ The server runs as a subprocess on a free loopback port with a temporary data fo
 2 job workers. Setup (not measured): the account ``ana`` uploads the CThead
 (256 x 256 x 225) and 3 models of it are made. Then, for ``--seconds``:
 
-- ``--viewers`` viewers (one process, asyncio + httpx, a session of their own each, half
+- ``--viewers`` viewers (one process, asyncio + aiohttp, a session of their own each, half
   ``ana``'s and half the administrator's) loop: the GLB of one of the models (every other
   time with ``If-None-Match``, so 304), 3 slice PNGs (scrubbing), the model's JSON; then
   a pause of ``--think`` s on average (a person looks at what they fetched).
@@ -16,6 +16,11 @@ The server runs as a subprocess on a free loopback port with a temporary data fo
   (147 MB NIfTI).
 - a probe (its own process) asks ``GET /api/health`` (answered on the event loop) every
   50 ms; its latency is the loop's, split by what ran at the time.
+
+The viewers, the probe and the driver start together once all three processes are
+ready. Cached model fetches are also reported per phase (during the jobs, during the
+upload, viewers only). The viewers' own CPU time is reported: on a 2-core machine the
+load generator shares the cores with the server and must not be what limits the run.
 
 All requests come from 127.0.0.1 and the viewers are logged in, so the API's rate limit
 (20/s per account, bursts of 200) is raised for the run (``MISS_API_RATE`` and
@@ -63,6 +68,8 @@ UPLOAD_SHAPE = (384, 384, 500)
 PROBE_EVERY = 0.05
 #: Seconds any request may take before it counts as failed (the server is loaded on purpose).
 TIMEOUT = 120.0
+#: Seconds from the moment all load processes are ready to the measured start.
+LEAD = 0.5
 VIEWER_CLASSES = ("model fetch cached", "model fetch 304", "slice", "metadata")
 
 
@@ -165,24 +172,37 @@ def setup(url: str, viewers: int) -> dict[str, Any]:
 # -- the viewers and the probe (each in a process of its own) ----------------------------
 
 
-def viewers_main(cfg: dict[str, Any], out: str) -> None:
-    samples = asyncio.run(_viewers(cfg))
-    Path(out).write_text(json.dumps(samples))
+def synced_start(cfg: dict[str, Any], ready: Any) -> None:
+    """Wait until the viewers, the probe and the driver are all ready (a process takes
+    seconds to start and import); then each sets the same ``start`` and ``end``."""
+    ready.wait(timeout=120)
+    cfg["start"] = time.monotonic() + LEAD  # one clock for all: CLOCK_MONOTONIC
+    cfg["end"] = cfg["start"] + cfg["seconds"]
 
 
-async def _viewers(cfg: dict[str, Any]) -> list[tuple[Any, ...]]:
+def viewers_main(cfg: dict[str, Any], ready: Any, out: str) -> None:
+    samples = asyncio.run(_viewers(cfg, ready))
+    cpu = time.process_time()  # this process's own CPU: it must not be what limits the run
+    Path(out).write_text(json.dumps({"samples": samples, "cpu_s": cpu}))
+
+
+async def _viewers(cfg: dict[str, Any], ready: Any) -> list[tuple[Any, ...]]:
+    # aiohttp rather than httpx here: its C parser takes a fraction of the CPU per
+    # request, and on a 2-core machine the load generator shares the cores with the server.
+    import aiohttp
+
     samples: list[tuple[Any, ...]] = []
     n = len(cfg["sessions"])
-    limits = httpx.Limits(max_connections=2 * n, max_keepalive_connections=2 * n)
-    async with httpx.AsyncClient(base_url=cfg["url"], timeout=TIMEOUT, limits=limits) as http:
+    timeout = aiohttp.ClientTimeout(total=TIMEOUT)
+    connector = aiohttp.TCPConnector(limit=2 * n)
+    async with aiohttp.ClientSession(cfg["url"], timeout=timeout, connector=connector) as http:
+        synced_start(cfg, ready)
         await asyncio.sleep(max(0.0, cfg["start"] - time.monotonic()))
         await asyncio.gather(*(_viewer(http, cfg, i, samples) for i in range(n)))
     return samples
 
 
-async def _viewer(
-    http: httpx.AsyncClient, cfg: dict[str, Any], n: int, samples: list[tuple[Any, ...]]
-) -> None:
+async def _viewer(http: Any, cfg: dict[str, Any], n: int, samples: list[tuple[Any, ...]]) -> None:
     """One person: model (alternately fresh and revalidated), 3 slices, the model's JSON."""
     rng = random.Random(n)
     session = cfg["sessions"][n]
@@ -197,8 +217,7 @@ async def _viewer(
         else:
             model = rng.choice(cfg["models"])
             path = f"/api/models/{model}/model.glb"
-            r = await _timed(http, samples, "model fetch cached", path, session, 200)
-            etag = r.headers.get("etag", "") if r is not None else ""
+            etag = await _timed(http, samples, "model fetch cached", path, session, 200)
         for _ in range(cfg["slices"]):
             axis = rng.choice(sorted(cfg["views"]))
             index = rng.randrange(cfg["views"][axis])
@@ -210,28 +229,34 @@ async def _viewer(
 
 
 async def _timed(
-    http: httpx.AsyncClient,
+    http: Any,
     samples: list[tuple[Any, ...]],
     kind: str,
     path: str,
     headers: dict[str, str],
     expect: int,
-) -> httpx.Response | None:
-    """GET ``path`` (whole body read); records (kind, start, seconds, ok, status or error)."""
+) -> str:
+    """GET ``path`` (whole body read); records (kind, start, seconds, ok, status or error);
+    returns the response's ETag ("" when none or on error)."""
+    import aiohttp
+
     t0 = time.monotonic()
     try:
-        r = await http.get(path, headers=headers)
-    except httpx.HTTPError as exc:
+        async with http.get(path, headers=headers) as r:
+            await r.read()
+            status, etag = r.status, r.headers.get("etag", "")
+    except (aiohttp.ClientError, TimeoutError) as exc:
         samples.append((kind, t0, time.monotonic() - t0, False, type(exc).__name__))
-        return None
-    samples.append((kind, t0, time.monotonic() - t0, r.status_code == expect, r.status_code))
-    return r
+        return ""
+    samples.append((kind, t0, time.monotonic() - t0, status == expect, status))
+    return etag
 
 
-def probe_main(cfg: dict[str, Any], stop: Any, out: str) -> None:
+def probe_main(cfg: dict[str, Any], ready: Any, stop: Any, out: str) -> None:
     """``GET /api/health`` every ``PROBE_EVERY`` s until ``stop`` is set."""
     samples = []
     with httpx.Client(base_url=cfg["url"], timeout=TIMEOUT) as http:
+        synced_start(cfg, ready)
         time.sleep(max(0.0, cfg["start"] - time.monotonic()))
         tick = time.monotonic()
         while not stop.is_set():
@@ -338,6 +363,19 @@ def summarise(
         for kind in VIEWER_CLASSES
     ]
     jobs, up = driven["job_phase"], driven["upload_phase"]
+    fetches = [s for s in viewers if s[0] == "model fetch cached"]
+    rows += [
+        stats(
+            f"model fetch cached, {phase}",
+            [(s[2], s[3]) for s in fetches if pick(s[1])],
+            seconds,
+        )
+        for phase, pick in (
+            ("during jobs", lambda t: within(t, jobs)),
+            ("during upload", lambda t: within(t, up)),
+            ("viewers only", lambda t: not within(t, jobs) and not within(t, up)),
+        )
+    ]
     groups = {
         "probe during jobs": [(s, ok) for t, s, ok in probes if within(t, jobs)],
         "probe during upload": [(s, ok) for t, s, ok in probes if within(t, up)],
@@ -403,7 +441,8 @@ def report(rows: list[dict[str, Any]], jobs: list[list[Any]], context: dict[str,
         f"{context['upload_s']:.1f} s. Load average before/after: {context['load_before']} / "
         f"{context['load_after']} on {os.cpu_count()} cores; the server process used "
         f"{context['server_cpu_s']:.1f} CPU s ({context['cpu_ms_per_request']:.1f} ms per "
-        "request, uploads and slice rendering included).\n\n" + table + "\nJobs:\n\n" + job_table
+        f"request, uploads and slice rendering included); the viewers' own process "
+        f"{context['viewers_cpu_s']:.1f} CPU s.\n\n" + table + "\nJobs:\n\n" + job_table
     )
 
 
@@ -418,17 +457,21 @@ def upload_file() -> Path:
 
 def measure(url: str, pid: int, env: dict[str, Any], args: argparse.Namespace, work: Path) -> dict:
     big = upload_file()
-    start = time.monotonic() + 1.0
-    cfg = {"url": url, "start": start, "end": start + args.seconds, "think": args.think}
-    cfg["slices"] = args.slices
+    cfg = {"url": url, "seconds": args.seconds, "think": args.think, "slices": args.slices}
     cfg |= {k: env[k] for k in ("sessions", "models", "volume", "views")}
     ctx = mp.get_context("spawn")
-    stop = ctx.Event()
-    viewers = ctx.Process(target=viewers_main, args=(cfg, str(work / "viewers.json")), daemon=True)
-    probe = ctx.Process(target=probe_main, args=(cfg, stop, str(work / "probe.json")), daemon=True)
+    stop, ready = ctx.Event(), ctx.Barrier(3)
+    viewers = ctx.Process(
+        target=viewers_main, args=(cfg, ready, str(work / "viewers.json")), daemon=True
+    )
+    probe = ctx.Process(
+        target=probe_main, args=(cfg, ready, stop, str(work / "probe.json")), daemon=True
+    )
     load_before = [round(x, 2) for x in os.getloadavg()]
     viewers.start()
     probe.start()
+    synced_start(cfg, ready)
+    start = cfg["start"]
     cpu0 = server_cpu(pid)
     try:
         driven = drive(url, env, big, cfg)
@@ -448,7 +491,9 @@ def measure(url: str, pid: int, env: dict[str, Any], args: argparse.Namespace, w
         "load_after": [round(x, 2) for x in os.getloadavg()],
         "server_cpu_s": server_cpu(pid) - cpu0,
     }
-    samples = json.loads((work / "viewers.json").read_text())
+    viewed = json.loads((work / "viewers.json").read_text())
+    samples = viewed["samples"]
+    context["viewers_cpu_s"] = viewed["cpu_s"]
     probes = json.loads((work / "probe.json").read_text())
     rows = summarise(samples, probes, driven, args.seconds)
     context["cpu_ms_per_request"] = 1000 * context["server_cpu_s"] / (len(samples) + len(probes))

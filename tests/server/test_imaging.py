@@ -23,23 +23,3 @@ def test_slice_plane_is_the_plane_in_display_orientation(tmp_path, axis, flips) 
     got = slice_plane(mapped, view, 3)
     assert got.dtype == np.float32
     np.testing.assert_array_equal(got, expected)
-
-
-def test_png_cache_renders_once_and_forgets_the_least_recent() -> None:
-    from miss.server.imaging import PngCache
-
-    cache, made = PngCache(max_bytes=25), []
-
-    def maker(key: str) -> bytes:
-        made.append(key)
-        return key.encode() * 10
-
-    assert cache.get("a", lambda: maker("a")) == b"a" * 10
-    assert cache.get("a", lambda: maker("a")) == b"a" * 10
-    assert made == ["a"]  # the second time from the cache
-    cache.get("b", lambda: maker("b"))
-    cache.get("a", lambda: maker("a"))  # a is now the most recent
-    cache.get("c", lambda: maker("c"))  # 30 bytes > 25: the least recent (b) goes
-    cache.get("a", lambda: maker("a"))
-    cache.get("b", lambda: maker("b"))
-    assert made == ["a", "b", "c", "b"]

@@ -21,7 +21,7 @@ from sqlalchemy.exc import IntegrityError
 
 from miss.errors import BadParameter
 from miss.server.db import SessionRow, UserRow, VolumeRow, utcnow
-from miss.server.store import Store, new_id
+from miss.server.store import Store, always, new_id
 
 _HASHER = PasswordHasher()
 #: A hash to verify against when the user does not exist, so a wrong name takes as long
@@ -126,12 +126,24 @@ def start_session(store: Store, user: User, hours: float) -> tuple[str, str, dat
 
 
 def session_for(store: Store, token: str) -> tuple[User, SessionRow] | None:
-    """The user and live session of a bearer token, or None (unknown or expired)."""
+    """The user and live session of a bearer token, or None (unknown or expired).
+
+    Live sessions are kept in ``store.rows``: only this server starts and ends them
+    (``miss user`` adds accounts, never sessions), so a hit is as good as a query.
+    """
+    key = ("session", token_hash(token))
+    found = store.rows.cached(key, lambda: _load_session(store, key[1]), always)
+    if found is None or found[1].expires_at <= utcnow():
+        return None
+    return found
+
+
+def _load_session(store: Store, hashed: str) -> tuple[User, SessionRow] | None:
     with store.session() as s:
         found = s.execute(
             select(UserRow, SessionRow)
             .join(SessionRow, SessionRow.user_id == UserRow.id)
-            .where(SessionRow.id == token_hash(token), SessionRow.expires_at > utcnow())
+            .where(SessionRow.id == hashed, SessionRow.expires_at > utcnow())
         ).first()
     return (_user(found[0]), found[1]) if found else None
 
@@ -139,6 +151,7 @@ def session_for(store: Store, token: str) -> tuple[User, SessionRow] | None:
 def end_session(store: Store, token: str) -> None:
     with store.session.begin() as s:
         s.execute(delete(SessionRow).where(SessionRow.id == token_hash(token)))
+    store.rows.drop(("session", token_hash(token)))
 
 
 def ensure_admin(store: Store, password: str = "") -> str | None:

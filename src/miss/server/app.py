@@ -35,6 +35,7 @@ def _open(settings: Settings) -> tuple[Store, JobQueue]:
         log.info("first start: registering the demo phantom")
         register_demo(store)
     _first_admin(store, settings)
+    store.appender.start()
     queue = JobQueue(store, settings.workers)
     queue.start()
     return store, queue

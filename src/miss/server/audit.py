@@ -5,17 +5,14 @@ carry patient identity or a token.
 
 from __future__ import annotations
 
-import logging
 from datetime import UTC
 from typing import Any
 
 from sqlalchemy import select
 from starlette.requests import HTTPConnection
 
-from miss.server.db import AuditRow
+from miss.server.db import AuditRow, utcnow
 from miss.server.store import Store
-
-log = logging.getLogger("miss.server.audit")
 
 #: The actions recorded, for the API's filter and the docs.
 ACTIONS = (
@@ -48,19 +45,21 @@ def record(
     where: str = "",
     **detail: Any,
 ) -> None:
-    """Append one entry. A failure to write is logged, never raised: an audit hiccup must
+    """Append one entry, timed now. In the server it is committed just after the response
+    (``Store.appender``: a download never waits for the write lock); elsewhere at once.
+    A failure to write is logged with the whole entry, never raised: an audit hiccup must
     not turn a download into an error."""
-    try:
-        with store.session.begin() as s:
-            s.add(AuditRow(action=action, actor=actor, target=target, address=where, detail=detail))
-    except Exception:
-        log.exception("could not write the audit entry %s %s %s", action, actor, target)
+    row = AuditRow(
+        at=utcnow(), action=action, actor=actor, target=target, address=where, detail=detail
+    )
+    store.appender.add(row)
 
 
 def entries(
     store: Store, limit: int = 500, action: str | None = None, actor: str | None = None
 ) -> list[dict[str, Any]]:
     """The newest ``limit`` entries, oldest first, as JSON-ready dicts."""
+    store.appender.flush()  # the entries of requests answered before this one
     query = select(AuditRow).order_by(AuditRow.id.desc()).limit(limit)
     if action:
         query = query.where(AuditRow.action == action)

@@ -99,6 +99,8 @@ class ModelRow(Base):
     error: Mapped[str | None] = mapped_column(Text, default=None)
     attempts: Mapped[int] = mapped_column(default=0)
     pid: Mapped[int | None] = mapped_column(default=None)
+    #: The account that last queued the job (the per-account job limit counts these).
+    submitted_by: Mapped[str | None] = mapped_column(String(64), default=None)
     created_at: Mapped[datetime] = mapped_column(default=utcnow)
     started_at: Mapped[datetime | None] = mapped_column(default=None)
     finished_at: Mapped[datetime | None] = mapped_column(default=None)
@@ -188,7 +190,10 @@ class SecretRow(Base):
 #: Columns added after a table first shipped: (table, column, SQL type). ``create_all``
 #: makes new tables but never alters old ones, so a data folder from an earlier version
 #: gets these by ALTER TABLE.
-ADDED_COLUMNS = (("volumes", "owner_id", "VARCHAR(32)"),)
+ADDED_COLUMNS = (
+    ("volumes", "owner_id", "VARCHAR(32)"),
+    ("models", "submitted_by", "VARCHAR(64)"),
+)
 
 
 def migrate(engine: Engine) -> None:
@@ -201,23 +206,42 @@ def migrate(engine: Engine) -> None:
                 conn.execute(text(f"ALTER TABLE {table} ADD COLUMN {column} {sql_type}"))
 
 
-def make_engine(url: str) -> Engine:
+#: SQLite connections kept open per process (starlette's threadpool has 40 threads).
+POOL_SIZE = 40
+
+
+def make_engine(url: str, durable: bool = True) -> Engine:
     """An engine; SQLite gets WAL and a busy timeout because worker processes write too.
 
-    ``synchronous=FULL``: each commit is on disk (the WAL fsynced) before it returns, so
-    what the server has acknowledged (a share link shown once, an audit record, a pin)
-    survives a power cut as well as a killed process. It costs one fsync per commit
-    (about 0.3 ms on the development machine's SSD), at a rate set by people clicking.
+    ``synchronous=FULL`` (``durable``): each commit is on disk (the WAL fsynced) before it
+    returns, so what the server has acknowledged (a share link shown once, a finished
+    model, a pin) survives a power cut as well as a killed process. It costs one fsync
+    per commit, and the database's write lock is held meanwhile: while an upload is
+    flushed to disk that fsync can take a second.
+
+    ``durable=False`` (``synchronous=NORMAL``) is for the frequent small records nobody
+    is told are saved: audit entries and job progress. Their commits are in the WAL
+    before they return, so they survive a killed server; a power cut may lose the last
+    of them, never the database's consistency. The next durable commit, or a checkpoint,
+    puts them on disk too.
     """
     if not url.startswith("sqlite"):
         return create_engine(url, pool_pre_ping=True)
-    engine = create_engine(url, connect_args={"check_same_thread": False, "timeout": 30})
+    # An overflow connection is closed on return and the next one pays the connect and
+    # the pragmas again, so the pool keeps one for each thread that may ask at once.
+    engine = create_engine(
+        url,
+        connect_args={"check_same_thread": False, "timeout": 30},
+        pool_size=POOL_SIZE,
+        max_overflow=8,
+    )
+    synchronous = "FULL" if durable else "NORMAL"
 
     @event.listens_for(engine, "connect")
     def _sqlite_pragmas(dbapi_conn: Any, _record: Any) -> None:
         cur = dbapi_conn.cursor()
         cur.execute("PRAGMA journal_mode=WAL")
-        cur.execute("PRAGMA synchronous=FULL")
+        cur.execute(f"PRAGMA synchronous={synchronous}")
         cur.execute("PRAGMA busy_timeout=30000")
         cur.execute("PRAGMA foreign_keys=ON")
         # Deleted rows (an identity record, a revoked link) are overwritten, not left in

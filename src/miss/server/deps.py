@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
-from typing import Annotated
+from collections.abc import Callable
+from typing import Annotated, ParamSpec, TypeVar
 
 from fastapi import Depends, Request
+from starlette.concurrency import run_in_threadpool
 
 from miss.server.accounts import User
 from miss.server.auth import can_see, presented_token, user_for_request
+from miss.server.caches import NotCached, cache_only
 from miss.server.db import ModelRow, VolumeRow
 from miss.server.errors import Forbidden, NotFound
 from miss.server.jobs import JobQueue
@@ -34,17 +37,34 @@ async def get_job_limit(request: Request) -> JobLimit:
     return request.app.state.job_limit
 
 
+P = ParamSpec("P")
+T = TypeVar("T")
+
+
+async def on_loop(fn: Callable[P, T], *args: P.args, **kwargs: P.kwargs) -> T:
+    """``fn(...)`` right here on the event loop when all it reads is in the process's
+    caches (no thread hop, no database); in the threadpool when it needs the database or
+    the disk. ``fn`` must not write before its first read: under ``cache_only()`` that
+    read raises and ``fn`` runs again from the start."""
+    try:
+        with cache_only():
+            return fn(*args, **kwargs)
+    except NotCached:
+        pass
+    return await run_in_threadpool(fn, *args, **kwargs)
+
+
 SettingsDep = Annotated[Settings, Depends(get_settings)]
 StoreDep = Annotated[Store, Depends(get_store)]
 QueueDep = Annotated[JobQueue, Depends(get_queue)]
 JobLimitDep = Annotated[JobLimit, Depends(get_job_limit)]
 
 
-# Plain ``def``: FastAPI runs these in its threadpool, so the database look-up (and the
-# argon2-free token hash) never blocks the event loop.
-def current_user(request: Request, store: StoreDep) -> User:
+# The look-ups below run on the event loop when the rows are cached (a viewer's usual
+# request) and in the threadpool when they need the database (``on_loop``).
+async def current_user(request: Request, store: StoreDep) -> User:
     """The logged-in user (bearer token or session cookie + CSRF); 401 otherwise."""
-    user = user_for_request(request, store)
+    user = await on_loop(user_for_request, request, store)
     # The API's rate limit counts this session's next requests against its account.
     limits: ApiLimits | None = getattr(request.app.state, "api_limits", None)
     if limits is not None:
@@ -81,13 +101,13 @@ def visible_model(store: Store, user: User, model_id: str) -> ModelRow:
     return row
 
 
-def get_volume_row(volume_id: str, store: StoreDep, user: UserDep) -> VolumeRow:
+async def get_volume_row(volume_id: str, store: StoreDep, user: UserDep) -> VolumeRow:
     """The volume named in the path, or 404 before the route (or its stream) starts."""
-    return visible_volume(store, user, volume_id)
+    return await on_loop(visible_volume, store, user, volume_id)
 
 
-def get_model_row(model_id: str, store: StoreDep, user: UserDep) -> ModelRow:
-    return visible_model(store, user, model_id)
+async def get_model_row(model_id: str, store: StoreDep, user: UserDep) -> ModelRow:
+    return await on_loop(visible_model, store, user, model_id)
 
 
 VolumeDep = Annotated[VolumeRow, Depends(get_volume_row)]

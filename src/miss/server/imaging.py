@@ -10,9 +10,6 @@ millimetres so a 0.5 x 0.5 x 4 mm stack does not look squashed.
 from __future__ import annotations
 
 import io
-import threading
-from collections import OrderedDict
-from collections.abc import Callable, Hashable
 from typing import Any
 
 import numpy as np
@@ -27,36 +24,6 @@ _SCREEN = {
     "sagittal": ((0.0, 1.0, 0.0), (0.0, 0.0, -1.0)),
 }
 MAX_SIDE = 1024
-
-
-class PngCache:
-    """The last rendered slice images, by everything that decides their pixels.
-
-    A stored volume never changes, so a slice asked for again (by a second viewer of the
-    same case, or scrubbing back) is served without reading and encoding it again. Bounded
-    by bytes, least recently used out first; thread-safe (slices render in the threadpool).
-    """
-
-    def __init__(self, max_bytes: int = 64 * 2**20) -> None:
-        self.max_bytes = max_bytes
-        self._items: OrderedDict[Hashable, bytes] = OrderedDict()
-        self._bytes = 0
-        self._lock = threading.Lock()
-
-    def get(self, key: Hashable, make: Callable[[], bytes]) -> bytes:
-        with self._lock:
-            png = self._items.get(key)
-            if png is not None:
-                self._items.move_to_end(key)
-                return png
-        png = make()  # outside the lock: two first requests may both render, both right
-        with self._lock:
-            if key not in self._items and len(png) <= self.max_bytes:
-                self._items[key] = png
-                self._bytes += len(png)
-                while self._bytes > self.max_bytes:
-                    self._bytes -= len(self._items.popitem(last=False)[1])
-        return png
 
 
 THUMB_SIDE = 160

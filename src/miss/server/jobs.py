@@ -97,6 +97,10 @@ except (OSError, AttributeError):
 if os.getppid() != int(sys.argv[4]):
     sys.exit(3)
 os.nice({WORKER_NICE})
+try:
+    os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+except (AttributeError, OSError):
+    pass
 from miss.server.worker import main
 sys.exit(main(sys.argv[1:]))
 """

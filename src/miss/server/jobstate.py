@@ -53,6 +53,7 @@ class JobState:
         return self.store.update_model(
             model_id,
             ModelRow.status == RUNNING,
+            durable=False,
             stage=stage,
             progress=float(min(max(fraction, 0.0), 1.0)),
         )

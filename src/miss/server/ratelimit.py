@@ -26,7 +26,7 @@ from starlette.responses import JSONResponse
 from starlette.types import ASGIApp, Receive, Scope, Send
 
 from miss.server.auth import presented_token
-from miss.server.db import FAILED, QUEUED, RUNNING, AuditRow, ModelRow
+from miss.server.db import FAILED, QUEUED, RUNNING, ModelRow
 from miss.server.errors import TooManyRequests
 from miss.server.store import Store
 
@@ -203,8 +203,8 @@ JOB_RETRY_SECONDS = 15.0
 class JobLimit:
     """At most ``limit`` jobs queued or running per account.
 
-    A job belongs to whoever last queued it (the audit log's ``generate`` entry), so the
-    count survives a restart. A request that finds its model already made, queued or
+    A job belongs to whoever last queued it (the model's ``submitted_by``), so the count
+    survives a restart. A request that finds its model already made, queued or
     running queues nothing and is never refused. One lock makes the check and the
     queuing one step, so two requests at once cannot both take the last slot."""
 
@@ -214,7 +214,7 @@ class JobLimit:
 
     @contextmanager
     def slot(self, store: Store, user_name: str, volume_id: str, key: str) -> Iterator[None]:
-        """Hold the lock while the body queues the job (and records its ``generate``);
+        """Hold the lock while the body queues the job (and records who queued it);
         raises :class:`OverLimit` when it would be one too many."""
         with self._lock:
             if would_queue(store, volume_id, key):
@@ -239,16 +239,9 @@ def would_queue(store: Store, volume_id: str, key: str) -> bool:
 
 
 def active_jobs(store: Store, user_name: str) -> list[str]:
-    """Ids of the models queued or running whose last ``generate`` was by ``user_name``."""
-    query = (
-        select(ModelRow.id, AuditRow.id, AuditRow.actor)
-        .join(AuditRow, AuditRow.target == ModelRow.id)
-        .where(ModelRow.status.in_((QUEUED, RUNNING)), AuditRow.action == "generate")
+    """Ids of the models queued or running that ``user_name`` queued last."""
+    query = select(ModelRow.id).where(
+        ModelRow.status.in_((QUEUED, RUNNING)), ModelRow.submitted_by == user_name
     )
     with store.session() as s:
-        rows = s.execute(query).all()
-    last: dict[str, tuple[int, str]] = {}
-    for model_id, entry, actor in rows:
-        if model_id not in last or entry > last[model_id][0]:
-            last[model_id] = (entry, actor)
-    return sorted(m for m, (_, actor) in last.items() if actor == user_name)
+        return sorted(s.scalars(query))

@@ -6,6 +6,7 @@ from collections.abc import Callable, Coroutine
 from dataclasses import fields
 from datetime import UTC, datetime
 from typing import Annotated, Any
+from urllib.parse import quote
 
 from fastapi import Request, Response
 from fastapi.routing import APIRoute
@@ -253,6 +254,15 @@ def model_out(row: ModelRow, volume: VolumeRow | None = None) -> ModelOut:
 
 def _number(value: float) -> str:
     return f"{value:g}".replace("+", "")
+
+
+def attachment(filename: str) -> dict[str, str]:
+    """The Content-Disposition header of a download, as Starlette's FileResponse writes it
+    (RFC 6266: ``filename*`` when the name is not plain ASCII)."""
+    quoted = quote(filename)
+    if quoted != filename:
+        return {"Content-Disposition": f"attachment; filename*=utf-8''{quoted}"}
+    return {"Content-Disposition": f'attachment; filename="{filename}"'}
 
 
 def download_name(volume: VolumeRow, row: ModelRow, fmt: str) -> str:

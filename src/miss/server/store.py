@@ -23,19 +23,25 @@ from __future__ import annotations
 import errno
 import fcntl
 import json
+import logging
 import os
+import queue
 import secrets
 import shutil
+import threading
 from collections.abc import Iterator, Sequence
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, contextmanager
 from pathlib import Path
 from typing import IO, Any
 
 import numpy as np
 from sqlalchemy import delete, func, select, update
 from sqlalchemy.exc import IntegrityError
+from sqlalchemy.orm import Session, sessionmaker
 
+from miss.server.caches import RowCache, need_io
 from miss.server.db import (
+    DONE,
     FAILED,
     QUEUED,
     Base,
@@ -49,6 +55,8 @@ from miss.server.db import (
 )
 from miss.server.errors import DiskFull, NotFound
 from miss.types import Volume
+
+log = logging.getLogger("miss.server.store")
 
 
 class DataDirInUse(RuntimeError):
@@ -104,7 +112,14 @@ class Store:
         self.data_dir = Path(data_dir)
         self.database_url = database_url
         self.engine = make_engine(database_url)
-        self.session = make_sessionmaker(self.engine)
+        self.session = _Sessions(make_sessionmaker(self.engine))
+        #: Sessions whose commits do not wait for the disk: for audit entries and job
+        #: progress only (see ``db.make_engine``).
+        self.light_engine = make_engine(database_url, durable=False)
+        self.light_session = _Sessions(make_sessionmaker(self.light_engine))
+        self.appender = Appender(self.light_session.maker)
+        #: Snapshots of volumes, finished models and login sessions (see ``caches``).
+        self.rows = RowCache()
         self._lock: IO[str] | None = None
 
     # -- layout ---------------------------------------------------------------------------
@@ -211,7 +226,9 @@ class Store:
         return bytes.fromhex(row.value)
 
     def close(self) -> None:
+        self.appender.stop()
         self.engine.dispose()
+        self.light_engine.dispose()
         if self._lock is not None:
             self._lock.close()
             self._lock = None
@@ -231,8 +248,10 @@ class Store:
             return s.scalar(select(func.count()).select_from(VolumeRow)) or 0
 
     def get_volume(self, volume_id: str) -> VolumeRow:
-        with self.session() as s:
-            row = s.get(VolumeRow, volume_id)
+        """The volume's row (a snapshot: volumes change only by being deleted)."""
+        row = self.rows.cached(
+            ("volume", volume_id), lambda: self._get(VolumeRow, volume_id), always
+        )
         if row is None:
             raise NotFound(f"no volume {volume_id!r}; GET /api/volumes lists the volumes.")
         return row
@@ -271,6 +290,7 @@ class Store:
             model_ids = list(s.scalars(select(ModelRow.id).where(ModelRow.volume_id == volume_id)))
             s.execute(delete(ModelRow).where(ModelRow.volume_id == volume_id))
             s.execute(delete(VolumeRow).where(VolumeRow.id == volume_id))
+        self.rows.drop(("volume", volume_id), *(("model", m) for m in model_ids))
         for model_id in model_ids:
             _remove_tree(self.model_dir(model_id), self.data_dir)
         _remove_tree(self.volume_dir(volume_id), self.data_dir)
@@ -289,8 +309,9 @@ class Store:
     # -- models ---------------------------------------------------------------------------
 
     def get_model(self, model_id: str) -> ModelRow:
-        with self.session() as s:
-            row = s.get(ModelRow, model_id)
+        """The model's row; a finished one is a snapshot (it changes only by being
+        deleted), a queued or running one is read afresh (its worker writes it)."""
+        row = self.rows.cached(("model", model_id), lambda: self._get(ModelRow, model_id), done)
         if row is None:
             raise NotFound(f"no model {model_id!r}; GET /api/models lists the models.")
         return row
@@ -313,15 +334,23 @@ class Store:
             return list(s.scalars(query))
 
     def find_or_create_model(
-        self, volume_id: str, key: str, spec: dict[str, Any]
+        self, volume_id: str, key: str, spec: dict[str, Any], submitted_by: str | None = None
     ) -> tuple[ModelRow, bool]:
         """The model with these parameters on this volume, created (queued) if new.
 
         A failed one is queued again: the failure may have been a crash or a restart.
+        ``submitted_by`` (an account name) is recorded when a job is queued.
         """
         existing = self.find_model(volume_id, key)
         if existing is None:
-            row = ModelRow(id=new_id(), volume_id=volume_id, key=key, spec=spec, status=QUEUED)
+            row = ModelRow(
+                id=new_id(),
+                volume_id=volume_id,
+                key=key,
+                spec=spec,
+                status=QUEUED,
+                submitted_by=submitted_by,
+            )
             try:
                 with self.session.begin() as s:
                     s.add(row)
@@ -331,7 +360,13 @@ class Store:
                 assert existing is not None
         if existing.status == FAILED:
             self.update_model(
-                existing.id, status=QUEUED, progress=0.0, stage="", error=None, attempts=0
+                existing.id,
+                status=QUEUED,
+                progress=0.0,
+                stage="",
+                error=None,
+                attempts=0,
+                submitted_by=submitted_by,
             )
             return self.get_model(existing.id), True
         return existing, False
@@ -346,13 +381,125 @@ class Store:
         self.get_model(model_id)
         with self.session.begin() as s:
             s.execute(delete(ModelRow).where(ModelRow.id == model_id))
+        self.rows.drop(("model", model_id))
         _remove_tree(self.model_dir(model_id), self.data_dir)
 
-    def update_model(self, model_id: str, *conditions: Any, **values: Any) -> bool:
-        """Update one model row if ``conditions`` hold; True when a row changed."""
+    def update_model(
+        self, model_id: str, *conditions: Any, durable: bool = True, **values: Any
+    ) -> bool:
+        """Update one model row if ``conditions`` hold; True when a row changed.
+        ``durable=False`` for progress (``db.make_engine``)."""
         query = update(ModelRow).where(ModelRow.id == model_id, *conditions).values(**values)
-        with self.session.begin() as s:
-            return s.execute(query).rowcount == 1
+        with (self.session if durable else self.light_session).begin() as s:
+            changed = s.execute(query).rowcount == 1
+        self.rows.drop(("model", model_id))  # after the commit: see RowCache.generation
+        return changed
+
+    def _get(self, table: type[Any], key: str) -> Any:
+        with self.session() as s:
+            return s.get(table, key)
+
+
+def always(_row: Any) -> bool:
+    return True
+
+
+def done(row: ModelRow) -> bool:
+    return row.status == DONE
+
+
+class Appender:
+    """Rows added by one background thread, many per commit, after the request that
+    made them has been answered: for the audit log, so that a viewer's download never
+    waits for the database's write lock (held meanwhile by a worker, or by a commit
+    stuck behind an upload being flushed to disk).
+
+    Not started (the command line, a worker), ``add`` commits at once. Started (the
+    server), a row is committed within milliseconds; a killed server loses the rows of
+    those last milliseconds, a stopped one none (``stop`` waits for them). ``flush``
+    waits until every row added before it is committed, so whoever reads the table in
+    this process sees them. A row that cannot be committed is written to the log whole.
+    """
+
+    #: Rows per transaction at most.
+    BATCH = 500
+
+    def __init__(self, maker: sessionmaker) -> None:
+        self.maker = maker
+        self._queue: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        self._done = threading.Condition()
+        self._added = self._committed = 0
+        self._thread: threading.Thread | None = None
+
+    def start(self) -> None:
+        if self._thread is None:
+            self._thread = threading.Thread(target=self._run, name="miss-appender", daemon=True)
+            self._thread.start()
+
+    def add(self, row: Any) -> None:
+        if self._thread is None:
+            need_io()
+            self._commit([row])
+            return
+        with self._done:
+            self._added += 1
+        self._queue.put(row)
+
+    def flush(self, timeout: float = 60.0) -> None:
+        with self._done:
+            wanted = self._added
+            self._done.wait_for(lambda: self._committed >= wanted, timeout)
+
+    def stop(self) -> None:
+        if self._thread is not None:
+            self._queue.put(_STOP)
+            self._thread.join(timeout=60)
+            self._thread = None
+
+    def _run(self) -> None:
+        while True:
+            batch = [self._queue.get()]
+            while len(batch) < self.BATCH and not self._queue.empty():
+                batch.append(self._queue.get())
+            stop = _STOP in batch
+            rows = [r for r in batch if r is not _STOP]
+            self._commit(rows)
+            with self._done:
+                self._committed += len(rows)
+                self._done.notify_all()
+            if stop:
+                return
+
+    def _commit(self, rows: list[Any]) -> None:
+        if not rows:
+            return
+        try:
+            with self.maker.begin() as s:
+                s.add_all(rows)
+        except Exception:
+            log.exception("could not store %d row(s): %s", len(rows), [_describe(r) for r in rows])
+
+
+_STOP = object()
+
+
+def _describe(row: Any) -> dict[str, Any]:
+    return {c.key: getattr(row, c.key, None) for c in row.__table__.columns}
+
+
+class _Sessions:
+    """The sessionmaker, refusing under ``caches.cache_only()`` (a query would block)."""
+
+    def __init__(self, maker: sessionmaker) -> None:
+        self.maker = maker
+
+    def __call__(self) -> Session:
+        need_io()
+        return self.maker()
+
+    def begin(self) -> AbstractContextManager[Session]:
+        need_io()
+        return self.maker.begin()
 
 
 def _remove_tree(path: Path, data_dir: Path) -> None:

@@ -16,6 +16,7 @@ from miss.export import FORMATS, WRITERS
 from miss.labelmap import label_counts
 from miss.pipeline import JobSpec, slice_range
 from miss.server import audit, labelmaps
+from miss.server.caches import BytesLRU, need_io
 from miss.server.db import DONE, FAILED, ModelRow, VolumeRow
 from miss.server.deps import (
     JobLimitDep,
@@ -24,6 +25,7 @@ from miss.server.deps import (
     SettingsDep,
     StoreDep,
     UserDep,
+    on_loop,
     visible_volume,
 )
 from miss.server.errors import NotFound, NotReady
@@ -31,6 +33,7 @@ from miss.server.schemas import (
     JSONRoute,
     ModelOut,
     ModelRequest,
+    attachment,
     download_name,
     mime_for,
     model_out,
@@ -155,7 +158,7 @@ def create_model(
         key = labelmaps.cache_key(key, _label_source(volume, store, spec.labels))
     store.check_free_space(settings.min_free_bytes)  # 507 while the disk is nearly full
     with jobs.slot(store, user.name, volume.id, key):  # 429 when one job too many
-        row, created = store.find_or_create_model(volume.id, key, spec.to_dict())
+        row, created = store.find_or_create_model(volume.id, key, spec.to_dict(), user.name)
         if created:
             where = audit.address(request)
             audit.record(store, "generate", user.name, row.id, where, volume=volume.id)
@@ -185,8 +188,9 @@ def list_models(
 
 
 @router.get("/{model_id}", response_model=ModelOut)
-def get_model(model: ModelDep, store: StoreDep) -> ModelOut:
-    return model_out(model, store.get_volume(model.volume_id))
+async def get_model(model: ModelDep, store: StoreDep) -> ModelOut:
+    volume = await on_loop(store.get_volume, model.volume_id)
+    return model_out(model, volume)
 
 
 @router.delete("/{model_id}", status_code=204)
@@ -224,20 +228,28 @@ def _etag_matches(header: str | None, etag: str) -> bool:
     return "*" in tags or etag in tags
 
 
+#: Model files of this server process, by (model, format, ETag): a finished model's files
+#: never change, and a viewer's fetch is then answered without touching the disk.
+_FILES = BytesLRU(128 * 2**20)
+#: Larger files are streamed from disk rather than kept.
+MAX_CACHED_FILE = 32 * 2**20
+
+
 @router.head("/{model_id}/model.{fmt}", include_in_schema=False)
 @router.get(
     "/{model_id}/model.{fmt}",
     response_class=FileResponse,
     responses={304: {"description": "not modified (ETag)"}, 409: {"description": "not done yet"}},
 )
-def download(
+async def download(
     model: ModelDep, fmt: str, request: Request, store: StoreDep, user: UserDep
 ) -> Response:
     """The model file, as an attachment with a readable name; ``Accept: x-world/x-vrml``
     gets VRML under its 1998 type."""
-    response = model_file(model, fmt, request, store)
+    response = await on_loop(model_file, model, fmt, request, store)
     if response.status_code == 200 and request.method == "GET":
-        audit.record(store, "download", user.name, model.id, audit.address(request), format=fmt)
+        where = audit.address(request)
+        await on_loop(audit.record, store, "download", user.name, model.id, where, format=fmt)
     return response
 
 
@@ -255,15 +267,19 @@ def model_file(model: ModelRow, fmt: str, request: Request, store: Store) -> Res
     headers = {"ETag": etag, "Cache-Control": "private, max-age=86400", "Vary": "Accept"}
     if _etag_matches(request.headers.get("if-none-match"), etag):
         return Response(status_code=304, headers=headers)
+    name = download_name(store.get_volume(model.volume_id), model, fmt)
+    key = (model.id, fmt, model.files[fmt]["etag"])
+    data = None if "range" in request.headers else _FILES.peek(key)
+    if data is not None:
+        return Response(data, media_type=mime, headers=headers | attachment(name))
+    need_io()
     path = store.model_dir(model.id) / f"model.{fmt}"
     if not path.is_file():
         raise NotFound(
             f"the {fmt} file of model {model.id} is missing; delete the model and submit again."
         )
-    volume = store.get_volume(model.volume_id)
-    return FileResponse(
-        path,
-        media_type=mime,
-        filename=download_name(volume, model, fmt),
-        headers=headers,
-    )
+    if "range" not in request.headers and path.stat().st_size <= MAX_CACHED_FILE:
+        data = path.read_bytes()
+        _FILES.put(key, data)
+        return Response(data, media_type=mime, headers=headers | attachment(name))
+    return FileResponse(path, media_type=mime, filename=name, headers=headers)

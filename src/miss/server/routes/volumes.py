@@ -14,8 +14,9 @@ from starlette.concurrency import run_in_threadpool
 
 from miss.server import audit, imaging, labelmaps
 from miss.server.accounts import User, get_user
+from miss.server.caches import BytesLRU
 from miss.server.db import VolumeRow
-from miss.server.deps import QueueDep, SettingsDep, StoreDep, UserDep, VolumeDep
+from miss.server.deps import QueueDep, SettingsDep, StoreDep, UserDep, VolumeDep, on_loop
 from miss.server.errors import Forbidden, NotFound
 from miss.server.ingest import ingest
 from miss.server.schemas import IdentityOut, VolumeOut, volume_out
@@ -224,7 +225,7 @@ def histogram(volume: VolumeDep, store: StoreDep) -> dict[str, Any]:
 
 
 #: Rendered slices of this server process (stored volumes never change).
-_SLICES = imaging.PngCache()
+_SLICES = BytesLRU(64 * 2**20)
 
 
 @router.get(
@@ -232,7 +233,7 @@ _SLICES = imaging.PngCache()
     response_class=Response,
     responses={200: {"content": {"image/png": {}}}, 404: {"description": "no such slice"}},
 )
-def slice_png(
+async def slice_png(
     volume: VolumeDep,
     store: StoreDep,
     axis: Axis,
@@ -262,5 +263,5 @@ def slice_png(
         return imaging.render(plane, size_px, window, level, threshold)
 
     key = (volume.id, axis.value, index, window, level, threshold, size)
-    png = _SLICES.get(key, make)
+    png = await on_loop(_SLICES.get, key, make)
     return Response(png, media_type="image/png", headers={"Cache-Control": "private, max-age=3600"})
