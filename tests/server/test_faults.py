@@ -10,6 +10,7 @@ import shutil
 import signal
 import sqlite3
 import subprocess
+import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -95,14 +96,45 @@ def downloads(server: Server, model_id: str) -> dict[str, bytes]:
 
 
 def test_sqlite_is_wal_with_full_sync(tmp_path: Path) -> None:
+    """Full sync for what people are told is saved; the audit log and job progress
+    (``light_engine``) are in the WAL before their commit returns, without the fsync."""
     store = Store(tmp_path, Settings(data_dir=tmp_path).database_url)
     store.init()
     try:
         with store.engine.connect() as con:
             assert con.execute(text("PRAGMA journal_mode")).scalar() == "wal"
             assert con.execute(text("PRAGMA synchronous")).scalar() == 2  # FULL
+        with store.light_engine.connect() as con:
+            assert con.execute(text("PRAGMA journal_mode")).scalar() == "wal"
+            assert con.execute(text("PRAGMA synchronous")).scalar() == 1  # NORMAL
     finally:
         store.close()
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGKILL])
+def test_download_audit_entries_survive_a_stop(
+    data_dir: Path, tmp_path: Path, sig: signal.Signals
+) -> None:
+    """Downloads are answered before their audit entries are committed (in batches, by one
+    thread). A stopped server commits every one before it exits; a killed one has
+    committed them within moments of the answers."""
+    with serving(data_dir, tmp_path / "server.log") as server:
+        demo = server.http.get("/api/volumes").json()[0]["id"]
+        model = server.wait(server.submit(demo, level=300, sample_rate=4), ("done",))["id"]
+        for _ in range(60):
+            assert server.http.get(f"/api/models/{model}/model.glb").status_code == 200
+        if sig == signal.SIGKILL:
+            time.sleep(0.5)
+        server.stop(sig)
+    con = sqlite3.connect(data_dir / "miss.sqlite3")
+    try:
+        count = con.execute(
+            "SELECT count(*) FROM audit WHERE action = 'download' AND target = ?", (model,)
+        ).fetchone()[0]
+    finally:
+        con.close()
+    assert count == 60
+    assert integrity(data_dir / "miss.sqlite3") == ("ok", [])
 
 
 def test_kill_during_database_writes_keeps_every_acknowledged_write(
@@ -207,6 +239,24 @@ def test_kill_during_upload_leaves_no_partial_file(
 
 
 # -- a worker out of memory ---------------------------------------------------------------
+
+
+def test_workers_yield_the_cores_to_the_server() -> None:
+    """A worker's first lines (run before its imports) lower its priority: nice 10 and
+    SCHED_IDLE, so viewers are answered first while a conversion runs."""
+    from miss.server.jobs import _BOOTSTRAP, WORKER_NICE
+
+    head, tail = _BOOTSTRAP.split("from miss.server.worker import main")
+    report = "print(os.getpriority(os.PRIO_PROCESS, 0), os.sched_getscheduler(0))\n"
+    args = ["model", "data", "sqlite://", str(os.getpid())]
+    out = subprocess.run(
+        [sys.executable, "-c", head + report, *args], capture_output=True, text=True, check=True
+    ).stdout.split()
+    assert "sys.exit(main(" in tail
+    assert [int(x) for x in out] == [
+        min(19, os.getpriority(os.PRIO_PROCESS, 0) + WORKER_NICE),
+        os.SCHED_IDLE,
+    ]
 
 
 def test_worker_out_of_memory_fails_the_job_and_the_server_serves_on(

@@ -82,7 +82,10 @@ def read_log(path: Path, offset: int) -> str:
 
 
 #: Workers run at a lower priority than the server, so that a long conversion never makes
-#: viewers wait: the event loop gets a core whenever it has a request.
+#: viewers wait: the event loop gets a core whenever it has a request. They also ask for
+#: SCHED_IDLE (Linux, no privilege needed): nice alone still gave a worker's threads a
+#: share of the server's core, and cached model fetches a p99 of 300 ms or more during
+#: jobs; with it, about 15 ms. A conversion still gets every core nobody else wants.
 WORKER_NICE = 10
 
 #: The worker's first lines, run before it imports VTK and numba (seconds): Linux is asked

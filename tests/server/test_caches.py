@@ -1,0 +1,315 @@
+"""What the server keeps in memory (``miss.server.caches``) and what that must never
+change: a deleted model or an ended session is gone at once, a running job's progress
+is read afresh, a file served from memory is the file on disk, byte for byte."""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import pytest
+from fastapi.testclient import TestClient
+from sqlalchemy import event, text
+from starlette.responses import FileResponse
+
+from miss.server.caches import BytesLRU, NotCached, RowCache, cache_only, need_io
+from miss.server.db import POOL_SIZE, RUNNING
+from miss.server.deps import on_loop
+from miss.server.schemas import attachment
+from miss.server.settings import Settings
+from miss.server.store import Store
+
+# -- the caches themselves ----------------------------------------------------------------
+
+
+def test_bytes_lru_makes_once_and_forgets_the_least_recent() -> None:
+    cache, made = BytesLRU(max_bytes=25), []
+
+    def maker(key: str) -> bytes:
+        made.append(key)
+        return key.encode() * 10
+
+    assert cache.get("a", lambda: maker("a")) == b"a" * 10
+    assert cache.get("a", lambda: maker("a")) == b"a" * 10
+    assert made == ["a"]  # the second time from the cache
+    cache.get("b", lambda: maker("b"))
+    cache.get("a", lambda: maker("a"))  # a is now the most recent
+    cache.get("c", lambda: maker("c"))  # 30 bytes > 25: the least recent (b) goes
+    cache.get("a", lambda: maker("a"))
+    cache.get("b", lambda: maker("b"))
+    assert made == ["a", "b", "c", "b"]
+    cache.put("huge", b"x" * 26)  # larger than the whole budget: not kept
+    assert cache.peek("huge") is None
+
+
+def test_bytes_lru_under_cache_only_refuses_to_make() -> None:
+    cache = BytesLRU(max_bytes=100)
+    cache.put("a", b"A")
+    with cache_only():
+        assert cache.get("a", lambda: b"never") == b"A"
+        with pytest.raises(NotCached):
+            cache.get("b", lambda: b"B")
+    assert cache.get("b", lambda: b"B") == b"B"
+
+
+def test_row_cache_expires_and_evicts() -> None:
+    rows = RowCache(max_items=2, ttl=0.2)
+    rows.put("a", 1, rows.generation)
+    rows.put("b", 2, rows.generation)
+    assert rows.get("a") == 1  # a is now the most recent
+    rows.put("c", 3, rows.generation)  # over max_items: b goes
+    assert (rows.get("a"), rows.get("b"), rows.get("c")) == (1, None, 3)
+    time.sleep(0.25)
+    assert rows.get("a") is None and rows.get("c") is None
+
+
+def test_row_cache_never_keeps_a_row_read_before_a_drop() -> None:
+    """The race the generation guards: a reader takes the old row, a writer commits and
+    drops, then the reader puts its stale copy. The stale copy must not be kept."""
+    rows = RowCache()
+    seen = rows.generation
+    stale = {"status": "done"}  # read before the writer's commit
+    rows.drop("model")  # the writer, after its commit
+    rows.put("model", stale, seen)
+    assert rows.get("model") is None
+    loaded = rows.cached("model", lambda: {"status": "fresh"}, lambda _: True)
+    assert loaded == {"status": "fresh"} and rows.get("model") == loaded
+
+
+def test_row_cache_keeps_only_what_keep_accepts() -> None:
+    rows, loads = RowCache(), []
+
+    def load() -> dict[str, str]:
+        loads.append(1)
+        return {"status": RUNNING}
+
+    for _ in range(3):
+        rows.cached("m", load, lambda row: row["status"] == "done")
+    assert len(loads) == 3  # a running job's row is read afresh every time
+    with cache_only(), pytest.raises(NotCached):
+        rows.cached("m", load, lambda row: True)
+
+
+def test_need_io_only_under_cache_only() -> None:
+    need_io()
+    with cache_only(), pytest.raises(NotCached):
+        need_io()
+    need_io()  # reset on leaving the block, also for the threads it hands work to
+
+
+def test_on_loop_runs_cached_work_on_the_loop_and_the_rest_in_a_thread() -> None:
+    cache = BytesLRU(max_bytes=100)
+    cache.put("hit", b"1")
+
+    def where(key: str) -> tuple[bytes, int]:
+        return cache.get(key, lambda: b"2"), threading.get_ident()
+
+    async def both() -> tuple[Any, Any, int]:
+        return await on_loop(where, "hit"), await on_loop(where, "miss"), threading.get_ident()
+
+    (hit, hit_thread), (miss, miss_thread), loop_thread = asyncio.run(both())
+    assert (hit, miss) == (b"1", b"2")
+    assert hit_thread == loop_thread and miss_thread != loop_thread
+
+
+def test_store_queries_refuse_under_cache_only(tmp_path: Path) -> None:
+    store = Store(tmp_path, Settings(data_dir=tmp_path).database_url)
+    store.init()
+    try:
+        with cache_only(), pytest.raises(NotCached):
+            store.list_volumes()
+        assert store.list_volumes() == []
+    finally:
+        store.close()
+
+
+def test_the_pool_keeps_its_connections(tmp_path: Path) -> None:
+    """40 threads holding a connection at once, then querying over and over: no thread
+    waits for the pool, and no connection is opened twice (an overflow connection would
+    be opened again, pragmas and all, on every request)."""
+    store = Store(tmp_path, Settings(data_dir=tmp_path).database_url)
+    store.init()
+    opened: list[int] = []
+    errors: list[BaseException] = []
+    event.listen(store.engine, "connect", lambda *_: opened.append(1))
+    together = threading.Barrier(POOL_SIZE)
+
+    def query() -> None:
+        try:
+            with store.session() as s:
+                s.execute(text("SELECT 1"))
+                together.wait(timeout=20)
+            for _ in range(50):
+                with store.session() as s:
+                    s.execute(text("SELECT 1"))
+        except BaseException as exc:
+            errors.append(exc)
+
+    try:
+        threads = [threading.Thread(target=query) for _ in range(POOL_SIZE)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+        assert not errors, errors[0]
+        assert 0 < len(opened) <= POOL_SIZE
+    finally:
+        store.close()
+
+
+# -- through the API ----------------------------------------------------------------------
+
+
+@pytest.fixture
+def done_model(
+    make_client: Callable[..., TestClient],
+    small_nifti: bytes,
+    upload_for: Callable[..., dict[str, Any]],
+    model_for: Callable[..., dict[str, Any]],
+) -> tuple[TestClient, dict[str, Any]]:
+    client = make_client()
+    headers = dict(client.headers)
+    volume = upload_for(client, headers, small_nifti, "Crâne ball.nii.gz")
+    return client, model_for(client, headers, volume["id"])
+
+
+def test_a_model_file_from_memory_is_the_file_on_disk(
+    done_model: tuple[TestClient, dict[str, Any]],
+) -> None:
+    client, model = done_model
+    store: Store = client.app.state.store
+    path = store.model_dir(model["id"]) / "model.glb"
+    first = client.get(f"/api/models/{model['id']}/model.glb")
+    second = client.get(f"/api/models/{model['id']}/model.glb")  # from memory
+    assert first.content == second.content == path.read_bytes()
+    expected = FileResponse(path, filename=_name(first)).headers["content-disposition"]
+    for r in (first, second):
+        assert r.headers["content-disposition"] == expected
+        assert r.headers["etag"] and r.headers["content-type"] == "model/gltf-binary"
+        assert int(r.headers["content-length"]) == path.stat().st_size
+    head = client.head(f"/api/models/{model['id']}/model.glb")
+    assert head.status_code == 200 and head.content == b""
+    assert head.headers["content-length"] == first.headers["content-length"]
+
+
+def _name(response: Any) -> str:
+    from urllib.parse import unquote
+
+    value = response.headers["content-disposition"]
+    if "filename*=" in value:
+        return unquote(value.split("filename*=utf-8''", 1)[1])
+    return value.split('filename="', 1)[1].rstrip('"')
+
+
+def test_a_range_request_still_gets_the_range(
+    done_model: tuple[TestClient, dict[str, Any]],
+) -> None:
+    client, model = done_model
+    whole = client.get(f"/api/models/{model['id']}/model.glb").content
+    part = client.get(f"/api/models/{model['id']}/model.glb", headers={"Range": "bytes=4-11"})
+    assert part.status_code == 206 and part.content == whole[4:12]
+
+
+def test_a_deleted_model_is_gone_at_once(done_model: tuple[TestClient, dict[str, Any]]) -> None:
+    client, model = done_model
+    url = f"/api/models/{model['id']}"
+    for _ in range(2):  # now certainly in memory: the row and the file
+        assert client.get(url).status_code == 200
+        assert client.get(f"{url}/model.glb").status_code == 200
+    assert client.delete(url).status_code == 204
+    assert client.get(url).status_code == 404
+    assert client.get(f"{url}/model.glb").status_code == 404
+
+
+def test_a_deleted_volume_is_gone_at_once(done_model: tuple[TestClient, dict[str, Any]]) -> None:
+    client, model = done_model
+    volume = f"/api/volumes/{model['volume']}"
+    for _ in range(2):
+        assert client.get(volume).status_code == 200
+        assert client.get(f"{volume}/slices/axial/3.png").status_code == 200
+    assert client.delete(volume).status_code == 204
+    assert client.get(volume).status_code == 404
+    assert client.get(f"{volume}/slices/axial/3.png").status_code == 404
+    assert client.get(f"/api/models/{model['id']}/model.glb").status_code == 404
+
+
+def test_a_running_jobs_progress_is_read_afresh(
+    done_model: tuple[TestClient, dict[str, Any]],
+) -> None:
+    """A worker is another process: what it writes must show at once, never a snapshot.
+    (Only the server itself takes a finished model back, as when it queues a job again.)"""
+    client, model = done_model
+    store: Store = client.app.state.store
+    url = f"/api/models/{model['id']}"
+    assert client.get(url).json()["status"] == "done"  # a snapshot in memory now
+    store.update_model(model["id"], status=RUNNING, progress=0.0)  # the server's own change
+    assert client.get(f"{url}/model.glb").status_code == 409
+    worker = Store(store.data_dir, store.database_url)  # as the worker process opens it
+    try:
+        for progress in (0.25, 0.5):
+            worker.update_model(model["id"], progress=progress, durable=False)
+            assert client.get(url).json()["progress"] == progress
+        worker.update_model(model["id"], status="done", progress=1.0)
+        assert client.get(url).json()["status"] == "done"
+        assert client.get(f"{url}/model.glb").status_code == 200
+    finally:
+        worker.close()
+
+
+def test_logging_out_ends_the_session_at_once(make_client: Callable[..., TestClient]) -> None:
+    client = make_client()
+    assert client.get("/api/volumes").status_code == 200  # the session, now in memory
+    assert client.post("/api/auth/logout").status_code == 204
+    r = client.get("/api/volumes")
+    assert r.status_code == 401 and "log in" in r.json()["detail"]
+
+
+def test_an_expired_session_is_refused_though_remembered(
+    make_client: Callable[..., TestClient],
+) -> None:
+    client = make_client(session_hours=1.5 / 3600)  # 1.5 s
+    assert client.get("/api/volumes").status_code == 200
+    time.sleep(1.6)
+    r = client.get("/api/volumes")
+    assert r.status_code == 401 and "expired" in r.json()["detail"]
+
+
+def test_download_audit_entries_are_there_for_the_next_request(
+    done_model: tuple[TestClient, dict[str, Any]],
+) -> None:
+    """Committed after the response, but a later request in the same server sees them."""
+    client, model = done_model
+    for _ in range(5):
+        assert client.get(f"/api/models/{model['id']}/model.stl").status_code == 200
+    entries = client.get("/api/audit", params={"action": "download"}).json()
+    mine = [e for e in entries if e["target"] == model["id"] and e["detail"] == {"format": "stl"}]
+    assert len(mine) == 5
+    assert all(e["at"] <= later["at"] for e, later in zip(mine, mine[1:], strict=False))
+
+
+def test_an_older_models_table_gains_submitted_by(tmp_path: Path) -> None:
+    """The job limit's column is added to a database from before it."""
+    url = Settings(data_dir=tmp_path).database_url
+    store = Store(tmp_path, url)
+    store.init()
+    with store.engine.begin() as con:
+        con.execute(text("ALTER TABLE models DROP COLUMN submitted_by"))
+    store.close()
+    store = Store(tmp_path, url)
+    store.init()
+    try:
+        with store.engine.connect() as con:
+            columns = {row[1] for row in con.execute(text("PRAGMA table_info(models)"))}
+        assert "submitted_by" in columns
+    finally:
+        store.close()
+
+
+def test_attachment_names_as_starlette_does() -> None:
+    for name in ("plain-head_level300.glb", "Crâne_level300.glb", "a b;c.stl"):
+        expected = FileResponse(__file__, filename=name).headers["content-disposition"]
+        assert attachment(name) == {"Content-Disposition": expected}
