@@ -78,6 +78,10 @@ def test_row_cache_never_keeps_a_row_read_before_a_drop() -> None:
     assert rows.get("model") is None
     loaded = rows.cached("model", lambda: {"status": "fresh"}, lambda _: True)
     assert loaded == {"status": "fresh"} and rows.get("model") == loaded
+    seen = rows.generation
+    rows.clear()  # the same guard for everything at once
+    rows.put("volume", {"owner": None}, seen)
+    assert rows.get("model") is None and rows.get("volume") is None
 
 
 def test_row_cache_keeps_only_what_keep_accepts() -> None:

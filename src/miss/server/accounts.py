@@ -169,4 +169,5 @@ def ensure_admin(store: Store, password: str = "") -> str | None:
     if admin is not None:
         with store.session.begin() as s:
             s.execute(update(VolumeRow).where(VolumeRow.owner_id.is_(None)).values(owner_id=admin))
+        store.rows.clear()  # volumes may have been read before they had an owner
     return made_up

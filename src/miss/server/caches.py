@@ -125,6 +125,11 @@ class RowCache:
             for key in keys:
                 self._items.pop(key, None)
 
+    def clear(self) -> None:
+        with self._lock:
+            self.generation += 1
+            self._items.clear()
+
     def cached(self, key: Hashable, load: Callable[[], Any], keep: Callable[[Any], bool]) -> Any:
         """The snapshot of ``key``, else ``load()`` (kept when ``keep(value)``); under
         ``cache_only()`` a miss raises NotCached."""
