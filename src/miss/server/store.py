@@ -23,12 +23,9 @@ from __future__ import annotations
 import errno
 import fcntl
 import json
-import logging
 import os
-import queue
 import secrets
 import shutil
-import threading
 from collections.abc import Iterator, Sequence
 from contextlib import AbstractContextManager, contextmanager
 from pathlib import Path
@@ -39,6 +36,7 @@ from sqlalchemy import delete, func, select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, sessionmaker
 
+from miss.server.appender import Appender
 from miss.server.caches import RowCache, need_io
 from miss.server.db import (
     DONE,
@@ -55,8 +53,6 @@ from miss.server.db import (
 )
 from miss.server.errors import DiskFull, NotFound
 from miss.types import Volume
-
-log = logging.getLogger("miss.server.store")
 
 
 class DataDirInUse(RuntimeError):
@@ -406,85 +402,6 @@ def always(_row: Any) -> bool:
 
 def done(row: ModelRow) -> bool:
     return row.status == DONE
-
-
-class Appender:
-    """Rows added by one background thread, many per commit, after the request that
-    made them has been answered: for the audit log, so that a viewer's download never
-    waits for the database's write lock (held meanwhile by a worker, or by a commit
-    stuck behind an upload being flushed to disk).
-
-    Not started (the command line, a worker), ``add`` commits at once. Started (the
-    server), a row is committed within milliseconds; a killed server loses the rows of
-    those last milliseconds, a stopped one none (``stop`` waits for them). ``flush``
-    waits until every row added before it is committed, so whoever reads the table in
-    this process sees them. A row that cannot be committed is written to the log whole.
-    """
-
-    #: Rows per transaction at most.
-    BATCH = 500
-
-    def __init__(self, maker: sessionmaker) -> None:
-        self.maker = maker
-        self._queue: queue.SimpleQueue[Any] = queue.SimpleQueue()
-        self._done = threading.Condition()
-        self._added = self._committed = 0
-        self._thread: threading.Thread | None = None
-
-    def start(self) -> None:
-        if self._thread is None:
-            self._thread = threading.Thread(target=self._run, name="miss-appender", daemon=True)
-            self._thread.start()
-
-    def add(self, row: Any) -> None:
-        if self._thread is None:
-            need_io()
-            self._commit([row])
-            return
-        with self._done:
-            self._added += 1
-        self._queue.put(row)
-
-    def flush(self, timeout: float = 60.0) -> None:
-        with self._done:
-            wanted = self._added
-            self._done.wait_for(lambda: self._committed >= wanted, timeout)
-
-    def stop(self) -> None:
-        if self._thread is not None:
-            self._queue.put(_STOP)
-            self._thread.join(timeout=60)
-            self._thread = None
-
-    def _run(self) -> None:
-        while True:
-            batch = [self._queue.get()]
-            while len(batch) < self.BATCH and not self._queue.empty():
-                batch.append(self._queue.get())
-            stop = _STOP in batch
-            rows = [r for r in batch if r is not _STOP]
-            self._commit(rows)
-            with self._done:
-                self._committed += len(rows)
-                self._done.notify_all()
-            if stop:
-                return
-
-    def _commit(self, rows: list[Any]) -> None:
-        if not rows:
-            return
-        try:
-            with self.maker.begin() as s:
-                s.add_all(rows)
-        except Exception:
-            log.exception("could not store %d row(s): %s", len(rows), [_describe(r) for r in rows])
-
-
-_STOP = object()
-
-
-def _describe(row: Any) -> dict[str, Any]:
-    return {c.key: getattr(row, c.key, None) for c in row.__table__.columns}
 
 
 class _Sessions:
