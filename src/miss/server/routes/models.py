@@ -268,18 +268,17 @@ def model_file(model: ModelRow, fmt: str, request: Request, store: Store) -> Res
     if _etag_matches(request.headers.get("if-none-match"), etag):
         return Response(status_code=304, headers=headers)
     name = download_name(store.get_volume(model.volume_id), model, fmt)
-    key = (model.id, fmt, model.files[fmt]["etag"])
-    data = None if "range" in request.headers else _FILES.peek(key)
-    if data is not None:
-        return Response(data, media_type=mime, headers=headers | attachment(name))
-    need_io()
-    path = store.model_dir(model.id) / f"model.{fmt}"
-    if not path.is_file():
-        raise NotFound(
-            f"the {fmt} file of model {model.id} is missing; delete the model and submit again."
-        )
-    if "range" not in request.headers and path.stat().st_size <= MAX_CACHED_FILE:
+    key, ranged = (model.id, fmt, model.files[fmt]["etag"]), "range" in request.headers
+    data = None if ranged else _FILES.peek(key)
+    if data is None:
+        need_io()
+        path = store.model_dir(model.id) / f"model.{fmt}"
+        if not path.is_file():
+            raise NotFound(
+                f"the {fmt} file of model {model.id} is missing; delete the model and submit again."
+            )
+        if ranged or path.stat().st_size > MAX_CACHED_FILE:
+            return FileResponse(path, media_type=mime, filename=name, headers=headers)
         data = path.read_bytes()
         _FILES.put(key, data)
-        return Response(data, media_type=mime, headers=headers | attachment(name))
-    return FileResponse(path, media_type=mime, filename=name, headers=headers)
+    return Response(data, media_type=mime, headers=headers | attachment(name))
