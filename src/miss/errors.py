@@ -6,6 +6,8 @@ The CLI prints ``str(exc)`` on one line and exits with code 2; the server answer
 
 from __future__ import annotations
 
+import errno
+
 
 class MissError(Exception):
     """Base class for every error MISS raises on purpose (bad input, bad parameter)."""
@@ -25,3 +27,26 @@ class BadParameter(MissError, ValueError):
 
 class EmptySurface(MissError, ValueError):
     """The chosen level produces no surface in the chosen region."""
+
+
+class InputTooLarge(MissError, ValueError):
+    """An upload, or the files a zip expands to, over the configured limit."""
+
+
+class UnsafeArchive(UnreadableVolume):
+    """A zip with members that would land outside its folder (``../``, absolute, links),
+    or that inflates far beyond what scans compress to (a zip bomb)."""
+
+
+class DiskFull(MissError, RuntimeError):
+    """No room left for an upload or a job in the data folder: 507 Insufficient Storage."""
+
+
+def is_disk_full(exc: BaseException) -> bool:
+    """True for "no space left on device" (or over a disk quota)."""
+    if not isinstance(exc, OSError):
+        return False
+    # numpy's np.save / tofile says it in words, without an errno.
+    return exc.errno in (errno.ENOSPC, errno.EDQUOT) or str(exc).startswith(
+        "Not enough free space to write"
+    )

@@ -29,6 +29,11 @@ READERS = [dicom, nifti, nrrd, metaimage, itk]
 HEAD_BYTES = 1024
 
 
+#: Formats whose headers can name other files: MISS's own parser decides what they read,
+#: so once one of these readers has claimed a file, SimpleITK is not asked to try it.
+NAMES_OTHER_FILES = (nrrd, metaimage)
+
+
 def load_volume(path: str | os.PathLike[str], series: str | None = None) -> Volume:
     """Read a scan into a ``Volume`` (LPS millimetres, real units).
 
@@ -53,9 +58,11 @@ def load_volume(path: str | os.PathLike[str], series: str | None = None) -> Volu
     p = _existing(path)
     head = _head(p)
     failures: list[str] = []
+    claimed = False
     for reader in READERS:
-        if not reader.sniff(p, head):
+        if not reader.sniff(p, head) or (reader is itk and claimed):
             continue
+        claimed = claimed or reader in NAMES_OTHER_FILES
         try:
             return reader.read(p, series)
         except UnsupportedFormat as exc:  # a variant this reader lacks: let the next try
@@ -84,6 +91,23 @@ def list_series(path: str | os.PathLike[str]) -> list[dict[str, Any]]:
                 f"{p.name}: cannot list DICOM series ({_first_line(exc)})."
             ) from exc
     return load_volume(p).meta["series"]
+
+
+def self_contained(path: str | os.PathLike[str]) -> str:
+    """Why ``path`` could make a reader open other files ("" when it cannot): a detached
+    NRRD or MetaImage header, or a format only SimpleITK's catch-all reads (some of those,
+    HDF5 and MINC among them, can link to other files)."""
+    p = _existing(path)
+    head = _head(p)
+    if p.is_dir() or dicom.sniff(p, head) or nifti.sniff(p, head):
+        return ""
+    if nrrd.sniff(p, head):
+        named = nrrd.data_file_named(p)
+        return f"{p.name} is a detached NRRD header (data file: {named})" if named else ""
+    if metaimage.sniff(p, head):
+        named = metaimage.data_file_named(p)
+        return f"{p.name} is a MetaImage header with ElementDataFile {named}" if named else ""
+    return f"{p.name} is not DICOM, NIfTI, NRRD or MetaImage"
 
 
 def _existing(path: str | os.PathLike[str]) -> Path:
@@ -136,4 +160,4 @@ def _first_line(exc: BaseException) -> str:
     return "not enough memory" if isinstance(exc, MemoryError) else "an internal error"
 
 
-__all__ = ["READERS", "list_series", "load_volume"]
+__all__ = ["READERS", "list_series", "load_volume", "self_contained"]

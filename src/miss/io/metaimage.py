@@ -24,7 +24,7 @@ import numpy as np
 from miss.errors import UnreadableVolume, UnsupportedFormat
 from miss.io import itk
 from miss.io.common import affine_from, check_declared_size, make_volume, no_series, zyx_to_xyz
-from miss.io.metaimage_header import MetaHeader, data_file_outside, parse
+from miss.io.metaimage_header import MetaHeader, data_file_outside, data_file_spec, parse
 from miss.types import Volume
 
 #: Every MetaImage header fits in this many bytes at the start of its file.
@@ -213,3 +213,9 @@ def _payload(path: Path, header: MetaHeader, text: bytes, need: int) -> bytes:
         raise UnreadableVolume(
             f"{path.name}: the compressed voxel data is damaged ({exc}); copy it again."
         ) from exc
+
+
+def data_file_named(path: Path) -> str:
+    """The data file a MetaImage header names, as MetaIO reads it ("" for LOCAL data)."""
+    spec = data_file_spec(_header_text(path))
+    return "" if spec.upper() == "LOCAL" else spec

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 from pathlib import Path, PurePath
 
@@ -119,10 +120,10 @@ def _unsupported(fields: dict[str, str], ndims: int, header_size: int) -> str:
 def data_file_outside(text: bytes) -> str:
     """The ``ElementDataFile`` name that points outside the header's folder, else "".
 
-    Checked on the raw field, before SimpleITK follows it: a header must not make MISS
-    read an arbitrary file (on a server, another user's data). Symbolic links inside
-    the folder are not resolved, so a folder of links still works. The names after
-    ``LIST`` and the pattern of ``NAME%03d.raw 1 10 1`` are checked too.
+    Checked on the field as MetaIO reads it, before SimpleITK follows it: a header must
+    not make MISS read an arbitrary file (on a server, another user's data). Symbolic
+    links inside the folder are not resolved, so a folder of links still works. The
+    names after ``LIST`` and the pattern of ``NAME%03d.raw 1 10 1`` are checked too.
     """
     fields, offset = _fields(text)
     value = fields.get("ElementDataFile", "LOCAL")
@@ -130,6 +131,11 @@ def data_file_outside(text: bytes) -> str:
     if value.split()[:1] == ["LIST"]:
         names = text[offset:].decode("latin-1").split()
     return next((n for n in names if n.upper() != "LOCAL" and _outside(n)), "")
+
+
+def data_file_spec(text: bytes) -> str:
+    """The ``ElementDataFile`` value as MetaIO reads it ("LOCAL" when the data follows)."""
+    return _fields(text)[0].get("ElementDataFile", "LOCAL")
 
 
 def _outside(name: str) -> bool:
@@ -142,20 +148,118 @@ def _outside(name: str) -> bool:
     )
 
 
+#: What C's isspace() skips before a field name (Python's str.strip() skips more).
+_C_SPACE = " \t\n\v\f\r"
+#: The field that names the voxels' file and ends the header.
+DATA_FIELD = "ElementDataFile"
+#: A line that any spelling of MetaIO would take for the data-file field.
+_DATA_FIELD_LINE = re.compile(rb"(?im)^[ \t\f\v]*element[ \t]*data[ \t]*file[ \t]*[=:]")
+
+
 def _fields(text: bytes) -> tuple[dict[str, str], int]:
+    """Header fields read the way MetaIO reads them, and where the header ends.
+
+    MetaIO (``MET_Read``) takes a field name up to the first ``=`` **or** ``:`` on a line,
+    trailing blanks cut, and matches it case-sensitively; the value follows any run of
+    ``=``, ``:`` and blanks. MISS once split on ``=`` only, so ``ElementDataFile: /path``
+    before a decoy ``ElementDataFile = LOCAL`` passed its check and was followed by
+    SimpleITK. Any second line that some spelling could take for the data-file field is
+    refused, and so is a known field without a separator (MetaIO would read its value
+    from the next line).
+    """
     fields: dict[str, str] = {}
     pos = 0
     while pos < len(text):
         end = text.find(b"\n", pos)
         end = len(text) if end < 0 else end
-        line = text[pos:end].decode("latin-1").strip()
+        raw = text[pos:end]
         pos = end + 1
-        if "=" in line:
-            key, value = (part.strip() for part in line.split("=", 1))
-            fields[key] = value
-            if key == "ElementDataFile":
-                break
+        if b"\0" in raw:
+            raise UnreadableVolume(
+                "bad MetaImage header: a header line holds a NUL byte; re-save the image."
+            )
+        line = raw.decode("latin-1").lstrip(_C_SPACE)
+        cut = min((i for i in (line.find("="), line.find(":")) if i >= 0), default=-1)
+        name = (line[:cut] if cut >= 0 else line.split("\r")[0]).rstrip(" \t")
+        if cut < 0:
+            if name.rstrip() in _KNOWN:
+                raise UnreadableVolume(
+                    f"bad MetaImage header: the line {name!r} has no '=' and no value; write "
+                    f"'{name} = value' on one line."
+                )
+            continue
+        fields[name] = line[cut:].lstrip("=: \t").rstrip()
+        if name == DATA_FIELD:
+            _check_data_field(fields[name], text, pos)
+            break
+        if _DATA_FIELD_LINE.match(raw):
+            raise _two_data_fields(name)
     return fields, pos
+
+
+def _check_data_field(value: str, text: bytes, pos: int) -> None:
+    if not value:
+        raise UnreadableVolume(
+            f"bad MetaImage header: '{DATA_FIELD}' has no value; write "
+            f"'{DATA_FIELD} = LOCAL' or the data file's name on the same line."
+        )
+    _refuse_second_data_field(text, pos)
+
+
+def _refuse_second_data_field(text: bytes, pos: int) -> None:
+    """After ``ElementDataFile`` come voxels (LOCAL) or nothing: no second data field."""
+    rest = text[pos : pos + (1 << 16)]
+    found = _DATA_FIELD_LINE.search(rest)
+    if found:
+        raise _two_data_fields(found.group(0).decode("latin-1").strip(" =:"))
+
+
+def _two_data_fields(name: str) -> UnreadableVolume:
+    return UnreadableVolume(
+        f"bad MetaImage header: it names its data file twice ({name!r} and "
+        f"{DATA_FIELD!r}); keep one '{DATA_FIELD} = ...' line, the last of the header."
+    )
+
+
+#: Field names MetaIO reads for an image (``MetaObject`` and ``MetaImage``).
+_KNOWN = frozenset(
+    (
+        "Comment",
+        "ObjectType",
+        "ObjectSubType",
+        "TransformType",
+        "NDims",
+        "Name",
+        "ID",
+        "ParentID",
+        "Color",
+        "Position",
+        "Origin",
+        "Offset",
+        "TransformMatrix",
+        "Rotation",
+        "Orientation",
+        "CenterOfRotation",
+        "AnatomicalOrientation",
+        "DistanceUnits",
+        "ElementSpacing",
+        "ElementSize",
+        "DimSize",
+        "HeaderSize",
+        "Modality",
+        "SequenceID",
+        "ElementMin",
+        "ElementMax",
+        "ElementNumberOfChannels",
+        "ElementType",
+        "CompressedData",
+        "CompressedDataSize",
+        "BinaryData",
+        "BinaryDataByteOrderMSB",
+        "ElementByteOrderMSB",
+        "ElementDataFile",
+    )
+)
 
 
 def _shape(fields: dict[str, str]) -> tuple[int, list[int], int]:

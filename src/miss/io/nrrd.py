@@ -324,3 +324,9 @@ def _vectors(path: Path, field: str, text: str) -> list[list[float] | None]:
             "3-D space; fix that line."
         )
     return vectors
+
+
+def data_file_named(path: Path) -> str:
+    """The ``data file`` a NRRD header names ("" when the data is attached)."""
+    with path.open("rb") as stream:
+        return nrrd_header.data_file_spec(stream.read(nrrd_header.HEADER_LIMIT))

@@ -45,6 +45,10 @@ TYPES = {
 }
 #: Most detached data files a header may list (one per slice of a very long scan).
 MAX_DATA_FILES = 100_000
+#: Bytes of a file searched for its header (a detached header is far smaller).
+HEADER_LIMIT = 1 << 20
+#: A line that any spelling would take for the ``data file`` field (not a ``key:=value``).
+_DATA_FILE_LINE = re.compile(rb"(?im)^[ \t]*data[ \t]*file[ \t]*:(?!=)")
 ENCODINGS = {"raw": "raw", "gzip": "gzip", "gz": "gzip", "bzip2": "bzip2", "bz2": "bzip2"}
 ENCODINGS |= dict.fromkeys(["ascii", "text", "txt"], "ascii")
 
@@ -99,6 +103,12 @@ def parse(path: Path, text: bytes) -> NrrdHeader:
             f"{text[:8]!r}; check it was not renamed or damaged."
         )
     fields, listed, offset = _fields(text)
+    header_end = len(text) if offset is None else offset
+    if len(_DATA_FILE_LINE.findall(text[:header_end])) > 1:
+        raise UnreadableVolume(
+            f"{path.name}: bad NRRD header: it names its data file twice; keep one "
+            "'data file:' line."
+        )
     _validate(path, fields)
     try:
         data = _data_files(path, fields.get("data file"), listed)
@@ -114,6 +124,13 @@ def parse(path: Path, text: bytes) -> NrrdHeader:
             "(absolute or '..'); put the data beside the header and name it without a folder."
         )
     return NrrdHeader(fields, data, offset)
+
+
+def data_file_spec(text: bytes) -> str:
+    """The ``data file`` field of the header in ``text`` ("" when the data is attached)."""
+    if not re.match(rb"NRRD000[1-5]\r?\n", text[:9]):
+        return ""
+    return _fields(text)[0].get("data file", "")
 
 
 def _beside(header: Path, data: Path) -> bool:

@@ -13,6 +13,7 @@ from fastapi.responses import JSONResponse
 from starlette.concurrency import run_in_threadpool
 
 from miss import __version__
+from miss.io import confined
 from miss.server import errors
 from miss.server.accounts import ADMIN_NAME, ensure_admin
 from miss.server.ingest import register_demo
@@ -22,6 +23,7 @@ from miss.server.rooms import Hub
 from miss.server.routes import audit, auth, models, pages, rooms, shares, volumes
 from miss.server.settings import Settings
 from miss.server.store import Store
+from miss.server.uploads import UploadSlots
 
 log = logging.getLogger("miss.server")
 
@@ -55,6 +57,20 @@ def _first_admin(store: Store, settings: Settings) -> None:
         )
 
 
+def _say_confinement(confinement: confined.Confinement) -> None:
+    """One line at start: how uploads are read, and what is refused when not confined."""
+    if confinement.confined:
+        log.info("uploads are read in a confined process: %s", confinement.mechanism)
+        return
+    print(
+        f"MISS: uploads are NOT confined ({confinement.problem}); detached NRRD/MetaImage "
+        "headers and formats only SimpleITK reads are refused.",
+        file=sys.stderr,
+        flush=True,
+    )
+    log.warning("uploads not confined: %s", confinement.problem)
+
+
 async def _over_limit(request: Request, exc: Exception) -> JSONResponse:
     assert isinstance(exc, OverLimit)
     log.info("%s %s -> 429: %s", request.method, request.url.path, exc)
@@ -69,6 +85,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         store, queue = await run_in_threadpool(_open, settings)
         app.state.store, app.state.queue = store, queue
+        confinement = await run_in_threadpool(confined.probe, settings.data_dir)
+        _say_confinement(confinement)
+        app.state.reading = (confinement, settings.parse_limits())
         app.state.rooms = Hub(store)
         try:
             yield
@@ -88,6 +107,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.failed_logins = auth.failed_login_limits()
     app.state.api_limits = ApiLimits(settings.api_rate, settings.api_burst)
     app.state.job_limit = JobLimit(settings.max_jobs_per_user)
+    app.state.upload_slots = UploadSlots(settings.uploads_per_user, settings.uploads_at_once)
     app.add_middleware(RateLimitMiddleware, limits=app.state.api_limits)
     errors.install(app)
     app.add_exception_handler(OverLimit, _over_limit)

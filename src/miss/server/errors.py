@@ -17,7 +17,7 @@ from fastapi.responses import JSONResponse, Response
 from python_multipart.exceptions import FormParserError
 from starlette.exceptions import HTTPException
 
-from miss.errors import MissError, UnreadableVolume, UnsupportedFormat
+from miss.errors import DiskFull, InputTooLarge, MissError, UnsupportedFormat
 from miss.server.logmask import mask
 
 log = logging.getLogger("miss.server")
@@ -27,16 +27,12 @@ class NotFound(MissError, LookupError):
     """An id that names no volume or model (or a slice outside the volume)."""
 
 
-class UploadTooLarge(MissError, ValueError):
-    """An upload, or the files a zip expands to, over the configured limit."""
+#: An upload, or the files a zip expands to, over the configured limit (413).
+UploadTooLarge = InputTooLarge
 
 
 class BodyTooLarge(MissError, ValueError):
     """A JSON request body over the few kilobytes any request of the API needs."""
-
-
-class UnsafeArchive(UnreadableVolume):
-    """A zip with members that would land outside its folder (``../``, absolute, links)."""
 
 
 class NotReady(MissError, RuntimeError):
@@ -57,10 +53,6 @@ class Gone(MissError, LookupError):
 
 class TooManyRequests(MissError, RuntimeError):
     """A client over its rate limit (failed logins)."""
-
-
-class DiskFull(MissError, RuntimeError):
-    """No room left for an upload or a job in the data folder: 507 Insufficient Storage."""
 
 
 #: Most specific first; anything else from the engine is a bad request body (422).

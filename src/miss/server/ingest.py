@@ -21,13 +21,17 @@ import numpy as np
 
 from miss.deid import deidentify, identity_values, remap_uid, scrub
 from miss.errors import EmptySurface, MissError, UnreadableVolume
-from miss.io import list_series, load_volume
+from miss.io.archive import volume_suffix
+from miss.io.confined import Confinement, Limits, parse_upload
 from miss.server import imaging
 from miss.server.db import VolumeRow
 from miss.server.errors import UploadTooLarge
 from miss.server.store import Store, write_atomic
-from miss.server.uploads import Upload, extract_zip, is_zip, pick_source, volume_suffix
+from miss.server.uploads import Upload
 from miss.types import Volume
+
+#: How uploads are read here: the confinement found at start and the child's limits.
+Reading = tuple[Confinement, Limits]
 
 DEMO_NAME = "Demo head phantom (synthetic CT)"
 DEMO_SLUG = "demo-head"
@@ -101,20 +105,21 @@ def stage(
 
 
 def ingest(
-    store: Store, upload: Upload, work: Path, max_unzipped: int, owner_id: str | None = None
+    store: Store,
+    upload: Upload,
+    work: Path,
+    reading: Reading,
+    owner_id: str | None = None,
 ) -> VolumeRow:
-    """Read an uploaded file once, de-identify it and store it for ``owner_id``."""
+    """Read an uploaded file once (confined: :mod:`miss.io.confined`), de-identify it and
+    store it for ``owner_id``."""
     assert upload.path is not None
-    source = upload.path
-    if is_zip(source):
-        unpacked = work / "unzipped"
-        unpacked.mkdir()
-        extract_zip(source, unpacked, max_unzipped)
-        source.unlink()  # the zip is no longer needed: halve the disk used meanwhile
-        source = pick_source(unpacked)
     try:
-        series = original_series(store, source, upload.fields.get("series") or None)
-        volume = load_volume(source, series=series)
+        series = original_series(store, work, upload, reading)
+        parsed = parse_upload(work, upload.path.name, *reading, series=series)
+        shutil.rmtree(work / "unzipped", ignore_errors=True)  # read: room for the stored copy
+        assert parsed.volume is not None
+        volume = parsed.volume
         check_storable(volume, upload.filename)
     except MissError as exc:  # the server's folders are none of the client's business
         raise type(exc)(public_message(str(exc), work)) from None
@@ -163,14 +168,17 @@ def check_storable(volume: Volume, name: str) -> None:
         )
 
 
-def original_series(store: Store, source: Path, wanted: str | None) -> str | None:
+def original_series(store: Store, work: Path, upload: Upload, reading: Reading) -> str | None:
     """The original UID of the series asked for. The API lists series by their remapped
     UIDs (``2.25.``...), so a client that picks one from a listing sends that; the reader
-    needs the UID in the files."""
+    needs the UID in the files (listed by a confined child: the key stays here)."""
+    wanted = upload.fields.get("series") or None
     if not wanted or not wanted.startswith("2.25."):
         return wanted
+    assert upload.path is not None
     key = store.secret(UID_KEY)
-    for entry in list_series(source):
+    listed = parse_upload(work, upload.path.name, *reading, mode="series").series
+    for entry in listed:
         if remap_uid(str(entry.get("uid", "")), key) == wanted:
             return str(entry["uid"])
     return wanted

@@ -13,6 +13,7 @@ Workers inherit the server's environment, so ``MISS_WORKER_MEMORY_MB`` reaches t
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import signal
@@ -109,6 +110,10 @@ sys.exit(main(sys.argv[1:]))
 """
 
 
+#: Environment variables a worker does not need and must not see.
+WORKER_HIDDEN_ENV = frozenset({"MISS_ADMIN_PASSWORD", "MISS_DATABASE_URL"})
+
+
 class JobQueue:
     """``workers`` threads running queued jobs, each in a child process."""
 
@@ -199,23 +204,25 @@ class JobQueue:
         """Start the worker; its output goes to ``models/<id>/worker.log``."""
         folder = self.store.model_dir(model_id)
         folder.mkdir(parents=True, exist_ok=True)
-        cmd = [
-            sys.executable,
-            "-c",
-            _BOOTSTRAP,
-            model_id,
-            str(self.store.data_dir),
-            self.store.database_url,
-            str(os.getpid()),
-        ]
+        # The database URL (it may hold a password) goes through stdin, not the command
+        # line, which every local user can read in ps; the admin password stays behind.
+        cmd = [sys.executable, "-c", _BOOTSTRAP, model_id, str(self.store.data_dir), "-"]
+        cmd.append(str(os.getpid()))
+        env = {k: v for k, v in os.environ.items() if k not in WORKER_HIDDEN_ENV}
         with open(folder / "worker.log", "ab") as log_file:
             # A session of its own: a Ctrl-C in the server's terminal reaches the server,
             # which stops the workers itself and queues their jobs again.
-            return subprocess.Popen(
+            proc = subprocess.Popen(
                 cmd,
-                stdin=subprocess.DEVNULL,
+                stdin=subprocess.PIPE,
                 stdout=log_file,
                 stderr=log_file,
                 cwd=self.store.data_dir,
+                env=env,
                 start_new_session=True,
             )
+        assert proc.stdin is not None
+        with contextlib.suppress(BrokenPipeError):  # a worker that died at once
+            proc.stdin.write(self.store.database_url.encode() + b"\n")
+            proc.stdin.close()
+        return proc

@@ -17,9 +17,9 @@ from typing import Any
 import numpy as np
 
 from miss.errors import BadParameter, MissError
-from miss.io import load_volume
+from miss.io.confined import Confinement, Limits, parse_upload
 from miss.labelmap import align_labels, label_counts
-from miss.labels import LabelInfo, LabelTable, describe, find_label_table
+from miss.labels import LabelInfo, LabelTable, describe
 from miss.server.ingest import source_hash
 from miss.server.store import Store, new_id, write_atomic
 from miss.types import Volume
@@ -27,12 +27,17 @@ from miss.types import Volume
 DATA, INFO = "labels.npy", "labels.json"
 
 
-def read_labelmap(path: Path, volume: Volume, work: Path) -> tuple[Volume, dict[str, Any]]:
-    """Read an uploaded label map; refuse a non-label volume or one that misses ``volume``."""
+def read_labelmap(
+    path: Path, volume: Volume, work: Path, reading: tuple[Confinement, Limits]
+) -> tuple[Volume, dict[str, Any]]:
+    """Read an uploaded label map (confined, like every upload) and the label table that
+    comes with it; refuse a non-label volume or one that misses ``volume``."""
     try:
-        labels = load_volume(path)
+        parsed = parse_upload(work, path.name, *reading, mode="labels")
     except MissError as exc:  # the server's folders are none of the client's business
         raise type(exc)(str(exc).replace(f"{work}/", "")) from None
+    assert parsed.volume is not None
+    labels = parsed.volume
     counts = label_counts(labels)
     if counts is None:
         raise BadParameter(
@@ -42,8 +47,7 @@ def read_labelmap(path: Path, volume: Volume, work: Path) -> tuple[Volume, dict[
     if not counts:
         raise BadParameter(f"{path.name} holds no labels (every voxel is 0, the background).")
     align_labels(labels, volume)  # raises BadParameter when the two do not overlap in mm
-    found = find_label_table(path)
-    table: LabelTable = found[0] if found else {}
+    table = _table(parsed.table)
     entries = []
     for label, voxels in sorted(counts.items()):
         info = describe(label, table)
@@ -54,10 +58,26 @@ def read_labelmap(path: Path, volume: Volume, work: Path) -> tuple[Volume, dict[
         "affine": labels.affine.tolist(),
         "dims": list(labels.dims),
         "labels": entries,
-        "table": found[1] if found else "",
+        "table": parsed.table_source,
         "sha256": source_hash(labels.data, labels.affine),
     }
     return labels, meta
+
+
+def _table(rows: list[dict[str, Any]]) -> LabelTable:
+    """The label table the confined reader found, checked row by row (bad rows dropped)."""
+    table: LabelTable = {}
+    for row in rows:
+        try:
+            color = tuple(float(c) for c in row.get("color") or ())
+            table[int(row["label"])] = LabelInfo(
+                str(row.get("name", ""))[:200],
+                color if len(color) == 3 else None,  # type: ignore[arg-type]
+                float(row.get("opacity", 1.0)),
+            )
+        except (KeyError, TypeError, ValueError):
+            continue
+    return table
 
 
 def save(store: Store, volume_id: str, labels: Volume, meta: dict[str, Any]) -> None:

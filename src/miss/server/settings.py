@@ -18,7 +18,11 @@ Environment variables (all optional):
 ``MISS_MIN_FREE_MB``      uploads and jobs are refused while the data folder's disk has
                           less free space than this, MB (256)
 ``MISS_WORKER_MEMORY_MB`` memory one job's worker may use beyond its code and the volume,
-                          MB (physical memory; 0: no cap; see ``miss.server.worker``)
+                          MB (physical memory; 0: no cap; see ``miss.server.worker``); the
+                          confined child that reads an upload gets the same cap
+``MISS_PARSE_SECONDS``    longest an upload's confined reader may run, seconds (600)
+``MISS_UPLOADS_PER_USER`` uploads one account may send at once (2); more get 429
+``MISS_UPLOADS_AT_ONCE``  uploads the server receives at once from everyone (4)
 """
 
 from __future__ import annotations
@@ -28,6 +32,8 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
+
+from miss.io.confined import Limits
 
 MB = 1024 * 1024
 
@@ -51,6 +57,9 @@ class Settings:
     api_burst: float = 200.0
     min_free_mb: float = 256.0
     worker_memory_mb: float | None = None
+    parse_seconds: float = 600.0
+    uploads_per_user: int = 2
+    uploads_at_once: int = 4
 
     def __post_init__(self) -> None:
         # Resolve once so the worker subprocesses, which get these as arguments, see the
@@ -75,6 +84,13 @@ class Settings:
             )
         if self.min_free_mb < 0:
             raise ValueError(f"MISS_MIN_FREE_MB must be 0 or more, got {self.min_free_mb}.")
+        if self.parse_seconds <= 0:
+            raise ValueError(f"MISS_PARSE_SECONDS must be positive, got {self.parse_seconds}.")
+        if self.uploads_per_user < 1 or self.uploads_at_once < self.uploads_per_user:
+            raise ValueError(
+                "MISS_UPLOADS_PER_USER must be at least 1 and MISS_UPLOADS_AT_ONCE at least "
+                f"as large, got {self.uploads_per_user} and {self.uploads_at_once}."
+            )
         if self.worker_memory_mb is not None and not self.worker_memory_mb >= 0:
             raise ValueError(
                 f"MISS_WORKER_MEMORY_MB must be a size in MB (0 for no cap), "
@@ -106,6 +122,16 @@ class Settings:
     @property
     def min_free_bytes(self) -> int:
         return int(self.min_free_mb * MB)
+
+    def parse_limits(self) -> Limits:
+        """Caps for the confined child that reads one upload."""
+        return Limits(
+            seconds=self.parse_seconds,
+            memory_bytes=self.worker_memory_bytes,
+            write_bytes=self.max_unzipped_bytes + (16 << 30),
+            unzipped_bytes=self.max_unzipped_bytes,
+            min_free_bytes=self.min_free_bytes,
+        )
 
     @property
     def worker_memory_bytes(self) -> int:
@@ -139,6 +165,9 @@ _ENV: tuple[tuple[str, str, Any], ...] = (
     ("api_burst", "MISS_API_BURST", float),
     ("min_free_mb", "MISS_MIN_FREE_MB", float),
     ("worker_memory_mb", "MISS_WORKER_MEMORY_MB", float),
+    ("parse_seconds", "MISS_PARSE_SECONDS", float),
+    ("uploads_per_user", "MISS_UPLOADS_PER_USER", int),
+    ("uploads_at_once", "MISS_UPLOADS_AT_ONCE", int),
 )
 
 

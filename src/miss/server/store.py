@@ -20,7 +20,6 @@ leaves either the old file or the whole new one. After a crash, ``Store.init`` e
 
 from __future__ import annotations
 
-import errno
 import fcntl
 import json
 import os
@@ -36,6 +35,7 @@ from sqlalchemy import delete, func, select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, sessionmaker
 
+from miss.errors import is_disk_full
 from miss.server.appender import Appender
 from miss.server.caches import RowCache, need_io
 from miss.server.db import (
@@ -65,16 +65,6 @@ PART = ".part"
 
 def new_id() -> str:
     return secrets.token_hex(8)
-
-
-def is_disk_full(exc: BaseException) -> bool:
-    """True for "no space left on device" (or over a disk quota)."""
-    if not isinstance(exc, OSError):
-        return False
-    # numpy's np.save / tofile says it in words, without an errno.
-    return exc.errno in (errno.ENOSPC, errno.EDQUOT) or str(exc).startswith(
-        "Not enough free space to write"
-    )
 
 
 def fsync_dir(path: Path) -> None:

@@ -1,19 +1,19 @@
-"""Receiving an upload: the multipart body streamed to disk, zips unpacked safely.
+"""Receiving an upload: the multipart body streamed to disk, a few at a time.
 
 The body is parsed as it arrives and the file part written straight into the data
 folder's ``tmp/``, counting bytes, so an upload over the limit stops at the limit and
-a 2 GB DICOM series never sits in memory. Zips are unpacked member by member with the
-decompressed bytes counted too (a zip bomb stops at the limit), after checking that no
-member would land outside the folder (``../``, absolute paths, symbolic links).
+a 2 GB DICOM series never sits in memory. What it holds is read afterwards by a
+confined child process (:mod:`miss.io.confined`; zips by :mod:`miss.io.archive`).
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
+import os
 import re
-import stat
-import zipfile
-import zlib
+import threading
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
 from typing import IO, Any
@@ -22,17 +22,15 @@ from python_multipart.multipart import MultipartParser, parse_options_header
 from starlette.concurrency import run_in_threadpool
 from starlette.requests import ClientDisconnect, Request
 
-from miss.errors import BadParameter, UnreadableVolume, UnsupportedFormat
-from miss.io.dicom_files import MAX_ZIP_RATIO, RATIO_FLOOR
-from miss.server.errors import UnsafeArchive, UploadTooLarge
+from miss.errors import BadParameter, UnsupportedFormat
+from miss.io.archive import too_large
+from miss.server.errors import UploadTooLarge
+from miss.server.ratelimit import OverLimit
 from miss.server.store import is_disk_full
 
 CHUNK = 1 << 20
 FIELD_LIMIT = 64 * 1024
 MAX_FIELDS = 16
-MAX_MEMBERS = 100_000
-#: Extensions of single-file volumes, longest first so ".nii.gz" wins over ".gz".
-VOLUME_SUFFIXES = (".nii.gz", ".nii", ".nrrd", ".nhdr", ".mha", ".mhd")
 _UNSAFE_CHARS = re.compile(r"[^A-Za-z0-9._-]+")
 
 
@@ -111,7 +109,7 @@ class _MultipartSink:
         if self._out is not None:
             self.upload.size += end - start
             if self.upload.size > self.limit:
-                raise UploadTooLarge(_too_large("upload", self.limit))
+                raise UploadTooLarge(too_large("upload", self.limit))
             self._out.write(data[start:end])
         elif self._field is not None:
             self._field[1].extend(data[start:end])
@@ -151,15 +149,53 @@ class _MultipartSink:
             self.upload.path.unlink(missing_ok=True)
 
 
-def _too_large(what: str, limit: int) -> str:
-    return (
-        f"the {what} is larger than the limit of {limit / 2**20:g} MB; send a smaller "
-        "series or raise MISS_MAX_UPLOAD_MB / MISS_MAX_UNZIPPED_MB on the server."
-    )
+class UploadSlots:
+    """Uploads being received or read at once: at most ``per_user`` for one account and
+    ``in_all`` for everyone. Each takes disk, a reader process and memory until it is
+    stored, so a client over the limit hears 429 with a Retry-After at once, before it
+    sends a byte more."""
+
+    #: Seconds a refused client is told to wait (a typical upload's reading time).
+    RETRY_SECONDS = 10.0
+
+    def __init__(self, per_user: int, in_all: int) -> None:
+        self.per_user, self.in_all = per_user, in_all
+        self._lock = threading.Lock()
+        self._users: dict[str, int] = {}
+
+    @contextlib.contextmanager
+    def slot(self, user_id: str) -> Iterator[None]:
+        with self._lock:
+            mine, total = self._users.get(user_id, 0), sum(self._users.values())
+            if mine >= self.per_user:
+                raise OverLimit(
+                    f"too many uploads at once: this account is already sending {mine} "
+                    f"(at most {self.per_user}); wait for one to finish, then send this again.",
+                    self.RETRY_SECONDS,
+                )
+            if total >= self.in_all:
+                raise OverLimit(
+                    f"the server is already receiving {total} uploads (at most "
+                    f"{self.in_all} at once); send this again in a few seconds.",
+                    self.RETRY_SECONDS,
+                )
+            self._users[user_id] = mine + 1
+        try:
+            yield
+        finally:
+            with self._lock:
+                left = self._users[user_id] - 1
+                if left:
+                    self._users[user_id] = left
+                else:
+                    del self._users[user_id]
 
 
-async def receive(request: Request, folder: Path, limit: int) -> Upload:
-    """Stream a multipart/form-data body into ``folder``; the file part in field ``file``."""
+async def receive(request: Request, folder: Path, limit: int, min_free: int = 0) -> Upload:
+    """Stream a multipart/form-data body into ``folder``; the file part in field ``file``.
+
+    The disk's free space is checked as the body arrives, not only before: a client that
+    fills the disk mid-upload gets 507 and its partial file is removed at once."""
     kind, params = parse_options_header(request.headers.get("content-type", ""))
     if kind != b"multipart/form-data" or not params.get(b"boundary"):
         raise UnsupportedFormat(
@@ -168,7 +204,7 @@ async def receive(request: Request, folder: Path, limit: int) -> Upload:
         )
     length = request.headers.get("content-length", "")
     if length.isdigit() and int(length) > limit + FIELD_LIMIT:
-        raise UploadTooLarge(_too_large("upload", limit))
+        raise UploadTooLarge(too_large("upload", limit))
     sink = _MultipartSink(params[b"boundary"], folder, limit)
     pending = bytearray()
     full: OSError | None = None
@@ -180,7 +216,7 @@ async def receive(request: Request, folder: Path, limit: int) -> Upload:
                 continue  # read to the end, so the client hears "disk full", not a reset
             pending += chunk
             if len(pending) >= CHUNK:
-                full = await run_in_threadpool(_write_unless_full, sink, bytes(pending))
+                full = await run_in_threadpool(_write_unless_full, sink, bytes(pending), min_free)
                 pending.clear()
         if full is None:
             return await run_in_threadpool(sink.finish, bytes(pending))
@@ -191,118 +227,21 @@ async def receive(request: Request, folder: Path, limit: int) -> Upload:
         sink.close()
 
 
-def _write_unless_full(sink: _MultipartSink, data: bytes) -> OSError | None:
-    """Write; on a full disk drop the partial file at once and return the error."""
+def _free_bytes(folder: Path) -> int:
+    stat = os.statvfs(folder)
+    return stat.f_bavail * stat.f_frsize
+
+
+def _write_unless_full(sink: _MultipartSink, data: bytes, min_free: int) -> OSError | None:
+    """Write; on a full disk (or one below ``min_free`` bytes free) drop the partial file
+    at once and return the error."""
     try:
         sink.write(data)
+        if min_free and _free_bytes(sink.folder) < min_free:
+            raise OSError(errno.ENOSPC, f"less than {min_free} bytes free")
     except OSError as exc:
         if not is_disk_full(exc):
             raise
         sink.discard()
         return exc
     return None
-
-
-def is_zip(path: Path) -> bool:
-    with open(path, "rb") as f:
-        head = f.read(4)
-    return path.suffix.lower() == ".zip" or head in (b"PK\x03\x04", b"PK\x05\x06")
-
-
-def _member_path(info: zipfile.ZipInfo) -> PurePosixPath | None:
-    """The member's relative path, None for junk to skip; raises for unsafe members."""
-    name = info.filename.replace("\\", "/")
-    if not name:
-        raise UnreadableVolume(
-            "the zip holds a member without a name: its directory is damaged; create the zip again."
-        )
-    if name.startswith("/") or re.match(r"^[A-Za-z]:", name):
-        raise UnsafeArchive(
-            f"zip member {info.filename!r} has an absolute path; zip relative paths only."
-        )
-    parts = PurePosixPath(name).parts
-    if ".." in parts:
-        raise UnsafeArchive(
-            f"zip member {info.filename!r} points outside the archive ('..'); "
-            "zip the folder itself."
-        )
-    if info.create_system == 3 and stat.S_ISLNK(info.external_attr >> 16):
-        raise UnsafeArchive(
-            f"zip member {info.filename!r} is a symbolic link; zip real files only."
-        )
-    if info.is_dir() or not parts or parts[0] == "__MACOSX" or parts[-1].startswith("._"):
-        return None
-    return PurePosixPath(*parts)
-
-
-def extract_zip(path: Path, dest: Path, max_bytes: int) -> None:
-    """Unpack ``path`` into ``dest``, refusing unsafe members and more than ``max_bytes``."""
-    try:
-        with zipfile.ZipFile(path) as zf:
-            infos = zf.infolist()
-            if len(infos) > MAX_MEMBERS:
-                raise UnsafeArchive(
-                    f"the zip has {len(infos)} members; at most {MAX_MEMBERS} are accepted."
-                )
-            members = [(info, rel) for info in infos if (rel := _member_path(info)) is not None]
-            if sum(info.file_size for info, _ in members) > max_bytes:
-                raise UploadTooLarge(_too_large("unzipped content", max_bytes))
-            _refuse_bombs([info for info, _ in members])
-            total = 0
-            for info, rel in members:
-                total = _extract_member(zf, info, dest / rel, total, max_bytes)
-    except (zipfile.BadZipFile, zlib.error, EOFError, UnicodeDecodeError) as exc:
-        # UnicodeDecodeError: names flagged UTF-8 that are not (a damaged directory).
-        raise UnreadableVolume(
-            f"{path.name}: not a valid zip archive ({exc}); create the zip again."
-        ) from None
-    except (NotImplementedError, RuntimeError) as exc:  # unsupported compression, encryption
-        raise UnreadableVolume(
-            f"{path.name}: cannot unpack ({exc}); use a plain, unencrypted zip."
-        ) from None
-
-
-def _refuse_bombs(infos: list[zipfile.ZipInfo]) -> None:
-    """Members that would inflate far beyond what scans compress to, refused from the
-    declared sizes before anything is written (the DICOM reader's rule for zips)."""
-    for info in infos:
-        size, packed = info.file_size, max(info.compress_size, 1)
-        if size > RATIO_FLOOR and size > MAX_ZIP_RATIO * packed:
-            raise UnsafeArchive(
-                f"zip member {info.filename!r} would inflate {packed} bytes to "
-                f"{size / 2**20:.0f} MB ({size / packed:.0f}:1), far beyond what scans "
-                "compress to (a zip bomb?); zip the slice files themselves again."
-            )
-
-
-def _extract_member(
-    zf: zipfile.ZipFile, info: zipfile.ZipInfo, target: Path, total: int, limit: int
-) -> int:
-    """Copy one member, counting real decompressed bytes: the declared sizes can lie."""
-    target.parent.mkdir(parents=True, exist_ok=True)
-    with zf.open(info) as src, open(target, "wb") as out:
-        while chunk := src.read(CHUNK):
-            total += len(chunk)
-            if total > limit:
-                raise UploadTooLarge(_too_large("unzipped content", limit))
-            out.write(chunk)
-    return total
-
-
-def volume_suffix(path: Path) -> str:
-    name = path.name.lower()
-    return next((s for s in VOLUME_SUFFIXES if name.endswith(s)), "")
-
-
-def pick_source(folder: Path) -> Path:
-    """What to read from an unpacked zip: its single volume file, else the folder (DICOM)."""
-    files = [p for p in folder.rglob("*") if p.is_file()]
-    if not files:
-        raise UnreadableVolume(
-            "the zip is empty; zip the folder of DICOM slices (or one volume file)."
-        )
-    singles = sorted(p for p in files if volume_suffix(p))
-    if len(singles) > 1:
-        names = ", ".join(str(p.relative_to(folder)) for p in singles[:5])
-        raise BadParameter(f"the zip holds several volumes ({names}); upload one at a time.")
-    return singles[0] if singles else folder

@@ -1,7 +1,9 @@
 """One job in its own process.
 
 The server starts it through a short bootstrap (``jobs._BOOTSTRAP``); by hand it runs as
-``python -m miss.server.worker <model-id> <data-dir> <db-url> <parent-pid>``.
+``python -m miss.server.worker <model-id> <data-dir> <db-url> <parent-pid>``; the server
+passes ``-`` as the URL and writes the real one to the worker's stdin, so that it never
+shows in the process list.
 
 Marching cubes and decimation run in native code (VTK, numba) that can crash or run
 out of memory; in a child process that costs one job, never the server. The child
@@ -222,6 +224,8 @@ def failure_reason(exc: Exception, model_id: str, data_dir: Path) -> str:
 def main(argv: list[str]) -> int:
     """Exit 0 when the outcome (done or a failure reason) is in the database."""
     model_id, data_dir, db_url, parent = argv[0], Path(argv[1]), argv[2], int(argv[3])
+    if db_url == "-":  # from the server: on stdin, out of sight of ps
+        db_url = sys.stdin.readline().strip()
     store = Store(data_dir, db_url)
     try:
         return attempt(store, model_id, parent)

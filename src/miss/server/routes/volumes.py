@@ -72,19 +72,23 @@ class Axis(StrEnum):
 async def upload_volume(
     request: Request, store: StoreDep, settings: SettingsDep, user: UserDep
 ) -> JSONResponse:
-    """Upload a scan; it is read once, de-identified and stored for slicing and jobs."""
+    """Upload a scan; it is read once (in a confined process), de-identified and stored
+    for slicing and jobs."""
     await run_in_threadpool(store.check_free_space, settings.min_free_bytes)  # else 507
-    work = await run_in_threadpool(store.tmp_dir)
-    try:
-        with store.disk_full_as_507():
-            upload = await receive(request, work, settings.max_upload_bytes)
-            row = await run_in_threadpool(
-                ingest, store, upload, work, settings.max_unzipped_bytes, user.id
-            )
-    finally:
-        # Whatever happened, the upload and its unpacked files go; a stored volume was
-        # moved out of tmp/ before this point.
-        await run_in_threadpool(shutil.rmtree, work, True)
+    with request.app.state.upload_slots.slot(user.id):  # else 429
+        work = await run_in_threadpool(store.tmp_dir)
+        try:
+            with store.disk_full_as_507():
+                upload = await receive(
+                    request, work, settings.max_upload_bytes, settings.min_free_bytes
+                )
+                row = await run_in_threadpool(
+                    ingest, store, upload, work, request.app.state.reading, user.id
+                )
+        finally:
+            # Whatever happened, the upload and its unpacked files go; a stored volume was
+            # moved out of tmp/ before this point.
+            await run_in_threadpool(shutil.rmtree, work, True)
     await run_in_threadpool(
         audit.record, store, "upload", user.name, row.id, audit.address(request), name=row.name
     )
@@ -146,16 +150,21 @@ async def upload_labelmap(
     then build its labels, resampled onto the volume's grid in patient mm."""
     _check_owner(volume, user)
     await run_in_threadpool(store.check_free_space, settings.min_free_bytes)  # else 507
-    work = await run_in_threadpool(store.tmp_dir)
-    try:
-        with store.disk_full_as_507():
-            upload = await receive(request, work, settings.max_upload_bytes)
-            assert upload.path is not None
-            scan = await run_in_threadpool(store.open_volume, volume.id)
-            labels, meta = await run_in_threadpool(labelmaps.read_labelmap, upload.path, scan, work)
-            await run_in_threadpool(labelmaps.save, store, volume.id, labels, meta)
-    finally:
-        await run_in_threadpool(shutil.rmtree, work, True)
+    with request.app.state.upload_slots.slot(user.id):  # else 429
+        work = await run_in_threadpool(store.tmp_dir)
+        try:
+            with store.disk_full_as_507():
+                upload = await receive(
+                    request, work, settings.max_upload_bytes, settings.min_free_bytes
+                )
+                assert upload.path is not None
+                scan = await run_in_threadpool(store.open_volume, volume.id)
+                labels, meta = await run_in_threadpool(
+                    labelmaps.read_labelmap, upload.path, scan, work, request.app.state.reading
+                )
+                await run_in_threadpool(labelmaps.save, store, volume.id, labels, meta)
+        finally:
+            await run_in_threadpool(shutil.rmtree, work, True)
     out = volume_out(volume, owner_name(store, volume))
     out.labelmap = labelmaps.public(meta)
     return out

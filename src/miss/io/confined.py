@@ -1,0 +1,586 @@
+"""Reading untrusted files in a confined child process.
+
+Every reader of uploaded bytes (zips, DICOM, NIfTI, NRRD, MetaImage, label maps, and
+SimpleITK's catch-all) runs here, in a child process that
+
+- can read only the Python installation (its libraries) and the upload's own folder,
+  and write only inside that folder: Linux **Landlock**, through ``landlockpy``. It
+  needs no root and no setup at run time, it is inherited by every thread the readers
+  start, and it holds whatever syntax a reader accepts for "read that other file": a
+  header that names ``/proc/self/environ``, the database or another user's volume gets
+  "permission denied" from the kernel. TCP connect/bind, abstract Unix sockets and
+  signals to other processes are refused as well, where the kernel's Landlock ABI has
+  them (ABI 4 and 6);
+- starts with an empty environment (no ``MISS_ADMIN_PASSWORD``, no database URL) and no
+  open files but its standard streams;
+- has its address space (``RLIMIT_AS``), CPU time, file size and wall-clock time capped.
+
+The child sends the voxels back as ``out/data.npy`` and everything else as JSON, never
+as a pickle, and the parent checks both before it believes them: a reader that a
+hostile file took over can lie about what it read, not make the server read more.
+
+Where Landlock is missing (an old kernel, a container that blocks it), ``probe`` says
+why and the server starts anyway, says so in one line, and refuses the formats that can
+name other files (detached NRRD and MetaImage headers, and everything only SimpleITK
+reads), reading the rest in the same kind of child, unconfined.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from miss.errors import (
+    BadParameter,
+    DiskFull,
+    EmptySurface,
+    InputTooLarge,
+    MissError,
+    UnreadableVolume,
+    UnsafeArchive,
+    UnsupportedFormat,
+    is_disk_full,
+)
+from miss.types import Volume
+
+#: The child's exit codes for "out of memory" and "disk full" (1 is a Python traceback).
+EXIT_MEMORY, EXIT_DISK_FULL = 3, 5
+#: Where the child leaves what it read, inside the upload's folder.
+OUT = "out"
+#: Errors the child may report, by name; anything else is "the reader failed".
+ERRORS: dict[str, type[MissError]] = {
+    cls.__name__: cls
+    for cls in (
+        BadParameter,
+        DiskFull,
+        EmptySurface,
+        InputTooLarge,
+        UnreadableVolume,
+        UnsafeArchive,
+        UnsupportedFormat,
+    )
+}
+#: Longest JSON file and error message the parent accepts from the child.
+MAX_JSON = 8 << 20
+MAX_MESSAGE = 2000
+#: numpy dtypes a volume may come back as (no objects, no strings, no structured types).
+NUMERIC_KINDS = "biuf"
+#: Address space the interpreter and the readers' libraries take before any voxel.
+BASE_ADDRESS_SPACE = 3 << 30
+#: System folders the dynamic loader and the libraries read (shared objects, time zones).
+SYSTEM_READ = (
+    "/usr/lib",
+    "/usr/lib64",
+    "/lib",
+    "/lib64",
+    "/usr/share/zoneinfo",
+    "/etc/ld.so.cache",
+)
+
+
+@dataclass(frozen=True)
+class Limits:
+    """Caps for one child: wall-clock and CPU seconds, bytes of memory beyond the
+    libraries, bytes it may write (unpacked zip and voxels), bytes a zip may inflate to."""
+
+    seconds: float = 600.0
+    memory_bytes: int = 16 << 30
+    write_bytes: int = 16 << 30
+    unzipped_bytes: int = 8 << 30
+    min_free_bytes: int = 0
+
+
+@dataclass(frozen=True)
+class Confinement:
+    """How uploads are read on this machine: ``mechanism`` when confined, else ``problem``."""
+
+    mechanism: str = ""
+    problem: str = ""
+    read_roots: tuple[str, ...] = ()
+
+    @property
+    def confined(self) -> bool:
+        return bool(self.mechanism) and not self.problem
+
+
+@dataclass
+class Parsed:
+    """What the child read: the volume (identity still in ``patient``), the DICOM series
+    it found (mode ``series``), a label table (mode ``labels``)."""
+
+    volume: Volume | None = None
+    series: list[dict[str, Any]] = field(default_factory=list)
+    table: list[dict[str, Any]] = field(default_factory=list)
+    table_source: str = ""
+    source_name: str = ""
+
+
+# --------------------------------------------------------------------------- parent side
+
+
+def read_roots(data_dir: Path) -> tuple[tuple[str, ...], str]:
+    """Folders the child must read (the interpreter, its packages, MISS, system libraries)
+    and a problem ("" for none): none of them may hold the data folder."""
+    import miss
+
+    candidates = {sys.prefix, sys.base_prefix, sys.exec_prefix, sys.base_exec_prefix}
+    candidates |= {p for p in sys.path if p and os.path.isabs(p)}
+    candidates.add(str(Path(miss.__file__).resolve().parent))
+    candidates |= set(SYSTEM_READ)
+    roots = sorted({os.path.realpath(p) for p in candidates if os.path.exists(p)})
+    data = Path(os.path.realpath(data_dir))
+    for root in roots:
+        if data == Path(root) or Path(root) in data.parents:
+            return (), (
+                f"the data folder {data} lies inside {root}, which the file readers must be "
+                "able to read; move MISS_DATA_DIR out of the Python installation and MISS's "
+                "source folder"
+            )
+    return tuple(roots), ""
+
+
+def probe(data_dir: Path) -> Confinement:
+    """Check that a confined child can read its own folder and nothing else here."""
+    roots, problem = read_roots(data_dir)
+    if problem:
+        return Confinement(problem=problem)
+    try:
+        import landlockpy
+    except ImportError:
+        return Confinement(problem="the landlockpy package is not installed")
+    abi = landlockpy.abi_version()
+    if abi < 1:
+        return Confinement(
+            problem="this Linux kernel has no Landlock (5.13 or later with Landlock enabled "
+            "in its LSM list is needed)"
+        )
+    work = Path(data_dir) / "tmp" / f"probe-{os.getpid()}"
+    outside = Path(data_dir) / "tmp" / f"probe-{os.getpid()}-outside"
+    try:
+        (work / OUT).mkdir(parents=True, exist_ok=True)
+        (work / "inside").write_bytes(b"in")
+        outside.write_bytes(b"out")
+        config = {"mode": "probe", "outside": str(outside), "roots": list(roots)}
+        proc = _spawn(work, config, Limits(seconds=30))
+        answer = _result(work, proc, Limits(seconds=30))
+    except MissError as exc:
+        return Confinement(problem=f"the confined test child failed ({exc})")
+    finally:
+        outside.unlink(missing_ok=True)
+        _remove(work)
+    if answer.get("inside") != "in" or answer.get("outside") != "denied":
+        return Confinement(problem=f"Landlock did not confine the test child ({answer})")
+    version = getattr(landlockpy, "__version__", "?")
+    return Confinement(mechanism=f"Landlock ABI {abi} (landlockpy {version})", read_roots=roots)
+
+
+def parse_upload(
+    work: Path,
+    upload: str,
+    confinement: Confinement,
+    limits: Limits,
+    mode: str = "volume",
+    series: str | None = None,
+) -> Parsed:
+    """Read ``work/upload`` (a zip is unpacked into ``work/unzipped`` first) in a child.
+
+    ``mode``: ``volume`` (one volume; ``series`` picks a DICOM series by its UID in the
+    files), ``series`` (list the DICOM series only) or ``labels`` (a label map and the
+    label table that comes with it). Raises the reader's ``MissError`` as the child
+    reported it.
+    """
+    out = work / OUT
+    _remove(out)
+    out.mkdir()
+    config = {
+        "mode": mode,
+        "upload": upload,
+        "series": series or "",
+        "roots": list(confinement.read_roots),
+        "confined": confinement.confined,
+        "unzipped_bytes": limits.unzipped_bytes,
+        "min_free_bytes": limits.min_free_bytes,
+    }
+    proc = _spawn(work, config, limits)
+    answer = _result(work, proc, limits)
+    return _parsed(out, answer)
+
+
+def _spawn(work: Path, config: dict[str, Any], limits: Limits) -> subprocess.Popen[bytes]:
+    config = {**config, "memory_bytes": limits.memory_bytes, "write_bytes": limits.write_bytes}
+    config["cpu_seconds"] = math.ceil(limits.seconds)
+    config["package"] = str(Path(__file__).resolve().parent.parent)
+    env = {"PATH": "/usr/bin:/bin", "LANG": "C.UTF-8", "OMP_NUM_THREADS": "1"}
+    with open(work / "child.log", "ab") as log:
+        return subprocess.Popen(
+            [sys.executable, "-I", "-c", _BOOTSTRAP, json.dumps(config)],
+            stdin=subprocess.DEVNULL,
+            stdout=log,
+            stderr=log,
+            cwd=work,
+            env=env,
+            close_fds=True,
+            start_new_session=True,
+        )
+
+
+def _result(work: Path, proc: subprocess.Popen[bytes], limits: Limits) -> dict[str, Any]:
+    """The child's answer; its failure as a ``MissError`` with a message that says what
+    to do (the child's own message when it sent one)."""
+    try:
+        code = proc.wait(timeout=limits.seconds)
+    except subprocess.TimeoutExpired:
+        _kill(proc)
+        raise UnreadableVolume(
+            f"reading the upload took longer than {limits.seconds:g} s and was stopped; "
+            "check that it is one scan, or ask the administrator to raise MISS_PARSE_SECONDS."
+        ) from None
+    except BaseException:
+        _kill(proc)
+        raise
+    answer = _read_json(work / OUT / "result.json")
+    if isinstance(answer, dict) and "error" in answer:
+        cls = ERRORS.get(str(answer["error"]), UnreadableVolume)
+        raise cls(_clean_message(answer.get("message")))
+    if code == 0 and isinstance(answer, dict):
+        return answer
+    raise _crash(code)
+
+
+def _kill(proc: subprocess.Popen[bytes]) -> None:
+    with contextlib.suppress(ProcessLookupError, PermissionError):
+        os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+
+
+def _crash(code: int) -> MissError:
+    if code in (-signal.SIGXCPU, -signal.SIGKILL):
+        return UnreadableVolume(
+            "reading the upload took too long and was stopped; check that it is one scan."
+        )
+    if code == -signal.SIGXFSZ:
+        return InputTooLarge(
+            "the upload expands to more than the server accepts; send a smaller series."
+        )
+    if code == EXIT_MEMORY:
+        return InputTooLarge("the volume does not fit in the server's memory; upload fewer slices.")
+    if code == EXIT_DISK_FULL:
+        return DiskFull(
+            "disk full: the server's data folder ran out of space while reading this upload, "
+            "and nothing of it was kept; ask the administrator to free space there, then send "
+            "it again."
+        )
+    return UnreadableVolume(
+        f"the file reader stopped ({_signal_name(code)}) on this upload; the file is damaged "
+        "or not a scan: export it again."
+    )
+
+
+def _signal_name(code: int) -> str:
+    if code < 0:
+        try:
+            return signal.Signals(-code).name
+        except ValueError:
+            return f"signal {-code}"
+    return f"exit code {code}"
+
+
+def _clean_message(message: Any) -> str:
+    text = str(message or "the file could not be read")[:MAX_MESSAGE]
+    return "".join(c if c.isprintable() else " " for c in text)
+
+
+def _open_regular(path: Path) -> int:
+    """A descriptor on ``path`` only if it is a regular file the child made (no link)."""
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW)
+    except OSError as exc:
+        raise UnreadableVolume("the file reader gave no result; the file is damaged.") from exc
+    info = os.fstat(fd)
+    if not (info.st_mode & 0o170000 == 0o100000 and info.st_nlink == 1):
+        os.close(fd)
+        raise UnreadableVolume("the file reader gave an unusable result; the file is damaged.")
+    return fd
+
+
+def _read_json(path: Path) -> Any:
+    if not path.exists() and not path.is_symlink():
+        return None
+    with os.fdopen(_open_regular(path), "rb") as f:
+        text = f.read(MAX_JSON + 1)
+    if len(text) > MAX_JSON:
+        raise UnreadableVolume("the file reader's result is too large; the file is damaged.")
+    try:
+        return json.loads(text)
+    except ValueError:
+        raise UnreadableVolume("the file reader gave an unusable result.") from None
+
+
+def _parsed(out: Path, answer: dict[str, Any]) -> Parsed:
+    parsed = Parsed(
+        series=_list_of_dicts(answer.get("series")),
+        table=_list_of_dicts(answer.get("table")),
+        table_source=str(answer.get("table_source") or "")[:MAX_MESSAGE],
+        source_name=str(answer.get("source_name") or "")[:MAX_MESSAGE],
+    )
+    if answer.get("volume"):
+        parsed.volume = _volume(out, answer["volume"])
+    return parsed
+
+
+def _list_of_dicts(value: Any) -> list[dict[str, Any]]:
+    return [v for v in value if isinstance(v, dict)] if isinstance(value, list) else []
+
+
+def _volume(out: Path, described: Any) -> Volume:
+    """The volume the child wrote, checked: numeric 3-D voxels of the declared shape, a
+    finite 4x4 affine, JSON metadata."""
+    if not isinstance(described, dict):
+        raise UnreadableVolume("the file reader gave an unusable result.")
+    try:
+        affine = np.array(described["affine"], dtype=np.float64)
+    except (KeyError, TypeError, ValueError):
+        raise UnreadableVolume("the file reader gave an unusable geometry.") from None
+    if affine.shape != (4, 4):
+        raise UnreadableVolume("the file reader gave an unusable geometry.")
+    meta = described.get("meta") if isinstance(described.get("meta"), dict) else {}
+    patient = described.get("patient") if isinstance(described.get("patient"), dict) else {}
+    return Volume(_voxels(out / "data.npy"), affine, meta=meta, patient=patient)
+
+
+def _voxels(path: Path) -> np.ndarray:
+    with os.fdopen(_open_regular(path), "rb") as f:
+        try:
+            version = np.lib.format.read_magic(f)
+            read_header = _NPY_HEADERS.get(version)
+            if read_header is None:
+                raise ValueError(f"npy version {version}")
+            shape, fortran, dtype = read_header(f)
+        except (ValueError, SyntaxError, TypeError):
+            raise UnreadableVolume("the file reader gave unusable voxels.") from None
+        if dtype.kind not in NUMERIC_KINDS or dtype.hasobject or len(shape) != 3:
+            raise UnreadableVolume("the file reader gave unusable voxels.")
+        count = math.prod(shape)
+        if os.fstat(f.fileno()).st_size - f.tell() != count * dtype.itemsize:
+            raise UnreadableVolume("the file reader gave truncated voxels.")
+        flat = np.fromfile(f, dtype=dtype, count=count)
+    path.unlink()  # in memory now: give its disk space back before the volume is stored
+    return flat.reshape(shape, order="F" if fortran else "C")
+
+
+#: The .npy header versions ``np.save`` writes (3.0 only for non-Latin-1 field names).
+_NPY_HEADERS = {
+    (1, 0): np.lib.format.read_array_header_1_0,
+    (2, 0): np.lib.format.read_array_header_2_0,
+}
+
+
+def _remove(path: Path) -> None:
+    import shutil
+
+    shutil.rmtree(path, ignore_errors=True)
+
+
+# --------------------------------------------------------------------------- child side
+
+#: The child's first lines: limits, then Landlock, and only then any reader is imported,
+#: so every thread a library starts is confined too. ``miss/__init__`` (VTK, numba) is
+#: not run: a bare package module stands in for it.
+_BOOTSTRAP = """\
+import json, sys, types
+config = json.loads(sys.argv[1])
+package = types.ModuleType("miss")
+package.__path__ = [config["package"]]
+sys.modules["miss"] = package
+from miss.io import confined
+sys.exit(confined.child_main(config))
+"""
+
+
+def child_main(config: dict[str, Any]) -> int:
+    """Entry point of the child: cap, confine, read, write ``out/``; exit code 0, else
+    ``EXIT_MEMORY`` or ``EXIT_DISK_FULL`` (anything else: the parent reports a crash)."""
+    _cap(config)
+    if config.get("confined", True) or config["mode"] == "probe":
+        _confine(config["roots"], Path.cwd())
+    out = Path.cwd() / OUT
+    try:
+        answer = _CHILD_MODES[config["mode"]](config)
+    except MemoryError:
+        return EXIT_MEMORY
+    except MissError as exc:
+        answer = {"error": type(exc).__name__, "message": str(exc)}
+    except OSError as exc:
+        if not is_disk_full(exc):
+            raise
+        return EXIT_DISK_FULL
+    try:
+        _write_json(out / "result.json", answer)
+    except OSError as exc:
+        if not is_disk_full(exc):
+            raise
+        return EXIT_DISK_FULL
+    return 0
+
+
+def _cap(config: dict[str, Any]) -> None:
+    import resource
+
+    def limit(which: int, value: int) -> None:
+        with contextlib.suppress(ValueError, OSError):
+            resource.setrlimit(which, (value, value))
+
+    limit(resource.RLIMIT_CORE, 0)
+    limit(resource.RLIMIT_CPU, int(config.get("cpu_seconds", 600)))
+    if config.get("memory_bytes"):
+        limit(resource.RLIMIT_AS, int(config["memory_bytes"]) + BASE_ADDRESS_SPACE)
+    if config.get("write_bytes"):
+        limit(resource.RLIMIT_FSIZE, int(config["write_bytes"]))
+
+
+def _confine(roots: list[str], work: Path) -> None:
+    """Landlock: read (and map) ``roots``, everything inside ``work``, nothing else."""
+    from landlockpy import AccessFS, AccessNet, Ruleset, Scope, abi_version, fs_for_abi
+
+    abi = abi_version()
+    if abi < 1:
+        raise SystemExit(4)  # the parent asked for confinement: never read unconfined
+    everything = fs_for_abi(abi)
+    read = AccessFS.READ_FILE | AccessFS.READ_DIR | AccessFS.EXECUTE
+    with Ruleset(
+        handled_fs=everything,
+        handled_net=AccessNet.BIND_TCP | AccessNet.CONNECT_TCP,
+        scoped=Scope.ABSTRACT_UNIX_SOCKET | Scope.SIGNAL,
+    ) as rules:
+        for root in roots:
+            rights = read if os.path.isdir(root) else AccessFS.READ_FILE | AccessFS.EXECUTE
+            rules.allow_path(root, rights & everything)
+        rules.allow_path(str(work), everything)
+        rules.restrict()
+
+
+def _probe(config: dict[str, Any]) -> dict[str, Any]:
+    def attempt(path: str) -> str:
+        try:
+            with open(path) as f:
+                return f.read()
+        except PermissionError:
+            return "denied"
+        except OSError as exc:
+            return f"error {exc.errno}"
+
+    return {"inside": attempt("inside"), "outside": attempt(config["outside"])}
+
+
+def _source(config: dict[str, Any]) -> Path:
+    """The upload, or what to read from it once unpacked (a zip, once per folder)."""
+    from miss.io.archive import extract_zip, is_zip, pick_source
+
+    work = Path.cwd()
+    unpacked = work / "unzipped"
+    upload = work / config["upload"]
+    if upload.exists() and is_zip(upload):
+        unpacked.mkdir(exist_ok=True)
+        extract_zip(upload, unpacked, int(config["unzipped_bytes"]), _free_space_check(config))
+        upload.unlink()  # halve the disk the upload takes meanwhile
+    if unpacked.is_dir():
+        return pick_source(unpacked)
+    return upload
+
+
+def _free_space_check(config: dict[str, Any]) -> Any:
+    minimum = int(config.get("min_free_bytes") or 0)
+
+    def check(_written: int) -> None:
+        stat = os.statvfs(".")
+        if minimum and stat.f_bavail * stat.f_frsize < minimum:
+            raise DiskFull(
+                "disk full: the server's data folder ran out of space while unpacking this "
+                "zip, and nothing of it was kept; ask the administrator to free space there."
+            )
+
+    return check
+
+
+def _read(config: dict[str, Any]) -> dict[str, Any]:
+    from miss.io import load_volume
+
+    source = _source(config)
+    if not config.get("confined", True):
+        _refuse_pointers(source)
+    volume = load_volume(source, series=config.get("series") or None)
+    return {"volume": _write_volume(volume), "source_name": _relative(source)}
+
+
+def _series(config: dict[str, Any]) -> dict[str, Any]:
+    from miss.io import list_series
+
+    source = _source(config)
+    if not config.get("confined", True):
+        _refuse_pointers(source)
+    return {"series": _jsonable(list_series(source))}
+
+
+def _labels(config: dict[str, Any]) -> dict[str, Any]:
+    from miss.labels import find_label_table
+
+    answer = _read(config)
+    found = find_label_table(Path.cwd() / config["upload"])
+    if found:
+        table, where = found
+        answer["table"] = [
+            {"label": k, "name": v.name, "color": list(v.color or ()), "opacity": v.opacity}
+            for k, v in table.items()
+        ]
+        answer["table_source"] = where
+    return answer
+
+
+def _refuse_pointers(source: Path) -> None:
+    """Unconfined, only formats that cannot name another file are read."""
+    from miss.io import self_contained
+
+    problem = self_contained(source)
+    if problem:
+        raise UnsupportedFormat(
+            f"{problem}; this server cannot confine its file readers, so formats that name "
+            "other files are refused: upload a .zip of DICOM files, a .nii/.nii.gz, an .nrrd "
+            "with its data inside, or an .mha with LOCAL data."
+        )
+
+
+def _relative(source: Path) -> str:
+    try:
+        return str(source.relative_to(Path.cwd()))
+    except ValueError:
+        return source.name
+
+
+def _write_volume(volume: Volume) -> dict[str, Any]:
+    np.save(Path(OUT) / "data.npy", np.asfortranarray(volume.data), allow_pickle=False)
+    return _jsonable(
+        {"affine": volume.affine.tolist(), "meta": volume.meta, "patient": volume.patient}
+    )
+
+
+def _jsonable(value: Any) -> Any:
+    return json.loads(
+        json.dumps(value, default=lambda o: o.item() if hasattr(o, "item") else str(o))
+    )
+
+
+def _write_json(path: Path, value: Any) -> None:
+    path.write_text(json.dumps(value))
+
+
+_CHILD_MODES = {"probe": _probe, "volume": _read, "series": _series, "labels": _labels}
