@@ -10,6 +10,10 @@ The corpus (``tests/corpus/cases.py``, written into a temporary folder) goes thr
   a crash;
 - **upload API**: ``POST /api/volumes`` of a real ``miss serve`` (folders zipped); a 4xx
   with a ``detail`` string is a clean refusal, a 201 an accepted case (deleted again);
+- **attack corpus**: ``tests/corpus/attacks.py`` through the same upload API: headers and
+  zips that name the server's database, another account's volume, a secret file or
+  ``/proc`` paths; "bytes from outside the upload served" counts bytes of those files
+  found in what was stored (must be 0);
 
 then, for ``--seconds`` each,
 
@@ -72,6 +76,7 @@ class Row:
     mismatches: int = 0
     peak_mb: float = 0.0
     seconds: float = 0.0
+    outside_bytes: int = 0
     notes: list[str] = field(default_factory=list)
 
     def crash(self, what: str) -> None:
@@ -80,11 +85,13 @@ class Row:
 
     def cells(self) -> list[Any]:
         return [self.surface, self.tried, self.refused, self.accepted, self.server_errors,
-                self.crashes, self.mismatches, round(self.peak_mb), round(self.seconds)]  # fmt: skip
+                self.crashes, self.mismatches, self.outside_bytes, round(self.peak_mb),
+                round(self.seconds)]  # fmt: skip
 
 
 HEADER = ["surface", "cases tried", "clean refusals", "accepted OK", "5xx",
-          "crashes / tracebacks", "corpus mismatches", "peak RSS MB", "seconds"]  # fmt: skip
+          "crashes / tracebacks", "corpus mismatches", "bytes from outside the upload served",
+          "peak RSS MB", "seconds"]  # fmt: skip
 
 
 # -- the corpus ----------------------------------------------------------------------------
@@ -199,6 +206,7 @@ class Served:
 
     def __init__(self, work: Path) -> None:
         (work / "data").mkdir(parents=True)
+        self.data_dir = work / "data"
         self.proc, self.url = start_server(work / "data")
         self.log = work / "server.log"
         self.http = httpx.Client(base_url=self.url, headers=log_in(self.url, "admin"),
@@ -267,6 +275,66 @@ def upload_row(server: Served, cases: list[Any], root: Path, work: Path) -> Row:
     row.seconds = time.perf_counter() - t0
     row.crashes += server.tracebacks() - before
     row.peak_mb = server.peak_mb()
+    return row
+
+
+# -- attack corpus ---------------------------------------------------------------------------
+
+
+def attack_targets(server: Served, work: Path) -> dict[str, Path]:
+    """Files an attacker would want: a secret beside the server, its database, another
+    account's stored volume (uploaded here first; /proc paths come with the corpus)."""
+    from corpus.attacks import SIDE, mha
+
+    secret = work / "secret.bin"
+    secret.write_bytes(np.random.default_rng(1).bytes(4 * SIDE**3))
+    other = mha(["ElementDataFile = LOCAL"], ndims=3, local=False)
+    other += np.random.default_rng(2).bytes(SIDE**3)
+    r = server.http.post("/api/volumes", files={"file": ("other.mha", other)})
+    r.raise_for_status()
+    data = server.data_dir / "volumes" / r.json()["id"] / "data.npy"
+    return {"secret": secret, "database": server.data_dir / "miss.sqlite3", "volume": data}
+
+
+def outside_bytes(voxels: bytes, target: bytes) -> int:
+    """Bytes of ``target`` (its first 4096, 32 at a time) found in ``voxels``."""
+    windows = (target[i : i + 32] for i in range(0, len(target) - 31, 32))
+    return 32 * sum(1 for w in windows if len(set(w)) >= 8 and w in voxels)
+
+
+def attack_row(server: Served, work: Path) -> Row:
+    """``tests/corpus/attacks.py``: uploads that try to make a reader open another file."""
+    from corpus.attacks import SIDE, attacks
+
+    row = Row("attack corpus (POST /api/volumes)")
+    targets = attack_targets(server, work)
+    cases = attacks(targets)
+    wanted = {}
+    for case in cases:
+        path = case.target
+        if path.parts[:3] == ("/", "proc", "self"):
+            path = Path("/proc", str(server.proc.pid), *path.parts[3:])
+        try:
+            wanted[case.target] = path.read_bytes()[: SIDE**3]
+        except OSError:
+            wanted[case.target] = b""
+    known = set((server.data_dir / "volumes").iterdir())
+    server.reset_peak()
+    before, t0 = server.tracebacks(), time.perf_counter()
+    for case in cases:
+        row.tried += 1
+        r = server.http.post("/api/volumes", files={"file": (case.filename, case.content)})
+        if answer(row, r, case.name):
+            stored = server.data_dir / "volumes" / r.json()["id"] / "data.npy"
+            found = outside_bytes(stored.read_bytes(), wanted[case.target])
+            row.outside_bytes += found
+            if found:
+                row.notes.append(f"{case.name}: {found} bytes of {case.target} stored")
+            server.http.delete(f"/api/volumes/{r.json()['id']}")
+    row.seconds = time.perf_counter() - t0
+    row.crashes += server.tracebacks() - before
+    row.peak_mb = server.peak_mb()
+    assert set((server.data_dir / "volumes").iterdir()) <= known
     return row
 
 
@@ -450,6 +518,7 @@ def run(seconds: float, seed: int) -> list[Row]:
         server = Served(work / "server")
         try:
             rows.append(upload_row(server, cases, root, work))
+            rows.append(attack_row(server, work))
             rows.append(fuzz_row(server, work, seconds, seed))
         except Exception:  # noqa: BLE001 - report what the run reached
             traceback.print_exc()
@@ -481,7 +550,7 @@ def main(argv: list[str] | None = None) -> int:
     print(text)
     save("robustness", {"seconds": args.seconds, "seed": args.seed,
                         "rows": [asdict(r) for r in rows]}, text)  # fmt: skip
-    return 1 if any(r.server_errors or r.crashes for r in rows) else 0
+    return 1 if any(r.server_errors or r.crashes or r.outside_bytes for r in rows) else 0
 
 
 if __name__ == "__main__":

@@ -184,6 +184,17 @@ def test_the_probe_refuses_a_data_folder_inside_what_readers_may_read(tmp_path: 
     finally:
         shutil.rmtree(inside, ignore_errors=True)
     assert confined.probe(tmp_path / "data").confined
+    # A server started as a script (or with -m) from the folder that holds its data folder
+    # has that folder on sys.path; the child does not need it, so it is no reason to refuse.
+    script = tmp_path / "start.py"
+    script.write_text(
+        "import sys\nfrom pathlib import Path\nfrom miss.io import confined\n"
+        "found = confined.probe(Path(sys.argv[1]))\nprint(found.confined, found.problem)\n"
+    )
+    said = subprocess.run(
+        [sys.executable, str(script), str(tmp_path / "data")], capture_output=True, text=True
+    )
+    assert said.stdout.startswith("True"), said.stdout + said.stderr
 
 
 def bomb(members: int, size: int) -> bytes:

@@ -134,7 +134,7 @@ def read_roots(data_dir: Path) -> tuple[tuple[str, ...], str]:
     import miss
 
     candidates = {sys.prefix, sys.base_prefix, sys.exec_prefix, sys.base_exec_prefix}
-    candidates |= {p for p in sys.path if p and os.path.isabs(p)}
+    candidates |= set(_child_path())
     candidates.add(str(Path(miss.__file__).resolve().parent))
     candidates |= set(SYSTEM_READ)
     roots = sorted({os.path.realpath(p) for p in candidates if os.path.exists(p)})
@@ -147,6 +147,21 @@ def read_roots(data_dir: Path) -> tuple[tuple[str, ...], str]:
                 "source folder"
             )
     return tuple(roots), ""
+
+
+def _child_path() -> list[str]:
+    """``sys.path`` as the child sees it: isolated mode, so without this process's working
+    folder or script folder (which may well hold the data folder), only the standard
+    library, site-packages and what their ``.pth`` files add."""
+    found = subprocess.run(
+        [sys.executable, "-I", "-c", "import json, sys; print(json.dumps(sys.path))"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        env={"PATH": "/usr/bin:/bin"},
+    )
+    paths = json.loads(found.stdout) if found.returncode == 0 else []
+    return [p for p in paths if isinstance(p, str) and os.path.isabs(p)]
 
 
 def probe(data_dir: Path) -> Confinement:
