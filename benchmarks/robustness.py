@@ -326,7 +326,8 @@ def attack_row(server: Served, work: Path) -> Row:
         r = server.http.post("/api/volumes", files={"file": (case.filename, case.content)})
         if answer(row, r, case.name):
             stored = server.data_dir / "volumes" / r.json()["id"] / "data.npy"
-            found = outside_bytes(stored.read_bytes(), wanted[case.target])
+            voxels = np.load(stored, mmap_mode="r").tobytes(order="F")  # not MISS's header
+            found = outside_bytes(voxels, wanted[case.target])
             row.outside_bytes += found
             if found:
                 row.notes.append(f"{case.name}: {found} bytes of {case.target} stored")
