@@ -98,13 +98,13 @@ FORMS = {
 }
 
 
-@pytest.mark.parametrize("form", list(FORMS))
-@pytest.mark.parametrize("target", ["file", "database", "environment", "other volume"])
 def voxel_bytes(folder: Path) -> bytes:
     """A stored volume's voxels as bytes (not the .npy header MISS writes around them)."""
     return np.load(folder / "data.npy", mmap_mode="r").tobytes(order="F")
 
 
+@pytest.mark.parametrize("form", list(FORMS))
+@pytest.mark.parametrize("target", ["file", "database", "environment", "other volume"])
 def test_a_header_cannot_make_the_server_read_another_file(
     server: Server, secret: Path, form: str, target: str
 ) -> None:
