@@ -12,6 +12,13 @@ function showError( node, err ) {
 	node.hidden = ! err;
 }
 
+// "values -1500 … 2075 HU": whole numbers past 100 (a scanner's noise is no information).
+function valueRange( volume ) {
+	const value = ( v ) => Number.isInteger( v ) ? String( v ) : v.toFixed( Math.abs( v ) >= 100 ? 0 : 2 );
+	const units = volume.units ? ` ${volume.units}` : '';
+	return `values ${value( volume.range[ 0 ] )} … ${value( volume.range[ 1 ] )}${units}`;
+}
+
 function volumeCard( volume ) {
 	const href = urls.volumePage( volume.id );
 	const remove = async () => {
@@ -30,7 +37,7 @@ function volumeCard( volume ) {
 		el( 'div.body',
 			el( 'a.name', { href }, volume.name || volume.id ),
 			el( 'div.facts', describeVolume( volume ) ),
-			volume.range ? el( 'div.facts', `values ${volume.range[ 0 ]} … ${volume.range[ 1 ]}` ) : null,
+			volume.range ? el( 'div.facts', valueRange( volume ) ) : null,
 			el( 'div.actions',
 				el( 'a.button.small.primary', { href }, 'Open' ),
 				el( 'button.small.danger', { type: 'button', onclick: remove }, 'Delete' ) ) ) );
