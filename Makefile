@@ -22,7 +22,7 @@ $(VENV)/.bench-installed: $(VENV)/.installed
 web-deps:
 	@if [ -f $(WEB)/package.json ]; then \
 		if [ ! -d $(WEB)/node_modules ] || [ $(WEB)/package.json -nt $(WEB)/node_modules ]; then \
-			cd $(WEB) && (npm ci --no-audit --no-fund --silent || npm install --no-audit --no-fund --silent) && touch node_modules; \
+			cd $(WEB) && (npm ci --ignore-scripts --no-audit --no-fund --silent || npm install --ignore-scripts --no-audit --no-fund --silent) && touch node_modules; \
 		fi; \
 	fi
 

@@ -16,11 +16,13 @@ from miss import __version__
 from miss.io import confined
 from miss.server import errors
 from miss.server.accounts import ADMIN_NAME, ensure_admin
+from miss.server.headers import SecurityHeaders
 from miss.server.ingest import register_demo
 from miss.server.jobs import JobQueue
 from miss.server.ratelimit import ApiLimits, JobLimit, OverLimit, RateLimitMiddleware, too_many
 from miss.server.rooms import Hub
 from miss.server.routes import audit, auth, models, pages, rooms, shares, volumes
+from miss.server.routes.pages import WEB
 from miss.server.settings import Settings
 from miss.server.store import Store
 from miss.server.uploads import UploadSlots
@@ -102,6 +104,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         "them, share them by link and discuss them live. Log in with POST /api/auth/login and "
         "send 'Authorization: Bearer TOKEN'.",
         lifespan=lifespan,
+        docs_url=None,  # served from npm packages by routes/pages.py: no CDN
+        redoc_url=None,
     )
     app.state.settings = settings
     app.state.failed_logins = auth.failed_login_limits()
@@ -109,6 +113,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.job_limit = JobLimit(settings.max_jobs_per_user)
     app.state.upload_slots = UploadSlots(settings.uploads_per_user, settings.uploads_at_once)
     app.add_middleware(RateLimitMiddleware, limits=app.state.api_limits)
+    # Added last, so outermost: the rate limiter's 429 and every error get the headers too.
+    app.add_middleware(SecurityHeaders, pages=WEB)
     errors.install(app)
     app.add_exception_handler(OverLimit, _over_limit)
     app.include_router(auth.router)

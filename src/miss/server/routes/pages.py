@@ -4,6 +4,7 @@ locally). Pages other than the login need a session; without one they redirect t
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from urllib.parse import quote
 
@@ -20,6 +21,12 @@ from miss.server.store import Store
 
 WEB = Path(miss.__file__).parent / "web"
 THREE = WEB / "node_modules" / "three"
+#: npm packages served under /vendor/NAME/ (only the files they ship for browsers).
+VENDOR = {
+    "three": THREE,
+    "swagger-ui": WEB / "node_modules" / "swagger-ui-dist",
+    "redoc": WEB / "node_modules" / "redoc" / "bundles",
+}
 #: Types the stdlib may not know (or knows differently per platform): ES modules must
 #: come as JavaScript or the browser refuses to run them.
 TYPES = {
@@ -64,12 +71,38 @@ def _asset(path: Path) -> FileResponse:
 
 def _login_first(request: Request) -> RedirectResponse:
     target = request.url.path + (f"?{request.url.query}" if request.url.query else "")
-    return RedirectResponse(f"/login?next={quote(target, safe='')}", status_code=303)
+    return RedirectResponse(f"/login?next={quote(safe_next(target), safe='')}", status_code=303)
 
 
-@router.get("/login")
-def login_page() -> FileResponse:
+def safe_next(target: str) -> str:
+    """``target`` if it is a path on this server, else "/". Browsers take ``//host``,
+    ``/\\host`` and ``/<tab>/host`` for another host: after one "/" must come neither
+    "/" nor "\\", and no control character, space or backslash may appear anywhere
+    (the login page's script applies the same rule)."""
+    if not re.match(r"/(?![/\\])", target) or re.search(r"[\x00-\x20\x7f-\xa0\\\\]", target):
+        return "/"
+    return target
+
+
+@router.get("/login", response_model=None)
+def login_page(request: Request) -> Response:
+    """The login page; a ``next`` that leads off this server is replaced by "/"."""
+    wanted = request.query_params.get("next")
+    if wanted is not None and safe_next(wanted) != wanted:
+        return RedirectResponse("/login?next=%2F", status_code=303)
     return _page("login.html")
+
+
+@router.get("/docs")
+def swagger_page() -> FileResponse:
+    """Swagger UI for /openapi.json, from npm and served here (no CDN)."""
+    return _page("docs.html")
+
+
+@router.get("/redoc")
+def redoc_page() -> FileResponse:
+    """ReDoc for /openapi.json, from npm and served here (no CDN)."""
+    return _page("redoc.html")
 
 
 @router.get("/")
@@ -105,8 +138,12 @@ def static_file(path: str) -> FileResponse:
     return _asset(safe_file(WEB, path))
 
 
-@router.get("/vendor/three/{path:path}")
-def three_file(path: str) -> FileResponse:
-    if not THREE.is_dir():
-        raise NotFound("three.js is not installed; run `make` (npm install in src/miss/web).")
-    return _asset(safe_file(THREE, path, forbid=()))
+@router.get("/vendor/{package}/{path:path}")
+def vendor_file(package: str, path: str) -> FileResponse:
+    """A file of three.js, Swagger UI or ReDoc, installed from npm by ``make``."""
+    root = VENDOR.get(package)
+    if root is None:
+        raise NotFound(f"no package {package!r} is served.")
+    if not root.is_dir():
+        raise NotFound(f"{package} is not installed; run `make` (npm install in src/miss/web).")
+    return _asset(safe_file(root, path, forbid=()))

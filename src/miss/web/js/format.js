@@ -17,6 +17,8 @@ export function el( spec, attrs = {}, ...children ) {
 		if ( value == null || value === false ) continue;
 		if ( key.startsWith( 'on' ) ) node.addEventListener( key.slice( 2 ), value );
 		else if ( key === 'dataset' ) Object.assign( node.dataset, value );
+		// Through the CSSOM: a style attribute would need 'unsafe-inline' in the CSP.
+		else if ( key === 'style' ) node.style.cssText = String( value );
 		else node.setAttribute( key, value === true ? '' : String( value ) );
 	}
 	for ( const child of children.flat() ) {
