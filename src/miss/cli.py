@@ -122,6 +122,17 @@ def _add_account_commands(sub: Any) -> None:
     add.add_argument("name")
     add.add_argument("--admin", action="store_true", help="may see everything and read the audit")
     add.add_argument("--data-dir", default=None, help="default: MISS_DATA_DIR or ./miss-data")
+    helps = {
+        "passwd": "set an account's password (read from stdin); its logins end",
+        "disable": "disable an account: it cannot log in, and its logins end",
+        "enable": "enable a disabled account again",
+    }
+    for name, text in helps.items():
+        change = user_sub.add_parser(name, help=text)
+        change.add_argument("name")
+        change.add_argument(
+            "--data-dir", default=None, help="default: MISS_DATA_DIR or ./miss-data"
+        )
     audit = sub.add_parser("audit", help="print the web system's audit log")
     audit.add_argument("--data-dir", default=None, help="default: MISS_DATA_DIR or ./miss-data")
     audit.add_argument("--limit", type=int, default=500, help="newest entries (default 500)")
@@ -327,7 +338,9 @@ def _read_password() -> str:
 
 
 def cmd_user(args: argparse.Namespace) -> int:
-    from miss.server.accounts import create_user
+    """``miss user add|passwd|disable|enable NAME``. A running server drops the ended
+    logins within seconds (it checks its live sessions against the database)."""
+    from miss.server import accounts, audit
     from miss.server.settings import Settings
     from miss.server.store import Store
 
@@ -335,10 +348,21 @@ def cmd_user(args: argparse.Namespace) -> int:
     store = Store(settings.data_dir, settings.database_url)
     try:
         store.init_schema()
-        user = create_user(store, args.name, _read_password(), is_admin=args.admin)
+        if args.user_command == "add":
+            user = accounts.create_user(store, args.name, _read_password(), is_admin=args.admin)
+            said = f"created {'administrator' if user.is_admin else 'user'} {user.name!r}"
+        else:
+            user = accounts.find_user(store, args.name)
+            if args.user_command == "passwd":
+                accounts.set_password(store, user.id, _read_password())
+            else:
+                accounts.set_disabled(store, user.id, args.user_command == "disable")
+            ended = [] if args.user_command == "enable" else accounts.end_sessions(store, user.id)
+            audit.record(store, f"user_{args.user_command}", "(command line)", user.name)
+            said = f"{args.user_command}: {user.name!r} ({len(ended)} login(s) ended)"
     finally:
         store.close()
-    print(f"created {'administrator' if user.is_admin else 'user'} {user.name!r}")
+    print(said)
     return 0
 
 

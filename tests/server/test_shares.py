@@ -57,7 +57,10 @@ def expire(client: TestClient, share_id: str) -> None:
 
 
 def test_create_and_open_a_model_link(client: TestClient, work: dict) -> None:
-    link = share(client, work["alice"], model=work["model"]["id"], expires_in=3600, label="Dr Lee")
+    link = share(
+        client, work["alice"], model=work["model"]["id"], expires_in=3600, label="Dr Lee",
+        message="Left temporal bone, please",
+    )  # fmt: skip
     assert link["url"].startswith("/s/") and link["shared_by"] == "alice"
     token = link["url"][3:]
     assert len(token) >= 22  # >= 128 random bits in URL-safe base64 (it is 256)
@@ -71,7 +74,8 @@ def test_create_and_open_a_model_link(client: TestClient, work: dict) -> None:
     assert page.status_code == 200 and page.headers["content-type"].startswith("text/html")
     assert page.headers["referrer-policy"] == "no-referrer"
     info = guest.get(f"{link['url']}/info").json()
-    assert info["share"]["shared_by"] == "alice" and info["share"]["label"] == "Dr Lee"
+    assert info["share"]["shared_by"] == "alice" and "label" not in info["share"]  # the owner's
+    assert info["share"]["message"] == "Left temporal bone, please"
     assert info["share"]["expires"] == link["expires"] and "url" not in info["share"]
     (model,) = info["models"]
     assert model["id"] == work["model"]["id"] and list(model["files"]) == ["glb"]

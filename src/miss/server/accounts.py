@@ -16,11 +16,12 @@ from datetime import datetime, timedelta
 
 from argon2 import PasswordHasher
 from argon2.exceptions import InvalidHashError, VerificationError
-from sqlalchemy import delete, func, select, update
+from sqlalchemy import delete, select, update
 from sqlalchemy.exc import IntegrityError
 
 from miss.errors import BadParameter
 from miss.server.db import SessionRow, UserRow, VolumeRow, utcnow
+from miss.server.errors import NotFound
 from miss.server.store import Store, always, new_id
 
 _HASHER = PasswordHasher()
@@ -39,10 +40,11 @@ class User:
     id: str
     name: str
     is_admin: bool
+    disabled: bool = False
 
 
 def _user(row: UserRow) -> User:
-    return User(id=row.id, name=row.name, is_admin=row.is_admin)
+    return User(id=row.id, name=row.name, is_admin=row.is_admin, disabled=bool(row.disabled))
 
 
 def token_hash(token: str) -> str:
@@ -81,11 +83,6 @@ def create_user(store: Store, name: str, password: str, is_admin: bool = False) 
     return _user(row)
 
 
-def count_users(store: Store) -> int:
-    with store.session() as s:
-        return s.scalar(select(func.count()).select_from(UserRow)) or 0
-
-
 def list_users(store: Store) -> list[User]:
     with store.session() as s:
         return [_user(r) for r in s.scalars(select(UserRow).order_by(UserRow.created_at))]
@@ -97,8 +94,21 @@ def get_user(store: Store, user_id: str) -> User | None:
     return _user(row) if row else None
 
 
+class Disabled(Exception):
+    """The right password of an account an administrator has disabled."""
+
+
+def exists(store: Store, name: str) -> bool:
+    with store.session() as s:
+        return s.scalars(select(UserRow.id).where(UserRow.name == name)).first() is not None
+
+
 def authenticate(store: Store, name: str, password: str) -> User | None:
-    """The user whose name and password these are, else None (in constant-ish time)."""
+    """The user whose name and password these are, else None (in constant-ish time).
+
+    Raises ``Disabled`` for the right password of a disabled account: only someone who
+    knows the password learns that the account exists and is disabled.
+    """
     with store.session() as s:
         row = s.scalars(select(UserRow).where(UserRow.name == name)).first()
     try:
@@ -107,6 +117,8 @@ def authenticate(store: Store, name: str, password: str) -> User | None:
         return None
     if row is None:
         return None
+    if row.disabled:
+        raise Disabled(name)
     if _HASHER.check_needs_rehash(row.password):  # the library's defaults grew stronger
         with store.session.begin() as s:
             s.execute(
@@ -144,14 +156,61 @@ def _load_session(store: Store, hashed: str) -> tuple[User, SessionRow] | None:
             select(UserRow, SessionRow)
             .join(SessionRow, SessionRow.user_id == UserRow.id)
             .where(SessionRow.id == hashed, SessionRow.expires_at > utcnow())
+            .where(UserRow.disabled.is_(False))
         ).first()
     return (_user(found[0]), found[1]) if found else None
 
 
-def end_session(store: Store, token: str) -> None:
+def end_session(store: Store, token: str) -> str:
+    """End one login; returns its session id (the token's hash)."""
+    hashed = token_hash(token)
     with store.session.begin() as s:
-        s.execute(delete(SessionRow).where(SessionRow.id == token_hash(token)))
-    store.rows.drop(("session", token_hash(token)))
+        s.execute(delete(SessionRow).where(SessionRow.id == hashed))
+    store.rows.drop(("session", hashed))
+    return hashed
+
+
+def end_sessions(store: Store, user_id: str, keep: str | None = None) -> list[str]:
+    """End every login of ``user_id`` but the session ``keep``; returns the ended ids."""
+    with store.session.begin() as s:
+        ended = list(
+            s.scalars(
+                select(SessionRow.id).where(SessionRow.user_id == user_id, SessionRow.id != keep)
+            )
+        )
+        s.execute(delete(SessionRow).where(SessionRow.id.in_(ended)))
+    store.rows.drop(*[("session", hashed) for hashed in ended])
+    return ended
+
+
+def find_user(store: Store, name: str) -> User:
+    """The account called ``name``; NotFound when there is none."""
+    with store.session() as s:
+        row = s.scalars(select(UserRow).where(UserRow.name == name)).first()
+    if row is None:
+        raise NotFound(f"no user named {name!r}; GET /api/users lists them.")
+    return _user(row)
+
+
+def set_password(store: Store, user_id: str, password: str) -> None:
+    hashed = _HASHER.hash(check_password(password))
+    with store.session.begin() as s:
+        s.execute(update(UserRow).where(UserRow.id == user_id).values(password=hashed))
+
+
+def check_password_of(store: Store, user_id: str, password: str) -> bool:
+    """Whether ``password`` is the account's current one."""
+    with store.session() as s:
+        row = s.get(UserRow, user_id)
+    try:
+        return row is not None and _HASHER.verify(row.password, password)
+    except (VerificationError, InvalidHashError):
+        return False
+
+
+def set_disabled(store: Store, user_id: str, disabled: bool) -> None:
+    with store.session.begin() as s:
+        s.execute(update(UserRow).where(UserRow.id == user_id).values(disabled=disabled))
 
 
 def ensure_admin(store: Store, password: str = "") -> str | None:

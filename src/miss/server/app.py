@@ -91,9 +91,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         _say_confinement(confinement)
         app.state.reading = (confinement, settings.parse_limits())
         app.state.rooms = Hub(store)
+        app.state.rooms.start()
         try:
             yield
         finally:
+            await app.state.rooms.stop()
             await run_in_threadpool(queue.stop)
             store.close()
 

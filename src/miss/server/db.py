@@ -48,6 +48,7 @@ class UserRow(Base):
     password: Mapped[str] = mapped_column(String(200))
     is_admin: Mapped[bool] = mapped_column(default=False)
     created_at: Mapped[datetime] = mapped_column(default=utcnow)
+    disabled: Mapped[bool] = mapped_column(default=False)
 
 
 class SessionRow(Base):
@@ -139,7 +140,8 @@ class ShareRow(Base):
     volume_id: Mapped[str | None] = mapped_column(
         ForeignKey("volumes.id", ondelete="CASCADE"), index=True, default=None
     )
-    label: Mapped[str] = mapped_column(String(200), default="")
+    label: Mapped[str] = mapped_column(String(200), default="")  # the owner's own note
+    message: Mapped[str] = mapped_column(String(1000), default="")  # what guests read
     can_download: Mapped[bool] = mapped_column(default=False)
     can_annotate: Mapped[bool] = mapped_column(default=False)
     created_at: Mapped[datetime] = mapped_column(default=utcnow)
@@ -193,6 +195,8 @@ class SecretRow(Base):
 ADDED_COLUMNS = (
     ("volumes", "owner_id", "VARCHAR(32)"),
     ("models", "submitted_by", "VARCHAR(64)"),
+    ("users", "disabled", "BOOLEAN NOT NULL DEFAULT FALSE"),
+    ("shares", "message", "VARCHAR(1000) NOT NULL DEFAULT ''"),
 )
 
 

@@ -73,6 +73,12 @@ class KeyedBuckets:
             bucket = self._bucket(key)
             return 0.0 if bucket.take(cost) else max(bucket.seconds_until(cost), 1e-3)
 
+    def give_back(self, key: str, cost: float = 1.0) -> None:
+        """Return ``cost`` tokens taken for an attempt that turned out fine."""
+        with self._lock:
+            bucket = self._bucket(key)
+            bucket.tokens = min(bucket.capacity, bucket.tokens + cost)
+
     def allowed(self, key: str) -> tuple[bool, float]:
         """(a token is there now, seconds until one is) without taking it."""
         with self._lock:

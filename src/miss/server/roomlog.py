@@ -14,7 +14,7 @@ from typing import Any
 
 from sqlalchemy import func, select
 
-from miss.server.db import RoomEventRow, utcnow
+from miss.server.db import RoomEventRow, SessionRow, UserRow, utcnow
 from miss.server.store import Store
 
 #: Chat messages a late joiner receives (older ones stay in the replay).
@@ -132,3 +132,15 @@ def sessions(store: Store, model_id: str) -> list[dict[str, Any]]:
         if event["author"] and event["author"] not in entry["people"]:
             entry["people"].append(event["author"])
     return list(out.values())
+
+
+def live_sessions(store: Store, sessions: set[str]) -> set[str]:
+    """Those of ``sessions`` (token hashes) that are live logins of enabled accounts."""
+    with store.session() as s:
+        rows = s.scalars(
+            select(SessionRow.id)
+            .join(UserRow, UserRow.id == SessionRow.user_id)
+            .where(SessionRow.id.in_(sessions), SessionRow.expires_at > utcnow())
+            .where(UserRow.disabled.is_(False))
+        )
+        return set(rows)

@@ -21,6 +21,7 @@ import json
 import logging
 import math
 import secrets
+import threading
 import time
 from collections import deque
 from collections.abc import Awaitable, Callable
@@ -94,7 +95,9 @@ class Invalid(Exception):
 
 @dataclass(frozen=True)
 class Visitor:
-    """Who joins: a user (``key`` "u:<id>") or a share link's guest ("s:<share id>")."""
+    """Who joins: a user (``key`` "u:<id>") or a share link's guest ("s:<share id>:<n>",
+    one per connection, so guests of one link cannot remove each other's pins), and the
+    grants that let them in: when any of those ends, the connection closes."""
 
     key: str
     name: str
@@ -102,6 +105,40 @@ class Visitor:
     owner: bool  # may remove anyone's pins
     expires: datetime | None = None  # naive UTC, like the database
     share_id: str | None = None
+    user_id: str | None = None
+    session: str | None = None  # the login session's token hash
+    volume_id: str | None = None
+
+    def grants(self, model_id: str) -> set[tuple[str, str]]:
+        """What this connection stands on: ("session", hash), ("user", id), ("share", id),
+        ("model", id), ("volume", id)."""
+        found = {("model", model_id)}
+        for kind, value in (
+            ("session", self.session),
+            ("user", self.user_id),
+            ("share", self.share_id),
+            ("volume", self.volume_id),
+        ):
+            if value:
+                found.add((kind, value))
+        return found
+
+
+#: Why a connection closes when a grant ends, by kind.
+ENDED = {
+    "session": "you logged out, or your password was changed",
+    "user": "your account was disabled or its password reset",
+    "share": "the share link was revoked",
+    "model": "the model was deleted",
+    "volume": "the volume was deleted",
+}
+#: Seconds between checks for ended grants and expired access (the promise: closed within
+#: a second), and how long an ended grant is remembered (a connection admitted just
+#: before the grant ended still finds it).
+WATCH_EVERY = 0.25
+REMEMBER_ENDED = 30.0
+#: Every this many checks, the connected users' logins are looked up in the database.
+RECHECK_TICKS = 8
 
 
 def guest_name(raw: str) -> str:
@@ -277,6 +314,73 @@ class Hub:
         self.store, self.max_people = store, max_people
         self.rooms: dict[str, Room] = {}
         self._lock = asyncio.Lock()
+        self._ended: dict[tuple[str, str], float] = {}  # written from any thread
+        self._ended_lock = threading.Lock()
+        self._watcher: asyncio.Task[None] | None = None
+
+    def end(self, kind: str, value: str) -> None:
+        """A grant ended (a session, a user's access, a link, a model, a volume): every
+        connection standing on it is closed within ``WATCH_EVERY`` seconds. Safe to call
+        from any thread (the routes that end grants run in the threadpool)."""
+        with self._ended_lock:
+            self._ended[(kind, value)] = time.monotonic()
+
+    def start(self) -> None:
+        self._watcher = asyncio.get_running_loop().create_task(self._watch())
+
+    async def stop(self) -> None:
+        if self._watcher is not None:
+            self._watcher.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._watcher
+
+    async def _watch(self) -> None:
+        ticks = 0
+        while True:
+            await asyncio.sleep(WATCH_EVERY)
+            ticks += 1
+            try:
+                if ticks % RECHECK_TICKS == 0:  # ended elsewhere: `miss user disable`
+                    await self._recheck_sessions()
+                self.close_ended()
+            except Exception:  # keep watching whatever one pass met
+                log.exception("room watcher")
+
+    async def _recheck_sessions(self) -> None:
+        """Logins of connected users that the database no longer holds (ended by the
+        command line or another process) end here too."""
+        sessions = {
+            person.visitor.session
+            for room in self.rooms.values()
+            for person in room.people.values()
+            if person.visitor.session
+        }
+        if sessions:
+            live = await run_in_threadpool(roomlog.live_sessions, self.store, sessions)
+            for session in sessions - live:
+                self.end("session", session)
+
+    def close_ended(self) -> None:
+        """Close connections whose grant ended or whose access expired (on the loop)."""
+        now = time.monotonic()
+        with self._ended_lock:
+            ended = dict(self._ended)
+            for key, at in ended.items():
+                if now - at > REMEMBER_ENDED:
+                    del self._ended[key]
+        for room in list(self.rooms.values()):
+            for person in list(room.people.values()):
+                if person.closing:
+                    continue
+                gone = [k for k in person.visitor.grants(room.model_id) if k in ended]
+                if gone:
+                    kind = gone[0][0]
+                    code = "revoked" if kind == "share" else "ended"
+                    person.error(code, f"{ENDED[kind]}; this connection is closed.")
+                    person.close(Close.GONE, ENDED[kind])
+                elif person.expired():
+                    person.error("expired", "your access to this room has expired.")
+                    person.close(Close.GONE, "access expired")
 
     async def run(self, ws: WebSocket, model_id: str, visitor: Visitor, bounds: Any) -> None:
         """Serve one accepted connection until it closes."""
@@ -402,11 +506,8 @@ class Hub:
 
     async def revoke_share(self, share_id: str) -> None:
         """Close every connection that came in through a revoked link, at once."""
-        for room in list(self.rooms.values()):
-            for person in list(room.people.values()):
-                if person.visitor.share_id == share_id:
-                    person.error("revoked", "the share link was revoked.")
-                    person.close(Close.GONE, "share link revoked")
+        self.end("share", share_id)
+        self.close_ended()
 
 
 def _log_failure(task: asyncio.Future[Any]) -> None:

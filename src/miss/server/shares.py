@@ -36,6 +36,7 @@ def create(
     can_download: bool,
     can_annotate: bool,
     label: str,
+    message: str = "",
 ) -> tuple[ShareRow, str]:
     """A new link for exactly one of ``model_id`` / ``volume_id``; returns (row, token)."""
     if (model_id is None) == (volume_id is None):
@@ -53,6 +54,7 @@ def create(
         model_id=model_id,
         volume_id=volume_id,
         label=label.strip()[:200],
+        message=message.strip()[:1000],
         can_download=can_download,
         can_annotate=can_annotate,
         expires_at=utcnow() + timedelta(seconds=expires_in),
@@ -155,13 +157,16 @@ def shared_by(store: Store, share: ShareRow) -> str:
     return owner.name if owner else "a former user"
 
 
-def as_dict(row: ShareRow, store: Store | None = None) -> dict[str, Any]:
-    """A link as the API lists it: never its token (not kept) -- the URL is shown once."""
+def as_dict(row: ShareRow, store: Store | None = None, guest: bool = False) -> dict[str, Any]:
+    """A link as the API lists it: never its token (not kept) -- the URL is shown once.
+    ``guest``: as the link's holder sees it, without the owner's ``label`` (a note for
+    the owner: "for Dr X, re. Mrs Y"), with the ``message`` written for them."""
     out: dict[str, Any] = {
         "id": row.id,
         "model": row.model_id,
         "volume": row.volume_id,
-        "label": row.label,
+        **({} if guest else {"label": row.label}),
+        "message": row.message,
         "can_download": row.can_download,
         "can_annotate": row.can_annotate,
         "created": row.created_at.replace(tzinfo=UTC).isoformat(),

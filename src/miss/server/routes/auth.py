@@ -3,27 +3,73 @@
 
 from __future__ import annotations
 
+from datetime import UTC, datetime, timedelta
 from typing import Any
 
 from fastapi import APIRouter, Request, Response
 from fastapi.responses import JSONResponse
 from pydantic import BaseModel, ConfigDict, Field
 
-from miss.errors import UnsupportedFormat
+from miss.errors import BadParameter, UnsupportedFormat
 from miss.server import accounts, audit
 from miss.server.auth import CSRF_COOKIE, SESSION_COOKIE, presented_token
 from miss.server.deps import AdminDep, SettingsDep, StoreDep, UserDep
-from miss.server.errors import Unauthorized
-from miss.server.ratelimit import KeyedBuckets, OverLimit
+from miss.server.errors import Forbidden, Unauthorized
+from miss.server.ratelimit import KeyedBuckets, OverLimit, retry_after
 from miss.server.schemas import JSONRoute
 
 router = APIRouter(tags=["accounts"], route_class=JSONRoute)
 
 
-def failed_login_limits() -> KeyedBuckets:
-    """Failed logins per client address: 10 at once, then one every 30 s. Enough for a
-    person who mistypes, far too few to guess a password. One set per app."""
-    return KeyedBuckets(capacity=10, rate=1 / 30)
+class LoginLimits:
+    """Login attempts per client address (10 at once, then one every 30 s) and per
+    account name (10, then one a minute, from anywhere): enough for a person who
+    mistypes, far too few to guess a password, and a botnet gets no more tries at one
+    account than a single client.
+
+    An attempt is counted *before* the password is checked, in one locked step per
+    bucket, and given back when the password was right: parallel requests cannot all
+    pass a check that reads the count first and adds to it afterwards."""
+
+    def __init__(self) -> None:
+        self.addresses = KeyedBuckets(capacity=10, rate=1 / 30)
+        self.accounts = KeyedBuckets(capacity=10, rate=1 / 60)
+
+    def attempt(self, address: str, name: str) -> None:
+        """Count one attempt; ``OverLimit`` (429) when the address or account is locked."""
+        wait = self.addresses.take_or_wait(address)
+        if wait > 0:
+            raise OverLimit(
+                f"too many failed logins from {address}; try again in {retry_after(wait)} s "
+                f"({_at(wait)}).",
+                wait,
+            )
+        wait = self.accounts.take_or_wait(name.lower())
+        if wait > 0:
+            self.addresses.give_back(address)
+            raise OverLimit(
+                f"too many failed logins for the account {name!r}: it is locked; try again "
+                f"in {retry_after(wait)} s ({_at(wait)}), or ask an administrator.",
+                wait,
+            )
+
+    def succeeded(self, address: str, name: str) -> None:
+        self.addresses.give_back(address)
+        self.accounts.give_back(name.lower())
+
+
+def _at(wait: float) -> str:
+    return f"at {(datetime.now(UTC) + timedelta(seconds=retry_after(wait))):%H:%M:%S} UTC"
+
+
+def failed_login_limits() -> LoginLimits:
+    """One set of login limits per app."""
+    return LoginLimits()
+
+
+#: What the audit log records for a failed login with a name that is no account: never
+#: the typed text (people type their password into the name field).
+UNKNOWN_ACCOUNT = "(unknown account)"
 
 
 class LoginRequest(BaseModel):
@@ -37,6 +83,7 @@ class UserOut(BaseModel):
     id: str
     name: str
     admin: bool
+    disabled: bool = False
 
 
 class NewUser(BaseModel):
@@ -48,7 +95,7 @@ class NewUser(BaseModel):
 
 
 def user_out(user: accounts.User) -> UserOut:
-    return UserOut(id=user.id, name=user.name, admin=user.is_admin)
+    return UserOut(id=user.id, name=user.name, admin=user.is_admin, disabled=user.disabled)
 
 
 def _require_json(request: Request) -> None:
@@ -69,15 +116,20 @@ def login(
     session cookie (HttpOnly) and the CSRF cookie the pages echo in ``X-CSRF-Token``."""
     _require_json(request)
     where = audit.address(request)
-    limits: KeyedBuckets = request.app.state.failed_logins
-    allowed, wait = limits.allowed(where)
-    if not allowed:
-        raise OverLimit(f"too many failed logins from {where}; try again in {wait:.0f} s.", wait)
-    user = accounts.authenticate(store, body.username, body.password)
+    limits: LoginLimits = request.app.state.failed_logins
+    limits.attempt(where, body.username)  # counted first: raises 429 when locked
+    try:
+        user = accounts.authenticate(store, body.username, body.password)
+    except accounts.Disabled:
+        audit.record(store, "login_disabled", body.username, where=where)
+        raise Forbidden("this account is disabled; ask an administrator to enable it.") from None
     if user is None:
-        limits.take(where)
-        audit.record(store, "login_failed", body.username[:64], where=where)
+        known = accounts.exists(store, body.username)
+        audit.record(
+            store, "login_failed", body.username if known else UNKNOWN_ACCOUNT, where=where
+        )
         raise Unauthorized("wrong user name or password.")
+    limits.succeeded(where, body.username)
     token, csrf, expires = accounts.start_session(store, user, settings.session_hours)
     audit.record(store, "login", user.name, where=where)
     body_out = {
@@ -103,7 +155,7 @@ def _set_cookies(response: Response, request: Request, token: str, csrf: str, ag
 def logout(request: Request, store: StoreDep, user: UserDep) -> Response:
     """End this session (the token stops working at once) and clear the cookies."""
     token, _ = presented_token(request.headers, request.cookies)
-    accounts.end_session(store, token)
+    request.app.state.rooms.end("session", accounts.end_session(store, token))
     audit.record(store, "logout", user.name, where=audit.address(request))
     response = Response(status_code=204)
     response.delete_cookie(SESSION_COOKIE, path="/")
@@ -127,3 +179,67 @@ def add_user(body: NewUser, store: StoreDep, admin: AdminDep, request: Request) 
     user = accounts.create_user(store, body.name, body.password, body.admin)
     audit.record(store, "user_add", admin.name, user.name, audit.address(request), admin=body.admin)
     return user_out(user)
+
+
+class PasswordChange(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    old: str = Field(max_length=1024)
+    new: str = Field(max_length=1024)
+
+
+@router.post(
+    "/api/auth/password",
+    status_code=204,
+    responses={403: {"description": "the old password is wrong"}},
+)
+def change_password(
+    body: PasswordChange, request: Request, store: StoreDep, user: UserDep
+) -> Response:
+    """Change your password (the old one first); every other login of yours ends, and
+    their rooms close. This session stays."""
+    where = audit.address(request)
+    limits: LoginLimits = request.app.state.failed_logins
+    limits.attempt(where, user.name)  # the old password is a guess like any other
+    if not accounts.check_password_of(store, user.id, body.old):
+        audit.record(store, "password_failed", user.name, where=where)
+        raise Forbidden("the old password is wrong; type your current password.")
+    limits.succeeded(where, user.name)
+    accounts.set_password(store, user.id, body.new)
+    token, _ = presented_token(request.headers, request.cookies)
+    ended = accounts.end_sessions(store, user.id, keep=accounts.token_hash(token))
+    for session in ended:
+        request.app.state.rooms.end("session", session)
+    audit.record(store, "password", user.name, where=where, sessions_ended=len(ended))
+    return Response(status_code=204)
+
+
+class UserChange(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    disabled: bool | None = Field(default=None, description="disable or enable the account")
+    password: str | None = Field(default=None, max_length=1024, description="a new password")
+
+
+@router.patch("/api/users/{name}", response_model=UserOut)
+def change_user(
+    name: str, body: UserChange, request: Request, store: StoreDep, admin: AdminDep
+) -> Any:
+    """Disable or enable an account, or set its password (administrators). Disabling and
+    a new password end all of its logins at once, and close its rooms."""
+    user = accounts.find_user(store, name)
+    if body.disabled and user.id == admin.id:
+        raise BadParameter("you cannot disable your own account; ask another administrator.")
+    if body.password is not None:
+        accounts.set_password(store, user.id, body.password)
+    if body.disabled is not None:
+        accounts.set_disabled(store, user.id, body.disabled)
+    if body.password is not None or body.disabled:
+        accounts.end_sessions(store, user.id)
+        request.app.state.rooms.end("user", user.id)
+    changes = {k: v for k, v in (("disabled", body.disabled),) if v is not None}
+    audit.record(
+        store, "user_change", admin.name, user.name, audit.address(request),
+        password_reset=body.password is not None, **changes,
+    )  # fmt: skip
+    return user_out(accounts.find_user(store, name))

@@ -3,6 +3,7 @@ record of past sessions (``/api/models/{id}/room/...``) to replay."""
 
 from __future__ import annotations
 
+import secrets
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Query, WebSocket
@@ -35,12 +36,13 @@ def admit_guest(store: Store, model_id: str, token: str, name: str) -> tuple[Vis
             Close.FORBIDDEN, "this link allows viewing only; ask for one that allows annotating."
         )
     visitor = Visitor(
-        key=f"s:{share.id}",
+        key=f"s:{share.id}:{secrets.token_hex(8)}",  # this connection's own: pins are its own
         name=guest_name(name),
         guest=True,
         owner=False,
         expires=share.expires_at,
         share_id=share.id,
+        volume_id=model.volume_id,
     )
     return visitor, (model.stats or {}).get("bounds_mm")
 
@@ -65,6 +67,9 @@ def admit_user(store: Store, ws: WebSocket, model_id: str) -> tuple[Visitor, Any
         guest=False,
         owner=user.is_admin or user.id == owner,
         expires=session.expires_at,
+        user_id=user.id,
+        session=session.id,
+        volume_id=model.volume_id,
     )
     return visitor, (model.stats or {}).get("bounds_mm")
 

@@ -34,6 +34,7 @@ router = APIRouter(tags=["shares"], route_class=JSONRoute)
 #: Share pages must not leak their URL (the token) to anything they link to, nor be kept
 #: by a shared cache.
 PRIVATE = {"Referrer-Policy": "no-referrer", "Cache-Control": "no-store"}
+GUEST_ERROR = "this model could not be made; the person who shared it can see why."
 
 
 class ShareRequest(BaseModel):
@@ -44,7 +45,12 @@ class ShareRequest(BaseModel):
     expires_in: int = Field(shares.DEFAULT_SECONDS, description="seconds until the link expires")
     can_download: bool = Field(False, description="model files may be downloaded")
     can_annotate: bool = Field(False, description="may join the room: pins, chat, measure")
-    label: str = Field("", max_length=200, description="a note for yourself (who it is for)")
+    label: str = Field(
+        "", max_length=200, description="a note for yourself (who it is for); guests never see it"
+    )
+    message: str = Field(
+        "", max_length=1000, description="a message for the link's guests, shown on its page"
+    )
 
 
 @router.post("/api/shares", status_code=201)
@@ -66,6 +72,7 @@ def create_share(body: ShareRequest, store: StoreDep, user: UserDep, request: Re
         can_download=body.can_download,
         can_annotate=body.can_annotate,
         label=body.label,
+        message=body.message,
     )
     target = body.model or body.volume or ""
     audit.record(store, "share", user.name, target, audit.address(request), share=row.id)
@@ -155,7 +162,9 @@ def model_entry(model: ModelRow, volume: VolumeRow, share: ShareRow, token: str)
         "status": model.status,
         "progress": model.progress,
         "stage": model.stage,
-        "error": model.error,
+        # The reason is the owner's to read (it may name the server's folders or the
+        # scan's problems); a link's guests learn only that the model could not be made.
+        "error": GUEST_ERROR if model.error else None,
         "params": params_of(model),
         "stats": stats,
         "provenance": provenance(model, volume),
@@ -172,7 +181,7 @@ def share_info(token: str, store: StoreDep) -> JSONResponse:
     volume = store.get_volume(share.volume_id or found[0].volume_id)
     info = volume.info
     body = {
-        "share": shares.as_dict(share, store),
+        "share": shares.as_dict(share, store, guest=True),
         "volume": {
             "name": volume.name,
             "modality": info.get("modality", ""),

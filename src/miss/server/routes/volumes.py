@@ -192,6 +192,7 @@ def delete_volume(
     for model in store.list_models(volume.id):
         queue.cancel(model.id)
     store.delete_volume(volume.id)
+    request.app.state.rooms.end("volume", volume.id)  # its models' rooms close
     audit.record(store, "delete", user.name, volume.id, audit.address(request), name=volume.name)
     return Response(status_code=204)
 

@@ -18,7 +18,8 @@ export class ShareDialog {
 			el( 'form', { method: 'dialog', onsubmit: ( e ) => this.create( e ) },
 				el( 'h2', {}, 'Share this model' ),
 				burnedIn ? el( 'div.notice.error', {}, 'The scanner flagged text burned into these images; it may show patient identity in the pixels. Check before sharing.' ) : null,
-				el( 'label.field', {}, el( 'span', {}, 'Label (who it is for)' ), el( 'input#share-label', { type: 'text', maxlength: 200, placeholder: 'e.g. Dr Lee, island clinic' } ) ),
+				el( 'label.field', {}, el( 'span', {}, 'Label (who it is for; only you see it)' ), el( 'input#share-label', { type: 'text', maxlength: 200, placeholder: 'e.g. Dr Lee, island clinic' } ) ),
+				el( 'label.field', {}, el( 'span', {}, 'Message for the people you share with (optional)' ), el( 'input#share-message', { type: 'text', maxlength: 1000, placeholder: 'e.g. Please look at the left temporal bone' } ) ),
 				el( 'label.field', {}, el( 'span', {}, 'Expires after' ),
 					el( 'select#share-expiry', {}, ...EXPIRIES.map( ( [ s, label ] ) => el( 'option', { value: s, selected: s === 86400 }, label ) ) ) ),
 				el( 'label.check', {}, el( 'input#share-annotate', { type: 'checkbox', checked: true } ), ' may join the consultation (pins, chat, measure)' ),
@@ -56,6 +57,7 @@ export class ShareDialog {
 				can_annotate: this.$( 'share-annotate' ).checked,
 				can_download: this.$( 'share-download' ).checked,
 				label: this.$( 'share-label' ).value,
+				message: this.$( 'share-message' ).value,
 			} );
 			this.$( 'share-url' ).value = new URL( link.url, location.origin ).href;
 			this.$( 'share-result' ).hidden = false;

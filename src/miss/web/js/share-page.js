@@ -31,7 +31,7 @@ function showShare( data ) {
 	const rights = [ 'view', s.can_annotate ? 'consult' : null, s.can_download ? 'download' : null ].filter( Boolean ).join( ', ' );
 	fill( $( 'share-facts' ),
 		row( 'Shared by', s.shared_by ),
-		s.label ? row( 'Label', s.label ) : null,
+		s.message ? row( 'Message', s.message ) : null,
 		row( 'Expires', when( s.expires ) ),
 		row( 'You may', rights ),
 		row( 'Scan', `${data.volume.modality || 'volume'} · ${( data.volume.dims || [] ).join( '×' )}` ) );
