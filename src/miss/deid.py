@@ -22,6 +22,7 @@ from __future__ import annotations
 import hashlib
 import hmac
 import re
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -101,8 +102,19 @@ NOT_SEARCHED = frozenset({"StudyDescription", "PatientSex", "PatientAge"})
 UID_KEYS = ("series_uid", "study_uid", "frame_of_reference")
 PROFILE = "DICOM PS3.15 basic application level confidentiality profile (clean descriptors)"
 REMOVED = "[removed]"
-#: Values shorter than this are not searched for in text (a sex "M", an age "04Y").
+#: Values shorter than this are cut from text only as whole words ("LI" in "NA_LI_head",
+#: never in "SLICE"); longer ones wherever they stand.
 MIN_VALUE = 3
+#: Attributes holding a DICOM date (YYYYMMDD, or a date-time that starts with one).
+DATES = frozenset(
+    {"PatientBirthDate", "StudyDate", "SeriesDate", "AcquisitionDate", "AcquisitionDateTime",
+     "ContentDate"}
+)  # fmt: skip
+#: Month names as dates are spelled in English free text.
+_MONTHS = (
+    "January", "February", "March", "April", "May", "June",
+    "July", "August", "September", "October", "November", "December",
+)  # fmt: skip
 
 
 def remap_uid(uid: str, key: bytes) -> str:
@@ -115,32 +127,110 @@ def remap_uid(uid: str, key: bytes) -> str:
 
 
 def identity_values(patient: dict[str, Any]) -> list[str]:
-    """Every string to cut out of free text: whole values, and the parts of person names;
-    longest first, so "Doe^John" goes before "Doe"."""
+    """Every string to cut out of free text: whole values, the parts of person names (in
+    either order, joined or not), IDs without their separators, and dates in the usual
+    spellings; longest first, so "Doe^John" goes before "Doe"."""
     values: set[str] = set()
     for keyword, value in patient.items():
         if keyword in NOT_SEARCHED:
             continue
         for item in re.split(r"\\", str(value or "")):
             item = item.strip()
-            if len(item) >= MIN_VALUE:
-                values.add(item)
-                values.add(item.replace("^", " ").strip())
+            if not item:
+                continue
+            values.update({item, item.replace("^", " ").strip()})
             if keyword in PERSON_NAMES:
-                values.update(p for p in re.split(r"[\^\s,=]+", item) if len(p) >= MIN_VALUE)
+                values.update(_name_spellings(item))
+            elif keyword in DATES:
+                values.update(date_spellings(item[:8]))
+            else:
+                values.add(re.sub(r"[^A-Za-z0-9]", "", item))  # "123-45-678" as "12345678"
+    values.discard("")
     return sorted(values, key=lambda v: (-len(v), v))
 
 
+def _name_spellings(name: str) -> set[str]:
+    """A person name's parts, and the parts run together in both orders ("LI^NA":
+    "LI", "NA", "LINA", "NALI")."""
+    parts = [p for p in re.split(r"[\^\s,=]+", name) if p]
+    found = set(parts)
+    if len(parts) >= 2:
+        found |= {parts[0] + parts[1], parts[1] + parts[0], "".join(parts)}
+    return found
+
+
+def date_spellings(dicom_date: str) -> set[str]:
+    """``YYYYMMDD`` as people write it: 1970-03-02, 1970/03/02, 02.03.1970, 2.3.1970,
+    03/02/1970, 02-Mar-1970, 2 March 1970, March 2, 1970, 700302 ... (empty for a
+    value that is no date)."""
+    if not re.fullmatch(r"\d{8}", dicom_date):
+        return set()
+    y, m, d = dicom_date[:4], dicom_date[4:6], dicom_date[6:]
+    if not (1 <= int(m) <= 12 and 1 <= int(d) <= 31):
+        return set()
+    mi, di, yy = str(int(m)), str(int(d)), y[2:]
+    month = _MONTHS[int(m) - 1]
+    found = {f"{y}{m}{d}", f"{yy}{m}{d}", f"{d}{m}{y}"}
+    for sep in "-/.":
+        found |= {f"{y}{sep}{m}{sep}{d}", f"{d}{sep}{m}{sep}{y}", f"{m}{sep}{d}{sep}{y}"}
+        found |= {f"{di}{sep}{mi}{sep}{y}", f"{mi}{sep}{di}{sep}{y}", f"{y}{sep}{mi}{sep}{di}"}
+        found |= {f"{d}{sep}{m}{sep}{yy}", f"{d}{sep}{month[:3]}{sep}{y}"}
+    for name in (month, month[:3]):
+        found |= {f"{di} {name} {y}", f"{d} {name} {y}", f"{name} {di}, {y}", f"{name} {di} {y}"}
+    return found
+
+
 def scrub(text: str, values: list[str]) -> str:
-    """``text`` with every identity value cut out (case-insensitive)."""
+    """``text`` with every identity value cut out (case-insensitive); values shorter than
+    ``MIN_VALUE`` only where they stand as a word of their own (letters and digits
+    around them break no word: "_", "-", ".", "^", spaces and case changes do)."""
     for value in values:
-        text = re.sub(re.escape(value), REMOVED, text, flags=re.IGNORECASE)
+        if len(value) >= MIN_VALUE:
+            text = re.sub(re.escape(value), REMOVED, text, flags=re.IGNORECASE)
+        else:
+            text = _cut_word(text, value)
     return text
 
 
-def contains_identity(text: str, values: list[str]) -> bool:
-    lower = text.lower()
-    return any(v.lower() in lower for v in values)
+def _cut_word(text: str, value: str) -> str:
+    """Cut a short value where it stands as a word of its own (no letter or digit on
+    either side) or as one capitalised piece of a camel-case run ("Li" in "NaLi")."""
+    word = re.compile(rf"(?<![A-Za-z0-9]){re.escape(value)}(?![A-Za-z0-9])", re.IGNORECASE)
+    text = word.sub(REMOVED, text)
+    camel = re.compile(rf"(?<=[a-z]){re.escape(value.capitalize())}(?![a-z])|"
+                       rf"{re.escape(value.capitalize())}(?=[A-Z][a-z])")  # fmt: skip
+    return camel.sub(REMOVED, text)
+
+
+#: Free-text patterns that say "a person" or "a date" with nothing known to match: DICOM
+#: person names (Doe^John), "Name: ...", "Patient ...", and dates in the usual spellings.
+_PATTERNS = [
+    re.compile(r"[A-Za-z][A-Za-z'\-]*\^[A-Za-z'\-^ ]*[A-Za-z]"),
+    re.compile(r"(?i)\b(?:patient(?:'s)?(?:\s+name)?|name|pt)\s*[:=]\s*[^,;\n]+"),
+    re.compile(r"(?<!\d)(?:19|20)\d\d[-/.]?(?:0[1-9]|1[0-2])[-/.]?(?:0[1-9]|[12]\d|3[01])(?!\d)"),
+    re.compile(r"(?<!\d)(?:0?[1-9]|[12]\d|3[01])[-/.](?:0?[1-9]|1[0-2])[-/.](?:19|20)\d\d(?!\d)"),
+    re.compile(r"(?<!\d)(?:0?[1-9]|1[0-2])[-/.](?:0?[1-9]|[12]\d|3[01])[-/.](?:19|20)\d\d(?!\d)"),
+    re.compile(
+        r"(?i)\b(?:\d{1,2}[ -])?(?:jan|feb|mar|apr|may|jun|jul|aug|sep|sept|oct|nov|dec)[a-z]*\.?"
+        r"(?:[ -]\d{1,2},?)?[ -](?:19|20)\d\d\b"
+    ),
+]
+
+
+def scrub_patterns(text: str) -> str:
+    """``text`` without what looks like a person's name or a date, for text from formats
+    that give no identity to match (NIfTI, NRRD, MetaImage headers, file names)."""
+    for pattern in _PATTERNS:
+        text = pattern.sub(REMOVED, text)
+    return text
+
+
+def _cleaner(values: list[str], by_pattern: bool) -> Callable[[Any], str]:
+    def clean(text: Any) -> str:
+        said = scrub(str(text or ""), values)
+        return scrub_patterns(said) if by_pattern else said
+
+    return clean
 
 
 @dataclass(frozen=True)
@@ -172,16 +262,15 @@ def deidentify(volume: Volume, key: bytes) -> Deidentified:
     for name in UID_KEYS:
         if name in meta:
             meta[name] = new_uid(meta[name])
+    # Formats without identity fields (NIfTI descrip, NRRD content ...) still carry what
+    # people type into them: names and dates go by pattern there.
+    clean = _cleaner(values, by_pattern=meta.get("source_format") != "dicom")
     meta["series"] = [
-        {
-            **s,
-            "uid": new_uid(s.get("uid")),
-            "description": scrub(str(s.get("description", "")), values),
-        }
+        {**s, "uid": new_uid(s.get("uid")), "description": clean(s.get("description", ""))}
         for s in meta.get("series") or []
     ]
-    meta["series_description"] = scrub(str(meta.get("series_description", "")), values)
-    meta["notes"] = [scrub(str(n), values) for n in meta.get("notes") or []]
+    meta["series_description"] = clean(meta.get("series_description", ""))
+    meta["notes"] = [clean(n) for n in meta.get("notes") or []]
     report = {
         "profile": PROFILE,
         "removed": sorted(patient),

@@ -14,12 +14,13 @@ import hashlib
 import json
 import re
 import shutil
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from miss.deid import deidentify, identity_values, remap_uid, scrub
+from miss.deid import deidentify, identity_values, remap_uid, scrub, scrub_patterns
 from miss.errors import EmptySurface, MissError, UnreadableVolume
 from miss.io.archive import volume_suffix
 from miss.io.confined import Confinement, Limits, parse_upload
@@ -208,11 +209,23 @@ def display_name(upload: Upload, volume: Volume, identity: list[str]) -> str:
         name = filename[: len(filename) - len(suffix)] if suffix else filename
     # File names use "_" and "-" where the header has "^" and spaces.
     spaced = re.sub(r"[_\-.]+", " ", name)
-    if scrub(name, identity) != name or scrub(spaced, identity) != spaced:
-        meta = volume.meta
-        parts = [meta.get("modality"), meta.get("series_description")]
-        name = " ".join(p for p in parts if p and "[removed]" not in p) or "Scan"
+    if any(scrub_patterns(scrub(text, identity)) != text for text in (name, spaced)):
+        return withheld_name(volume)
     return name[:200] or "Scan"
+
+
+def withheld_name(volume: Volume) -> str:
+    """The name of a volume whose file name carried identity, or looked as if it did (a
+    name, a date): its modality and series description, or, without those, its
+    modality and the upload's date ("CT volume, uploaded 2026-11-24 14:05"), which says
+    when it came, never when the patient was scanned."""
+    meta = volume.meta
+    parts = [meta.get("modality"), meta.get("series_description")]
+    name = " ".join(p for p in parts if p and "[removed]" not in p)
+    if meta.get("series_description") and "[removed]" not in meta["series_description"]:
+        return name[:200]
+    when = datetime.now(UTC).strftime("%Y-%m-%d %H:%M")
+    return f"{meta.get('modality') or 'Scan'} volume, uploaded {when}"
 
 
 def slugify(name: str) -> str:
