@@ -4,7 +4,10 @@ the owner-only identity record."""
 from __future__ import annotations
 
 import shutil
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
 from enum import StrEnum
+from pathlib import Path
 from typing import Annotated, Any
 
 import numpy as np
@@ -20,8 +23,9 @@ from miss.server.deps import QueueDep, SettingsDep, StoreDep, UserDep, VolumeDep
 from miss.server.errors import Forbidden, NotFound
 from miss.server.ingest import ingest
 from miss.server.schemas import IdentityOut, VolumeOut, volume_out
+from miss.server.settings import Settings
 from miss.server.store import Store
-from miss.server.uploads import receive
+from miss.server.uploads import Upload, receive
 
 router = APIRouter(prefix="/api/volumes", tags=["volumes"])
 
@@ -58,6 +62,24 @@ class Axis(StrEnum):
     sagittal = "sagittal"
 
 
+@asynccontextmanager
+async def received(
+    request: Request, store: Store, settings: Settings, user: User
+) -> AsyncIterator[tuple[Upload, Path]]:
+    """An upload received into a fresh folder under ``tmp/`` (as one of the account's
+    uploads at once, else 429; with free space, else 507), and that folder removed
+    afterwards whatever happened: a stored volume was moved out of it before."""
+    await run_in_threadpool(store.check_free_space, settings.min_free_bytes)
+    with request.app.state.upload_slots.slot(user.id):
+        work = await run_in_threadpool(store.tmp_dir)
+        try:
+            with store.disk_full_as_507():
+                limit, free = settings.max_upload_bytes, settings.min_free_bytes
+                yield await receive(request, work, limit, free), work
+        finally:
+            await run_in_threadpool(shutil.rmtree, work, True)
+
+
 @router.post(
     "",
     status_code=201,
@@ -74,21 +96,10 @@ async def upload_volume(
 ) -> JSONResponse:
     """Upload a scan; it is read once (in a confined process), de-identified and stored
     for slicing and jobs."""
-    await run_in_threadpool(store.check_free_space, settings.min_free_bytes)  # else 507
-    with request.app.state.upload_slots.slot(user.id):  # else 429
-        work = await run_in_threadpool(store.tmp_dir)
-        try:
-            with store.disk_full_as_507():
-                upload = await receive(
-                    request, work, settings.max_upload_bytes, settings.min_free_bytes
-                )
-                row = await run_in_threadpool(
-                    ingest, store, upload, work, request.app.state.reading, user.id
-                )
-        finally:
-            # Whatever happened, the upload and its unpacked files go; a stored volume was
-            # moved out of tmp/ before this point.
-            await run_in_threadpool(shutil.rmtree, work, True)
+    async with received(request, store, settings, user) as (upload, work):
+        row = await run_in_threadpool(
+            ingest, store, upload, work, request.app.state.reading, user.id
+        )
     await run_in_threadpool(
         audit.record, store, "upload", user.name, row.id, audit.address(request), name=row.name
     )
@@ -149,22 +160,13 @@ async def upload_labelmap(
     """Lay a label map over the volume (replacing any earlier one); jobs with ``labels``
     then build its labels, resampled onto the volume's grid in patient mm."""
     _check_owner(volume, user)
-    await run_in_threadpool(store.check_free_space, settings.min_free_bytes)  # else 507
-    with request.app.state.upload_slots.slot(user.id):  # else 429
-        work = await run_in_threadpool(store.tmp_dir)
-        try:
-            with store.disk_full_as_507():
-                upload = await receive(
-                    request, work, settings.max_upload_bytes, settings.min_free_bytes
-                )
-                assert upload.path is not None
-                scan = await run_in_threadpool(store.open_volume, volume.id)
-                labels, meta = await run_in_threadpool(
-                    labelmaps.read_labelmap, upload.path, scan, work, request.app.state.reading
-                )
-                await run_in_threadpool(labelmaps.save, store, volume.id, labels, meta)
-        finally:
-            await run_in_threadpool(shutil.rmtree, work, True)
+    async with received(request, store, settings, user) as (upload, work):
+        assert upload.path is not None
+        scan = await run_in_threadpool(store.open_volume, volume.id)
+        labels, meta = await run_in_threadpool(
+            labelmaps.read_labelmap, upload.path, scan, work, request.app.state.reading
+        )
+        await run_in_threadpool(labelmaps.save, store, volume.id, labels, meta)
     out = volume_out(volume, owner_name(store, volume))
     out.labelmap = labelmaps.public(meta)
     return out
