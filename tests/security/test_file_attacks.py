@@ -18,6 +18,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import httpx
+import landlockpy
 import numpy as np
 import pytest
 from realserver import ADMIN_PASSWORD, Server, serving
@@ -26,6 +27,12 @@ from miss.errors import UnreadableVolume, UnsupportedFormat
 from miss.io import confined
 
 MB = 1 << 20
+#: The tests of the confinement itself need a kernel with Landlock (the server without it
+#: is tested too: it refuses the formats that name other files).
+needs_landlock = pytest.mark.skipif(
+    landlockpy.abi_version() < 1,
+    reason="this kernel has no Landlock (Linux 5.13+ with Landlock in its LSM list)",
+)
 SIDE = 16  # a 16^3 volume of bytes: 4096 voxels, each one byte of whatever was read
 
 
@@ -162,6 +169,7 @@ def test_nrrd_data_file_fields_cannot_leave_the_upload(
     assert volume_dirs(server) == before
 
 
+@needs_landlock
 def test_the_confined_reader_cannot_open_what_a_header_names(secret: Path, tmp_path: Path) -> None:
     """Below every parser: a data file that passes every name check (a link inside the
     upload's folder, as no upload can make) still cannot be opened outside that folder."""
@@ -181,6 +189,7 @@ def test_the_confined_reader_cannot_open_what_a_header_names(secret: Path, tmp_p
         confined.parse_upload(work, "head.mhd", confined.Confinement(problem="test"), limits)
 
 
+@needs_landlock
 def test_the_probe_refuses_a_data_folder_inside_what_readers_may_read(tmp_path: Path) -> None:
     inside = Path(sys.prefix) / f"miss-test-{os.getpid()}"
     try:

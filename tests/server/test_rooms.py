@@ -267,3 +267,19 @@ def test_revoking_or_expiring_a_link_closes_its_guests(
             monkeypatch.undo()
             owner.send_json({"type": "ping"})
             assert until(owner, "pong")["type"] == "pong"
+
+
+def test_an_expired_link_closes_its_guests_unasked(
+    client: TestClient, room: dict, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Expiry needs no message from the guest: the hub's watcher closes the connection
+    within a second of the link running out, with a reason."""
+    model, alice = room["model"], room["alice"]
+    token = link_for(client, alice, model, hours=1)
+    with joined(client, url(model, token, "Quiet guest")) as guest:
+        monkeypatch.setattr(rooms, "utcnow", lambda: utcnow() + timedelta(hours=2))
+        start = time.monotonic()
+        assert until(guest, "error")["code"] == "expired"
+        with pytest.raises(WebSocketDisconnect) as closed:
+            until(guest, "never")
+        assert closed.value.code == 4410 and time.monotonic() - start < 1.0
