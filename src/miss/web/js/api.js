@@ -94,8 +94,6 @@ export const urls = {
 	events: ( id ) => `/api/models/${enc( id )}/events`,
 };
 
-export const FORMATS = [ 'glb', 'wrl', 'wrz', 'x3d', 'stl', 'ply', 'obj' ];
-
 const FINAL = new Set( [ 'done', 'failed' ] );
 
 // Follows a model job until it is done or failed, calling onUpdate with each

@@ -67,14 +67,6 @@ export function describeVolume( v ) {
 	return `${v.modality || 'volume'} · ${dims} voxels · ${spacing} mm`;
 }
 
-export function debounce( fn, ms ) {
-	let timer = 0;
-	return ( ...args ) => {
-		clearTimeout( timer );
-		timer = setTimeout( () => fn( ...args ), ms );
-	};
-}
-
 const CLICK_SLOP = 5; // pixels a press may move and still count as a click, not a turn
 
 // Calls handler(event) for a press released where it started: a click, not an orbit drag.
