@@ -116,10 +116,19 @@ def robustness_targets(result: dict[str, Any]) -> list[str]:
     errors = sum(r["server_errors"] for r in rows)
     crashes = sum(r["crashes"] for r in rows)
     peak = max(r["peak_mb"] for r in rows)
-    return [
+    attacks = [r for r in rows if r["surface"].startswith("attack")]
+    found = [
         f"- Bad input: {tried} cases over {len(rows)} surfaces, 5xx {errors}, crashes {crashes} "
         f"(target 0 and 0): {_yes(errors == 0 and crashes == 0)}; peak memory {peak:.0f} MB."
     ]
+    for row in attacks:
+        leaked = row.get("outside_bytes", 0)
+        found.append(
+            f"- Attack corpus: {row['tried']} uploads aimed at files outside them, "
+            f"{row['refused']} refused, bytes from outside served {leaked} (target 0): "
+            f"{_yes(leaked == 0)}."
+        )
+    return found
 
 
 def load_targets(result: dict[str, Any]) -> list[str]:

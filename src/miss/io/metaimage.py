@@ -24,7 +24,13 @@ import numpy as np
 from miss.errors import UnreadableVolume, UnsupportedFormat
 from miss.io import itk
 from miss.io.common import affine_from, check_declared_size, make_volume, no_series, zyx_to_xyz
-from miss.io.metaimage_header import MetaHeader, data_file_outside, data_file_spec, parse
+from miss.io.metaimage_header import (
+    MetaHeader,
+    data_file_outside,
+    data_file_spec,
+    fields_of,
+    parse,
+)
 from miss.types import Volume
 
 #: Every MetaImage header fits in this many bytes at the start of its file.
@@ -49,6 +55,7 @@ def read(path: Path, series: str | None) -> Volume:
     """
     no_series(path, series, "MetaImage")
     text = _header_text(path)
+    fields_of(path, text)  # refused here, naming the file, when MetaIO would read it otherwise
     outside = data_file_outside(text)
     if outside:
         raise UnreadableVolume(
@@ -217,5 +224,7 @@ def _payload(path: Path, header: MetaHeader, text: bytes, need: int) -> bytes:
 
 def data_file_named(path: Path) -> str:
     """The data file a MetaImage header names, as MetaIO reads it ("" for LOCAL data)."""
-    spec = data_file_spec(_header_text(path))
+    text = _header_text(path)
+    fields_of(path, text)
+    spec = data_file_spec(text)
     return "" if spec.upper() == "LOCAL" else spec

@@ -58,7 +58,7 @@ class MetaHeader:
 
 def parse(path: Path, text: bytes) -> MetaHeader:
     """Parse the header at the start of ``text``; ``ElementDataFile`` ends it."""
-    fields, offset = _fields(text)
+    fields, offset = fields_of(path, text)
     for required in ("NDims", "DimSize", "ElementType", "ElementDataFile"):
         if required not in fields:
             raise UnreadableVolume(
@@ -115,6 +115,14 @@ def _unsupported(fields: dict[str, str], ndims: int, header_size: int) -> str:
     if ndims > 3:
         return f"a {ndims}-D image"
     return "HeaderSize -1" if header_size < 0 else ""
+
+
+def fields_of(path: Path, text: bytes) -> tuple[dict[str, str], int]:
+    """``_fields``, its refusals naming the file."""
+    try:
+        return _fields(text)
+    except UnreadableVolume as exc:
+        raise UnreadableVolume(f"{path.name}: {exc}") from None
 
 
 def data_file_outside(text: bytes) -> str:
@@ -174,10 +182,12 @@ def _fields(text: bytes) -> tuple[dict[str, str], int]:
         end = len(text) if end < 0 else end
         raw = text[pos:end]
         pos = end + 1
-        if b"\0" in raw:
-            raise UnreadableVolume(
-                "bad MetaImage header: a header line holds a NUL byte; re-save the image."
-            )
+        if b"\0" in raw:  # binary data: the header ended without its data-file field
+            if _DATA_FIELD_LINE.match(raw.replace(b"\0", b"")):
+                raise UnreadableVolume(
+                    "bad MetaImage header: its data-file line holds a NUL byte; re-save the image."
+                )
+            break
         line = raw.decode("latin-1").lstrip(_C_SPACE)
         cut = min((i for i in (line.find("="), line.find(":")) if i >= 0), default=-1)
         name = (line[:cut] if cut >= 0 else line.split("\r")[0]).rstrip(" \t")
