@@ -9,8 +9,8 @@ SimpleITK's catch-all) runs here, in a child process that
   start, and it holds whatever syntax a reader accepts for "read that other file": a
   header that names ``/proc/self/environ``, the database or another user's volume gets
   "permission denied" from the kernel. TCP connect/bind, abstract Unix sockets and
-  signals to other processes are refused as well, where the kernel's Landlock ABI has
-  them (ABI 4 and 6);
+  signals to other processes are refused as well, and UDP and pathname Unix sockets,
+  wherever the kernel's Landlock ABI has them (ABI 4, 6, 10 and 9);
 - starts with an empty environment (no ``MISS_ADMIN_PASSWORD``, no database URL) and no
   open files but its standard streams;
 - has its address space (``RLIMIT_AS``), CPU time, file size and wall-clock time capped.
@@ -32,6 +32,7 @@ import json
 import math
 import os
 import signal
+import socket
 import subprocess
 import sys
 from dataclasses import dataclass, field
@@ -181,22 +182,29 @@ def probe(data_dir: Path) -> Confinement:
         )
     work = Path(data_dir) / "tmp" / f"probe-{os.getpid()}"
     outside = Path(data_dir) / "tmp" / f"probe-{os.getpid()}-outside"
+    listener = socket.create_server(("127.0.0.1", 0))  # the child must not reach it
     try:
         (work / OUT).mkdir(parents=True, exist_ok=True)
         (work / "inside").write_bytes(b"in")
         outside.write_bytes(b"out")
-        config = {"mode": "probe", "outside": str(outside), "roots": list(roots)}
+        port = listener.getsockname()[1]
+        config = {"mode": "probe", "outside": str(outside), "roots": list(roots), "port": port}
         proc = _spawn(work, config, Limits(seconds=30))
         answer = _result(work, proc, Limits(seconds=30))
     except MissError as exc:
         return Confinement(problem=f"the confined test child failed ({exc})")
     finally:
+        listener.close()
         outside.unlink(missing_ok=True)
         _remove(work)
     if answer.get("inside") != "in" or answer.get("outside") != "denied":
         return Confinement(problem=f"Landlock did not confine the test child ({answer})")
+    if abi >= 4 and answer.get("tcp") != "denied":
+        return Confinement(problem=f"Landlock let the test child connect over TCP ({answer})")
     version = getattr(landlockpy, "__version__", "?")
-    return Confinement(mechanism=f"Landlock ABI {abi} (landlockpy {version})", read_roots=roots)
+    network = ", no TCP" if abi >= 4 else ""
+    mechanism = f"Landlock ABI {abi} (landlockpy {version}){network}"
+    return Confinement(mechanism=mechanism, read_roots=roots)
 
 
 def parse_upload(
@@ -474,7 +482,12 @@ def _confine(roots: list[str], work: Path) -> None:
     read = AccessFS.READ_FILE | AccessFS.READ_DIR | AccessFS.EXECUTE
     with Ruleset(
         handled_fs=everything,
-        handled_net=AccessNet.BIND_TCP | AccessNet.CONNECT_TCP,
+        # UDP from ABI 10, and (in ``everything``) pathname Unix sockets from ABI 9: taken
+        # where the kernel has them, dropped where it does not (best effort).
+        handled_net=AccessNet.BIND_TCP
+        | AccessNet.CONNECT_TCP
+        | AccessNet.BIND_UDP
+        | AccessNet.CONNECT_SEND_UDP,
         scoped=Scope.ABSTRACT_UNIX_SOCKET | Scope.SIGNAL,
     ) as rules:
         for root in roots:
@@ -494,7 +507,20 @@ def _probe(config: dict[str, Any]) -> dict[str, Any]:
         except OSError as exc:
             return f"error {exc.errno}"
 
-    return {"inside": attempt("inside"), "outside": attempt(config["outside"])}
+    def connect(port: int) -> str:
+        try:
+            socket.create_connection(("127.0.0.1", port), timeout=5).close()
+        except PermissionError:
+            return "denied"
+        except OSError as exc:
+            return f"error {exc.errno}"
+        return "connected"
+
+    return {
+        "inside": attempt("inside"),
+        "outside": attempt(config["outside"]),
+        "tcp": connect(int(config["port"])),
+    }
 
 
 def _source(config: dict[str, Any]) -> Path:
