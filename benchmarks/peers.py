@@ -49,7 +49,8 @@ from vtk.util import numpy_support  # noqa: E402
 import miss  # noqa: E402
 from miss.deviation import deviation, to_polydata  # noqa: E402
 from miss.geometry import compact  # noqa: E402
-from miss.pipeline import JobSpec, run  # noqa: E402
+from miss.pipeline import run  # noqa: E402
+from miss.spec import JobSpec  # noqa: E402
 
 REDUCE = 0.9
 Arrays = tuple[np.ndarray, np.ndarray]
@@ -355,7 +356,7 @@ def miss_api_job(path: Path, level: float) -> dict[str, Any]:
 def miss_pipeline_job(path: Path, level: float) -> dict[str, Any]:
     """``miss.pipeline.run``: the web system's job, which also measures its deviation."""
     t0 = time.perf_counter()
-    result = run(miss.load_volume(path), JobSpec(level=level, formats=("glb", "wrl")))
+    result = run(miss.load_volume(path), JobSpec.of(level=level, formats=("glb", "wrl")))
     sizes = [(OUT / f"pipe.{fmt}").write_bytes(data) for fmt, data in result.artifacts.items()]
     return {
         "seconds": time.perf_counter() - t0,

@@ -35,7 +35,8 @@ from common import (
 
 import miss
 from miss.bench import resample_axis
-from miss.pipeline import JobSpec, run
+from miss.pipeline import run
+from miss.spec import JobSpec
 
 LEVEL = 1500.0
 SIZES: tuple[tuple[int, int, int], ...] = (
@@ -65,7 +66,7 @@ def _job(path: Path) -> dict[str, float]:
     t0 = time.perf_counter()
     volume = miss.load_volume(path)
     read = time.perf_counter() - t0
-    result = run(volume, JobSpec(level=LEVEL, formats=("glb", "wrl")))
+    result = run(volume, JobSpec.of(level=LEVEL, formats=("glb", "wrl")))
     seconds = {"read": read, **result.seconds, "measure": result.report.measure_seconds}
     seconds["total"] = time.perf_counter() - t0
     seconds["triangles_in"] = result.report.triangles_in
@@ -78,7 +79,7 @@ def _job(path: Path) -> dict[str, float]:
 def child(args: list[str]) -> None:
     """One size in a fresh process: warm up, a measured first run, then timed repeats."""
     path, repeats = Path(args[0]), int(args[1])
-    run(miss.load_volume(warm_up_file()), JobSpec(level=300.0, formats=("glb", "wrl")))
+    run(miss.load_volume(warm_up_file()), JobSpec.of(level=300.0, formats=("glb", "wrl")))
     baseline = start_peak()
     runs = [_job(path)]
     peak = peak_since(baseline)

@@ -6,11 +6,12 @@ import pytest
 
 from miss import BadParameter
 from miss.demo import phantom
-from miss.pipeline import JobSpec, run
+from miss.pipeline import run
+from miss.spec import JobSpec
 
 
 def test_run_produces_every_requested_format() -> None:
-    spec = JobSpec(level=300.0, sample_rate=2, formats=("glb", "wrl", "stl"))
+    spec = JobSpec.of(level=300.0, sample_rate=2, formats=("glb", "wrl", "stl"))
     stages: list[str] = []
     result = run(phantom(), spec, progress=lambda stage, f: stages.append(stage))
     assert set(result.artifacts) == {"glb", "wrl", "stl"}
@@ -23,10 +24,10 @@ def test_run_produces_every_requested_format() -> None:
 
 
 def test_key_ignores_formats_and_normalises_sample_rate() -> None:
-    a = JobSpec(level=300.0, sample_rate=2, formats=("glb",))
+    a = JobSpec.of(level=300.0, sample_rate=2, formats=("glb",))
     b = JobSpec.from_dict({"level": 300.0, "sample_rate": [2, 2, 2], "formats": ["wrl"]})
     assert a.key() == b.key()
-    assert a.key() != JobSpec(level=301.0, sample_rate=2).key()
+    assert a.key() != JobSpec.of(level=301.0, sample_rate=2).key()
 
 
 @pytest.mark.parametrize(
@@ -50,7 +51,7 @@ def test_from_dict_rejects_bad_input_with_a_clear_message(data: dict, message: s
 
 def test_export_options_reach_the_writer() -> None:
     """The server asks for meshopt-compressed glTF: far smaller, same triangles."""
-    spec = JobSpec(level=300.0, sample_rate=2, formats=("glb",))
+    spec = JobSpec.of(level=300.0, sample_rate=2, formats=("glb",))
     plain = run(phantom(), spec).artifacts["glb"]
     packed = run(phantom(), spec, export_options={"glb": {"compress": True}}).artifacts["glb"]
     assert b"EXT_meshopt_compression" in packed and b"EXT_meshopt_compression" not in plain

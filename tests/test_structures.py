@@ -25,13 +25,14 @@ import miss
 from miss.demo import phantom
 from miss.deviation import distances_to, to_polydata
 from miss.errors import BadParameter, EmptySurface
-from miss.export import scene_mime_type
+from miss.export import WRITERS
 from miss.geometry import boundary_edge_count, face_normals
 from miss.labelmap import align_labels, label_counts
 from miss.labels import find_label_table, parse_color_table, totalsegmentator_table
 from miss.labels_totalseg import TOTALSEG_TOTAL
-from miss.pipeline import JobSpec, run
+from miss.pipeline import run
 from miss.scene import Part, Scene, linear_rgb
+from miss.spec import JobSpec
 from miss.types import Mesh, Volume
 
 SPACING = (0.8, 0.8, 1.2)  # anisotropic on purpose: volumes must come out in mm³
@@ -434,7 +435,7 @@ def test_x3d_scene_has_a_named_shape_per_part(head: Scene) -> None:
 @pytest.mark.parametrize("fmt", ["stl", "ply"])
 def test_stl_and_ply_scenes_are_zips_of_one_file_per_part(head: Scene, fmt: str) -> None:
     data = miss.export(head, fmt)
-    assert scene_mime_type(fmt) == "application/zip"
+    assert WRITERS[fmt].mime_of(len(head.parts)) == "application/zip"
     archive = zipfile.ZipFile(io.BytesIO(data))
     names = archive.namelist()
     assert names == [f"1_skin_-500_HU.{fmt}", f"2_bone_300_HU.{fmt}", "scene.json"]
@@ -476,8 +477,8 @@ def test_old_job_specs_keep_their_cache_key() -> None:
            "roi": None, "decimate": "quadric", "error_bound": 0.0002, "reduce": 0.9,
            "max_error": 0.01}  # fmt: skip
     expected = hashlib.sha256(json.dumps(old, sort_keys=True).encode()).hexdigest()[:32]
-    assert JobSpec(level=300.0).key() == expected
-    assert JobSpec(level=300.0, levels=(300.0, -500.0)).key() != expected
+    assert JobSpec.of(level=300.0).key() == expected
+    assert JobSpec.of(level=300.0, levels=(300.0, -500.0)).key() != expected
 
 
 def test_run_builds_a_scene_from_levels() -> None:

@@ -16,24 +16,9 @@ from typing import Literal
 import numpy as np
 from scipy import ndimage
 
-from miss.errors import BadParameter
-
 Components = Literal["all", "largest", "split"]
-COMPONENT_MODES: tuple[str, ...] = ("all", "largest", "split")
 
 _CONNECTIVITY = ndimage.generate_binary_structure(3, 3)  # 26 neighbours
-
-
-def check_components(components: str, min_size_mm3: float, max_parts: int) -> None:
-    """Refuse unknown modes and negative sizes with the fix."""
-    if components not in COMPONENT_MODES:
-        raise BadParameter(
-            f"components must be one of {', '.join(COMPONENT_MODES)}, got {components!r}."
-        )
-    if not isinstance(min_size_mm3, int | float) or not min_size_mm3 >= 0:
-        raise BadParameter(f"min size must be a volume in mm³ >= 0, got {min_size_mm3!r}.")
-    if not isinstance(max_parts, int) or max_parts < 1:
-        raise BadParameter(f"max_parts must be a whole number >= 1, got {max_parts!r}.")
 
 
 @dataclass(frozen=True)

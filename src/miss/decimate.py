@@ -33,10 +33,10 @@ from numba import njit
 from miss.deviation import deviation
 from miss.errors import BadParameter
 from miss.geometry import compact, vertex_normals
+from miss.spec import METHODS
 from miss.types import Mesh, column_bounds
 
 Method = Literal["none", "quadric", "schroeder"]
-METHODS: tuple[str, ...] = ("none", "quadric", "schroeder")
 
 
 @dataclass(frozen=True)
@@ -57,6 +57,18 @@ class DecimationReport:
 
     def to_dict(self) -> dict[str, object]:
         return asdict(self)
+
+    def summary(self) -> dict[str, Any]:
+        """What the CLI's ``--json`` and the API's stats say of a decimation."""
+        return {
+            "method": self.method,
+            "reduce": self.reduce,
+            "error_bound": self.error_bound,
+            "triangles_before": self.triangles_in,
+            "achieved_reduction": round(self.achieved_reduction, 4),
+            "max_error_mm": self.max_error_mm,
+            "mean_error_mm": self.mean_error_mm,
+        }
 
 
 def _check(method: str, reduce: float, error_bound: float, max_error: float) -> None:

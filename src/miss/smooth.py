@@ -12,24 +12,12 @@ import vtk
 from vtk.util import numpy_support
 
 from miss.deviation import to_polydata
-from miss.errors import BadParameter
 from miss.geometry import enclosed_volume, vertex_normals
+from miss.spec import check_smoothing
 from miss.types import Mesh
 
 #: Relative volume change above which a part's smoothing is reported as not volume-preserving.
 VOLUME_TOLERANCE = 0.02
-
-
-def check_smoothing(iterations: int, passband: float) -> None:
-    """Refuse iteration counts and passbands the filter cannot use, with the fix."""
-    if not isinstance(iterations, int) or isinstance(iterations, bool) or iterations < 0:
-        raise BadParameter(f"smooth must be a whole number of iterations >= 0, got {iterations!r}.")
-    if iterations > 500:
-        raise BadParameter(f"smooth={iterations} iterations is far beyond useful; use 10 to 50.")
-    if not 0.0 < passband < 2.0:
-        raise BadParameter(
-            f"passband must be in (0, 2), got {passband!r}; smaller smooths more (0.1 is mild)."
-        )
 
 
 def windowed_sinc(

@@ -24,11 +24,10 @@ from typing import Any
 import numpy as np
 from scipy import ndimage
 
-from miss.components import check_components, relabel_components, select_components
-from miss.decimate import METHODS, DecimationReport, decimate
+from miss.components import relabel_components, select_components
+from miss.decimate import DecimationReport, decimate
 from miss.errors import BadParameter, EmptySurface
 from miss.labelmap import (
-    MEASURE_SAMPLES,
     LabelSurface,
     align_labels,
     label_counts,
@@ -45,7 +44,8 @@ from miss.labels import (
     resolve_table,
 )
 from miss.scene import DEFAULT_SCENE_TITLE, Part, Scene
-from miss.smooth import VOLUME_TOLERANCE, check_smoothing, smooth_mesh
+from miss.smooth import VOLUME_TOLERANCE, smooth_mesh
+from miss.spec import Decimation, JobSpec, Structure
 from miss.surface import extract_surface
 from miss.types import Mesh, Volume
 
@@ -57,69 +57,12 @@ TRANSLUCENT = 0.35
 
 
 @dataclass(frozen=True)
-class SceneOptions:
-    """How to build a scene; see :func:`extract_scene` for each field."""
-
-    levels: tuple[float, ...] = ()
-    labels: str | tuple[int, ...] | None = None
-    components: str = "all"
-    min_size_mm3: float = 0.0
-    max_parts: int = 100
-    smooth: int | None = None
-    passband: float = 0.1
-    decimate: str = "quadric"
-    reduce: float = 0.9
-    error_bound: float = 0.0002
-    max_error: float = 0.01
-    sample_rate: int | tuple[int, int, int] = 1
-    slices: tuple[int, int] | None = None
-    roi: tuple[int, int, int, int, int, int] | None = None
-    measure: bool = True
-
-    def __post_init__(self) -> None:
-        levels = (self.levels,) if isinstance(self.levels, int | float) else tuple(self.levels)
-        if not all(isinstance(v, int | float) and np.isfinite(v) for v in levels):
-            raise BadParameter(f"levels must be finite numbers, got {self.levels!r}.")
-        object.__setattr__(self, "levels", tuple(float(v) for v in levels))
-        object.__setattr__(self, "labels", parse_labels(self.labels))
-        check_components(self.components, self.min_size_mm3, self.max_parts)
-        check_smoothing(0 if self.smooth is None else self.smooth, self.passband)
-        if self.decimate not in METHODS:
-            raise BadParameter(
-                f"decimate must be one of {', '.join(METHODS)}, got {self.decimate!r}."
-            )
-
-
-@dataclass(frozen=True)
 class SceneBuild:
     """A scene with what it took: one decimation report per part, seconds per stage."""
 
     scene: Scene
     reports: tuple[DecimationReport, ...]
     seconds: dict[str, float] = field(default_factory=dict)
-
-
-def parse_labels(labels: str | Sequence[int] | int | None) -> str | tuple[int, ...] | None:
-    """``None``, ``"all"``, ``"1,4,7"``, ``7`` or ``[1, 4, 7]`` -> None, "all" or sorted ids."""
-    if labels is None or labels == "all":
-        return labels
-    if isinstance(labels, int) and not isinstance(labels, bool):
-        labels = [labels]
-    try:
-        ids = (
-            [int(p) for p in labels.split(",")]
-            if isinstance(labels, str)
-            else [int(p) for p in labels]
-        )
-    except (TypeError, ValueError):
-        raise BadParameter(
-            f"labels must be 'all' or label numbers such as 1,4,7; got {labels!r}."
-        ) from None
-    if not ids or min(ids) < 1:
-        raise BadParameter(
-            f"label numbers are whole numbers >= 1 (0 is background); got {labels!r}."
-        )
-    return tuple(sorted(set(ids)))
 
 
 def extract_scene(
@@ -130,7 +73,9 @@ def extract_scene(
     label_map: Volume | None = None,
     table: TableSpec = None,
     title: str | None = None,
-    **options: Any,
+    measure: bool = True,
+    slices: tuple[int, int] | None = None,
+    **form: Any,
 ) -> Scene:
     """Named, coloured structures of ``volume`` as one scene.
 
@@ -152,12 +97,16 @@ def extract_scene(
         list, or {label: name}. A Volume has no file name to look beside, so
         None gives ``label N`` and the palette.
     title : str, optional
-    **options
-        Fields of :class:`SceneOptions`: ``components`` ("all", "largest",
-        "split"), ``min_size_mm3``, ``max_parts``, ``smooth`` (windowed-sinc
-        iterations; default 20 for label maps, 0 for levels), ``passband``,
-        ``decimate``, ``reduce``, ``error_bound``, ``max_error``,
-        ``sample_rate``, ``slices`` (1-based inclusive), ``roi``, ``measure``.
+    measure : bool
+        Measure each part's deviation from its undecimated surface (mm).
+    slices : (start, end), optional
+        1-based inclusive slice range (``start_slice``/``end_slice`` of the form).
+    **form
+        Fields of the job form (:class:`miss.spec.JobSpec`): ``components`` ("all",
+        "largest", "split"), ``min_size_mm3``, ``max_parts``, ``smooth``
+        (windowed-sinc iterations; default 20 for label maps, 0 for levels),
+        ``passband``, ``parts``, ``decimate``, ``reduce``, ``error_bound``,
+        ``max_error``, ``sample_rate``, ``start_slice``, ``end_slice``, ``roi``.
 
     Returns
     -------
@@ -165,89 +114,59 @@ def extract_scene(
         Parts with closed meshes in LPS mm: levels first (lowest first; pieces
         largest first), then labels by number.
     """
-    levels = () if levels is None else levels
-    spec = SceneOptions(levels=levels, labels=labels, **options)  # type: ignore[arg-type]
-    return build_scene(volume, spec, label_map=label_map, table=table, title=title).scene
+    levels = [levels] if isinstance(levels, int | float) else list(levels or [])
+    if not levels and labels is None and not form.get("parts"):
+        if label_map is None and label_counts(volume) is None:
+            raise BadParameter(
+                "nothing to extract: give a threshold in the volume's units (--level, levels=) "
+                "or labels of a label map (--labels, labels=); this volume is not a label map."
+            )
+        labels = "all"  # a label map with nothing asked for: all its labels
+    if slices is not None:
+        form |= {"start_slice": slices[0], "end_slice": slices[1]}
+    spec = JobSpec.of(levels=levels or None, labels=labels, **form)
+    return build_scene(
+        volume, spec, label_map=label_map, table=table, title=title, measure=measure
+    ).scene
 
 
 def build_scene(
     volume: Volume,
-    options: SceneOptions,
+    spec: JobSpec,
     *,
     label_map: Volume | None = None,
     table: TableSpec = None,
     title: str | None = None,
+    measure: bool = True,
 ) -> SceneBuild:
-    """:func:`extract_scene` with the per-part reports and timings (for the pipeline and CLI)."""
+    """The scene ``spec`` asks for, with the per-part reports and timings: every
+    threshold part of the region, then the label parts (built together)."""
     start = time.perf_counter()
-    labels_volume = _label_source(volume, options, label_map)
-    if not options.levels and labels_volume is None:
-        raise BadParameter(
-            "nothing to extract: give a threshold in the volume's units (--level, levels=) "
-            "or labels of a label map (--labels, labels=); this volume is not a label map."
-        )
-    volume = crop_volume(volume, options.sample_rate, options.slices, options.roi)
+    items = spec.structures.items
+    label_items = [p for p in items if p.labels is not None]
+    labels_volume = None
+    if label_items:  # aligned before the crop, so the map's region is the volume's
+        labels_volume = align_labels(label_map, volume) if label_map is not None else volume
+    region = spec.region.apply(volume)
     built: list[tuple[Part, DecimationReport]] = []
     notes: list[str] = []
-    ranked = sorted(options.levels)
-    for level in options.levels:
-        style = level_style(level, ranked.index(level), len(ranked), volume.meta.get("units", ""))
-        built += _level_parts(volume, level, style, options, notes)
+    ranked = sorted(p.level for p in items if p.level is not None)
+    for item in items:
+        if item.level is not None:
+            style = level_style(
+                item.level, ranked.index(item.level), len(ranked), volume.meta.get("units", "")
+            )
+            built += _level_parts(region, item, style, spec.decimation, measure, notes)
     if labels_volume is not None:
-        labels_volume = crop_volume(labels_volume, options.sample_rate, options.slices, options.roi)
-        built += _label_parts(labels_volume, options, resolve_table(table), notes)
+        labels_region = spec.region.apply(labels_volume)
+        built += _label_parts(
+            labels_region, label_items, spec.decimation, measure, resolve_table(table), notes
+        )
     decimating = sum(report.seconds + report.measure_seconds for _, report in built)
     scene = Scene(tuple(p for p, _ in built), title or DEFAULT_SCENE_TITLE, tuple(notes))
     total = time.perf_counter() - start
     seconds = {"surface": total - decimating, "decimate": decimating}
     return SceneBuild(scene, tuple(r for _, r in built), seconds)
-
-
-def _label_source(volume: Volume, options: SceneOptions, label_map: Volume | None) -> Volume | None:
-    """The label map on ``volume``'s grid, or None when the scene has no label parts."""
-    if label_map is not None:
-        return align_labels(label_map, volume)
-    if options.labels is not None:
-        return volume
-    if not options.levels and label_counts(volume) is not None:
-        return volume  # a label map with nothing asked for: all its labels
-    return None
-
-
-def crop_volume(
-    volume: Volume,
-    sample_rate: int | Sequence[int] = 1,
-    slices: tuple[int, int] | None = None,
-    roi: Sequence[int] | None = None,
-) -> Volume:
-    """The region (1-based inclusive slices, 0-based inclusive ROI) at the sample rate.
-
-    Striding keeps every n-th voxel, which for a label map is nearest-neighbour
-    subsampling; the affine is adjusted so positions stay in patient mm.
-    """
-    steps = (sample_rate,) * 3 if isinstance(sample_rate, int) else tuple(sample_rate)
-    if len(steps) != 3 or any(not isinstance(s, int) or s < 1 for s in steps):
-        raise BadParameter(
-            f"sample rate must be one whole number >= 1 or three, got {sample_rate!r}."
-        )
-    box = [(0, d - 1) for d in volume.dims]
-    if roi is not None:
-        box = [(int(roi[2 * a]), int(roi[2 * a + 1])) for a in range(3)]
-    if slices is not None:
-        box[2] = (max(box[2][0], slices[0] - 1), min(box[2][1], slices[1] - 1))
-    if box == [(0, d - 1) for d in volume.dims] and steps == (1, 1, 1):
-        return volume
-    for axis, (lo, hi) in enumerate(box):
-        if not 0 <= lo < hi < volume.dims[axis] or (hi - lo) // steps[axis] < 1:
-            raise BadParameter(
-                f"region {lo}..{hi} along {'xyz'[axis]} (sample rate {steps[axis]}) leaves fewer "
-                f"than 2 voxels of 0..{volume.dims[axis] - 1}; widen the region or lower the rate."
-            )
-    data = volume.data[tuple(slice(lo, hi + 1, s) for (lo, hi), s in zip(box, steps, strict=True))]
-    shift = np.eye(4)
-    shift[:3, :3] = np.diag(np.asarray(steps, dtype=np.float64))
-    shift[:3, 3] = [lo for lo, _ in box]
-    return Volume(np.asfortranarray(data), volume.affine @ shift, volume.meta, volume.patient)
 
 
 def level_style(
@@ -272,45 +191,51 @@ def level_style(
 
 def _level_parts(
     volume: Volume,
-    level: float,
+    item: Structure,
     style: tuple[str, tuple[float, float, float], float],
-    options: SceneOptions,
+    decimation: Decimation,
+    measure: bool,
     notes: list[str],
 ) -> list[tuple[Part, DecimationReport]]:
-    """One iso-level: the whole surface, its largest piece, or one part per piece."""
-    name, color, opacity = style
-    if options.components == "all" and options.min_size_mm3 == 0:
-        meshes = [extract_surface(volume, level)]
+    """One iso-level: the whole surface, its largest piece, or one part per piece.
+    The part's own name, colour and opacity win over the level's style."""
+    assert item.level is not None
+    name = item.name or style[0]
+    color = item.color or style[1]
+    opacity = style[2] if item.opacity is None else item.opacity
+    if item.components == "all" and item.min_size_mm3 == 0:
+        # A decimated mesh gets new normals from its faces: gradients only for "none".
+        meshes = [extract_surface(volume, item.level, normals=decimation.method == "none")]
     else:
-        meshes = _component_meshes(volume, level, options, notes, name)
+        meshes = _component_meshes(volume, item, notes, name)
     out = []
     for rank, mesh in enumerate(meshes):
-        split = options.components == "split" and len(meshes) > 1
+        split = item.components == "split" and len(meshes) > 1
         part_name = f"{name} {rank + 1}" if split else name
-        part_color = PALETTE[rank % len(PALETTE)] if split else color
-        smoothed = _smoothed(mesh, options.smooth or 0, options.passband, part_name, notes)
-        decimated, report = _decimated(smoothed, options)
+        part_color = PALETTE[rank % len(PALETTE)] if split and item.color is None else color
+        smoothed = _smoothed(mesh, item.smooth or 0, item.passband, part_name, notes)
+        decimated, report = decimate(
+            smoothed, decimation.method, decimation.reduce, decimation.error_bound,
+            max_error=decimation.max_error, measure=measure,
+        )  # fmt: skip
         out.append((Part(part_name, decimated, part_color, opacity), report))
     return out
 
 
-def _component_meshes(
-    volume: Volume, level: float, options: SceneOptions, notes: list[str], name: str
-) -> list[Mesh]:
-    """Surfaces of the chosen voxel components above ``level``, largest first."""
+def _component_meshes(volume: Volume, item: Structure, notes: list[str], name: str) -> list[Mesh]:
+    """Surfaces of the chosen voxel components above the level, largest first."""
+    assert item.level is not None
     voxel_mm3 = abs(float(np.linalg.det(volume.affine[:3, :3])))
-    mask = volume.data > level
-    picked = select_components(
-        mask, options.components, options.min_size_mm3 / voxel_mm3, options.max_parts
-    )
+    mask = volume.data > item.level
+    picked = select_components(mask, item.components, item.min_size_mm3 / voxel_mm3, item.max_parts)
     if not picked.kept:
         raise EmptySurface(
-            f"no piece of {name} is at least {options.min_size_mm3:g} mm³; lower the minimum size."
+            f"no piece of {name} is at least {item.min_size_mm3:g} mm³; lower the minimum size."
         )
     if picked.dropped:
         notes.append(f"{name}: {picked.dropped} smaller piece(s) left out")
-    groups = [[c] for c in picked.kept] if options.components == "split" else [picked.kept]
-    return [_component_surface(volume, level, picked.labelled, ids) for ids in groups]
+    groups = [[c] for c in picked.kept] if item.components == "split" else [picked.kept]
+    return [_component_surface(volume, item.level, picked.labelled, ids) for ids in groups]
 
 
 def _component_surface(volume: Volume, level: float, labelled: np.ndarray, ids: list[int]) -> Mesh:
@@ -345,39 +270,52 @@ def _smoothed(mesh: Mesh, iterations: int, passband: float, name: str, notes: li
     return smoothed
 
 
-def _decimated(mesh: Mesh, options: SceneOptions) -> tuple[Mesh, DecimationReport]:
-    return decimate(
-        mesh,
-        options.decimate,
-        options.reduce,
-        options.error_bound,
-        max_error=options.max_error,
-        measure=options.measure,
-        samples=MEASURE_SAMPLES,
-    )
-
-
 def _label_parts(
-    labels_volume: Volume, options: SceneOptions, table: LabelTable | None, notes: list[str]
+    labels_volume: Volume,
+    items: list[Structure],
+    decimation: Decimation,
+    measure: bool,
+    table: LabelTable | None,
+    notes: list[str],
 ) -> list[tuple[Part, DecimationReport]]:
-    """One part per chosen label (per piece with ``split``), boundaries shared."""
-    chosen = _chosen_labels(labels_volume, options.labels, notes)
+    """One part per chosen label (per piece with ``split``), boundaries shared. The label
+    parts share their cleanup (:class:`~miss.spec.Structures` checks that)."""
+    first = items[0]
+    wanted: str | list[int] = "all"
+    if all(isinstance(p.labels, tuple) for p in items):
+        wanted = sorted({i for p in items for i in p.labels})  # type: ignore[union-attr]
+    chosen = _chosen_labels(labels_volume, wanted, notes)
     data, origin = labels_volume.data, {label: (label, 0) for label in chosen}
-    if options.components != "all" or options.min_size_mm3 > 0:
+    if first.components != "all" or first.min_size_mm3 > 0:
         voxel_mm3 = abs(float(np.linalg.det(labels_volume.affine[:3, :3])))
         data, origin, dropped = relabel_components(
-            data, chosen, options.components, options.min_size_mm3 / voxel_mm3, options.max_parts
+            data, chosen, first.components, first.min_size_mm3 / voxel_mm3, first.max_parts
         )
         if dropped:
             notes.append(f"{dropped} small piece(s) of labels left out")
     work = replace(labels_volume, data=data)
-    iterations = LABEL_SMOOTHING if options.smooth is None else options.smooth
+    iterations = LABEL_SMOOTHING if first.smooth is None else first.smooth
     surfaces = label_surfaces(
-        work, sorted(origin, key=lambda i: origin[i]), smooth=iterations, passband=options.passband,
-        method=options.decimate, reduce=options.reduce, error_bound=options.error_bound,
-        max_error=options.max_error, measure=options.measure,
+        work, sorted(origin, key=lambda i: origin[i]), smooth=iterations, passband=first.passband,
+        method=decimation.method, reduce=decimation.reduce, error_bound=decimation.error_bound,
+        max_error=decimation.max_error, measure=measure,
     )  # fmt: skip
-    return _named_parts(surfaces, origin, table, label_counts(work) or {}, work, notes)
+    styles = {p.labels[0]: p for p in items if isinstance(p.labels, tuple) and len(p.labels) == 1}
+    parts = _named_parts(surfaces, origin, table, label_counts(work) or {}, work, notes)
+    return [(_restyled(p, styles.get(p.label or 0), table), r) for p, r in parts]
+
+
+def _restyled(part: Part, item: Structure | None, table: LabelTable | None) -> Part:
+    """A label part with the name, colour and opacity its own entry gives (a piece of a
+    split label keeps its number after the name)."""
+    if item is None or (item.name, item.color, item.opacity) == (None, None, None):
+        return part
+    name = part.name
+    if item.name:
+        piece = name.removeprefix(describe(part.label or 0, table).name)
+        name = item.name + (piece if piece != name else "")
+    opacity = part.opacity if item.opacity is None else item.opacity
+    return Part(name, part.mesh, item.color or part.color, opacity, part.label)
 
 
 def _named_parts(
@@ -409,17 +347,16 @@ def _named_parts(
     return out
 
 
-def _chosen_labels(
-    labels_volume: Volume, wanted: str | tuple[int, ...] | None, notes: list[str]
-) -> list[int]:
+def _chosen_labels(labels_volume: Volume, wanted: str | list[int], notes: list[str]) -> list[int]:
     """The labels to build: all present, or the asked-for ones that are present."""
     counts = label_counts(labels_volume)
     if counts is None:
         raise BadParameter(
-            "the labels must come from a label map: whole numbers 0..65535 with at most 512 "
-            f"distinct values (this holds {labels_volume.data.dtype} data); for a scan give levels."
+            "this volume is not a label map (labels are whole numbers 0..65535, at most 512 "
+            f"distinct values; it holds {labels_volume.data.dtype} data): give a level (--level, "
+            "'level': a threshold in its units, HU for CT) or a label map of it."
         )
-    if wanted is None or wanted == "all":
+    if wanted == "all":
         chosen = sorted(counts)
     else:
         chosen = [label for label in wanted if label in counts]

@@ -30,8 +30,9 @@ from corpus.upload import as_upload
 from fastapi.testclient import TestClient
 
 from miss.server.app import create_app
-from miss.server.schemas import MAX_JSON_BYTES, MAX_LEVELS
+from miss.server.schemas import MAX_JSON_BYTES
 from miss.server.settings import Settings
+from miss.spec import MAX_LEVELS
 
 PASSWORD = "admin-password-for-bad-input"
 #: High enough that the rate limiter never answers in place of the code under test.

@@ -1,8 +1,10 @@
 """Surface meshes to bytes: one module per output format, registered in ``WRITERS``.
 
-Every writer has the signature ``write(mesh, *, title=None, metadata=None,
-**options) -> bytes`` and never touches the file system; adding a format is one
-module and one line below. ``metadata`` is provenance (parameters, software
+Every format is one :class:`Writer` in ``WRITERS``: ``write(mesh, ...)`` for a plain
+mesh and ``write_scene(scene, ...)`` for named, coloured parts (every MISS job is a
+scene; a scene of one part in a one-mesh format is that format's plain file). Writers
+take ``(…, *, title=None, metadata=None, **options)``, return bytes and never touch
+the file system; adding a format is one module and one entry below. ``metadata`` is provenance (parameters, software
 version, source hash) as strings; each format stores it where its readers look.
 
 MIME types are the IANA-registered ones (``model/vrml``, ``model/x3d+xml``,
@@ -32,6 +34,8 @@ class Writer:
     ----------
     write : callable
         ``write(mesh, *, title=None, metadata=None, **options) -> bytes``.
+    write_scene : callable
+        ``write_scene(scene, *, title=None, metadata=None, **options) -> bytes``.
     mime : str
         The Content-Type to serve it with.
     binary : bool
@@ -39,42 +43,45 @@ class Writer:
     description : str
         One line for menus and ``--help``.
     options : frozenset of str
-        Keyword options ``write`` takes beyond title and metadata.
+        Keyword options the writers take beyond title and metadata.
     legacy_mime : str or None
         An older Content-Type some clients still send in ``Accept``.
+    zips_scenes : bool
+        The format holds one uncoloured mesh (stl, ply) or needs a side file (obj + mtl):
+        a scene of several parts is a zip with a ``scene.json``.
     """
 
     write: Callable[..., bytes]
+    write_scene: Callable[..., bytes]
     mime: str
     binary: bool
     description: str
     options: frozenset[str] = frozenset()
     legacy_mime: str | None = None
+    zips_scenes: bool = False
+
+    def mime_of(self, parts: int) -> str:
+        """The Content-Type of a model of ``parts`` parts in this format."""
+        return _zip.MIME if self.zips_scenes and parts > 1 else self.mime
 
 
+_VRML = "x-world/x-vrml"
 WRITERS: dict[str, Writer] = {
-    "wrl": Writer(
-        vrml.write,
-        "model/vrml",
-        False,
-        "VRML 2.0, the 1998 MISS format",
-        legacy_mime="x-world/x-vrml",
-    ),
-    "wrz": Writer(
-        vrml.write_gzip, "model/vrml", True, "VRML 2.0, gzipped", legacy_mime="x-world/x-vrml"
-    ),
-    "x3d": Writer(x3d.write, "model/x3d+xml", False, "X3D 3.3 XML, VRML's successor"),
-    "glb": Writer(
-        gltf.write,
-        "model/gltf-binary",
-        True,
-        "glTF 2.0 binary, for web viewers",
-        frozenset({"compress"}),
-    ),
-    "stl": Writer(stl.write, "model/stl", True, "binary STL, for 3-D printing"),
-    "ply": Writer(ply.write, "model/ply", True, "binary PLY with normals"),
-    "obj": Writer(obj.write, "model/obj", False, "Wavefront OBJ with normals"),
-}
+    "wrl": Writer(vrml.write, vrml.write_scene, "model/vrml", False,
+                  "VRML 2.0, the 1998 MISS format", legacy_mime=_VRML),
+    "wrz": Writer(vrml.write_gzip, vrml.write_scene_gzip, "model/vrml", True,
+                  "VRML 2.0, gzipped", legacy_mime=_VRML),
+    "x3d": Writer(x3d.write, x3d.write_scene, "model/x3d+xml", False,
+                  "X3D 3.3 XML, VRML's successor"),
+    "glb": Writer(gltf.write, gltf.write_scene, "model/gltf-binary", True,
+                  "glTF 2.0 binary, for web viewers", frozenset({"compress"})),
+    "stl": Writer(stl.write, stl.write_scene, "model/stl", True,
+                  "binary STL, for 3-D printing", zips_scenes=True),
+    "ply": Writer(ply.write, ply.write_scene, "model/ply", True,
+                  "binary PLY with normals", zips_scenes=True),
+    "obj": Writer(obj.write, obj.write_scene, "model/obj", False,
+                  "Wavefront OBJ with normals", zips_scenes=True),
+}  # fmt: skip
 
 FORMATS: list[str] = list(WRITERS)
 
@@ -109,8 +116,8 @@ def export(
     mesh : Mesh or Scene
         Vertices (N, 3) in patient LPS mm, faces (F, 3) counter-clockwise from
         outside; normals are computed (area-weighted) when ``mesh.normals`` is None.
-        A :class:`~miss.scene.Scene` goes to the format's scene writer
-        (``SCENE_WRITERS``): named, coloured parts; a zip for stl, ply and obj.
+        A :class:`~miss.scene.Scene` goes to the format's scene writer: named,
+        coloured parts; for stl, ply and obj a zip (one part: the plain file).
     fmt : str
         One of ``FORMATS``, with or without a dot, any case.
     title : str, optional
@@ -152,28 +159,6 @@ def _check(mesh: Mesh) -> None:
         raise ValueError("Mesh vertices contain NaN or infinity.")
 
 
-#: Scene writers, same keys as ``WRITERS``. Formats that hold one uncoloured mesh
-#: (stl, ply) or need a side file (obj + mtl) write a zip with a ``scene.json``.
-SCENE_WRITERS: dict[str, Callable[..., bytes]] = {
-    "wrl": vrml.write_scene,
-    "wrz": vrml.write_scene_gzip,
-    "x3d": x3d.write_scene,
-    "glb": gltf.write_scene,
-    "stl": stl.write_scene,
-    "ply": ply.write_scene,
-    "obj": obj.write_scene,
-}
-
-#: Formats whose scene is a zip rather than one file of the format.
-ZIPPED_SCENES: frozenset[str] = frozenset({"stl", "ply", "obj"})
-
-
-def scene_mime_type(fmt: str) -> str:
-    """The Content-Type of a scene in ``fmt``: the format's own, or ``application/zip``."""
-    key = fmt.strip().lstrip(".").lower()
-    return _zip.MIME if key in ZIPPED_SCENES else writer(fmt).mime
-
-
 def _export_scene(
     scene: Scene,
     fmt: str,
@@ -191,5 +176,9 @@ def _export_scene(
             _check(part.mesh)
         except ValueError as exc:
             raise type(exc)(f"part {part.name!r}: {exc}") from exc
-    key = fmt.strip().lstrip(".").lower()
-    return SCENE_WRITERS[key](scene, title=title, metadata=metadata, **options)
+    chosen = writer(fmt)
+    if chosen.zips_scenes and len(scene.parts) == 1:
+        return chosen.write(
+            scene.parts[0].mesh, title=title or scene.parts[0].name, metadata=metadata
+        )
+    return chosen.write_scene(scene, title=title, metadata=metadata, **options)

@@ -20,7 +20,9 @@ import signal
 import subprocess
 import sys
 import threading
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Protocol
 
 from miss.server.jobstate import JobState
 from miss.server.store import Store
@@ -114,17 +116,39 @@ sys.exit(main(sys.argv[1:]))
 WORKER_HIDDEN_ENV = frozenset({"MISS_ADMIN_PASSWORD", "MISS_DATABASE_URL"})
 
 
-class JobQueue:
-    """``workers`` threads running queued jobs, each in a child process."""
+class Running(Protocol):
+    """A job under way somewhere: what the queue needs to wait for it or stop it."""
 
-    def __init__(self, store: Store, workers: int = 1) -> None:
+    pid: int
+
+    def wait(self) -> int: ...
+
+    def poll(self) -> int | None: ...
+
+    def kill(self) -> None: ...
+
+
+class Runner(Protocol):
+    """Where a queued job runs: ``start`` it and hand back its :class:`Running`. The job
+    itself (``miss.server.worker.run_job``) records its outcome in the database; an exit
+    code other than 0 without one is a crash the queue records."""
+
+    def start(self, model_id: str) -> Running: ...
+
+
+class JobQueue:
+    """``workers`` threads running queued jobs, each through the runner (by default a
+    :class:`WorkerProcess`: one child process a job)."""
+
+    def __init__(self, store: Store, workers: int = 1, runner: Runner | None = None) -> None:
         self.store = store
         self.state = JobState(store)
         self.workers = workers
+        self.runner = runner or WorkerProcess(store)
         self._wake = threading.Condition()
         self._stopping = threading.Event()
         self._threads: list[threading.Thread] = []
-        self._running: dict[str, subprocess.Popen[bytes]] = {}
+        self._running: dict[str, Running] = {}
 
     def start(self) -> None:
         """Recover interrupted jobs, start the threads (the store holds the folder's lock)."""
@@ -176,7 +200,7 @@ class JobQueue:
     def _run(self, model_id: str) -> None:
         log_path = self.store.model_dir(model_id) / "worker.log"
         offset = log_path.stat().st_size if log_path.exists() else 0
-        proc = self._spawn(model_id)
+        proc = self.runner.start(model_id)
         self._running[model_id] = proc
         if self._stopping.is_set():  # claimed while stop() was killing the others
             proc.kill()
@@ -200,7 +224,15 @@ class JobQueue:
                 model_id, "worker ended without recording a result; see its worker.log."
             )
 
-    def _spawn(self, model_id: str) -> subprocess.Popen[bytes]:
+
+@dataclass(frozen=True, eq=False)
+class WorkerProcess:
+    """Each job in a child process of its own (``python -m miss.server.worker``): native
+    code that crashes or runs out of memory costs one job, never the server."""
+
+    store: Store
+
+    def start(self, model_id: str) -> subprocess.Popen[bytes]:
         """Start the worker; its output goes to ``models/<id>/worker.log``."""
         folder = self.store.model_dir(model_id)
         folder.mkdir(parents=True, exist_ok=True)

@@ -3,28 +3,25 @@
 from __future__ import annotations
 
 from collections.abc import Callable, Coroutine
-from dataclasses import fields
+from dataclasses import fields as dataclass_fields
 from datetime import UTC, datetime
-from typing import Annotated, Any
+from types import UnionType
+from typing import Annotated, Any, Union, get_args, get_origin, get_type_hints
 from urllib.parse import quote
 
 from fastapi import Request, Response
 from fastapi.routing import APIRoute
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, create_model
 from starlette.requests import ClientDisconnect
 
 from miss.errors import BadParameter
 from miss.export import FORMATS, WRITERS
-from miss.pipeline import JobSpec
 from miss.server.db import DONE, ModelRow, VolumeRow
 from miss.server.errors import BodyTooLarge
-from miss.structures import parse_labels
+from miss.spec import GROUPS, JobSpec, Structure, default_of, form_name
 
-_DEFAULTS = {f.name: f.default for f in fields(JobSpec)}
 #: Largest JSON request body: the biggest real one (a job with many labels) is under 2 KB.
 MAX_JSON_BYTES = 64 * 1024
-#: Most thresholds one model may have (skin, soft tissue, bone ... each is a full surface).
-MAX_LEVELS = 16
 _Finite = Annotated[float, Field(allow_inf_nan=False)]
 
 
@@ -63,71 +60,67 @@ def _body_too_large(size: int | None) -> str:
     )
 
 
-class ModelRequest(BaseModel):
-    """The 1998 form: which volume, which density, how coarse, how much decimation."""
+def _json_type(tp: Any) -> Any:
+    """The REST type of a spec field's type: tuples are JSON lists, floats finite, a
+    part a nested object."""
+    origin, args = get_origin(tp), get_args(tp)
+    if tp is float:
+        return _Finite
+    if tp is Structure:
+        return PartRequest
+    if origin is tuple:
+        return list[_json_type(args[0])]  # type: ignore[misc]
+    if origin in (Union, UnionType):
+        return Union[tuple(_json_type(a) for a in args)]  # noqa: UP007
+    return tp
+
+
+def _fields_of(cls: type) -> dict[str, Any]:
+    """pydantic field definitions of a spec class: name -> (type, Field)."""
+    hints = get_type_hints(cls)
+    out: dict[str, Any] = {}
+    for f in dataclass_fields(cls):
+        if f.metadata.get("api") is False:
+            continue
+        tp = f.metadata.get("json", None)
+        tp = _json_type(hints[f.name]) if tp is None else tp | None
+        out[form_name(f)] = (tp, Field(default_of(f), description=f.metadata["help"]))
+    return out
+
+
+PartRequest = create_model(  # type: ignore[call-overload]
+    "PartRequest",
+    __config__=ConfigDict(extra="forbid"),
+    __doc__="One part: a threshold (level) or labels, with its name, colour and cleanup.",
+    **_fields_of(Structure),
+)
+
+
+class _ModelForm(BaseModel):
+    """The 1998 form: which volume, which density, how coarse, how much decimation.
+    Its fields are generated from :mod:`miss.spec` (the same names, defaults and
+    checks as ``miss convert``'s options)."""
 
     model_config = ConfigDict(extra="forbid")
 
     volume: str = Field(description="volume id (GET /api/volumes)")
-    level: float | None = Field(
-        None,
-        allow_inf_nan=False,
-        description="threshold in the volume's units (HU for CT); or give 'levels'",
-    )
-    sample_rate: int | list[int] = Field(
-        _DEFAULTS["sample_rate"], description="voxels per cube: n or [x, y, z]"
-    )
-    start_slice: int | None = Field(None, description="first slice, 1-based, inclusive")
-    end_slice: int | None = Field(None, description="last slice, 1-based, inclusive")
-    decimate: str = Field(_DEFAULTS["decimate"], description='"none", "schroeder" or "quadric"')
-    error_bound: float = Field(
-        _DEFAULTS["error_bound"],
-        allow_inf_nan=False,
-        description="local error bound, fraction of the bounding-box diagonal",
-    )
-    reduce: float = Field(
-        _DEFAULTS["reduce"],
-        allow_inf_nan=False,
-        description="target fraction of triangles removed, 0 <= reduce < 1",
-    )
-
-    levels: list[_Finite] | None = Field(
-        None,
-        description=f"several thresholds, one structure each (a scene), e.g. [-500, 300]; "
-        f"at most {MAX_LEVELS}",
-    )
-    components: str = Field(
-        _DEFAULTS["components"], description='"all", "largest" or "split" (one part per piece)'
-    )
-    min_size_mm3: float = Field(
-        _DEFAULTS["min_size_mm3"],
-        allow_inf_nan=False,
-        description="pieces smaller than this (mm³) are dropped",
-    )
-    smooth: int | None = Field(
-        _DEFAULTS["smooth"], description="windowed-sinc smoothing iterations (keeps volume)"
-    )
-    passband: float = Field(
-        _DEFAULTS["passband"], allow_inf_nan=False, description="smoothing passband, 0..2"
-    )
-    labels: str | list[int] | None = Field(
-        None,
-        description='label-map labels to build, one part each: "all" or ids such as [1, 4] '
-        "(from the volume's uploaded label map, or the volume itself when it is one)",
-    )
 
     def spec(self) -> JobSpec:
         """The engine's validated spec (raises BadParameter); every format is produced."""
-        values = self.model_dump(exclude={"volume"})
-        if values["levels"] is not None and len(values["levels"]) > MAX_LEVELS:
-            raise BadParameter(
-                f"{len(values['levels'])} levels is too many; a model takes at most "
-                f"{MAX_LEVELS} (each is a whole surface): make several models."
-            )
-        if values["level"] is None:
-            del values["level"]
-        values["labels"] = parse_labels(values["labels"])
+        values = self.model_dump(exclude={"volume"}, exclude_unset=True)
         return JobSpec.from_dict({**values, "formats": list(FORMATS)})
+
+
+ModelRequest = create_model(  # type: ignore[call-overload]
+    "ModelRequest",
+    __base__=_ModelForm,
+    **{
+        name: definition
+        for attr, cls in GROUPS
+        if attr != "outputs"
+        for name, definition in _fields_of(cls).items()
+    },
+)
 
 
 class VolumeOut(BaseModel):
@@ -268,12 +261,13 @@ def attachment(filename: str) -> dict[str, str]:
 def download_name(volume: VolumeRow, row: ModelRow, fmt: str) -> str:
     """A readable file name without identity: ``demo-head_level300_bone.wrl``."""
     spec = row.spec
-    levels = spec.get("levels") or ([spec["level"]] if spec.get("level") is not None else [])
+    structures = JobSpec.from_dict(spec).structures
+    levels = structures.levels_used
     parts = [volume.slug, "levels" + "_".join(_number(v) for v in levels)]
     if len(levels) == 1:
         parts[1] = f"level{_number(levels[0])}"
-    if spec.get("labels") is not None:
-        labels = spec["labels"]
+    labels = structures.labels_used
+    if labels is not None:
         named = "labels" + ("all" if labels == "all" else "_".join(str(n) for n in labels))
         parts[1:2] = [parts[1], named] if levels else [named]
     preset = next(

@@ -36,19 +36,20 @@ import sys
 import time
 import traceback
 from collections.abc import Mapping
+from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from miss import __version__
 from miss.errors import BadParameter, MissError
 from miss.export import FORMATS, WRITERS
-from miss.pipeline import JobResult, JobSpec, run
+from miss.pipeline import JobResult, execute
 from miss.server import labelmaps
 from miss.server.db import VolumeRow
 from miss.server.jobstate import JobState
 from miss.server.settings import Settings
 from miss.server.store import PART, Store, is_disk_full, write_atomic
+from miss.spec import JobSpec, Loaded
 
 #: Seconds between progress writes within one stage: enough for a live bar, light on the DB.
 PROGRESS_INTERVAL = 0.3
@@ -133,77 +134,82 @@ def remove_outputs(folder: Path) -> None:
         path.unlink(missing_ok=True)
 
 
-def write_files(folder: Path, artifacts: dict[str, bytes]) -> dict[str, Any]:
-    """Write ``model.<fmt>`` files atomically; returns {fmt: {bytes, etag, mime}}."""
-    folder.mkdir(parents=True, exist_ok=True)
-    files = {}
-    for fmt, data in artifacts.items():
-        write_atomic(folder / f"model.{fmt}", data)
-        files[fmt] = {
-            "bytes": len(data),
-            "etag": hashlib.sha256(data).hexdigest()[:32],
-            "mime": WRITERS[fmt].mime,
-        }
-    return files
+@dataclass(frozen=True, eq=False)
+class StoredVolume:
+    """A job's source in the server: an uploaded volume of the data folder, with the label
+    map laid over it when the job asks for labels."""
+
+    store: Store
+    volume_id: str
+
+    def load(self, labels: bool) -> Loaded:
+        row = self.store.get_volume(self.volume_id)
+        stored = labelmaps.load(self.store, self.volume_id) if labels else None
+        label_map, table = stored if stored else (None, None)
+        volume = self.store.open_volume(self.volume_id)
+        return Loaded(volume, label_map, table, row.name, _provenance(row))
 
 
-def summarize(result: JobResult, load_seconds: float, total_seconds: float) -> dict[str, Any]:
-    """The stats the API shows: triangles, vertices, seconds per stage, bytes, error in mm,
-    and the bounding box in patient mm (the rooms check pins against it)."""
-    stats = result.stats()
-    stats["seconds"] = {"load": load_seconds, **stats["seconds"], "total": total_seconds}
-    stats["max_error_mm"] = result.report.max_error_mm
-    stats["mean_error_mm"] = result.report.mean_error_mm
-    if result.mesh.n_vertices:
-        stats["bounds_mm"] = result.mesh.bounds().tolist()
-    return json.loads(json.dumps(stats, default=float))
-
-
-def provenance(volume_row: VolumeRow, spec: JobSpec) -> dict[str, str]:
-    """What a model file says about where it came from: software, parameters, the hash of
-    the (de-identified) source voxels. Strings only (every exporter takes str -> str);
-    never a patient name, ID or original UID."""
-    params = {k: v for k, v in spec.to_dict().items() if k != "formats"}
+def _provenance(row: VolumeRow) -> dict[str, str]:
+    """What a model file says of its volume: the hash of the (de-identified) voxels, never
+    a patient name, ID or original UID."""
     return {
-        "software": f"MISS {__version__}",
-        "parameters": json.dumps(params, sort_keys=True),
-        "source": volume_row.slug,
-        "source_sha256": str(volume_row.info.get("source_sha256", "")),
-        "modality": str(volume_row.info.get("modality", "")),
-        "deidentified": "yes" if volume_row.info.get("deidentification") else "no patient data",
+        "source": row.slug,
+        "source_sha256": str(row.info.get("source_sha256", "")),
+        "modality": str(row.info.get("modality", "")),
+        "deidentified": "yes" if row.info.get("deidentification") else "no patient data",
         "created": datetime.now(UTC).isoformat(timespec="seconds"),
     }
 
 
+@dataclass(frozen=True)
+class DataFolder:
+    """A job's files in the server: ``models/<id>/model.<fmt>``, each written atomically;
+    delivers {fmt: {bytes, etag, mime}}."""
+
+    folder: Path
+
+    def deliver(self, result: JobResult) -> dict[str, Any]:
+        self.folder.mkdir(parents=True, exist_ok=True)
+        files = {}
+        for fmt, data in result.artifacts.items():
+            write_atomic(self.folder / f"model.{fmt}", data)
+            files[fmt] = {
+                "bytes": len(data),
+                "etag": hashlib.sha256(data).hexdigest()[:32],
+                "mime": WRITERS[fmt].mime_of(len(result.scene.parts)),
+            }
+        return files
+
+
+def summarize(result: JobResult) -> dict[str, Any]:
+    """The stats the API shows: triangles, vertices, seconds per stage, bytes, error in mm,
+    parts, the bounding box in patient mm (the rooms check pins against it), provenance."""
+    stats = result.stats()
+    stats["max_error_mm"] = result.report.max_error_mm
+    stats["mean_error_mm"] = result.report.mean_error_mm
+    if result.scene.n_vertices:
+        stats["bounds_mm"] = result.scene.bounds().tolist()
+    stats["provenance"] = result.metadata
+    return json.loads(json.dumps(stats, default=float))
+
+
+#: The server sends meshopt-compressed glTF: about 4 bytes a triangle to the viewer.
+EXPORT_OPTIONS = {"glb": {"compress": True}}
+
+
 def run_job(store: Store, model_id: str, parent: int) -> None:
     """Compute one model and record it as done (or raise)."""
-    t0 = time.perf_counter()
     row = store.get_model(model_id)
     limit_memory(store, row.volume_id, memory_cap(os.environ))
     state = JobState(store)
     reporter = Reporter(state, model_id, parent)
-    reporter("load", 0.0)
-    volume_row = store.get_volume(row.volume_id)
-    volume = store.open_volume(row.volume_id)
-    spec = JobSpec.from_dict({**row.spec, "formats": list(FORMATS)})
-    stored = labelmaps.load(store, row.volume_id) if spec.labels is not None else None
-    label_map, table = stored if stored else (None, None)
-    load_seconds = time.perf_counter() - t0
-    metadata = provenance(volume_row, spec)
-    result = run(
-        volume,
-        spec,
-        label_map=label_map,
-        table=table,
-        progress=reporter,
-        title=volume_row.name,
-        metadata=metadata,
-        export_options={"glb": {"compress": True}},  # meshopt: ~4 bytes/triangle to the viewer
-    )
+    source = StoredVolume(store, row.volume_id)
+    spec = JobSpec.from_dict({**row.spec, "formats": FORMATS}, source)
+    folder = DataFolder(store.model_dir(model_id))
+    result, files = execute(spec, folder, reporter, export_options=EXPORT_OPTIONS)
     reporter("store", 1.0)
-    files = write_files(store.model_dir(model_id), result.artifacts)
-    stats = summarize(result, load_seconds, time.perf_counter() - t0) | {"provenance": metadata}
-    if not state.finish(model_id, stats, files):
+    if not state.finish(model_id, summarize(result), files):
         raise Stop
 
 

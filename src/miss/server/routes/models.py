@@ -14,7 +14,6 @@ from starlette.concurrency import run_in_threadpool
 from miss.errors import BadParameter, EmptySurface
 from miss.export import FORMATS, WRITERS
 from miss.labelmap import label_counts
-from miss.pipeline import JobSpec, slice_range
 from miss.server import audit, labelmaps
 from miss.server.caches import BytesLRU, need_io
 from miss.server.db import DONE, FAILED, ModelRow, VolumeRow
@@ -39,6 +38,7 @@ from miss.server.schemas import (
     model_out,
 )
 from miss.server.store import Store
+from miss.spec import JobSpec
 
 router = APIRouter(prefix="/api/models", tags=["models"], route_class=JSONRoute)
 
@@ -52,36 +52,18 @@ def check_against_volume(spec: JobSpec, volume: VolumeRow, store: Store) -> None
     info = volume.info
     lo, hi = info["range"]
     units = f" {info['units']}" if info["units"] else ""
-    for level in _levels(spec):
+    for level in spec.structures.levels_used:
         if not lo < level < hi:
             raise EmptySurface(
                 f"level {level:g} is outside this volume's values {lo:g}..{hi:g}{units}; "
                 "pick a level inside that range (see the histogram's presets)."
             )
-    slices = info["dims"][2]
-    for name in ("start_slice", "end_slice"):
-        value = getattr(spec, name)
-        if value is not None and value > slices:
-            raise BadParameter(
-                f"{name} {value} is beyond the volume's {slices} slices; use 1..{slices}."
-            )
-    _check_region(spec, volume, store, units)
-
-
-def _check_region(spec: JobSpec, volume: VolumeRow, store: Store, units: str) -> None:
-    """The voxels the job will actually see: enough of them, and the level among them."""
-    info = volume.info
-    slices = info["dims"][2]
-    first, last = slice_range(spec, _Dims(info["dims"])) or (1, slices)
-    sx, sy, sz = spec.steps
-    block = store.open_volume(volume.id).data[::sx, ::sy, first - 1 : last : sz]
-    if min(block.shape) < 2:
-        raise BadParameter(
-            f"sample rate {list(spec.steps)} on slices {first}..{last} leaves {list(block.shape)} voxels; "
-            "a surface needs at least 2 along each axis: lower the sample rate or widen the slices."
-        )
+    box = spec.region.box(info["dims"])  # slices beyond the stack, too few voxels
+    picked = tuple(slice(a, b + 1, s) for (a, b), s in zip(box, spec.region.steps, strict=True))
+    block = store.open_volume(volume.id).data[picked]
     bmin, bmax = float(block.min()), float(block.max())
-    for level in _levels(spec):
+    first, last = box[2][0] + 1, box[2][1] + 1
+    for level in spec.structures.levels_used:
         if not bmin < level < bmax:
             raise EmptySurface(
                 f"no surface at level {level:g} in slices {first}..{last}: they hold values "
@@ -114,20 +96,6 @@ def _label_source(
     return meta
 
 
-def _levels(spec: JobSpec) -> tuple[float, ...]:
-    """The thresholds a job surfaces: ``levels`` when given, else ``level``."""
-    if spec.levels:
-        return tuple(spec.levels)
-    return () if spec.level is None else (spec.level,)
-
-
-class _Dims:
-    """Just enough of a Volume for ``slice_range`` (which reads ``dims``)."""
-
-    def __init__(self, dims: list[int]) -> None:
-        self.dims = tuple(dims)
-
-
 @router.post(
     "",
     status_code=202,
@@ -154,8 +122,9 @@ def create_model(
     spec = body.spec()
     check_against_volume(spec, volume, store)
     key = spec.key()
-    if spec.labels is not None:
-        key = labelmaps.cache_key(key, _label_source(volume, store, spec.labels))
+    labels = spec.structures.labels_used
+    if labels is not None:
+        key = labelmaps.cache_key(key, _label_source(volume, store, labels))
     store.check_free_space(settings.min_free_bytes)  # 507 while the disk is nearly full
     with jobs.slot(store, user.name, volume.id, key):  # 429 when one job too many
         row, created = store.find_or_create_model(volume.id, key, spec.to_dict(), user.name)

@@ -1,0 +1,5 @@
+import sys
+
+from miss.cli import main
+
+sys.exit(main())

@@ -1,0 +1,109 @@
+"""``miss serve``, ``miss user`` and ``miss audit``: the web system and its accounts."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from typing import Any
+
+
+def add_serve_parser(sub: Any) -> None:
+    serve = sub.add_parser("serve", help="start the web system")
+    serve.add_argument("--host", default=None)
+    serve.add_argument("--port", type=int, default=None)
+    serve.add_argument("--data-dir", default=None)
+
+
+def add_parsers(sub: Any) -> None:
+    """``miss user add`` and ``miss audit``: the server's accounts and audit log, offline."""
+    user = sub.add_parser("user", help="manage the web system's accounts")
+    user_sub = user.add_subparsers(
+        dest="user_command", required=True, parser_class=sub._parser_class
+    )
+    add = user_sub.add_parser("add", help="create an account; the password is read from stdin")
+    add.add_argument("name")
+    add.add_argument("--admin", action="store_true", help="may see everything and read the audit")
+    add.add_argument("--data-dir", default=None, help="default: MISS_DATA_DIR or ./miss-data")
+    helps = {
+        "passwd": "set an account's password (read from stdin); its logins end",
+        "disable": "disable an account: it cannot log in, and its logins end",
+        "enable": "enable a disabled account again",
+    }
+    for name, text in helps.items():
+        change = user_sub.add_parser(name, help=text)
+        change.add_argument("name")
+        change.add_argument(
+            "--data-dir", default=None, help="default: MISS_DATA_DIR or ./miss-data"
+        )
+    audit = sub.add_parser("audit", help="print the web system's audit log")
+    audit.add_argument("--data-dir", default=None, help="default: MISS_DATA_DIR or ./miss-data")
+    audit.add_argument("--limit", type=int, default=500, help="newest entries (default 500)")
+    audit.add_argument("--action", default=None, help="only this action (login, share ...)")
+    audit.add_argument("--json", action="store_true", help="one JSON object per line")
+
+
+def cmd_serve(args: argparse.Namespace) -> int:
+    from miss.server.main import serve
+
+    return serve(host=args.host, port=args.port, data_dir=args.data_dir)
+
+
+def _read_password() -> str:
+    """The new password: typed twice at a terminal, else the first line of stdin."""
+    if sys.stdin.isatty():
+        import getpass
+
+        first = getpass.getpass("password: ")
+        if getpass.getpass("again: ") != first:
+            from miss.errors import BadParameter
+
+            raise BadParameter("the two passwords differ; run the command again.")
+        return first
+    return sys.stdin.readline().rstrip("\r\n")
+
+
+def cmd_user(args: argparse.Namespace) -> int:
+    """``miss user add|passwd|disable|enable NAME``. A running server drops the ended
+    logins within seconds (it checks its live sessions against the database)."""
+    from miss.server import accounts, audit
+    from miss.server.settings import Settings
+    from miss.server.store import Store
+
+    settings = Settings.from_env(data_dir=args.data_dir)
+    store = Store(settings.data_dir, settings.database_url)
+    try:
+        store.init_schema()
+        if args.user_command == "add":
+            user = accounts.create_user(store, args.name, _read_password(), is_admin=args.admin)
+            said = f"created {'administrator' if user.is_admin else 'user'} {user.name!r}"
+        else:
+            user = accounts.find_user(store, args.name)
+            if args.user_command == "passwd":
+                accounts.set_password(store, user.id, _read_password())
+            else:
+                accounts.set_disabled(store, user.id, args.user_command == "disable")
+            ended = [] if args.user_command == "enable" else accounts.end_sessions(store, user.id)
+            audit.record(store, f"user_{args.user_command}", "(command line)", user.name)
+            said = f"{args.user_command}: {user.name!r} ({len(ended)} login(s) ended)"
+    finally:
+        store.close()
+    print(said)
+    return 0
+
+
+def cmd_audit(args: argparse.Namespace) -> int:
+    from miss.server import audit
+    from miss.server.settings import Settings
+    from miss.server.store import Store
+
+    settings = Settings.from_env(data_dir=args.data_dir)
+    store = Store(settings.data_dir, settings.database_url)
+    try:
+        store.init_schema()
+        entries = audit.entries(store, args.limit, args.action)
+    finally:
+        store.close()
+    for entry in entries:
+        print(json.dumps(entry) if args.json else audit.format_line(entry))
+    return 0

@@ -1,0 +1,104 @@
+"""``miss convert``: a volume to surface models, through the one job path
+(:func:`miss.pipeline.execute`) the server's workers take too."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+from miss.cli.options import add_job_options, add_source_options, job_form, source_of
+
+
+def add_parser(sub: Any) -> None:
+    conv = sub.add_parser("convert", help="volume -> surface model(s)")
+    add_source_options(conv)
+    conv.add_argument(
+        "-o", "--output", action="append", required=True, metavar="OUT",
+        help="output file; format from its extension; repeat for several",
+    )  # fmt: skip
+    conv.add_argument("--json", action="store_true", help="print the run's statistics as JSON")
+    add_job_options(conv)
+
+
+class _Bar:
+    """A one-line progress bar on stderr, drawn only when stderr is a terminal."""
+
+    def __init__(self) -> None:
+        self.enabled = sys.stderr.isatty()
+
+    def __call__(self, stage: str, fraction: float) -> None:
+        if self.enabled:
+            filled = int(30 * fraction)
+            sys.stderr.write(f"\r{stage:<9} [{'#' * filled}{'.' * (30 - filled)}] {fraction:4.0%}")
+            sys.stderr.flush()
+            if fraction >= 1.0:
+                sys.stderr.write("\n")
+
+
+def _outputs(names: list[str]) -> dict[str, tuple[Path, ...]]:
+    """Each format and the paths it goes to; refuses unknown extensions and folders."""
+    from miss.errors import UnsupportedFormat
+    from miss.export import WRITERS
+
+    paths: dict[str, list[Path]] = {}
+    for name in names:
+        out = Path(name)
+        fmt = "".join(out.suffixes[-1:]).lower().lstrip(".")
+        if fmt not in WRITERS:
+            raise UnsupportedFormat(
+                f"{out}: unknown output extension {out.suffix or '(none)'}; use one of "
+                + ", ".join(f".{k}" for k in WRITERS)
+            )
+        if not out.parent.is_dir():
+            raise UnsupportedFormat(f"{out}: folder {out.parent} does not exist; create it first.")
+        paths.setdefault(fmt, []).append(out)
+    return {fmt: tuple(p) for fmt, p in paths.items()}
+
+
+def cmd_convert(args: argparse.Namespace) -> int:
+    from miss.pipeline import Files, execute
+    from miss.spec import JobSpec
+
+    paths = _outputs(args.output)
+    form = job_form(args)
+    if not any(k in form for k in ("level", "levels", "labels", "parts")) or (
+        args.label_map and "labels" not in form
+    ):
+        form["labels"] = "all"  # a label map's labels; a scan is refused, naming --level
+    spec = JobSpec.from_dict({**form, "formats": list(paths)}, source_of(args))
+    result, written = execute(spec, Files(paths), _Bar())
+    summary = {
+        **result.stats(),
+        "seconds": {k: round(v, 4) for k, v in result.seconds.items()},
+        "outputs": written,
+    }
+    summary.pop("bytes")
+    if args.json:
+        print(json.dumps(summary))
+    else:
+        _print(summary)
+    return 0
+
+
+def _print(summary: dict[str, Any]) -> None:
+    """Parts (when several), triangles, error, seconds, files written, notes."""
+    parts = summary["parts"]
+    if len(parts) > 1 or parts[0]["label"] is not None:
+        for part in parts:
+            label = "" if part["label"] is None else f"label {part['label']:<4} "
+            print(f"part      {label}{part['name']:<28} {part['triangles']:>8} triangles "
+                  f"{part['volume_ml']:>10.2f} mL {part['area_cm2']:>10.2f} cm²")  # fmt: skip
+    d = summary["decimation"]
+    print(
+        f"{summary['triangles']} triangles, {summary['vertices']} vertices in {len(parts)} "
+        f"part(s) ({d['triangles_before']} before {d['method']} decimation; "
+        f"max error {d['max_error_mm'] or 0:.3f} mm, mean {d['mean_error_mm'] or 0:.4f} mm)"
+    )
+    print("seconds   " + "  ".join(f"{k} {v:.2f}" for k, v in summary["seconds"].items()))
+    for o in summary["outputs"]:
+        print(f"wrote     {o['path']} ({o['bytes'] / 1024:.0f} KB)")
+    for note in summary["notes"]:
+        print(f"note      {note}")

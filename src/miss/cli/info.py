@@ -1,0 +1,80 @@
+"""``miss info``: what a volume is, and the labels of a label map with their names."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from typing import Any
+
+import numpy as np
+
+from miss.cli.options import add_source_options
+
+
+def add_parser(sub: Any) -> None:
+    info = sub.add_parser(
+        "info", help="describe a volume (DICOM folder/zip, NIfTI, NRRD, MetaImage)"
+    )
+    add_source_options(info, "path", "series")
+    info.add_argument("--json", action="store_true", help="print one JSON object")
+
+
+def describe(volume: Any) -> dict[str, Any]:
+    lo, hi = volume.value_range()
+    return {
+        "dims": list(volume.dims),
+        "spacing": [round(s, 6) for s in volume.spacing],
+        "affine": np.round(volume.affine, 6).tolist(),
+        "dtype": str(volume.data.dtype),
+        "range": [lo, hi],
+        "modality": volume.meta.get("modality", ""),
+        "units": volume.meta.get("units", ""),
+        "series": volume.meta.get("series", []),
+        "notes": volume.meta.get("notes", []),
+    }
+
+
+def cmd_info(args: argparse.Namespace) -> int:
+    from miss.io import load_volume
+
+    volume = load_volume(args.path, series=args.series)
+    desc = {**describe(volume), **label_listing(volume, args.path)}
+    if args.json:
+        print(json.dumps(desc))
+        return 0
+    print(f"dims      {' x '.join(map(str, desc['dims']))} (columns x rows x slices)")
+    print(f"spacing   {' x '.join(f'{s:g}' for s in desc['spacing'])} mm")
+    print(
+        f"values    {desc['range'][0]:g} .. {desc['range'][1]:g} {desc['units']} ({desc['dtype']})"
+    )
+    print(f"modality  {desc['modality'] or '-'}")
+    for s in desc["series"]:
+        print(f"series    {s.get('uid')}  {s.get('slices')} slices  {s.get('description', '')}")
+    for note in desc["notes"]:
+        print(f"note      {note}")
+    for item in desc.get("labels", []):
+        print(f"label     {item['label']:<5} {item['voxels']:>10} voxels  {item['name'] or ''}")
+    return 0
+
+
+def label_listing(volume: Any, path: str) -> dict[str, Any]:
+    """The labels of a label map with voxel counts, mL and known names.
+
+    Empty for anything that is not a label map (float data, negative values, or
+    more than :data:`miss.labelmap.MAX_LABELS` distinct values).
+    """
+    from miss.labelmap import label_counts
+    from miss.labels import find_label_table
+
+    counts = label_counts(volume)
+    if counts is None:
+        return {}
+    found = find_label_table(path)
+    table, source = found if found else ({}, None)
+    voxel_ml = abs(float(np.linalg.det(volume.affine[:3, :3]))) / 1000.0
+    labels = [
+        {"label": label, "voxels": n, "volume_ml": round(n * voxel_ml, 4),
+         "name": table[label].name if label in table else None}
+        for label, n in sorted(counts.items())
+    ]  # fmt: skip
+    return {"labels": labels, "label_table": source}
