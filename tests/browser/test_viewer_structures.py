@@ -70,8 +70,12 @@ def test_structures_in_the_viewer(page: Any, server: Any, artifacts: Path) -> No
     model_id = page.url.rstrip("/").split("/")[-1].split("?")[0]
     model = server.get(f"/api/models/{model_id}")
     assert model["status"] == "done"
-    assert model["params"]["levels"] == [300, -500]
-    assert [p["name"] for p in model["stats"]["parts"]] == ["bone (300 HU)", "skin (-500 HU)"]
+    # Names and colours travel with the job and are written into the model by the server.
+    assert model["params"]["parts"] == [
+        {"level": 300, "name": "bone"},
+        {"level": -500, "name": "skin", "color": "#d9a07f"},
+    ]
+    assert [p["name"] for p in model["stats"]["parts"]] == ["bone", "skin"]
 
     page.wait_for_function(
         "() => window.__miss.ready && window.__miss.structures.parts.length === 2",

@@ -5,7 +5,6 @@
 // Everything only asks the viewer to draw again (render on demand).
 
 import { el, onClick } from './format.js';
-import { loadStyles, styleFor } from './structures.js';
 import { status } from './viewer-ui.js';
 
 const $ = ( id ) => document.getElementById( id );
@@ -29,11 +28,10 @@ function save( data, name, type ) {
 }
 
 export class StructuresPanel {
-	// stats: the model's stats (stats.parts for a scene); modelId: for the names
-	// and colours chosen on the volume page.
-	constructor( viewer, { modelId = null } = {} ) {
+	// Names and colours come with the model (the server writes what the volume page asked
+	// for); stats.parts gives each part's name, volume (mL) and area (cm²).
+	constructor( viewer ) {
 		this.viewer = viewer;
-		this.modelId = modelId;
 		this.stats = {};
 		this.bindCanvas();
 		$( 'clip-axis' ).addEventListener( 'change', () => this.clip() );
@@ -52,17 +50,12 @@ export class StructuresPanel {
 	refresh() {
 		const parts = this.viewer.parts;
 		const measured = this.stats.parts || [];
-		const styles = this.modelId ? loadStyles( this.modelId ) : [];
 		for ( const [ i, p ] of parts.entries() ) {
 			const m = measured[ i ] || {};
 			// The VRML loader drops the parts' names: the model's stats list them in the same order.
 			if ( parts.length === measured.length && p.extras.volume_ml == null && m.name ) p.name = m.name;
-			p.serverName = p.name;
 			p.volume_ml = p.extras.volume_ml ?? m.volume_ml;
 			p.area_cm2 = p.extras.area_cm2 ?? m.area_cm2;
-			const found = styleFor( p.name, styles ) || ( parts.length === 1 && styles.length === 1 ? { style: styles[ 0 ], suffix: '' } : null );
-			if ( found?.style.name ) p.name = found.style.name + found.suffix;
-			if ( found?.style.color ) this.viewer.setPartColor( i, found.style.color );
 		}
 		$( 'structure-list' ).replaceChildren( ...parts.map( ( p, i ) => this.row( p, i ) ) );
 		$( 'structures-section' ).hidden = parts.length === 0;
@@ -142,7 +135,7 @@ export class StructuresPanel {
 	// window.__miss.structures: what the browser tests read.
 	publish() {
 		status.structures.parts = this.viewer.parts.map( ( p ) => ( {
-			name: p.name, serverName: p.serverName, visible: p.mesh.visible, opacity: p.material.opacity,
+			name: p.name, visible: p.mesh.visible, opacity: p.material.opacity,
 			color: hex( p.material.color ), volume_ml: p.volume_ml ?? null, area_cm2: p.area_cm2 ?? null,
 		} ) );
 		status.structures.selected = this.viewer.selected;

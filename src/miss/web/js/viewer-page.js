@@ -35,7 +35,7 @@ async function main() {
 	showSession();
 	const viewer = new ModelViewer( $( 'stage' ) );
 	let consult = null;
-	const structures = new StructuresPanel( viewer, { modelId } );
+	const structures = new StructuresPanel( viewer );
 	const onLoaded = () => {
 		structures.refresh();
 		consult?.modelLoaded();

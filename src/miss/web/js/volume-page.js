@@ -11,7 +11,6 @@ import { percent, renderStages, stageLabel } from './job.js';
 import { SliceRange } from './range.js';
 import { showPrivacy } from './privacy.js';
 import { SliceView } from './slices.js';
-import { saveStyles } from './structures.js';
 
 const $ = ( id ) => document.getElementById( id );
 const volumeId = decodeURIComponent( location.pathname.split( '/' ).filter( Boolean ).pop() );
@@ -222,7 +221,11 @@ function modelParams( volume ) {
 		reduce: Number( $( 'reduce' ).value ),
 	};
 	const list = structures();
-	if ( list.length > 1 ) {
+	if ( list.some( ( s ) => s.name || s.color ) ) {
+		// Names and colours the user gave go to the server, which writes them into the model.
+		delete params.level;
+		params.parts = list.map( ( { level, name, color } ) => ( { level, ...( name && { name } ), ...( color && { color } ) } ) );
+	} else if ( list.length > 1 ) {
 		delete params.level;
 		params.levels = list.map( ( s ) => s.level );
 	}
@@ -260,9 +263,6 @@ async function generate( volume ) {
 	$( 'job-link' ).hidden = true;
 	try {
 		const job = await api.createModel( modelParams( volume ) );
-		const styles = structures();
-		// Names and colours the user gave (the server has no field for them) stay in this browser.
-		if ( styles.some( ( s ) => s.name || s.color ) ) saveStyles( job.id, styles.map( ( { level, name, color } ) => ( { level, name, color } ) ) );
 		showJob( { progress: 0, ...job } );
 		const model = await watchModel( job.id, showJob );
 		showJob( model );
@@ -283,7 +283,8 @@ async function generate( volume ) {
 function modelItem( m ) {
 	const p = m.params || {};
 	const sr = Array.isArray( p.sample_rate ) ? p.sample_rate.join( ',' ) : p.sample_rate;
-	let levels = p.levels?.length ? `levels ${p.levels.join( ', ' )}` : `level ${p.level}`;
+	const thresholds = p.parts ? p.parts.filter( ( x ) => x.level != null ).map( ( x ) => x.level ) : p.levels || [ p.level ];
+	let levels = thresholds.length > 1 ? `levels ${thresholds.join( ', ' )}` : `level ${thresholds[ 0 ]}`;
 	if ( p.labels != null ) levels = `labels ${p.labels === 'all' ? 'all' : p.labels.join( ', ' )}`;
 	const parts = m.stats?.parts ? ` · ${m.stats.parts.length} parts` : '';
 	const what = `${levels}${p.components && p.components !== 'all' ? ` · ${p.components}` : ''} · rate ${sr} · ${p.decimate}${parts}`;
@@ -294,8 +295,7 @@ function modelItem( m ) {
 async function loadModels() {
 	try {
 		const data = await api.models( volumeId );
-		const models = Array.isArray( data ) ? data : data.models || data.items || [];
-		$( 'models' ).replaceChildren( ...( models.length ? models.map( modelItem ) : [ el( 'li.muted', {}, 'none yet' ) ] ) );
+		$( 'models' ).replaceChildren( ...( data.length ? data.map( modelItem ) : [ el( 'li.muted', {}, 'none yet' ) ] ) );
 	} catch ( err ) {
 		$( 'models' ).replaceChildren( el( 'li.muted', {}, err.message ) );
 	}
