@@ -17,7 +17,7 @@ from miss.deviation import deviation, distances_to
 from miss.geometry import boundary_edge_count, enclosed_volume
 
 # the package exports the function decimate under the module's name
-decimate_module = importlib.import_module("miss.decimate")
+decimate_module = importlib.import_module("miss.decimate.quadric")
 PHANTOM_LEVELS = {"bone": 300.0, "skin": -500.0}  # HU, see miss.demo
 
 

@@ -14,14 +14,42 @@ The stable Python API::
 
 from __future__ import annotations
 
+import importlib
+from typing import TYPE_CHECKING, Any
+
+# Light on purpose: ``decimate`` and ``export`` are small front doors whose native
+# libraries (meshoptimizer, numba, VTK) load on the first call; the rest below load on
+# first use, so ``import miss`` (and every ``miss`` command) starts quickly.
 from miss.decimate import DecimationReport, decimate
 from miss.errors import BadParameter, EmptySurface, MissError, UnreadableVolume, UnsupportedFormat
 from miss.export import export
-from miss.io import load_volume
-from miss.scene import Part, Scene
-from miss.structures import extract_scene
-from miss.surface import extract_surface
-from miss.types import Mesh, Volume
+
+if TYPE_CHECKING:
+    from miss.io import load_volume
+    from miss.scene import Part, Scene
+    from miss.structures import extract_scene
+    from miss.surface import extract_surface
+    from miss.types import Mesh, Volume
+
+#: Public names loaded on first use, and the module each comes from.
+_LAZY = {
+    "load_volume": "miss.io",
+    "extract_surface": "miss.surface",
+    "extract_scene": "miss.structures",
+    "Part": "miss.scene",
+    "Scene": "miss.scene",
+    "Mesh": "miss.types",
+    "Volume": "miss.types",
+}
+
+
+def __getattr__(name: str) -> Any:
+    if name not in _LAZY:
+        raise AttributeError(f"module 'miss' has no attribute {name!r}")
+    value = getattr(importlib.import_module(_LAZY[name]), name)
+    globals()[name] = value
+    return value
+
 
 __version__ = "0.1.0"
 

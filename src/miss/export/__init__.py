@@ -15,15 +15,16 @@ servers commonly send (``application/ply`` is rarely seen).
 
 from __future__ import annotations
 
+import importlib
 from collections.abc import Callable
 from dataclasses import dataclass
-
-import numpy as np
+from typing import TYPE_CHECKING
 
 from miss.errors import BadParameter, EmptySurface, UnsupportedFormat
-from miss.export import _zip, gltf, obj, ply, stl, vrml, x3d
-from miss.scene import Scene
-from miss.types import Mesh
+
+if TYPE_CHECKING:
+    from miss.scene import Scene
+    from miss.types import Mesh
 
 
 @dataclass(frozen=True)
@@ -32,10 +33,10 @@ class Writer:
 
     Attributes
     ----------
-    write : callable
-        ``write(mesh, *, title=None, metadata=None, **options) -> bytes``.
-    write_scene : callable
-        ``write_scene(scene, *, title=None, metadata=None, **options) -> bytes``.
+    module : str
+        The module of ``miss.export`` that writes it (imported on first use, so that
+        ``import miss`` stays cheap); it has ``write(mesh, *, title=None,
+        metadata=None, **options) -> bytes`` and ``write_scene(scene, ...)``.
     mime : str
         The Content-Type to serve it with.
     binary : bool
@@ -49,38 +50,48 @@ class Writer:
     zips_scenes : bool
         The format holds one uncoloured mesh (stl, ply) or needs a side file (obj + mtl):
         a scene of several parts is a zip with a ``scene.json``.
+    gzip : bool
+        The writers' output gzipped (``.wrz``).
     """
 
-    write: Callable[..., bytes]
-    write_scene: Callable[..., bytes]
+    module: str
     mime: str
     binary: bool
     description: str
     options: frozenset[str] = frozenset()
     legacy_mime: str | None = None
     zips_scenes: bool = False
+    gzip: bool = False
+
+    @property
+    def write(self) -> Callable[..., bytes]:
+        return self._function("write")
+
+    @property
+    def write_scene(self) -> Callable[..., bytes]:
+        return self._function("write_scene")
+
+    def _function(self, name: str) -> Callable[..., bytes]:
+        module = importlib.import_module(f"miss.export.{self.module}")
+        return getattr(module, f"{name}_gzip" if self.gzip else name)
 
     def mime_of(self, parts: int) -> str:
         """The Content-Type of a model of ``parts`` parts in this format."""
-        return _zip.MIME if self.zips_scenes and parts > 1 else self.mime
+        return "application/zip" if self.zips_scenes and parts > 1 else self.mime
 
 
 _VRML = "x-world/x-vrml"
 WRITERS: dict[str, Writer] = {
-    "wrl": Writer(vrml.write, vrml.write_scene, "model/vrml", False,
-                  "VRML 2.0, the 1998 MISS format", legacy_mime=_VRML),
-    "wrz": Writer(vrml.write_gzip, vrml.write_scene_gzip, "model/vrml", True,
-                  "VRML 2.0, gzipped", legacy_mime=_VRML),
-    "x3d": Writer(x3d.write, x3d.write_scene, "model/x3d+xml", False,
-                  "X3D 3.3 XML, VRML's successor"),
-    "glb": Writer(gltf.write, gltf.write_scene, "model/gltf-binary", True,
-                  "glTF 2.0 binary, for web viewers", frozenset({"compress"})),
-    "stl": Writer(stl.write, stl.write_scene, "model/stl", True,
-                  "binary STL, for 3-D printing", zips_scenes=True),
-    "ply": Writer(ply.write, ply.write_scene, "model/ply", True,
-                  "binary PLY with normals", zips_scenes=True),
-    "obj": Writer(obj.write, obj.write_scene, "model/obj", False,
-                  "Wavefront OBJ with normals", zips_scenes=True),
+    "wrl": Writer("vrml", "model/vrml", False, "VRML 2.0, the 1998 MISS format",
+                  legacy_mime=_VRML),
+    "wrz": Writer("vrml", "model/vrml", True, "VRML 2.0, gzipped", legacy_mime=_VRML,
+                  gzip=True),
+    "x3d": Writer("x3d", "model/x3d+xml", False, "X3D 3.3 XML, VRML's successor"),
+    "glb": Writer("gltf", "model/gltf-binary", True, "glTF 2.0 binary, for web viewers",
+                  frozenset({"compress"})),
+    "stl": Writer("stl", "model/stl", True, "binary STL, for 3-D printing", zips_scenes=True),
+    "ply": Writer("ply", "model/ply", True, "binary PLY with normals", zips_scenes=True),
+    "obj": Writer("obj", "model/obj", False, "Wavefront OBJ with normals", zips_scenes=True),
 }  # fmt: skip
 
 FORMATS: list[str] = list(WRITERS)
@@ -139,6 +150,8 @@ def export(
         raise BadParameter(
             f"Format {fmt!r} has no option {', '.join(sorted(unknown))}; it takes: {takes}."
         )
+    from miss.scene import Scene
+
     if isinstance(mesh, Scene):
         return _export_scene(mesh, fmt, title, metadata, options)
     _check(mesh)
@@ -147,6 +160,8 @@ def export(
 
 def _check(mesh: Mesh) -> None:
     """Refuse what every format would write as garbage: no triangles, bad indices, NaN."""
+    import numpy as np
+
     if mesh.n_triangles == 0:
         raise EmptySurface(
             "Nothing to export: the mesh has no triangles (try another level or region)."

@@ -1,0 +1,25 @@
+"""The paper's vertex decimation (Schroeder, Zarge & Lorensen 1992): the numba kernels
+live in :mod:`miss._schroeder`; this is how :func:`miss.decimate.decimate` calls them."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from miss.types import Mesh
+
+
+def schroeder(
+    mesh: Mesh, reduce: float, bound_mm: float, max_mm: float, paper_passes: int = 0
+) -> tuple[np.ndarray, float]:
+    """Face indices kept, and the last bound used (mm)."""
+    from miss._schroeder import schroeder_decimate  # numba: compiled on first use
+
+    faces, info = schroeder_decimate(
+        mesh.vertices.astype(np.float64),
+        mesh.faces,
+        reduce=reduce,
+        error_bound=bound_mm,
+        max_error=max_mm,
+        paper_passes=paper_passes,
+    )
+    return faces, float(info["final_bound_mm"])
