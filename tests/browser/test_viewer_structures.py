@@ -176,3 +176,44 @@ def test_split_and_largest_through_the_api(server: Any) -> None:
     with pytest.raises(urllib.error.HTTPError) as bad:
         server.post("/api/models", {**body, "level": 300, "components": "some"})
     assert bad.value.code == 422
+
+
+def test_label_map_uploaded_on_the_volume_page_becomes_parts(
+    page: Any, server: Any, artifacts: Path, tmp_path: Path
+) -> None:
+    """The label-map section: upload a segmentation of the scan, tick all its labels,
+    Generate: the model has one part per label (uploads go through api.request)."""
+    import nibabel as nib
+    import numpy as np
+
+    from miss.demo import phantom
+
+    scan = phantom()
+    labels = np.zeros(scan.dims, dtype=np.uint8)
+    labels[np.asarray(scan.data) > 300] = 1  # bone
+    labels[(np.asarray(scan.data) > -500) & (np.asarray(scan.data) <= 300)] = 2  # the rest
+    path = tmp_path / "seg.nii.gz"
+    nib.save(nib.Nifti1Image(labels, np.diag([-1.0, -1.0, 1.0, 1.0]) @ scan.affine), path)
+
+    volume = demo_volume(server)
+    page.goto(f"/volumes/{volume['id']}")
+    page.wait_for_selector("body[data-ready='1']")
+    page.set_input_files("#labelmap input[type=file]", str(path))
+    page.wait_for_function(
+        "() => document.querySelectorAll('#labelmap .label-list li').length === 2"
+    )
+    assert "2 labels" in page.inner_text("#labelmap .label-status")
+    page.check("#labelmap .label-all")
+    page.fill("#sample-rate", "4")
+    page.screenshot(path=artifacts / "labelmap-volume-page.png")
+    page.click("#generate")
+    page.wait_for_url("**/models/*", timeout=180_000)
+    model = server.get(f"/api/models/{page.url.rstrip('/').split('/')[-1].split('?')[0]}")
+    assert model["status"] == "done", model["error"]
+    assert model["params"]["labels"] == "all" and model["params"]["level"] is None
+    assert [p["label"] for p in model["stats"]["parts"]] == [1, 2]
+    page.wait_for_function(
+        "() => window.__miss.ready && window.__miss.structures.parts.length === 2",
+        timeout=90_000,
+    )
+    server.delete(f"/api/volumes/{volume['id']}/labelmap")

@@ -177,7 +177,7 @@ class ModelOut(BaseModel):
     started: datetime | None
     finished: datetime | None
     files: dict[str, dict[str, Any]] | None = Field(
-        description="per format: url, bytes, mime, filename"
+        description="per format: url, bytes, mime, filename, description"
     )
 
 
@@ -224,6 +224,7 @@ def model_out(row: ModelRow, volume: VolumeRow | None = None) -> ModelOut:
             fmt: {
                 **meta,
                 "url": f"/api/models/{row.id}/model.{fmt}",
+                "description": WRITERS[fmt].description,
                 "filename": download_name(volume, row, fmt) if volume else f"model.{fmt}",
             }
             for fmt, meta in row.files.items()

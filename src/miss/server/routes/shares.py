@@ -155,7 +155,8 @@ def model_entry(model: ModelRow, volume: VolumeRow, share: ShareRow, token: str)
         for fmt, meta in model.files.items():
             if fmt == "glb" or share.can_download:
                 url = f"/s/{token}/models/{model.id}/model.{fmt}"
-                files[fmt] = {"url": url, "bytes": meta["bytes"], "mime": meta["mime"]}
+                files[fmt] = {"url": url, "bytes": meta["bytes"], "mime": meta["mime"],
+                              "description": WRITERS[fmt].description}  # fmt: skip
     stats = {k: v for k, v in (model.stats or {}).items() if k != "provenance"}
     return {
         "id": model.id,

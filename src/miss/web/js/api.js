@@ -33,29 +33,44 @@ export function loginUrl() {
 	return `/login?next=${encodeURIComponent( location.pathname + location.search )}`;
 }
 
-async function request( method, path, body ) {
-	const init = { method, headers: { Accept: 'application/json' } };
-	if ( method !== 'GET' ) init.headers[ 'X-CSRF-Token' ] = csrfToken();
-	if ( body !== undefined ) {
-		init.headers[ 'Content-Type' ] = 'application/json';
-		init.body = JSON.stringify( body );
+// One request to the API, the way every page makes them: JSON in and out, or a
+// FormData upload whose progress onProgress(fraction, phase) hears ('sending' while the
+// bytes go out, 'reading' once they are all sent and the server reads them). XHR
+// rather than fetch because only XHR reports upload progress. A 401 sends the browser
+// to the login page unless `login: false` (share links, the login form itself).
+export function request( method, path, body, { onProgress = null, login = true } = {} ) {
+	const headers = { Accept: 'application/json' };
+	if ( method !== 'GET' ) headers[ 'X-CSRF-Token' ] = csrfToken();
+	let payload = body ?? null;
+	if ( body !== undefined && ! ( body instanceof FormData ) ) {
+		headers[ 'Content-Type' ] = 'application/json';
+		payload = JSON.stringify( body );
 	}
-	let response;
-	try {
-		response = await fetch( path, init );
-	} catch ( err ) {
-		throw new ApiError( 0, 'the MISS server cannot be reached; is `miss serve` running?' );
-	}
-	const text = await response.text();
-	let data = null;
-	try {
-		data = text ? JSON.parse( text ) : null;
-	} catch ( err ) {
-		data = { detail: text };
-	}
-	if ( response.status === 401 && ! path.startsWith( '/api/auth/login' ) ) location.assign( loginUrl() );
-	if ( ! response.ok ) throw new ApiError( response.status, detailText( data, response.status ) );
-	return data;
+	return new Promise( ( resolve, reject ) => {
+		const xhr = new XMLHttpRequest();
+		xhr.open( method, path );
+		for ( const [ name, value ] of Object.entries( headers ) ) xhr.setRequestHeader( name, value );
+		if ( onProgress ) {
+			xhr.upload.onprogress = ( event ) => {
+				if ( event.lengthComputable ) onProgress( event.loaded / event.total, 'sending' );
+			};
+			xhr.upload.onload = () => onProgress( 1, 'reading' );
+		}
+		xhr.onload = () => {
+			let data = null;
+			try {
+				data = xhr.responseText ? JSON.parse( xhr.responseText ) : null;
+			} catch ( err ) {
+				data = { detail: xhr.responseText };
+			}
+			if ( xhr.status === 401 && login ) location.assign( loginUrl() );
+			if ( xhr.status >= 200 && xhr.status < 300 ) resolve( data );
+			else reject( new ApiError( xhr.status, detailText( data, xhr.status ) ) );
+		};
+		xhr.onerror = () => reject( new ApiError( 0, 'the MISS server cannot be reached; check the connection (is `miss serve` running?) and try again' ) );
+		xhr.onabort = () => reject( new ApiError( 0, 'cancelled' ) );
+		xhr.send( payload );
+	} );
 }
 
 const enc = encodeURIComponent;
@@ -70,7 +85,7 @@ export const api = {
 	createModel: ( params ) => request( 'POST', '/api/models', params ),
 	identity: ( id ) => request( 'GET', `/api/volumes/${enc( id )}/identity` ),
 	me: () => request( 'GET', '/api/auth/me' ),
-	login: ( username, password ) => request( 'POST', '/api/auth/login', { username, password } ),
+	login: ( username, password ) => request( 'POST', '/api/auth/login', { username, password }, { login: false } ),
 	logout: () => request( 'POST', '/api/auth/logout' ),
 	shares: ( modelId ) => request( 'GET', `/api/shares?model=${enc( modelId )}` ),
 	createShare: ( params ) => request( 'POST', '/api/shares', params ),

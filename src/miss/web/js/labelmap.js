@@ -1,23 +1,10 @@
 // Volume page: a label map laid over the volume (e.g. TotalSegmentator output).
 // Upload it, tick labels (name and voxel count), and Generate sends `labels`.
 
-import { ApiError, csrfToken, detailText } from './api.js';
+import { request } from './api.js';
 import { el, formatCount } from './format.js';
 
 const path = ( id ) => `/api/volumes/${encodeURIComponent( id )}/labelmap`;
-
-async function send( method, id, body ) {
-	const response = await fetch( path( id ), { method, body, headers: { Accept: 'application/json', 'X-CSRF-Token': csrfToken() } } );
-	const text = await response.text();
-	let data = null;
-	try {
-		data = text ? JSON.parse( text ) : null;
-	} catch {
-		data = { detail: text };
-	}
-	if ( ! response.ok ) throw new ApiError( response.status, detailText( data, response.status ) );
-	return data;
-}
 
 export class LabelMapPanel {
 	// root: the section element; volume: GET /api/volumes/{id}; onError(err or null).
@@ -74,7 +61,7 @@ export class LabelMapPanel {
 		const form = new FormData();
 		form.append( 'file', file );
 		try {
-			const volume = await send( 'POST', this.volumeId, form );
+			const volume = await request( 'POST', path( this.volumeId ), form );
 			this.show( volume.labelmap );
 		} catch ( err ) {
 			this.onError( err );
@@ -87,7 +74,7 @@ export class LabelMapPanel {
 	async clear() {
 		this.onError( null );
 		try {
-			await send( 'DELETE', this.volumeId );
+			await request( 'DELETE', path( this.volumeId ) );
 			this.show( null );
 		} catch ( err ) {
 			this.onError( err );

@@ -9,6 +9,7 @@ import { Annotations, discard } from './annotations.js';
 import { CameraFollower } from './follow.js';
 import { el, fill } from './format.js';
 import { clock } from './room-panel.js';
+import { status } from './test-hooks.js';
 
 const MAX_PAUSE_MS = 1500; // a long silence in the meeting is a short one in the replay
 const SPEED = 2;
@@ -35,7 +36,7 @@ export class Replay {
 		this.container = container;
 		this.live = live; // the Consultation, whose annotations step aside
 		this.run = 0;
-		window.__miss.replay = { playing: false, events: 0, shown: 0, pins: 0 };
+		status.replay = { playing: false, events: 0, shown: 0, pins: 0 };
 	}
 
 	async list() {
@@ -62,7 +63,7 @@ export class Replay {
 		const log = this.container.querySelector( '#replay-log' );
 		log.hidden = false;
 		log.replaceChildren();
-		Object.assign( window.__miss.replay, { playing: true, events: events.length, shown: 0, pins: 0 } );
+		Object.assign( status.replay, { playing: true, events: events.length, shown: 0, pins: 0 } );
 		let last = events.length ? Date.parse( events[ 0 ].at ) : 0;
 		for ( const e of events ) {
 			const at = Date.parse( e.at );
@@ -71,7 +72,7 @@ export class Replay {
 			if ( run !== this.run ) return;
 			this.apply( e, log );
 		}
-		window.__miss.replay.playing = false;
+		status.replay.playing = false;
 	}
 
 	apply( e, log ) {
@@ -86,8 +87,8 @@ export class Replay {
 			log.append( el( 'div.chat-line', {}, el( 'span.mono.muted', {}, clock( e.at ) + ' ' ), text ) );
 			log.scrollTop = log.scrollHeight;
 		}
-		window.__miss.replay.shown ++;
-		window.__miss.replay.pins = this.marks.pins.size;
+		status.replay.shown ++;
+		status.replay.pins = this.marks.pins.size;
 	}
 
 	stop() {
@@ -98,7 +99,7 @@ export class Replay {
 		if ( this.live ) this.live.annotations.group.visible = true;
 		const stop = this.container.querySelector( '#replay-stop' );
 		if ( stop ) stop.hidden = true;
-		if ( window.__miss.replay ) window.__miss.replay.playing = false;
+		if ( status.replay ) status.replay.playing = false;
 		this.viewer.requestRender();
 	}
 }

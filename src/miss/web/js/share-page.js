@@ -2,9 +2,11 @@
 // comes from /s/{token}/...: who shared what until when, the model's provenance
 // and the files the link allows; a link that allows annotating joins the room.
 
+import { request } from './api.js';
 import { Consultation } from './consult.js';
 import { el, fill } from './format.js';
-import { fillDownloads, fillStats, overlay, setupDisplay, status } from './viewer-ui.js';
+import { fillDownloads, fillStats, overlay, setupDisplay } from './viewer-ui.js';
+import { status } from './test-hooks.js';
 import { ModelViewer } from './viewer.js';
 
 const $ = ( id ) => document.getElementById( id );
@@ -19,11 +21,8 @@ function when( iso ) {
 	return new Date( iso ).toLocaleString( [], { dateStyle: 'medium', timeStyle: 'short' } );
 }
 
-async function info() {
-	const response = await fetch( `${base}/info`, { headers: { Accept: 'application/json' } } );
-	const body = await response.json().catch( () => ( {} ) );
-	if ( ! response.ok ) throw new Error( body.detail || `the link cannot be opened (HTTP ${response.status})` );
-	return body;
+function info() {
+	return request( 'GET', `${base}/info`, undefined, { login: false } );
 }
 
 function showShare( data ) {

@@ -5,7 +5,7 @@
 // Everything only asks the viewer to draw again (render on demand).
 
 import { el, onClick } from './format.js';
-import { status } from './viewer-ui.js';
+import { status } from './test-hooks.js';
 
 const $ = ( id ) => document.getElementById( id );
 

@@ -9,7 +9,8 @@ import { Replay } from './replay.js';
 import { showSession } from './session.js';
 import { ShareDialog } from './share-dialog.js';
 import { StructuresPanel } from './structures-panel.js';
-import { fillDownloads, fillStats, overlay, setupDisplay, status } from './viewer-ui.js';
+import { fillDownloads, fillStats, overlay, setupDisplay } from './viewer-ui.js';
+import { status } from './test-hooks.js';
 import { ModelViewer } from './viewer.js';
 
 const $ = ( id ) => document.getElementById( id );

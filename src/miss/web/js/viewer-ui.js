@@ -1,24 +1,20 @@
 // What the owner's viewer and a share link's viewer have in common: the loading
 // overlay, the statistics and parameters, the download buttons, GLB/VRML mode
-// and the background. window.__miss is what browser tests read.
+// and the background.
 
 import { el, fill, formatBytes, formatCount, formatMm, formatSeconds } from './format.js';
 import { renderStages } from './job.js';
 import { BACKGROUNDS } from './viewer.js';
+import { status } from './test-hooks.js';
 
 const $ = ( id ) => document.getElementById( id );
 
-export const FORMAT_NAMES = {
-	glb: 'glTF binary', wrl: 'VRML 97', wrz: 'VRML gzip', x3d: 'X3D', stl: 'STL', ply: 'PLY', obj: 'OBJ',
-};
 const MODE_NOTES = {
 	glb: 'glTF binary, as browsers load 3-D today.',
 	vrml: 'The 1998 deliverable: the VRML 97 file, drawn by three.js’s VRMLLoader with no plug-in.',
 };
 
-// Set once a model is drawn; the room panel adds `room`, the page `cameraLps`.
-export const status = { ready: false, mode: null, triangles: 0, background: 'dark', backgroundColor: BACKGROUNDS.dark };
-window.__miss = status;
+Object.assign( status, { background: 'dark', backgroundColor: BACKGROUNDS.dark } );
 
 export function overlay( title, text = '', { progress = null, model = null } = {} ) {
 	$( 'overlay' ).hidden = false;
@@ -65,11 +61,12 @@ export function fillStats( model ) {
 }
 
 // files: {fmt: {url, bytes}} -- every format for the owner, what a link allows for a guest.
+// files: the model's files as the server lists them (its formats, in its order, each
+// with url, bytes and a one-line description).
 export function fillDownloads( files ) {
-	const formats = Object.keys( FORMAT_NAMES ).filter( ( fmt ) => files?.[ fmt ] );
-	$( 'downloads' ).replaceChildren( ...formats.map( ( fmt ) => el( 'a.button.small', {
-		href: files[ fmt ].url, download: '', dataset: { format: fmt }, title: FORMAT_NAMES[ fmt ],
-	}, el( 'span', {}, `.${fmt}` ), el( 'span.size', {}, formatBytes( files[ fmt ].bytes ) ) ) ) );
+	$( 'downloads' ).replaceChildren( ...Object.entries( files || {} ).map( ( [ fmt, file ] ) => el( 'a.button.small', {
+		href: file.url, download: '', dataset: { format: fmt }, title: file.description,
+	}, el( 'span', {}, `.${fmt}` ), el( 'span.size', {}, formatBytes( file.bytes ) ) ) ) );
 }
 
 // Loads the GLB or the VRML file (urlOf(fmt)) into the viewer; resolves once
