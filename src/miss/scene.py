@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 import re
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -63,12 +64,12 @@ class Part:
         object.__setattr__(self, "color", rgb)
         object.__setattr__(self, "opacity", float(self.opacity))
 
-    @property
+    @cached_property  # a part never changes; the writers and the stats all ask
     def volume_ml(self) -> float:
         """Enclosed volume in millilitres (cm³); meaningful for a closed surface."""
         return enclosed_volume(self.mesh.vertices, self.mesh.faces) / 1000.0
 
-    @property
+    @cached_property
     def area_cm2(self) -> float:
         """Surface area in cm²."""
         return surface_area(self.mesh.vertices, self.mesh.faces) / 100.0
