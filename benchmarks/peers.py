@@ -47,7 +47,8 @@ from common import (  # noqa: E402
 from vtk.util import numpy_support  # noqa: E402
 
 import miss  # noqa: E402
-from miss.deviation import deviation, to_polydata  # noqa: E402
+from miss._vtk import to_polydata  # noqa: E402
+from miss.deviation import deviation  # noqa: E402
 from miss.geometry import compact  # noqa: E402
 from miss.pipeline import run  # noqa: E402
 from miss.spec import JobSpec  # noqa: E402

@@ -25,13 +25,18 @@ def test_the_cli_parser_loads_no_heavy_library() -> None:
     assert loaded == dict.fromkeys(HEAVY, False)
 
 
+def test_colour_tables_load_without_the_scene_builder() -> None:
+    """The confined reader of a label-map upload reads its colour table only."""
+    assert _modules_after("import miss.structures.labels") == dict.fromkeys(HEAVY, False)
+
+
 def test_documented_names_are_the_functions_after_their_modules_load() -> None:
     import miss
     import miss.decimate.quadric
     import miss.export.gltf
-    import miss.structures  # noqa: F401
+    import miss.structures.build  # noqa: F401
 
     assert callable(miss.decimate) and miss.decimate.__name__ == "decimate"
     assert callable(miss.export) and miss.export.__name__ == "export"
-    assert miss.extract_scene.__module__ == "miss.structures"
+    assert miss.extract_scene.__module__ == "miss.structures.build"
     assert miss.Volume.__module__ == "miss.types"

@@ -22,17 +22,18 @@ from lxml import etree
 from vtk.util import numpy_support
 
 import miss
+from miss._vtk import to_polydata
 from miss.demo import phantom
-from miss.deviation import distances_to, to_polydata
+from miss.deviation import distances_to
 from miss.errors import BadParameter, EmptySurface
 from miss.export import WRITERS
 from miss.geometry import boundary_edge_count, face_normals
-from miss.labelmap import align_labels, label_counts
-from miss.labels import find_label_table, parse_color_table, totalsegmentator_table
-from miss.labels_totalseg import TOTALSEG_TOTAL
 from miss.pipeline import run
 from miss.scene import Part, Scene, linear_rgb
 from miss.spec import JobSpec
+from miss.structures.labelmap import align_labels, label_counts
+from miss.structures.labels import find_label_table, parse_color_table, totalsegmentator_table
+from miss.structures.labels_totalseg import TOTALSEG_TOTAL
 from miss.types import Mesh, Volume
 
 SPACING = (0.8, 0.8, 1.2)  # anisotropic on purpose: volumes must come out in mm³

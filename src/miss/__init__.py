@@ -27,7 +27,7 @@ from miss.export import export
 if TYPE_CHECKING:
     from miss.io import load_volume
     from miss.scene import Part, Scene
-    from miss.structures import extract_scene
+    from miss.structures.build import extract_scene
     from miss.surface import extract_surface
     from miss.types import Mesh, Volume
 
@@ -35,7 +35,7 @@ if TYPE_CHECKING:
 _LAZY = {
     "load_volume": "miss.io",
     "extract_surface": "miss.surface",
-    "extract_scene": "miss.structures",
+    "extract_scene": "miss.structures.build",
     "Part": "miss.scene",
     "Scene": "miss.scene",
     "Mesh": "miss.types",

@@ -21,9 +21,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-import vtk
 from numba import njit, prange
-from vtk.util import numpy_support
 
 from miss.types import Mesh, column_bounds
 
@@ -35,26 +33,6 @@ class Deviation:
     max_mm: float
     mean_mm: float
     samples: int
-
-
-def to_polydata(vertices: np.ndarray, faces: np.ndarray) -> vtk.vtkPolyData:
-    """vtkPolyData of a triangle mesh (deep copies, safe to keep)."""
-    pts = vtk.vtkPoints()
-    pts.SetData(
-        numpy_support.numpy_to_vtk(np.ascontiguousarray(vertices, dtype=np.float64), deep=True)
-    )
-    offsets = np.arange(0, 3 * len(faces) + 1, 3, dtype=np.int64)
-    cells = vtk.vtkCellArray()
-    cells.SetData(
-        numpy_support.numpy_to_vtkIdTypeArray(offsets, deep=True),
-        numpy_support.numpy_to_vtkIdTypeArray(
-            np.ascontiguousarray(faces, dtype=np.int64).ravel(), deep=True
-        ),
-    )
-    poly = vtk.vtkPolyData()
-    poly.SetPoints(pts)
-    poly.SetPolys(cells)
-    return poly
 
 
 def sample_surface(mesh: Mesh, count: int, rng: np.random.Generator) -> np.ndarray:

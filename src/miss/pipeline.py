@@ -21,10 +21,10 @@ from typing import Any, Protocol
 from miss.decimate import DecimationReport
 from miss.errors import BadParameter
 from miss.export import export
-from miss.labels import TableSpec
 from miss.scene import Scene
 from miss.spec import JobSpec
-from miss.structures import build_scene, combined_report
+from miss.structures.build import build_scene, combined_report
+from miss.structures.labels import TableSpec
 from miss.types import Mesh, Volume
 
 Progress = Callable[[str, float], None]

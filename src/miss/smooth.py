@@ -11,7 +11,7 @@ import numpy as np
 import vtk
 from vtk.util import numpy_support
 
-from miss.deviation import to_polydata
+from miss._vtk import to_polydata
 from miss.geometry import enclosed_volume, vertex_normals
 from miss.spec import check_smoothing
 from miss.types import Mesh

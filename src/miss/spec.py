@@ -32,7 +32,7 @@ import numpy as np
 from miss.errors import BadParameter
 
 if TYPE_CHECKING:
-    from miss.labels import TableSpec
+    from miss.structures.labels import TableSpec
     from miss.types import Volume
 
 RGB = tuple[float, float, float]
@@ -545,7 +545,7 @@ class FileSource:
 
     def load(self, labels: bool) -> Loaded:
         from miss.io import load_volume
-        from miss.labels import resolve_table
+        from miss.structures.labels import resolve_table
 
         volume = load_volume(self.path, series=self.series)
         if not labels:

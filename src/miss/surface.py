@@ -21,6 +21,7 @@ import vtk
 from numba import njit, prange
 from vtk.util import numpy_support
 
+from miss._vtk import image_data
 from miss.errors import BadParameter, EmptySurface
 from miss.types import Mesh, Volume
 
@@ -63,27 +64,6 @@ def _region(
                 "a surface needs at least two voxels along every axis."
             )
     return box
-
-
-def _to_vtk_image(block: np.ndarray) -> vtk.vtkImageData:
-    """Wrap an (X, Y, Z) array as vtkImageData with unit spacing (index space)."""
-    flat = block.ravel(order="F")  # VTK wants x fastest: a view when block is F-ordered
-    image = vtk.vtkImageData()
-    image.SetDimensions(*block.shape)
-    arr = numpy_support.numpy_to_vtk(flat, deep=False)
-    image.GetPointData().SetScalars(arr)
-    image._miss_keepalive = flat  # numpy_to_vtk(deep=False) does not own the memory
-    return image
-
-
-def polydata_to_arrays(poly: vtk.vtkPolyData) -> tuple[np.ndarray, np.ndarray]:
-    """(vertices (N,3) float64, faces (F,3) int32) of an all-triangle vtkPolyData."""
-    if poly.GetNumberOfPoints() == 0:
-        return np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int32)
-    pts = numpy_support.vtk_to_numpy(poly.GetPoints().GetData()).astype(np.float64)
-    polys = poly.GetPolys()
-    conn = numpy_support.vtk_to_numpy(polys.GetConnectivityArray())
-    return pts, conn.reshape(-1, 3).astype(np.int32)
 
 
 def _pad_value(dtype: np.dtype, level: float, span: float) -> tuple[np.dtype, float]:
@@ -408,7 +388,7 @@ def _flying_edges(
     """
     _use_both_cores()
     fe = vtk.vtkFlyingEdges3D()
-    fe.SetInputData(_to_vtk_image(block))
+    fe.SetInputData(image_data(block))
     fe.SetValue(0, float(level))
     fe.SetComputeNormals(normals)
     fe.ComputeGradientsOff()

@@ -61,10 +61,10 @@ def label_listing(volume: Any, path: str) -> dict[str, Any]:
     """The labels of a label map with voxel counts, mL and known names.
 
     Empty for anything that is not a label map (float data, negative values, or
-    more than :data:`miss.labelmap.MAX_LABELS` distinct values).
+    more than :data:`miss.structures.labelmap.MAX_LABELS` distinct values).
     """
-    from miss.labelmap import label_counts
-    from miss.labels import find_label_table
+    from miss.structures.labelmap import label_counts
+    from miss.structures.labels import find_label_table
 
     counts = label_counts(volume)
     if counts is None:

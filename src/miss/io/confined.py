@@ -573,7 +573,7 @@ def _series(config: dict[str, Any]) -> dict[str, Any]:
 
 
 def _labels(config: dict[str, Any]) -> dict[str, Any]:
-    from miss.labels import find_label_table
+    from miss.structures.labels import find_label_table
 
     answer = _read(config)
     found = find_label_table(Path.cwd() / config["upload"])

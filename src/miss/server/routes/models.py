@@ -13,7 +13,6 @@ from starlette.concurrency import run_in_threadpool
 
 from miss.errors import BadParameter, EmptySurface
 from miss.export import FORMATS, WRITERS
-from miss.labelmap import label_counts
 from miss.server import audit, labelmaps
 from miss.server.caches import BytesLRU, need_io
 from miss.server.db import DONE, FAILED, ModelRow, VolumeRow
@@ -39,6 +38,7 @@ from miss.server.schemas import (
 )
 from miss.server.store import Store
 from miss.spec import JobSpec
+from miss.structures.labelmap import label_counts
 
 router = APIRouter(prefix="/api/models", tags=["models"], route_class=JSONRoute)
 

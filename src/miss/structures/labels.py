@@ -25,7 +25,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from miss.errors import BadParameter, UnreadableVolume
-from miss.labels_totalseg import TOTALSEG_TOTAL
+from miss.structures.labels_totalseg import TOTALSEG_TOTAL
 
 RGB = tuple[float, float, float]
 

@@ -28,12 +28,12 @@ import vtk
 from scipy import ndimage
 from vtk.util import numpy_support
 
+from miss._vtk import image_data, polydata_to_arrays
 from miss.decimate import DecimationReport, decimate
 from miss.deviation import deviation
 from miss.errors import BadParameter, EmptySurface
 from miss.geometry import compact, vertex_normals
 from miss.smooth import windowed_sinc
-from miss.surface import _to_vtk_image, polydata_to_arrays
 from miss.types import Mesh, Volume
 
 #: Points sampled on each surface when measuring a part's decimation error: a
@@ -108,7 +108,7 @@ def surface_nets(
     padded = np.zeros(tuple(s + 2 for s in data.shape), dtype=data.dtype, order="F")
     padded[1:-1, 1:-1, 1:-1] = data  # background all round: every part closes
     nets = vtk.vtkSurfaceNets3D()
-    nets.SetInputData(_to_vtk_image(padded))
+    nets.SetInputData(image_data(padded))
     for i, label in enumerate(labels):
         nets.SetLabel(i, float(label))
     nets.SetBackgroundLabel(0)

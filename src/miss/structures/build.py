@@ -8,7 +8,7 @@
   largest first), pieces under ``min_size_mm3`` left out;
 - a label map (the volume itself, or a segmentation laid over it in patient mm):
   one part per label, boundaries shared with the neighbours
-  (:mod:`miss.labelmap`), named and coloured from a label table (:mod:`miss.labels`).
+  (:mod:`miss.structures.labelmap`), named and coloured from a label table (:mod:`miss.structures.labels`).
 
 Every part is smoothed (windowed sinc, optional) and decimated on its own
 terms; the reports say by how much and at what measured error.
@@ -24,16 +24,19 @@ from typing import Any
 import numpy as np
 from scipy import ndimage
 
-from miss.components import relabel_components, select_components
 from miss.decimate import DecimationReport, decimate
 from miss.errors import BadParameter, EmptySurface
-from miss.labelmap import (
+from miss.scene import DEFAULT_SCENE_TITLE, Part, Scene
+from miss.smooth import VOLUME_TOLERANCE, smooth_mesh
+from miss.spec import Decimation, JobSpec, Structure
+from miss.structures.components import relabel_components, select_components
+from miss.structures.labelmap import (
     LabelSurface,
     align_labels,
     label_counts,
     label_surfaces,
 )
-from miss.labels import (
+from miss.structures.labels import (
     BONE,
     PALETTE,
     SKIN,
@@ -43,9 +46,6 @@ from miss.labels import (
     describe,
     resolve_table,
 )
-from miss.scene import DEFAULT_SCENE_TITLE, Part, Scene
-from miss.smooth import VOLUME_TOLERANCE, smooth_mesh
-from miss.spec import Decimation, JobSpec, Structure
 from miss.surface import extract_surface
 from miss.types import Mesh, Volume
 
@@ -92,7 +92,7 @@ def extract_scene(
         A segmentation of ``volume``; resampled onto its grid by nearest
         neighbour in patient mm, so a map covering fewer slices still fits.
     table : None, "totalseg", path or mapping
-        Label names and colours (:func:`miss.labels.resolve_table`): a colour-table
+        Label names and colours (:func:`miss.structures.labels.resolve_table`): a colour-table
         file, a NIfTI label map (the table in its header), TotalSegmentator's
         list, or {label: name}. A Volume has no file name to look beside, so
         None gives ``label N`` and the palette.
