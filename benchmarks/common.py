@@ -23,8 +23,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from paper import machine, paper_volume
 
-from miss.bench import machine, paper_volume
 from miss.demo import phantom
 from miss.types import Volume
 

@@ -1,6 +1,7 @@
-"""The paper's Tables 1-2 (same as ``miss bench paper``), plus a picture of the two levels.
+"""The paper's Tables 1-2 regenerated, plus a picture of the two levels.
 
-    .venv/bin/python benchmarks/paper_tables.py [--repeats 5] [--render]
+    .venv/bin/python benchmarks/paper_tables.py [--repeats 5] [--sample-rates 1,2,4]
+                                                [--volume CThead.nhdr] [--out DIR] [--render]
 
 Writes ``results/paper_tables.{json,md,png}``; ``--render`` also draws the skin (600) and
 bone (1500) surfaces of the paper volume side by side, ``results/levels_600_1500.png``, the
@@ -13,9 +14,10 @@ import argparse
 import sys
 from pathlib import Path
 
+import paper as bench
+
 import miss
-from miss import bench
-from miss.deviation import to_polydata
+from miss._vtk import to_polydata
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
@@ -56,16 +58,32 @@ def render_levels(volume: miss.Volume, path: Path) -> None:
     window.Finalize()
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--repeats", type=int, default=5, help="timed runs per row (median)")
+    parser.add_argument("--out", default=str(RESULTS), help="folder for JSON, Markdown, PNG")
+    parser.add_argument("--volume", default=None, help="CThead.nhdr (default: ../shared)")
+    parser.add_argument("--sample-rates", default="1,2,4", metavar="A,B,...")
     parser.add_argument("--render", action="store_true", help="also draw the two levels")
-    args = parser.parse_args()
-    result = bench.run_paper(RESULTS, args.repeats, log=lambda line: print(line, file=sys.stderr))
+    args = parser.parse_args(argv)
+    try:
+        rates = tuple(int(r) for r in args.sample_rates.split(","))
+    except ValueError:
+        print(
+            f"--sample-rates must be integers like 1,2,4, got {args.sample_rates!r}",
+            file=sys.stderr,
+        )
+        return 2
+    out = Path(args.out)
+    volume = Path(args.volume) if args.volume else None
+    log = lambda line: print(line, file=sys.stderr)  # noqa: E731
+    result = bench.run_paper(out, args.repeats, volume, rates, log=log)
     print(bench.markdown(bench.rows_from_json(result)))
+    print(f"wrote {out / 'paper_tables.json'}, .md and .png")
     if args.render:
-        render_levels(bench.paper_volume(), RESULTS / "levels_600_1500.png")
+        render_levels(bench.paper_volume(), out / "levels_600_1500.png")
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

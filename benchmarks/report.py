@@ -2,7 +2,7 @@
 
     .venv/bin/python benchmarks/report.py
 
-Run after ``miss bench paper``, ``peers.py`` and ``scaling.py``; it measures nothing itself.
+Run after ``paper_tables.py``, ``peers.py`` and ``scaling.py``; it measures nothing itself.
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from miss.bench import MODES, PAPER
+from paper import MODES, PAPER
 
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results"
@@ -203,7 +203,7 @@ def main() -> None:
     parts += ["## Targets\n", "\n".join(targets) + "\n", NOTES]
     if paper:
         parts += [
-            "## The paper's Tables 1-2, regenerated (`miss bench paper`)\n",
+            "## The paper's Tables 1-2, regenerated (`benchmarks/paper_tables.py`)\n",
             f"Measured {_machine(paper)}. Volume: CThead resampled to "
             f"{' x '.join(map(str, paper['volume']['dims']))}; seconds = surface + decimation "
             f"+ VRML encoding, median of {paper['repeats']}; errors measured against the "

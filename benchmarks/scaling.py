@@ -32,9 +32,9 @@ from common import (
     warm_up_file,
     write_nifti,
 )
+from paper import default_cthead, resample_axis
 
 import miss
-from miss.bench import resample_axis
 from miss.pipeline import run
 from miss.spec import JobSpec
 
@@ -55,7 +55,7 @@ def volume_file(shape: tuple[int, int, int]) -> Path:
     path = CACHE / f"cthead_{shape[0]}x{shape[1]}x{shape[2]}.nii"
     if path.is_file():
         return path
-    volume = miss.load_volume(miss.bench.default_cthead())
+    volume = miss.load_volume(default_cthead())
     for axis in (2, 0, 1):
         if volume.data.shape[axis] != shape[axis]:
             volume = resample_axis(volume, axis, shape[axis])

@@ -5,13 +5,19 @@ from __future__ import annotations
 
 import importlib
 import json
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from miss import BadParameter, Mesh, Volume, decimate, extract_surface
-from miss.bench import MODES, SAMPLE_RATES, markdown, paper_rows, resample_axis
-from miss.cli import main
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+import paper as bench  # noqa: E402  (benchmarks/, not part of the package)
+import paper_tables  # noqa: E402
+from paper import MODES, SAMPLE_RATES, markdown, paper_rows, resample_axis  # noqa: E402
+
 from miss.demo import phantom
 from miss.deviation import deviation, distances_to
 from miss.geometry import boundary_edge_count, enclosed_volume
@@ -70,7 +76,7 @@ def test_paper_rows_on_the_phantom() -> None:
 
 def test_paper_plot_is_a_png(tmp_path) -> None:
     pytest.importorskip("matplotlib")
-    from miss.bench import plot
+    from paper import plot
 
     rows = paper_rows(
         phantom(48, spacing=4.0),
@@ -83,22 +89,18 @@ def test_paper_plot_is_a_png(tmp_path) -> None:
     assert (tmp_path / "t.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
-def test_cli_bench_rejects_bad_sample_rates(capsys) -> None:
-    assert main(["bench", "paper", "--sample-rates", "one"]) == 2
+def test_paper_tables_rejects_bad_sample_rates(capsys) -> None:
+    assert paper_tables.main(["--sample-rates", "one"]) == 2
     assert "--sample-rates must be integers" in capsys.readouterr().err
 
 
-def test_cli_bench_writes_the_three_files(tmp_path, monkeypatch, capsys) -> None:
+def test_paper_tables_writes_the_three_files(tmp_path, monkeypatch, capsys) -> None:
     pytest.importorskip("matplotlib")
-    import miss.bench as bench
-
     monkeypatch.setattr(bench, "paper_volume", lambda path=None: phantom(48, spacing=4.0))
     monkeypatch.setattr(bench, "LEVELS", {"bone": 300.0})
     monkeypatch.setattr(bench, "decimation_method", lambda: "quadric")  # no numba compile
-    assert (
-        main(["bench", "paper", "--out", str(tmp_path), "--repeats", "1", "--sample-rates", "4"])
-        == 0
-    )
+    argv = ["--out", str(tmp_path), "--repeats", "1", "--sample-rates", "4"]
+    assert paper_tables.main(argv) == 0
     data = json.loads((tmp_path / "paper_tables.json").read_text())
     assert len(data["rows"]) == 3 and data["machine"]["cores"] >= 1
     assert (tmp_path / "paper_tables.md").is_file() and (tmp_path / "paper_tables.png").is_file()

@@ -1,4 +1,4 @@
-"""The ``miss`` command line: info, convert, demo, bench, serve, user, audit.
+"""The ``miss`` command line: info, convert, demo, serve, user, audit.
 
 Bad input ends with one line on stderr naming the problem and the fix, exit code 2.
 ``convert``'s job options are generated from the job's declaration (:mod:`miss.spec`).
@@ -28,7 +28,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
     info.add_parser(sub)
     convert.add_parser(sub)
-    demo.add_parsers(sub)
+    demo.add_parser(sub)
     admin.add_serve_parser(sub)
     admin.add_parsers(sub)
     return parser
@@ -38,7 +38,6 @@ COMMANDS: dict[str, Callable[[argparse.Namespace], int]] = {
     "info": info.cmd_info,
     "convert": convert.cmd_convert,
     "demo": demo.cmd_demo,
-    "bench": demo.cmd_bench,
     "serve": admin.cmd_serve,
     "user": admin.cmd_user,
     "audit": admin.cmd_audit,

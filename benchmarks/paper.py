@@ -1,4 +1,4 @@
-"""``miss bench paper``: the 1998 paper's Tables 1-2 regenerated on today's machine.
+"""The 1998 paper's Tables 1-2 regenerated on today's machine.
 
 The paper measured a 256 x 256 x 225 CT head: marching cubes alone (M), with decimation
 at local error bound 0.0002 (MD) and 0.002 (MD2), at sample rates 1, 2 and 4, for bone
