@@ -330,7 +330,7 @@ def worker_processes() -> list[int]:
     for entry in Path("/proc").iterdir():
         if entry.name.isdigit():
             try:
-                if b"miss.server.worker" in (entry / "cmdline").read_bytes():
+                if b"miss.server.jobs.worker" in (entry / "cmdline").read_bytes():
                     found.append(int(entry.name))
             except OSError:
                 continue

@@ -23,7 +23,7 @@ with warnings.catch_warnings():
 from miss.server.app import create_app
 from miss.server.ingest import register_demo
 from miss.server.settings import Settings
-from miss.server.store import Store
+from miss.server.storage.store import Store
 
 JOB_TIMEOUT = 120.0
 ADMIN_PASSWORD = "admin-password-for-tests"

@@ -1,4 +1,4 @@
-"""The audit log's writer (``miss.server.appender``): one thread, many rows a commit,
+"""The audit log's writer (``miss.server.storage.appender``): one thread, many rows a commit,
 nothing lost on a stop, nothing silently dropped on a failure."""
 
 from __future__ import annotations
@@ -11,9 +11,9 @@ from pathlib import Path
 import pytest
 from sqlalchemy import event, func, select
 
-from miss.server.db import AuditRow, utcnow
 from miss.server.settings import Settings
-from miss.server.store import Store
+from miss.server.storage.db import AuditRow, utcnow
+from miss.server.storage.store import Store
 
 
 @pytest.fixture
@@ -75,7 +75,7 @@ def test_a_row_that_cannot_be_stored_is_logged_whole(
 ) -> None:
     """A batch with a bad row: the others are stored one by one, the bad one is logged
     with all its values, and the writer carries on."""
-    with caplog.at_level(logging.ERROR, logger="miss.server.appender"):
+    with caplog.at_level(logging.ERROR, logger="miss.server.storage.appender"):
         store.appender._commit([entry(1), entry(2, actor=None), entry(3)])  # actor: NOT NULL
     assert "could not store a row" in caplog.text and "'target': 'm2'" in caplog.text
     with store.session() as s:

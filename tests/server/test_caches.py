@@ -1,4 +1,4 @@
-"""What the server keeps in memory (``miss.server.caches``) and what that must never
+"""What the server keeps in memory (``miss.server.storage.caches``) and what that must never
 change: a deleted model or an ended session is gone at once, a running job's progress
 is read afresh, a file served from memory is the file on disk, byte for byte."""
 
@@ -16,12 +16,12 @@ from fastapi.testclient import TestClient
 from sqlalchemy import event, text
 from starlette.responses import FileResponse
 
-from miss.server.caches import BytesLRU, NotCached, RowCache, cache_only, need_io
-from miss.server.db import POOL_SIZE, RUNNING
 from miss.server.deps import on_loop
 from miss.server.schemas import attachment
 from miss.server.settings import Settings
-from miss.server.store import Store
+from miss.server.storage.caches import BytesLRU, NotCached, RowCache, cache_only, need_io
+from miss.server.storage.db import POOL_SIZE, RUNNING
+from miss.server.storage.store import Store
 
 # -- the caches themselves ----------------------------------------------------------------
 

@@ -27,7 +27,7 @@ from sqlalchemy import text
 from miss.export import FORMATS
 from miss.server.jobs import crash_reason, read_log
 from miss.server.settings import Settings
-from miss.server.store import Store
+from miss.server.storage.store import Store
 
 MB = 1 << 20
 BOUNDARY = "miss-fault-test-boundary"
@@ -246,7 +246,7 @@ def test_workers_yield_the_cores_to_the_server() -> None:
     SCHED_IDLE, so viewers are answered first while a conversion runs."""
     from miss.server.jobs import _BOOTSTRAP, WORKER_NICE
 
-    head, tail = _BOOTSTRAP.split("from miss.server.worker import main")
+    head, tail = _BOOTSTRAP.split("from miss.server.jobs.worker import main")
     report = "print(os.getpriority(os.PRIO_PROCESS, 0), os.sched_getscheduler(0))\n"
     args = ["model", "data", "sqlite://", str(os.getpid())]
     out = subprocess.run(
@@ -300,7 +300,7 @@ def test_crash_reason_names_out_of_memory_from_the_log(tmp_path: Path) -> None:
 
 def test_memory_cap_setting_is_checked(tmp_path: Path) -> None:
     from miss.errors import BadParameter
-    from miss.server.worker import memory_cap
+    from miss.server.jobs.worker import memory_cap
 
     assert memory_cap({"MISS_WORKER_MEMORY_MB": "384"}) == 384 * MB
     assert memory_cap({"MISS_WORKER_MEMORY_MB": "0"}) == 0  # no cap

@@ -10,11 +10,11 @@ from pathlib import Path
 import pytest
 from realserver import Server, alive, free_port, serving
 
-from miss.server.db import FAILED, QUEUED, RUNNING, ModelRow, VolumeRow
-from miss.server.jobstate import JobState
+from miss.server.jobs.state import JobState
 from miss.server.main import serve
 from miss.server.settings import Settings
-from miss.server.store import Store
+from miss.server.storage.db import FAILED, QUEUED, RUNNING, ModelRow, VolumeRow
+from miss.server.storage.store import Store
 
 JOBS = [{"level": level, "sample_rate": 4, "decimate": "none"} for level in (200, 260, 320)]
 

@@ -20,8 +20,8 @@ from sqlalchemy import update
 from starlette.websockets import WebSocketDisconnect
 
 from miss.server import rooms
-from miss.server.db import ShareRow, utcnow
 from miss.server.rooms import BURST, MAX_MESSAGE_BYTES
+from miss.server.storage.db import ShareRow, utcnow
 
 NOBODY = {"Authorization": ""}  # overrides the client's own admin token
 

@@ -17,7 +17,7 @@ from fastapi.testclient import TestClient
 from lxml import etree
 from sqlalchemy import update
 
-from miss.server.db import ShareRow, utcnow
+from miss.server.storage.db import ShareRow, utcnow
 
 
 @pytest.fixture(scope="module")

@@ -68,7 +68,7 @@ def cmd_user(args: argparse.Namespace) -> int:
     logins within seconds (it checks its live sessions against the database)."""
     from miss.server import accounts, audit
     from miss.server.settings import Settings
-    from miss.server.store import Store
+    from miss.server.storage.store import Store
 
     settings = Settings.from_env(data_dir=args.data_dir)
     store = Store(settings.data_dir, settings.database_url)
@@ -95,7 +95,7 @@ def cmd_user(args: argparse.Namespace) -> int:
 def cmd_audit(args: argparse.Namespace) -> int:
     from miss.server import audit
     from miss.server.settings import Settings
-    from miss.server.store import Store
+    from miss.server.storage.store import Store
 
     settings = Settings.from_env(data_dir=args.data_dir)
     store = Store(settings.data_dir, settings.database_url)

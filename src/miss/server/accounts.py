@@ -20,9 +20,9 @@ from sqlalchemy import delete, select, update
 from sqlalchemy.exc import IntegrityError
 
 from miss.errors import BadParameter
-from miss.server.db import SessionRow, UserRow, VolumeRow, utcnow
 from miss.server.errors import NotFound
-from miss.server.store import Store, always, new_id
+from miss.server.storage.db import SessionRow, UserRow, VolumeRow, utcnow
+from miss.server.storage.store import Store, always, new_id
 
 _HASHER = PasswordHasher()
 #: A hash to verify against when the user does not exist, so a wrong name takes as long

@@ -24,7 +24,8 @@ from miss.server.rooms import Hub
 from miss.server.routes import audit, auth, models, pages, rooms, shares, volumes
 from miss.server.routes.pages import WEB
 from miss.server.settings import Settings
-from miss.server.store import Store
+from miss.server.storage.caches import ByteCaches
+from miss.server.storage.store import Store
 from miss.server.uploads import UploadSlots
 
 log = logging.getLogger("miss.server")
@@ -110,6 +111,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         redoc_url=None,
     )
     app.state.settings = settings
+    app.state.bytes = ByteCaches()
     app.state.failed_logins = auth.failed_login_limits()
     app.state.api_limits = ApiLimits(settings.api_rate, settings.api_burst)
     app.state.job_limit = JobLimit(settings.max_jobs_per_user)

@@ -11,8 +11,8 @@ from typing import Any
 from sqlalchemy import select
 from starlette.requests import HTTPConnection
 
-from miss.server.db import AuditRow, utcnow
-from miss.server.store import Store
+from miss.server.storage.db import AuditRow, utcnow
+from miss.server.storage.store import Store
 
 #: The actions recorded, for the API's filter and the docs.
 ACTIONS = (

@@ -20,9 +20,9 @@ from urllib.parse import urlsplit
 from starlette.requests import HTTPConnection, Request
 
 from miss.server.accounts import User, session_for
-from miss.server.db import SessionRow
 from miss.server.errors import Forbidden, Unauthorized
-from miss.server.store import Store
+from miss.server.storage.db import SessionRow
+from miss.server.storage.store import Store
 
 SESSION_COOKIE = "miss_session"
 CSRF_COOKIE = "miss_csrf"

@@ -10,13 +10,13 @@ from starlette.concurrency import run_in_threadpool
 
 from miss.server.accounts import User
 from miss.server.auth import can_see, presented_token, user_for_request
-from miss.server.caches import NotCached, cache_only
-from miss.server.db import ModelRow, VolumeRow
 from miss.server.errors import Forbidden, NotFound
 from miss.server.jobs import JobQueue
 from miss.server.ratelimit import ApiLimits, JobLimit
 from miss.server.settings import Settings
-from miss.server.store import Store
+from miss.server.storage.caches import ByteCaches, NotCached, cache_only
+from miss.server.storage.db import ModelRow, VolumeRow
+from miss.server.storage.store import Store
 
 
 # ``async``: a look-up on the app, answered on the event loop. FastAPI would otherwise
@@ -35,6 +35,10 @@ async def get_queue(request: Request) -> JobQueue:
 
 async def get_job_limit(request: Request) -> JobLimit:
     return request.app.state.job_limit
+
+
+async def get_byte_caches(request: Request) -> ByteCaches:
+    return request.app.state.bytes
 
 
 P = ParamSpec("P")
@@ -58,6 +62,7 @@ SettingsDep = Annotated[Settings, Depends(get_settings)]
 StoreDep = Annotated[Store, Depends(get_store)]
 QueueDep = Annotated[JobQueue, Depends(get_queue)]
 JobLimitDep = Annotated[JobLimit, Depends(get_job_limit)]
+BytesDep = Annotated[ByteCaches, Depends(get_byte_caches)]
 
 
 # The look-ups below run on the event loop when the rows are cached (a viewer's usual

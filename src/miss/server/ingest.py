@@ -25,9 +25,9 @@ from miss.errors import EmptySurface, MissError, UnreadableVolume
 from miss.io.archive import volume_suffix
 from miss.io.confined import Confinement, Limits, parse_upload
 from miss.server import imaging
-from miss.server.db import VolumeRow
 from miss.server.errors import UploadTooLarge
-from miss.server.store import Store, write_atomic
+from miss.server.storage.db import VolumeRow
+from miss.server.storage.store import Store, write_atomic
 from miss.server.uploads import Upload
 from miss.types import Volume
 

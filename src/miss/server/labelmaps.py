@@ -19,7 +19,7 @@ import numpy as np
 from miss.errors import BadParameter, MissError
 from miss.io.confined import Confinement, Limits, parse_upload
 from miss.server.ingest import source_hash
-from miss.server.store import Store, new_id, write_atomic
+from miss.server.storage.store import Store, new_id, write_atomic
 from miss.structures.labelmap import align_labels, label_counts
 from miss.structures.labels import LabelInfo, LabelTable, describe
 from miss.types import Volume

@@ -11,7 +11,7 @@ from miss.server import logmask
 from miss.server.app import create_app
 from miss.server.rooms import MAX_MESSAGE_BYTES
 from miss.server.settings import Settings
-from miss.server.store import DataDirInUse, Store
+from miss.server.storage.store import DataDirInUse, Store
 
 
 def serve(host: str | None = None, port: int | None = None, data_dir: str | None = None) -> int:

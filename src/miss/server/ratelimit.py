@@ -26,9 +26,9 @@ from starlette.responses import JSONResponse
 from starlette.types import ASGIApp, Receive, Scope, Send
 
 from miss.server.auth import presented_token
-from miss.server.db import FAILED, QUEUED, RUNNING, ModelRow
 from miss.server.errors import TooManyRequests
-from miss.server.store import Store
+from miss.server.storage.db import FAILED, QUEUED, RUNNING, ModelRow
+from miss.server.storage.store import Store
 
 
 class TokenBucket:

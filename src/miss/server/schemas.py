@@ -16,8 +16,8 @@ from starlette.requests import ClientDisconnect
 
 from miss.errors import BadParameter
 from miss.export import FORMATS, WRITERS
-from miss.server.db import DONE, ModelRow, VolumeRow
 from miss.server.errors import BodyTooLarge
+from miss.server.storage.db import DONE, ModelRow, VolumeRow
 from miss.spec import GROUPS, JobSpec, Structure, default_of, form_name
 
 #: Largest JSON request body: the biggest real one (a job with many labels) is under 2 KB.

@@ -18,7 +18,7 @@ Environment variables (all optional):
 ``MISS_MIN_FREE_MB``      uploads and jobs are refused while the data folder's disk has
                           less free space than this, MB (256)
 ``MISS_WORKER_MEMORY_MB`` memory one job's worker may use beyond its code and the volume,
-                          MB (physical memory; 0: no cap; see ``miss.server.worker``); the
+                          MB (physical memory; 0: no cap; see ``miss.server.jobs.worker``); the
                           confined child that reads an upload gets the same cap
 ``MISS_PARSE_SECONDS``    longest an upload's confined reader may run, seconds (600)
 ``MISS_UPLOADS_PER_USER`` uploads one account may send at once (2); more get 429

@@ -16,9 +16,9 @@ from sqlalchemy import select, update
 
 from miss.errors import BadParameter
 from miss.server.accounts import User, get_user, token_hash
-from miss.server.db import DONE, ModelRow, ShareRow, utcnow
 from miss.server.errors import Gone, NotFound
-from miss.server.store import Store, new_id
+from miss.server.storage.db import DONE, ModelRow, ShareRow, utcnow
+from miss.server.storage.store import Store, new_id
 
 TOKEN_BYTES = 32
 MIN_SECONDS = 60

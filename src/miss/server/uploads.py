@@ -26,7 +26,7 @@ from miss.errors import BadParameter, UnsupportedFormat
 from miss.io.archive import too_large
 from miss.server.errors import UploadTooLarge
 from miss.server.ratelimit import OverLimit
-from miss.server.store import is_disk_full
+from miss.server.storage.store import is_disk_full
 
 CHUNK = 1 << 20
 FIELD_LIMIT = 64 * 1024

@@ -14,8 +14,6 @@ from starlette.concurrency import run_in_threadpool
 from miss.errors import BadParameter, EmptySurface
 from miss.export import FORMATS, WRITERS
 from miss.server import audit, labelmaps
-from miss.server.caches import BytesLRU, need_io
-from miss.server.db import DONE, FAILED, ModelRow, VolumeRow
 from miss.server.deps import (
     JobLimitDep,
     ModelDep,
@@ -36,7 +34,9 @@ from miss.server.schemas import (
     mime_for,
     model_out,
 )
-from miss.server.store import Store
+from miss.server.storage.caches import ByteCaches, need_io
+from miss.server.storage.db import DONE, FAILED, ModelRow, VolumeRow
+from miss.server.storage.store import Store
 from miss.spec import JobSpec
 from miss.structures.labelmap import label_counts
 
@@ -199,13 +199,6 @@ def _etag_matches(header: str | None, etag: str) -> bool:
     return "*" in tags or etag in tags
 
 
-#: Model files of this server process, by (model, format, ETag): a finished model's files
-#: never change, and a viewer's fetch is then answered without touching the disk.
-_FILES = BytesLRU(128 * 2**20)
-#: Larger files are streamed from disk rather than kept.
-MAX_CACHED_FILE = 32 * 2**20
-
-
 @router.head("/{model_id}/model.{fmt}", include_in_schema=False)
 @router.get(
     "/{model_id}/model.{fmt}",
@@ -240,7 +233,8 @@ def model_file(model: ModelRow, fmt: str, request: Request, store: Store) -> Res
         return Response(status_code=304, headers=headers)
     name = download_name(store.get_volume(model.volume_id), model, fmt)
     key, ranged = (model.id, fmt, model.files[fmt]["etag"]), "range" in request.headers
-    data = None if ranged else _FILES.peek(key)
+    caches: ByteCaches = request.app.state.bytes  # shares' routes call this too
+    data = None if ranged else caches.model_files.peek(key)
     if data is None:
         need_io()
         path = store.model_dir(model.id) / f"model.{fmt}"
@@ -248,8 +242,8 @@ def model_file(model: ModelRow, fmt: str, request: Request, store: Store) -> Res
             raise NotFound(
                 f"the {fmt} file of model {model.id} is missing; delete the model and submit again."
             )
-        if ranged or path.stat().st_size > MAX_CACHED_FILE:
+        if ranged or path.stat().st_size > caches.max_file:
             return FileResponse(path, media_type=mime, filename=name, headers=headers)
         data = path.read_bytes()
-        _FILES.put(key, data)
+        caches.model_files.put(key, data)
     return Response(data, media_type=mime, headers=headers | attachment(name))

@@ -17,7 +17,7 @@ from miss.server.accounts import User
 from miss.server.auth import page_user
 from miss.server.deps import StoreDep, visible_model
 from miss.server.errors import NotFound
-from miss.server.store import Store
+from miss.server.storage.store import Store
 
 WEB = Path(miss.__file__).parent / "web"
 THREE = WEB / "node_modules" / "three"

@@ -9,12 +9,13 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Query, WebSocket
 from starlette.concurrency import run_in_threadpool
 
-from miss.server import audit, roomlog, shares
+from miss.server import audit, shares
 from miss.server.auth import authenticate, same_origin
 from miss.server.deps import ModelDep, StoreDep, visible_model
 from miss.server.errors import Gone, NotFound, Unauthorized
 from miss.server.rooms import Close, Refused, Visitor, guest_name
-from miss.server.store import Store
+from miss.server.rooms import record as roomlog
+from miss.server.storage.store import Store
 
 router = APIRouter(tags=["rooms"])
 

@@ -22,13 +22,13 @@ from miss.errors import BadParameter
 from miss.export import WRITERS
 from miss.server import audit, shares
 from miss.server.accounts import User
-from miss.server.db import DONE, ModelRow, ShareRow, VolumeRow
 from miss.server.deps import StoreDep, UserDep, visible_model, visible_volume
 from miss.server.errors import Forbidden, Gone, MissError, NotFound, status_of
 from miss.server.routes.models import model_file
 from miss.server.routes.pages import WEB
 from miss.server.schemas import JSONRoute, params_of
-from miss.server.store import Store
+from miss.server.storage.db import DONE, ModelRow, ShareRow, VolumeRow
+from miss.server.storage.store import Store
 
 router = APIRouter(tags=["shares"], route_class=JSONRoute)
 #: Share pages must not leak their URL (the token) to anything they link to, nor be kept

@@ -17,14 +17,21 @@ from starlette.concurrency import run_in_threadpool
 
 from miss.server import audit, imaging, labelmaps
 from miss.server.accounts import User, get_user
-from miss.server.caches import BytesLRU
-from miss.server.db import VolumeRow
-from miss.server.deps import QueueDep, SettingsDep, StoreDep, UserDep, VolumeDep, on_loop
+from miss.server.deps import (
+    BytesDep,
+    QueueDep,
+    SettingsDep,
+    StoreDep,
+    UserDep,
+    VolumeDep,
+    on_loop,
+)
 from miss.server.errors import Forbidden, NotFound
 from miss.server.ingest import ingest
 from miss.server.schemas import IdentityOut, VolumeOut, volume_out
 from miss.server.settings import Settings
-from miss.server.store import Store
+from miss.server.storage.db import VolumeRow
+from miss.server.storage.store import Store
 from miss.server.uploads import Upload, receive
 
 router = APIRouter(prefix="/api/volumes", tags=["volumes"])
@@ -236,10 +243,6 @@ def histogram(volume: VolumeDep, store: StoreDep) -> dict[str, Any]:
     }
 
 
-#: Rendered slices of this server process (stored volumes never change).
-_SLICES = BytesLRU(64 * 2**20)
-
-
 @router.get(
     "/{volume_id}/slices/{axis}/{index}.png",
     response_class=Response,
@@ -248,6 +251,7 @@ _SLICES = BytesLRU(64 * 2**20)
 async def slice_png(
     volume: VolumeDep,
     store: StoreDep,
+    caches: BytesDep,
     axis: Axis,
     index: int,
     window: Annotated[
@@ -275,5 +279,5 @@ async def slice_png(
         return imaging.render(plane, size_px, window, level, threshold)
 
     key = (volume.id, axis.value, index, window, level, threshold, size)
-    png = await on_loop(_SLICES.get, key, make)
+    png = await on_loop(caches.slices.get, key, make)
     return Response(png, media_type="image/png", headers={"Cache-Control": "private, max-age=3600"})

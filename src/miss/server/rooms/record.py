@@ -14,8 +14,8 @@ from typing import Any
 
 from sqlalchemy import func, select
 
-from miss.server.db import RoomEventRow, SessionRow, UserRow, utcnow
-from miss.server.store import Store
+from miss.server.storage.db import RoomEventRow, SessionRow, UserRow, utcnow
+from miss.server.storage.store import Store
 
 #: Chat messages a late joiner receives (older ones stay in the replay).
 CHAT_BACKLOG = 200

@@ -1,7 +1,7 @@
 """One job in its own process.
 
 The server starts it through a short bootstrap (``jobs._BOOTSTRAP``); by hand it runs as
-``python -m miss.server.worker <model-id> <data-dir> <db-url> <parent-pid>``; the server
+``python -m miss.server.jobs.worker <model-id> <data-dir> <db-url> <parent-pid>``; the server
 passes ``-`` as the URL and writes the real one to the worker's stdin, so that it never
 shows in the process list.
 
@@ -45,10 +45,10 @@ from miss.errors import BadParameter, MissError
 from miss.export import FORMATS, WRITERS
 from miss.pipeline import JobResult, execute
 from miss.server import labelmaps
-from miss.server.db import VolumeRow
-from miss.server.jobstate import JobState
+from miss.server.jobs.state import JobState
 from miss.server.settings import Settings
-from miss.server.store import PART, Store, is_disk_full, write_atomic
+from miss.server.storage.db import VolumeRow
+from miss.server.storage.store import PART, Store, is_disk_full, write_atomic
 from miss.spec import JobSpec, Loaded
 
 #: Seconds between progress writes within one stage: enough for a live bar, light on the DB.

@@ -11,8 +11,8 @@ from typing import Any
 
 from sqlalchemy import select
 
-from miss.server.db import DONE, FAILED, QUEUED, RUNNING, ModelRow, utcnow
-from miss.server.store import Store
+from miss.server.storage.db import DONE, FAILED, QUEUED, RUNNING, ModelRow, utcnow
+from miss.server.storage.store import Store
 
 
 class JobState:

@@ -20,6 +20,7 @@ import time
 from collections import OrderedDict
 from collections.abc import Callable, Hashable, Iterator
 from contextlib import contextmanager
+from dataclasses import dataclass, field
 from typing import Any
 
 _CACHE_ONLY: contextvars.ContextVar[bool] = contextvars.ContextVar("cache_only", default=False)
@@ -142,3 +143,14 @@ class RowCache:
         if value is not None and keep(value):
             self.put(key, value, generation)
         return value
+
+
+@dataclass(frozen=True)
+class ByteCaches:
+    """The bytes this server process answers viewers with (``app.state.bytes``): model
+    files by (model, format, ETag), up to 32 MB each and 128 MB in all (a finished
+    model's files never change); rendered slices, 64 MB (stored volumes never change)."""
+
+    model_files: BytesLRU = field(default_factory=lambda: BytesLRU(128 * 2**20))
+    slices: BytesLRU = field(default_factory=lambda: BytesLRU(64 * 2**20))
+    max_file: int = 32 * 2**20

@@ -1,14 +1,14 @@
 """The job queue: threads in the server that each supervise one worker process at a time.
 
 State lives in the database, not in these threads: a thread claims the oldest queued
-row, starts ``python -m miss.server.worker`` for it and waits. The child writes
+row, starts ``python -m miss.server.jobs.worker`` for it and waits. The child writes
 progress and the result; when it dies by a signal (a segfault in native code, the
 out-of-memory killer) the thread records why, reading the worker's log for the signs of
 an allocation that failed in native code. On start, rows left ``running`` by a previous
 server are queued again, or failed once they were interrupted twice.
 
 Workers inherit the server's environment, so ``MISS_WORKER_MEMORY_MB`` reaches them
-(see ``miss.server.worker``).
+(see ``miss.server.jobs.worker``).
 """
 
 from __future__ import annotations
@@ -24,8 +24,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
 
-from miss.server.jobstate import JobState
-from miss.server.store import Store
+from miss.server.jobs.state import JobState
+from miss.server.storage.store import Store
 
 log = logging.getLogger("miss.server.jobs")
 
@@ -107,7 +107,7 @@ try:
     os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
 except (AttributeError, OSError):
     pass
-from miss.server.worker import main
+from miss.server.jobs.worker import main
 sys.exit(main(sys.argv[1:]))
 """
 
@@ -130,7 +130,7 @@ class Running(Protocol):
 
 class Runner(Protocol):
     """Where a queued job runs: ``start`` it and hand back its :class:`Running`. The job
-    itself (``miss.server.worker.run_job``) records its outcome in the database; an exit
+    itself (``miss.server.jobs.worker.run_job``) records its outcome in the database; an exit
     code other than 0 without one is a crash the queue records."""
 
     def start(self, model_id: str) -> Running: ...
@@ -227,7 +227,7 @@ class JobQueue:
 
 @dataclass(frozen=True, eq=False)
 class WorkerProcess:
-    """Each job in a child process of its own (``python -m miss.server.worker``): native
+    """Each job in a child process of its own (``python -m miss.server.jobs.worker``): native
     code that crashes or runs out of memory costs one job, never the server."""
 
     store: Store

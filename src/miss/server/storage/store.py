@@ -36,9 +36,10 @@ from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, sessionmaker
 
 from miss.errors import is_disk_full
-from miss.server.appender import Appender
-from miss.server.caches import RowCache, need_io
-from miss.server.db import (
+from miss.server.errors import DiskFull, NotFound
+from miss.server.storage.appender import Appender
+from miss.server.storage.caches import RowCache, need_io
+from miss.server.storage.db import (
     DONE,
     FAILED,
     QUEUED,
@@ -51,7 +52,6 @@ from miss.server.db import (
     make_sessionmaker,
     migrate,
 )
-from miss.server.errors import DiskFull, NotFound
 from miss.types import Volume
 
 

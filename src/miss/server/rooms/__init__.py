@@ -32,10 +32,10 @@ from typing import Any
 from starlette.concurrency import run_in_threadpool
 from starlette.websockets import WebSocket, WebSocketDisconnect
 
-from miss.server import roomlog
-from miss.server.db import utcnow
 from miss.server.ratelimit import TokenBucket
-from miss.server.store import Store
+from miss.server.rooms import record as roomlog
+from miss.server.storage.db import utcnow
+from miss.server.storage.store import Store
 
 log = logging.getLogger("miss.server.rooms")
 

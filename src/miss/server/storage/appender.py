@@ -9,9 +9,9 @@ from typing import Any
 
 from sqlalchemy.orm import sessionmaker
 
-from miss.server.caches import need_io
+from miss.server.storage.caches import need_io
 
-log = logging.getLogger("miss.server.appender")
+log = logging.getLogger("miss.server.storage.appender")
 
 
 class Appender:
