@@ -3,7 +3,7 @@
 // note) and Measure (click two surface points). Points are ray-picked on the
 // mesh and sent in patient LPS millimetres.
 
-import { onClick } from './format.js';
+import { onClick } from '../format.js';
 
 export class PointerTools {
 	constructor( consultation ) {

@@ -2,15 +2,15 @@
 // threshold, the 1998 form's choices (start/end slice, sample rate,
 // decimation, error bound, reduce rate) and Generate with live progress.
 
-import { showSession } from './session.js';
-import { api, urls, watchModel } from './api.js';
-import { describeVolume, el, formatCount } from './format.js';
-import { Histogram, binEdges } from './histogram.js';
-import { LabelMapPanel } from './labelmap.js';
-import { percent, renderStages, stageLabel } from './job.js';
-import { SliceRange } from './range.js';
-import { showPrivacy } from './privacy.js';
-import { SliceView } from './slices.js';
+import { showSession } from '../session.js';
+import { api, urls, watchModel } from '../api.js';
+import { describeVolume, el, formatCount } from '../format.js';
+import { Histogram, binEdges } from '../histogram.js';
+import { LabelMapPanel } from '../labelmap.js';
+import { percent, renderStages, stageLabel } from '../job.js';
+import { SliceRange } from '../range.js';
+import { showPrivacy } from '../privacy.js';
+import { SliceView } from '../slices.js';
 
 const $ = ( id ) => document.getElementById( id );
 const volumeId = decodeURIComponent( location.pathname.split( '/' ).filter( Boolean ).pop() );

@@ -7,7 +7,7 @@ import { CameraFollower } from './follow.js';
 import { RoomClient } from './room.js';
 import { RoomPanel } from './room-panel.js';
 import { PointerTools } from './tools.js';
-import { status } from './test-hooks.js';
+import { status } from '../test-hooks.js';
 
 // What the server's close codes mean, in words for the panel.
 const CLOSED = {

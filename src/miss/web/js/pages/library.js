@@ -1,9 +1,9 @@
 // Library page: the list of volumes as cards, upload by picker or drag and drop.
 
-import { showSession } from './session.js';
-import { api, urls } from './api.js';
-import { describeVolume, el } from './format.js';
-import { looksLikeVolume, uploadVolume } from './upload.js';
+import { showSession } from '../session.js';
+import { api, urls } from '../api.js';
+import { describeVolume, el } from '../format.js';
+import { looksLikeVolume, uploadVolume } from '../upload.js';
 
 const $ = ( id ) => document.getElementById( id );
 

@@ -2,10 +2,10 @@
 // overlay, the statistics and parameters, the download buttons, GLB/VRML mode
 // and the background.
 
-import { el, fill, formatBytes, formatCount, formatMm, formatSeconds } from './format.js';
-import { renderStages } from './job.js';
+import { el, fill, formatBytes, formatCount, formatMm, formatSeconds } from '../format.js';
+import { renderStages } from '../job.js';
 import { BACKGROUNDS } from './viewer.js';
-import { status } from './test-hooks.js';
+import { status } from '../test-hooks.js';
 
 const $ = ( id ) => document.getElementById( id );
 

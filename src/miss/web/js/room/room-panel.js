@@ -2,7 +2,7 @@
 // tools, pins, measurements and chat. It only draws and reports clicks; the
 // controller (consult.js) decides what they mean.
 
-import { el } from './format.js';
+import { el } from '../format.js';
 
 export const TOOL_HINTS = {
 	orbit: 'Drag to turn the model.',

@@ -4,8 +4,8 @@
 // axial, coronal or sagittal cut; the selected part downloaded on its own.
 // Everything only asks the viewer to draw again (render on demand).
 
-import { el, onClick } from './format.js';
-import { status } from './test-hooks.js';
+import { el, onClick } from '../format.js';
+import { status } from '../test-hooks.js';
 
 const $ = ( id ) => document.getElementById( id );
 

@@ -2,16 +2,16 @@
 // draws it in GLB or VRML mode, lists its statistics and downloads, opens the
 // model's consultation room, the share dialog and the replay of past sessions.
 
-import { api, urls, watchModel } from './api.js';
-import { Consultation } from './consult.js';
-import { percent, stageLabel } from './job.js';
-import { Replay } from './replay.js';
-import { showSession } from './session.js';
-import { ShareDialog } from './share-dialog.js';
-import { StructuresPanel } from './structures-panel.js';
-import { fillDownloads, fillStats, overlay, setupDisplay } from './viewer-ui.js';
-import { status } from './test-hooks.js';
-import { ModelViewer } from './viewer.js';
+import { api, urls, watchModel } from '../api.js';
+import { Consultation } from '../room/consult.js';
+import { percent, stageLabel } from '../job.js';
+import { Replay } from '../room/replay.js';
+import { showSession } from '../session.js';
+import { ShareDialog } from '../share-dialog.js';
+import { StructuresPanel } from '../viewer/structures-panel.js';
+import { fillDownloads, fillStats, overlay, setupDisplay } from '../viewer/viewer-ui.js';
+import { status } from '../test-hooks.js';
+import { ModelViewer } from '../viewer/viewer.js';
 
 const $ = ( id ) => document.getElementById( id );
 const modelId = decodeURIComponent( location.pathname.split( '/' ).filter( Boolean ).pop() );

@@ -1,7 +1,7 @@
 // Login page: name and password to POST /api/auth/login; the server sets the
 // session cookie, and the browser goes back where it came from.
 
-import { api } from './api.js';
+import { api } from '../api.js';
 
 const $ = ( id ) => document.getElementById( id );
 

@@ -4,12 +4,12 @@
 // by -- with long pauses shortened. The live room's annotations are hidden
 // meanwhile and come back when the replay ends or is stopped.
 
-import { api } from './api.js';
+import { api } from '../api.js';
 import { Annotations, discard } from './annotations.js';
 import { CameraFollower } from './follow.js';
-import { el, fill } from './format.js';
+import { el, fill } from '../format.js';
 import { clock } from './room-panel.js';
-import { status } from './test-hooks.js';
+import { status } from '../test-hooks.js';
 
 const MAX_PAUSE_MS = 1500; // a long silence in the meeting is a short one in the replay
 const SPEED = 2;

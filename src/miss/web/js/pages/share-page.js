@@ -2,12 +2,12 @@
 // comes from /s/{token}/...: who shared what until when, the model's provenance
 // and the files the link allows; a link that allows annotating joins the room.
 
-import { request } from './api.js';
-import { Consultation } from './consult.js';
-import { el, fill } from './format.js';
-import { fillDownloads, fillStats, overlay, setupDisplay } from './viewer-ui.js';
-import { status } from './test-hooks.js';
-import { ModelViewer } from './viewer.js';
+import { request } from '../api.js';
+import { Consultation } from '../room/consult.js';
+import { el, fill } from '../format.js';
+import { fillDownloads, fillStats, overlay, setupDisplay } from '../viewer/viewer-ui.js';
+import { status } from '../test-hooks.js';
+import { ModelViewer } from '../viewer/viewer.js';
 
 const $ = ( id ) => document.getElementById( id );
 const token = decodeURIComponent( location.pathname.split( '/' )[ 2 ] || '' );
