@@ -54,7 +54,21 @@ def everything_shown(server: Server, volume: str) -> str:
     said.append(server.http.get(f"/api/models/{model}/model.stl").headers["content-disposition"])
     link = server.http.post("/api/shares", json={"model": model}).json()
     said.append(server.http.get(f"{link['url']}/info").text)
-    return "\n".join(said)
+    return without_random("\n".join(said), link["url"].removeprefix("/s/"))
+
+
+#: What the server makes up at random: hex ids, hashes and ETags; generated UIDs; clock
+#: times. A random run of them may spell "roe" or "1970" and is no identity.
+RANDOM = re.compile(
+    r"\b[0-9a-f]{16,}\b|\b\d+(?:\.\d+){3,}\b"
+    r"|\d{4}-\d\d-\d\d[T ]\d\d:\d\d:\d\d(?:\.\d+)?(?:Z|[+-]\d\d:\d\d)?"
+)
+
+
+def without_random(text: str, token: str) -> str:
+    """``text`` with the share token (random base64, which once held "roe") and the other
+    random strings above replaced by placeholders."""
+    return RANDOM.sub("#", text.replace(token, "TOKEN"))
 
 
 def words(text: str) -> set[str]:
