@@ -16,10 +16,10 @@ from fastapi.testclient import TestClient
 from sqlalchemy import event, text
 from starlette.responses import FileResponse
 
-from miss.server.deps import on_loop
+from miss.server.deps import here_or_threadpool
 from miss.server.schemas import attachment
 from miss.server.settings import Settings
-from miss.server.storage.caches import BytesLRU, NotCached, RowCache, cache_only, need_io
+from miss.server.storage.caches import ByteCaches, BytesLRU, RowCache
 from miss.server.storage.db import POOL_SIZE, RUNNING
 from miss.server.storage.store import Store
 
@@ -44,16 +44,6 @@ def test_bytes_lru_makes_once_and_forgets_the_least_recent() -> None:
     assert made == ["a", "b", "c", "b"]
     cache.put("huge", b"x" * 26)  # larger than the whole budget: not kept
     assert cache.peek("huge") is None
-
-
-def test_bytes_lru_under_cache_only_refuses_to_make() -> None:
-    cache = BytesLRU(max_bytes=100)
-    cache.put("a", b"A")
-    with cache_only():
-        assert cache.get("a", lambda: b"never") == b"A"
-        with pytest.raises(NotCached):
-            cache.get("b", lambda: b"B")
-    assert cache.get("b", lambda: b"B") == b"B"
 
 
 def test_row_cache_expires_and_evicts() -> None:
@@ -94,46 +84,21 @@ def test_row_cache_keeps_only_what_keep_accepts() -> None:
     for _ in range(3):
         rows.cached("m", load, lambda row: row["status"] == "done")
     assert len(loads) == 3  # a running job's row is read afresh every time
-    with cache_only(), pytest.raises(NotCached):
-        rows.cached("m", load, lambda row: True)
 
 
-def test_need_io_only_under_cache_only() -> None:
-    need_io()
-    with cache_only(), pytest.raises(NotCached):
-        need_io()
-    need_io()  # reset on leaving the block, also for the threads it hands work to
-
-
-def test_on_loop_runs_cached_work_on_the_loop_and_the_rest_in_a_thread() -> None:
-    cache = BytesLRU(max_bytes=100)
-    cache.put("hit", b"1")
-
-    def where(key: str) -> tuple[bytes, int]:
-        return cache.get(key, lambda: b"2"), threading.get_ident()
-
-    async def both() -> tuple[Any, Any, int]:
-        return await on_loop(where, "hit"), await on_loop(where, "miss"), threading.get_ident()
+def test_here_or_threadpool_runs_cached_work_on_the_loop_and_the_rest_in_a_thread() -> None:
+    async def both() -> tuple[int, int, int]:
+        here = await here_or_threadpool(True, threading.get_ident)
+        there = await here_or_threadpool(False, threading.get_ident)
+        return here, there, threading.get_ident()
 
     # A thread of its own: another test's browser session may have left a loop in this one.
     results: list[Any] = []
     runner = threading.Thread(target=lambda: results.append(asyncio.run(both())))
     runner.start()
     runner.join()
-    (hit, hit_thread), (miss, miss_thread), loop_thread = results[0]
-    assert (hit, miss) == (b"1", b"2")
-    assert hit_thread == loop_thread and miss_thread != loop_thread
-
-
-def test_store_queries_refuse_under_cache_only(tmp_path: Path) -> None:
-    store = Store(tmp_path, Settings(data_dir=tmp_path).database_url)
-    store.init()
-    try:
-        with cache_only(), pytest.raises(NotCached):
-            store.list_volumes()
-        assert store.list_volumes() == []
-    finally:
-        store.close()
+    here, there, loop_thread = results[0]
+    assert here == loop_thread and there != loop_thread
 
 
 def test_the_pool_keeps_its_connections(tmp_path: Path) -> None:
@@ -212,6 +177,43 @@ def _name(response: Any) -> str:
     if "filename*=" in value:
         return unquote(value.split("filename*=utf-8''", 1)[1])
     return value.split('filename="', 1)[1].rstrip('"')
+
+
+def test_the_event_loop_never_waits_for_the_database(
+    done_model: tuple[TestClient, dict[str, Any]],
+) -> None:
+    """A viewer's requests (the model, its GLB, slices), first with nothing cached (each look-up goes to the
+    threadpool), then again (all answered from memory, on the loop): no query ever runs
+    on the event loop's thread, and the second round asks the database nothing."""
+    client, model = done_model
+    store: Store = client.app.state.store
+    store.rows.clear()
+    client.app.state.bytes = ByteCaches()  # nothing in memory
+    on_loop: list[str] = []
+    selects: list[str] = []
+
+    def seen(_conn: Any, _cursor: Any, statement: str, *_: Any) -> None:
+        try:
+            asyncio.get_running_loop()
+            on_loop.append(statement)
+        except RuntimeError:  # a threadpool's (or the appender's) thread: no loop
+            pass
+        if statement.lstrip().upper().startswith("SELECT"):
+            selects.append(statement)
+
+    event.listen(store.engine, "before_cursor_execute", seen)
+    try:
+        m, v = f"/api/models/{model['id']}", f"/api/volumes/{model['volume']}"
+        rounds = []
+        for _ in range(2):
+            selects.clear()
+            for url in (m, f"{m}/model.glb", f"{v}/slices/axial/3.png", f"{m}/model.glb"):
+                assert client.get(url).status_code == 200, url
+            rounds.append(len(selects))
+    finally:
+        event.remove(store.engine, "before_cursor_execute", seen)
+    assert on_loop == []
+    assert rounds[0] > 0 and rounds[1] == 0, (rounds, selects)
 
 
 def test_a_range_request_still_gets_the_range(

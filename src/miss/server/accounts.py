@@ -150,6 +150,11 @@ def session_for(store: Store, token: str) -> tuple[User, SessionRow] | None:
     return found
 
 
+def session_cached(store: Store, token: str) -> bool:
+    """True when ``session_for(store, token)`` will answer from memory (never waits)."""
+    return store.rows.get(("session", token_hash(token))) is not None
+
+
 def _load_session(store: Store, hashed: str) -> tuple[User, SessionRow] | None:
     with store.session() as s:
         found = s.execute(

@@ -8,13 +8,13 @@ from typing import Annotated, ParamSpec, TypeVar
 from fastapi import Depends, Request
 from starlette.concurrency import run_in_threadpool
 
-from miss.server.accounts import User
+from miss.server.accounts import User, session_cached
 from miss.server.auth import can_see, presented_token, user_for_request
 from miss.server.errors import Forbidden, NotFound
 from miss.server.jobs import JobQueue
 from miss.server.ratelimit import ApiLimits, JobLimit
 from miss.server.settings import Settings
-from miss.server.storage.caches import ByteCaches, NotCached, cache_only
+from miss.server.storage.caches import ByteCaches
 from miss.server.storage.db import ModelRow, VolumeRow
 from miss.server.storage.store import Store
 
@@ -45,16 +45,14 @@ P = ParamSpec("P")
 T = TypeVar("T")
 
 
-async def on_loop(fn: Callable[P, T], *args: P.args, **kwargs: P.kwargs) -> T:
-    """``fn(...)`` right here on the event loop when all it reads is in the process's
-    caches (no thread hop, no database); in the threadpool when it needs the database or
-    the disk. ``fn`` must not write before its first read: under ``cache_only()`` that
-    read raises and ``fn`` runs again from the start."""
-    try:
-        with cache_only():
-            return fn(*args, **kwargs)
-    except NotCached:
-        pass
+async def here_or_threadpool(
+    in_memory: bool, fn: Callable[P, T], *args: P.args, **kwargs: P.kwargs
+) -> T:
+    """``fn(...)`` right here on the event loop when ``in_memory`` (the caller has seen
+    that all ``fn`` reads is in this process's caches: no thread hop, no database); in
+    the threadpool otherwise, where it may wait for the database or the disk."""
+    if in_memory:
+        return fn(*args, **kwargs)
     return await run_in_threadpool(fn, *args, **kwargs)
 
 
@@ -66,14 +64,16 @@ BytesDep = Annotated[ByteCaches, Depends(get_byte_caches)]
 
 
 # The look-ups below run on the event loop when the rows are cached (a viewer's usual
-# request) and in the threadpool when they need the database (``on_loop``).
+# request) and in the threadpool when they need the database (``here_or_threadpool``).
 async def current_user(request: Request, store: StoreDep) -> User:
     """The logged-in user (bearer token or session cookie + CSRF); 401 otherwise."""
-    user = await on_loop(user_for_request, request, store)
+    token = presented_token(request.headers, request.cookies)[0]
+    cached = not token or session_cached(store, token)  # no token: 401, nothing to read
+    user = await here_or_threadpool(cached, user_for_request, request, store)
     # The API's rate limit counts this session's next requests against its account.
     limits: ApiLimits | None = getattr(request.app.state, "api_limits", None)
     if limits is not None:
-        limits.remember(presented_token(request.headers, request.cookies)[0], user.id)
+        limits.remember(token, user.id)
     return user
 
 
@@ -108,11 +108,14 @@ def visible_model(store: Store, user: User, model_id: str) -> ModelRow:
 
 async def get_volume_row(volume_id: str, store: StoreDep, user: UserDep) -> VolumeRow:
     """The volume named in the path, or 404 before the route (or its stream) starts."""
-    return await on_loop(visible_volume, store, user, volume_id)
+    cached = store.cached_volume(volume_id) is not None
+    return await here_or_threadpool(cached, visible_volume, store, user, volume_id)
 
 
 async def get_model_row(model_id: str, store: StoreDep, user: UserDep) -> ModelRow:
-    return await on_loop(visible_model, store, user, model_id)
+    model = store.cached_model(model_id)
+    cached = model is not None and store.cached_volume(model.volume_id) is not None
+    return await here_or_threadpool(cached, visible_model, store, user, model_id)
 
 
 VolumeDep = Annotated[VolumeRow, Depends(get_volume_row)]

@@ -21,7 +21,7 @@ from miss.server.deps import (
     SettingsDep,
     StoreDep,
     UserDep,
-    on_loop,
+    here_or_threadpool,
     visible_volume,
 )
 from miss.server.errors import NotFound, NotReady
@@ -34,7 +34,7 @@ from miss.server.schemas import (
     mime_for,
     model_out,
 )
-from miss.server.storage.caches import ByteCaches, need_io
+from miss.server.storage.caches import ByteCaches
 from miss.server.storage.db import DONE, FAILED, ModelRow, VolumeRow
 from miss.server.storage.store import Store
 from miss.spec import JobSpec
@@ -158,7 +158,8 @@ def list_models(
 
 @router.get("/{model_id}", response_model=ModelOut)
 async def get_model(model: ModelDep, store: StoreDep) -> ModelOut:
-    volume = await on_loop(store.get_volume, model.volume_id)
+    cached = store.cached_volume(model.volume_id) is not None
+    volume = await here_or_threadpool(cached, store.get_volume, model.volume_id)
     return model_out(model, volume)
 
 
@@ -210,11 +211,26 @@ async def download(
 ) -> Response:
     """The model file, as an attachment with a readable name; ``Accept: x-world/x-vrml``
     gets VRML under its 1998 type."""
-    response = await on_loop(model_file, model, fmt, request, store)
+    cached = file_in_memory(model, fmt, request, store)
+    response = await here_or_threadpool(cached, model_file, model, fmt, request, store)
     if response.status_code == 200 and request.method == "GET":
-        where = audit.address(request)
-        await on_loop(audit.record, store, "download", user.name, model.id, where, format=fmt)
+        where, queued = audit.address(request), store.appender.running
+        args = (store, "download", user.name, model.id, where)
+        await here_or_threadpool(queued, audit.record, *args, format=fmt)
     return response
+
+
+def file_in_memory(model: ModelRow, fmt: str, request: Request, store: Store) -> bool:
+    """True when ``model_file`` will answer from this process's memory: the volume's row
+    and the whole file (not a range of it) are cached."""
+    etag = ((model.files or {}).get(fmt) or {}).get("etag")
+    caches: ByteCaches = request.app.state.bytes
+    return (
+        etag is not None
+        and "range" not in request.headers
+        and store.cached_volume(model.volume_id) is not None
+        and caches.model_files.peek((model.id, fmt, etag)) is not None
+    )
 
 
 def model_file(model: ModelRow, fmt: str, request: Request, store: Store) -> Response:
@@ -236,7 +252,6 @@ def model_file(model: ModelRow, fmt: str, request: Request, store: Store) -> Res
     caches: ByteCaches = request.app.state.bytes  # shares' routes call this too
     data = None if ranged else caches.model_files.peek(key)
     if data is None:
-        need_io()
         path = store.model_dir(model.id) / f"model.{fmt}"
         if not path.is_file():
             raise NotFound(

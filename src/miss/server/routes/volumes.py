@@ -24,7 +24,6 @@ from miss.server.deps import (
     StoreDep,
     UserDep,
     VolumeDep,
-    on_loop,
 )
 from miss.server.errors import Forbidden, NotFound
 from miss.server.ingest import ingest
@@ -279,5 +278,5 @@ async def slice_png(
         return imaging.render(plane, size_px, window, level, threshold)
 
     key = (volume.id, axis.value, index, window, level, threshold, size)
-    png = await on_loop(caches.slices.get, key, make)
+    png = caches.slices.peek(key) or await run_in_threadpool(caches.slices.get, key, make)
     return Response(png, media_type="image/png", headers={"Cache-Control": "private, max-age=3600"})

@@ -9,8 +9,6 @@ from typing import Any
 
 from sqlalchemy.orm import sessionmaker
 
-from miss.server.storage.caches import need_io
-
 log = logging.getLogger("miss.server.storage.appender")
 
 
@@ -44,12 +42,16 @@ class Appender:
 
     def add(self, row: Any) -> None:
         if self._thread is None:
-            need_io()
             self._commit([row])
             return
         with self._done:
             self._added += 1
         self._queue.put(row)
+
+    @property
+    def running(self) -> bool:
+        """True once started: ``add`` only queues (it never waits for the database)."""
+        return self._thread is not None
 
     def flush(self, timeout: float = 60.0) -> None:
         with self._done:

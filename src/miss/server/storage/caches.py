@@ -6,44 +6,20 @@ change; rows go in only when they change through this process alone (a volume, a
 finished model, a login session), and the code that changes them drops them. A TTL
 bounds what a change made by another program on the same database could leave behind.
 
-``cache_only()`` turns a cache miss into :class:`NotCached` for the code run inside it:
-a route's sync helper is tried on the event loop first (everything it needs in memory:
-microseconds, no thread) and goes to the threadpool only when it would wait for the
-database or the disk (see ``deps.on_loop``).
+Each has a ``peek``-like read that never waits (``BytesLRU.peek``, ``RowCache.get``,
+``Store.cached_volume``): a route asks first, answers on the event loop when everything
+is in memory (microseconds, no thread) and goes to the threadpool only when it must wait
+for the database or the disk (``deps.here_or_threadpool``).
 """
 
 from __future__ import annotations
 
-import contextvars
 import threading
 import time
 from collections import OrderedDict
-from collections.abc import Callable, Hashable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable, Hashable
 from dataclasses import dataclass, field
 from typing import Any
-
-_CACHE_ONLY: contextvars.ContextVar[bool] = contextvars.ContextVar("cache_only", default=False)
-
-
-class NotCached(Exception):
-    """Raised under ``cache_only()`` where the answer needs the database or the disk."""
-
-
-@contextmanager
-def cache_only() -> Iterator[None]:
-    """Within this block, misses raise :class:`NotCached` instead of blocking."""
-    token = _CACHE_ONLY.set(True)
-    try:
-        yield
-    finally:
-        _CACHE_ONLY.reset(token)
-
-
-def need_io() -> None:
-    """Call before blocking on the database or the disk: raises under ``cache_only()``."""
-    if _CACHE_ONLY.get():
-        raise NotCached
 
 
 class BytesLRU:
@@ -67,11 +43,10 @@ class BytesLRU:
             return value
 
     def get(self, key: Hashable, make: Callable[[], bytes]) -> bytes:
-        """The value of ``key``, made (under ``cache_only()``: NotCached) when missing."""
+        """The value of ``key``, made when missing."""
         value = self.peek(key)
         if value is not None:
             return value
-        need_io()
         value = make()  # outside the lock: two first requests may both make it, both right
         self.put(key, value)
         return value
@@ -132,12 +107,10 @@ class RowCache:
             self._items.clear()
 
     def cached(self, key: Hashable, load: Callable[[], Any], keep: Callable[[Any], bool]) -> Any:
-        """The snapshot of ``key``, else ``load()`` (kept when ``keep(value)``); under
-        ``cache_only()`` a miss raises NotCached."""
+        """The snapshot of ``key``, else ``load()`` (kept when ``keep(value)``)."""
         value = self.get(key)
         if value is not None:
             return value
-        need_io()
         generation = self.generation
         value = load()
         if value is not None and keep(value):

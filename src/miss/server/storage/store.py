@@ -26,19 +26,18 @@ import os
 import secrets
 import shutil
 from collections.abc import Iterator, Sequence
-from contextlib import AbstractContextManager, contextmanager
+from contextlib import contextmanager
 from pathlib import Path
 from typing import IO, Any
 
 import numpy as np
 from sqlalchemy import delete, func, select, update
 from sqlalchemy.exc import IntegrityError
-from sqlalchemy.orm import Session, sessionmaker
 
 from miss.errors import is_disk_full
 from miss.server.errors import DiskFull, NotFound
 from miss.server.storage.appender import Appender
-from miss.server.storage.caches import RowCache, need_io
+from miss.server.storage.caches import RowCache
 from miss.server.storage.db import (
     DONE,
     FAILED,
@@ -98,12 +97,12 @@ class Store:
         self.data_dir = Path(data_dir)
         self.database_url = database_url
         self.engine = make_engine(database_url)
-        self.session = _Sessions(make_sessionmaker(self.engine))
+        self.session = make_sessionmaker(self.engine)
         #: Sessions whose commits do not wait for the disk: for audit entries and job
         #: progress only (see ``db.make_engine``).
         self.light_engine = make_engine(database_url, durable=False)
-        self.light_session = _Sessions(make_sessionmaker(self.light_engine))
-        self.appender = Appender(self.light_session.maker)
+        self.light_session = make_sessionmaker(self.light_engine)
+        self.appender = Appender(self.light_session)
         #: Snapshots of volumes, finished models and login sessions (see ``caches``).
         self.rows = RowCache()
         self._lock: IO[str] | None = None
@@ -242,6 +241,11 @@ class Store:
             raise NotFound(f"no volume {volume_id!r}; GET /api/volumes lists the volumes.")
         return row
 
+    def cached_volume(self, volume_id: str) -> VolumeRow | None:
+        """The volume's row if this process holds it, else None; never waits (the event
+        loop asks this before it decides to hand a request to the threadpool)."""
+        return self.rows.get(("volume", volume_id))
+
     def add_volume(
         self,
         staged: Path,
@@ -301,6 +305,10 @@ class Store:
         if row is None:
             raise NotFound(f"no model {model_id!r}; GET /api/models lists the models.")
         return row
+
+    def cached_model(self, model_id: str) -> ModelRow | None:
+        """A finished model's row if this process holds it, else None; never waits."""
+        return self.rows.get(("model", model_id))
 
     def get_identity(self, volume_id: str) -> IdentityRow | None:
         with self.session() as s:
@@ -392,21 +400,6 @@ def always(_row: Any) -> bool:
 
 def done(row: ModelRow) -> bool:
     return row.status == DONE
-
-
-class _Sessions:
-    """The sessionmaker, refusing under ``caches.cache_only()`` (a query would block)."""
-
-    def __init__(self, maker: sessionmaker) -> None:
-        self.maker = maker
-
-    def __call__(self) -> Session:
-        need_io()
-        return self.maker()
-
-    def begin(self) -> AbstractContextManager[Session]:
-        need_io()
-        return self.maker.begin()
 
 
 def _remove_tree(path: Path, data_dir: Path) -> None:
