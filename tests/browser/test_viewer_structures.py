@@ -217,3 +217,48 @@ def test_label_map_uploaded_on_the_volume_page_becomes_parts(
         timeout=90_000,
     )
     server.delete(f"/api/volumes/{volume['id']}/labelmap")
+
+
+def test_one_model_page_for_its_owner_and_a_links_guests(
+    page: Any, browser: Any, server: Any, artifacts: Path
+) -> None:
+    """model.html is both pages: the owner sees Share and past consultations, a guest
+    the link's facts and the provenance; both get the structure list. A selected part
+    downloads on its own only when the link allows downloads."""
+    volume = demo_volume(server)
+    body = {"volume": volume["id"], "sample_rate": 4, "decimate": "none"}
+    parts = [{"level": 300, "name": "bone"}, {"level": -500, "name": "skin"}]
+    model = server.wait_model(server.post("/api/models", {**body, "parts": parts})["id"])
+    assert model["status"] == "done", model["error"]
+    owner_only, guest_only = "#share-section", "#share-info"
+
+    page.goto(f"/models/{model['id']}")
+    page.wait_for_function("() => window.__miss.ready", timeout=90_000)
+    assert page.is_visible(owner_only) and page.is_visible("#history")
+    assert not page.is_visible(guest_only) and not page.is_visible("#provenance")
+
+    for can_download in (False, True):
+        link = server.post("/api/shares", {"model": model["id"], "can_download": can_download})
+        context = browser.new_context(base_url=server.url, accept_downloads=True)
+        guest = context.new_page()
+        errors: list[str] = []
+        guest.on("pageerror", lambda exc, errors=errors: errors.append(str(exc)))
+        try:
+            guest.goto(link["url"])
+            guest.wait_for_function(
+                "() => window.__miss.ready && window.__miss.structures.parts.length === 2",
+                timeout=90_000,
+            )
+            assert guest.is_visible(guest_only) and guest.is_visible("#provenance")
+            assert not guest.is_visible(owner_only) and not guest.is_visible("#history")
+            names = guest.locator("#structure-list .part-name").all_inner_texts()
+            assert names == ["bone", "skin"]
+            guest.locator("#structure-list .part-name").nth(0).click()
+            guest.wait_for_function("() => window.__miss.structures.selected === 0")
+            assert "bone" in guest.inner_text("#part-info")
+            assert guest.is_visible("#part-download") is can_download
+            assert guest.is_visible("#download-section") is can_download
+            guest.screenshot(path=artifacts / f"model-page-guest-download-{can_download}.png")
+        finally:
+            context.close()
+        assert not errors, errors

@@ -406,7 +406,7 @@ def test_pages_static_and_docs(client: TestClient) -> None:
     for url, page in (
         ("/", "index.html"),
         ("/volumes/x", "volume.html"),
-        ("/models/x", "viewer.html"),
+        ("/models/x", "model.html"),
     ):
         r = client.get(url)
         if (WEB / page).is_file():

@@ -122,7 +122,7 @@ def viewer_page(model_id: str, request: Request, store: StoreDep) -> Response:
     if user is None:
         return _login_first(request)
     _audit_view(store, request, user, model_id)
-    return _page("viewer.html")
+    return _page("model.html")
 
 
 def _audit_view(store: Store, request: Request, user: User, model_id: str) -> None:

@@ -130,7 +130,7 @@ def share_page(token: str, store: StoreDep, request: Request) -> Response:
         return gone_page(exc)
     target = share.model_id or share.volume_id or ""
     audit.record(store, "view", f"link:{share.id}", target, audit.address(request))
-    return FileResponse(WEB / "share.html", media_type="text/html", headers=PRIVATE)
+    return FileResponse(WEB / "model.html", media_type="text/html", headers=PRIVATE)
 
 
 def provenance(model: ModelRow, volume: VolumeRow) -> dict[str, Any]:

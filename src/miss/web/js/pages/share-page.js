@@ -1,12 +1,14 @@
-// A share link's page (/s/{token}): the viewer without an account. Everything
-// comes from /s/{token}/...: who shared what until when, the model's provenance
-// and the files the link allows; a link that allows annotating joins the room.
+// A share link's page (/s/{token}, model.html as a guest): the viewer without an
+// account. Everything comes from /s/{token}/...: who shared what until when, the
+// model's provenance, its structures and the files the link allows; a link that
+// allows annotating joins the room.
 
 import { request } from '../api.js';
 import { Consultation } from '../room/consult.js';
 import { el, fill } from '../format.js';
 import { fillDownloads, fillStats, overlay, setupDisplay } from '../viewer/viewer-ui.js';
 import { status } from '../test-hooks.js';
+import { StructuresPanel } from '../viewer/structures-panel.js';
 import { ModelViewer } from '../viewer/viewer.js';
 
 const $ = ( id ) => document.getElementById( id );
@@ -73,12 +75,17 @@ function pickModel( models ) {
 	return chosen;
 }
 
-async function main() {
+export async function start() {
 	const viewer = new ModelViewer( $( 'stage' ) );
 	let model = null;
 	let consult = null;
+	const structures = new StructuresPanel( viewer );
+	const onLoaded = () => {
+		structures.refresh();
+		consult?.modelLoaded();
+	};
 	const urlOf = ( fmt ) => model.files[ fmt ]?.url || `${base}/models/${model.id}/model.${fmt}`;
-	const display = setupDisplay( viewer, urlOf, { canVrml: () => Boolean( model?.files.wrl ), onLoaded: () => consult?.modelLoaded() } );
+	const display = setupDisplay( viewer, urlOf, { canVrml: () => Boolean( model?.files.wrl ), onLoaded } );
 	try {
 		const data = await info();
 		showShare( data );
@@ -86,6 +93,8 @@ async function main() {
 		if ( ! model || model.status !== 'done' ) throw new Error( 'the shared model is not finished yet; reload this page in a minute.' );
 		document.title = `MISS · Shared model · ${data.share.shared_by}`;
 		fillStats( model );
+		structures.setStats( model.stats );
+		structures.canDownload = data.share.can_download; // a part on its own is a download too
 		fillDownloads( model.files );
 		const vrml = document.querySelector( '[data-mode=vrml]' );
 		vrml.disabled = ! model.files.wrl;
@@ -100,5 +109,3 @@ async function main() {
 		status.error = err.message || String( err );
 	}
 }
-
-main();

@@ -1,4 +1,4 @@
-// Viewer page (the owner's): waits for the model if it is still being built,
+// A model's page for its owner (model.html at /models/{id}): waits for the model if it is still being built,
 // draws it in GLB or VRML mode, lists its statistics and downloads, opens the
 // model's consultation room, the share dialog and the replay of past sessions.
 
@@ -32,7 +32,7 @@ function showVolume( volume ) {
 	$( 'share' ).addEventListener( 'click', () => dialog.open() );
 }
 
-async function main() {
+export async function start() {
 	showSession();
 	const viewer = new ModelViewer( $( 'stage' ) );
 	let consult = null;
@@ -58,5 +58,3 @@ async function main() {
 		status.error = err.message || String( err );
 	}
 }
-
-main();

@@ -30,9 +30,11 @@ function save( data, name, type ) {
 export class StructuresPanel {
 	// Names and colours come with the model (the server writes what the volume page asked
 	// for); stats.parts gives each part's name, volume (mL) and area (cm²).
+	// canDownload: may the selected part be saved on its own (a share link may forbid it)?
 	constructor( viewer ) {
 		this.viewer = viewer;
 		this.stats = {};
+		this.canDownload = true;
 		this.bindCanvas();
 		$( 'clip-axis' ).addEventListener( 'change', () => this.clip() );
 		$( 'clip-position' ).addEventListener( 'input', () => this.clip() );
@@ -96,7 +98,7 @@ export class StructuresPanel {
 		this.viewer.select( index );
 		for ( const li of $( 'structure-list' ).children ) li.classList.toggle( 'selected', Number( li.dataset.index ) === index );
 		const p = index == null ? null : this.viewer.parts[ index ];
-		$( 'part-download' ).hidden = ! p;
+		$( 'part-download' ).hidden = ! p || ! this.canDownload;
 		const info = $( 'part-info' );
 		if ( ! p ) {
 			info.textContent = 'Click a part to see its name, volume and area.';
@@ -119,7 +121,7 @@ export class StructuresPanel {
 
 	async download( format ) {
 		const index = this.viewer.selected;
-		if ( index == null ) return;
+		if ( index == null || ! this.canDownload ) return;
 		const part = this.viewer.parts[ index ];
 		if ( format === 'stl' ) {
 			const { STLExporter } = await import( 'three/addons/exporters/STLExporter.js' );
