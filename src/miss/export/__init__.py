@@ -4,8 +4,10 @@ Every format is one :class:`Writer` in ``WRITERS``: ``write(mesh, ...)`` for a p
 mesh and ``write_scene(scene, ...)`` for named, coloured parts (every MISS job is a
 scene; a scene of one part in a one-mesh format is that format's plain file). Writers
 take ``(…, *, title=None, metadata=None, **options)``, return bytes and never touch
-the file system; adding a format is one module and one entry below. ``metadata`` is provenance (parameters, software
-version, source hash) as strings; each format stores it where its readers look.
+the file system; adding a format is one module and one entry below. A mesh is in LPS
+mm, its faces counter-clockwise seen from outside; normals are computed where the
+mesh has none. ``metadata`` is provenance (parameters, software version, source hash)
+as strings; each format stores it where its readers look.
 
 MIME types are the IANA-registered ones (``model/vrml``, ``model/x3d+xml``,
 ``model/gltf-binary``, ``model/stl``, ``model/obj``). PLY has no registration;

@@ -20,20 +20,10 @@ _FACE = np.dtype([("count", "u1"), ("indices", "<i4", (3,))])
 
 
 def write(mesh: Mesh, *, title: str | None = None, metadata: dict[str, str] | None = None) -> bytes:
-    """Encode ``mesh`` as binary little-endian PLY.
+    """Encode ``mesh`` as binary little-endian PLY (the contract of every writer: ``miss.export``).
 
-    Parameters
-    ----------
-    mesh : Mesh
-        Vertices (N, 3) in LPS mm, faces (F, 3) counter-clockwise from outside;
-        normals (N, 3) are computed when ``mesh.normals`` is None.
-    title, metadata
-        ``comment title: ...`` and one ``comment key: value`` line each.
-
-    Returns
-    -------
-    bytes
-        ASCII header, then 24 N + 13 F bytes.
+    ``title`` and ``metadata`` become ``comment title: ...`` and one ``comment key: value``
+    line each. An ASCII header, then 24 N + 13 F bytes.
     """
     normals = mesh_normals(mesh)
     vertices = np.empty(mesh.n_vertices, dtype=_VERTEX)  # every field is written below

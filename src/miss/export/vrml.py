@@ -30,21 +30,12 @@ DEFAULT_TITLE = "MISS surface model"
 
 
 def write(mesh: Mesh, *, title: str | None = None, metadata: dict[str, str] | None = None) -> bytes:
-    """Encode ``mesh`` as a VRML 2.0 ``.wrl`` file.
+    """Encode ``mesh`` as a VRML 2.0 ``.wrl`` file (the contract of every writer: ``miss.export``).
 
-    Parameters
-    ----------
-    mesh : Mesh
-        Vertices (N, 3) in LPS mm, faces (F, 3) counter-clockwise from outside;
-        normals (N, 3) are computed when ``mesh.normals`` is None.
-    title, metadata
-        ``WorldInfo.title`` and ``WorldInfo.info`` (one ``"key: value"`` string each).
-
-    Returns
-    -------
-    bytes
-        UTF-8 text; coordinates to 3 decimals (um), normals to 4. Data rows are
-        not indented and use commas only as row ends: size is what the network pays.
+    ``title`` and ``metadata`` become ``WorldInfo.title`` and ``WorldInfo.info`` (one
+    ``"key: value"`` string each). UTF-8 text; coordinates to 3 decimals (um), normals
+    to 4. Data rows are not indented and use commas only as row ends: size is what the
+    network pays.
     """
     normals = mesh_normals(mesh)
     return b"".join(

@@ -32,22 +32,12 @@ _OPENING = (
 
 
 def write(mesh: Mesh, *, title: str | None = None, metadata: dict[str, str] | None = None) -> bytes:
-    """Encode ``mesh`` as an X3D ``.x3d`` XML document.
+    """Encode ``mesh`` as an X3D ``.x3d`` XML document (the contract of every writer: ``miss.export``).
 
-    Parameters
-    ----------
-    mesh : Mesh
-        Vertices (N, 3) in LPS mm, faces (F, 3) counter-clockwise from outside;
-        normals (N, 3) are computed when ``mesh.normals`` is None.
-    title, metadata
-        ``<meta name="title">`` and one ``<meta name=key content=value>`` each.
-
-    Returns
-    -------
-    bytes
-        UTF-8 XML; coordinates to 3 decimals (um), normals to 4, one vertex or
-        triangle per line inside the attribute values (XML reads newlines there
-        as spaces).
+    ``title`` and ``metadata`` become ``<meta name="title">`` and one ``<meta name=key
+    content=value>`` each. UTF-8 XML; coordinates to 3 decimals (um), normals to 4, one
+    vertex or triangle per line inside the attribute values (XML reads newlines there as
+    spaces).
     """
     opening = _OPENING + _head(title, metadata) + _scene_opening(mesh)
     return opening.encode("utf-8") + _triangle_set(mesh) + b"  </Scene>\n</X3D>\n"
