@@ -21,6 +21,7 @@ from starlette.websockets import WebSocketDisconnect
 
 from miss.server import rooms
 from miss.server.rooms import BURST, MAX_MESSAGE_BYTES
+from miss.server.rooms import record as roomlog
 from miss.server.storage.db import ShareRow, utcnow
 
 NOBODY = {"Authorization": ""}  # overrides the client's own admin token
@@ -283,3 +284,28 @@ def test_an_expired_link_closes_its_guests_unasked(
         with pytest.raises(WebSocketDisconnect) as closed:
             until(guest, "never")
         assert closed.value.code == 4410 and time.monotonic() - start < 1.0
+
+
+def test_times_rise_with_ids_across_a_rooms_sessions(
+    client: TestClient, room: dict, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The last leave of a session may still be being written when the next session's
+    first join comes (a slow disk: the leave takes 0.3 s here). The join waits for it,
+    so the record's order (by id, as the replay plays it) is also its order in time."""
+    model, alice = room["model"], room["alice"]
+    append = roomlog.append
+
+    def slow_leave(store: Any, model_id: str, session: int, kind: str, *rest: Any) -> Any:
+        if kind == "leave":
+            time.sleep(0.3)
+        return append(store, model_id, session, kind, *rest)
+
+    monkeypatch.setattr(roomlog, "append", slow_leave)
+    before = replay(client, model, alice, leaves=0)
+    leaves = sum(e["kind"] == "leave" for e in before)
+    for _ in range(3):
+        with joined(client, url(model), alice):
+            pass
+    events = replay(client, model, alice, leaves=leaves + 3)[len(before) :]
+    assert [e["kind"] for e in events] == ["join", "leave"] * 3
+    assert [e["at"] for e in events] == sorted(e["at"] for e in events), events

@@ -23,6 +23,7 @@ import math
 import secrets
 import threading
 import time
+import weakref
 from collections import deque
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
@@ -250,14 +251,21 @@ def event_id(value: Any, known: dict[int, Any], what: str) -> int:
 class Room:
     """The people in one model's room and what they have left there."""
 
-    def __init__(self, model_id: str, session: int, state: roomlog.RoomState, bounds: Any) -> None:
+    def __init__(
+        self,
+        model_id: str,
+        session: int,
+        state: roomlog.RoomState,
+        bounds: Any,
+        writing: asyncio.Lock,
+    ) -> None:
         self.model_id, self.session, self.state = model_id, session, state
         self.bounds = bounds  # [[min x, y, z], [max x, y, z]] in mm, or None when unknown
         self.people: dict[str, Participant] = {}
         self.presenter: str | None = None
         self.view: dict[str, Any] | None = None  # the presenter's latest camera, for late joiners
         self.last_view = 0.0
-        self.writing = asyncio.Lock()
+        self.writing = writing  # the model's, shared with its other sessions (Hub.writing)
 
     def colour(self) -> str:
         used = {p.colour for p in self.people.values()}
@@ -314,6 +322,11 @@ class Hub:
         self.store, self.max_people = store, max_people
         self.rooms: dict[str, Room] = {}
         self._lock = asyncio.Lock()
+        #: One lock a model while anything holds it: a session's last leave may still be
+        #: being written when the next session of the room starts.
+        self._writing: weakref.WeakValueDictionary[str, asyncio.Lock] = (
+            weakref.WeakValueDictionary()
+        )
         self._ended: dict[tuple[str, str], float] = {}  # written from any thread
         self._ended_lock = threading.Lock()
         self._watcher: asyncio.Task[None] | None = None
@@ -413,7 +426,9 @@ class Hub:
             if room is None:
                 state = await run_in_threadpool(roomlog.load_state, self.store, model_id)
                 session = await run_in_threadpool(roomlog.next_session, self.store, model_id)
-                room = self.rooms[model_id] = Room(model_id, session, state, bounds)
+                writing = self._writing.setdefault(model_id, asyncio.Lock())
+                room = Room(model_id, session, state, bounds, writing)
+                self.rooms[model_id] = room
             person = Participant(ws, visitor, room.colour())
             room.people[person.id] = person
         person.send(room.welcome(person))
@@ -439,7 +454,8 @@ class Hub:
     async def store_event(
         self, room: Room, person: Participant, kind: str, data: dict[str, Any]
     ) -> tuple[int, str]:
-        """Write one event; one at a time per room, so ids and times rise together."""
+        """Write one event; one at a time per model, so ids and times rise together, also
+        across the room's sessions."""
         async with room.writing:
             return await run_in_threadpool(
                 roomlog.append,
