@@ -80,7 +80,7 @@ def default_cthead() -> Path:
     env = os.environ.get("MISS_CTHEAD")
     if env:
         return Path(env)
-    repo = Path(__file__).resolve().parents[2]
+    repo = Path(__file__).resolve().parents[1]
     return repo.parent / "shared" / "datasets" / "ct_head_stanford_cthead" / "CThead.nhdr"
 
 

@@ -217,3 +217,16 @@ def test_a_voxel_at_the_level_is_inside_and_makes_no_degenerate_triangle() -> No
     assert (
         np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1) > 0
     ).all()
+
+
+def test_the_paper_volume_is_looked_for_beside_the_repository(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """``../shared`` next to the checkout, as the README and CI have it (the file moved
+    out of the package once and looked one folder too high)."""
+    monkeypatch.delenv("MISS_CTHEAD", raising=False)
+    repo = Path(__file__).resolve().parents[1]
+    expected = repo.parent / "shared" / "datasets" / "ct_head_stanford_cthead" / "CThead.nhdr"
+    assert bench.default_cthead() == expected
+    monkeypatch.setenv("MISS_CTHEAD", "/elsewhere/CThead.nhdr")
+    assert bench.default_cthead() == Path("/elsewhere/CThead.nhdr")
