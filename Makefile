@@ -4,8 +4,9 @@ VENV := .venv
 PY := $(VENV)/bin/python
 PIP := $(PY) -m pip
 WEB := src/miss/web
+VALIDATORS := tests/validators
 
-.PHONY: run test lint format bench web-deps chromium clean
+.PHONY: run test lint format bench web-deps validators chromium clean
 
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -26,6 +27,12 @@ web-deps:
 		fi; \
 	fi
 
+# Reference validators the tests run on MISS's files (Khronos glTF-Validator, from npm).
+validators:
+	@if [ ! -d $(VALIDATORS)/node_modules ] || [ $(VALIDATORS)/package.json -nt $(VALIDATORS)/node_modules ]; then \
+		cd $(VALIDATORS) && (npm ci --ignore-scripts --no-audit --no-fund --silent || npm install --ignore-scripts --no-audit --no-fund --silent) && touch node_modules; \
+	fi
+
 # Debian's chromium for the browser tests (Playwright drives /usr/bin/chromium).
 chromium:
 	@if [ ! -x /usr/bin/chromium ]; then \
@@ -37,7 +44,7 @@ chromium:
 run: $(VENV)/.installed web-deps
 	$(VENV)/bin/miss serve $(if $(HOST),--host $(HOST)) $(if $(PORT),--port $(PORT))
 
-test: $(VENV)/.installed web-deps chromium
+test: $(VENV)/.installed web-deps validators chromium
 	$(VENV)/bin/ruff check src tests benchmarks
 	$(VENV)/bin/ruff format --check src tests benchmarks
 	$(VENV)/bin/pytest -q
@@ -54,4 +61,4 @@ bench: $(VENV)/.bench-installed
 	$(PY) benchmarks/peers.py
 
 clean:
-	rm -rf $(VENV) $(WEB)/node_modules .pytest_cache miss-data miss-demo-*
+	rm -rf $(VENV) $(WEB)/node_modules $(VALIDATORS)/node_modules .pytest_cache miss-data miss-demo-*

@@ -56,7 +56,39 @@ def boundary_edge_count(faces: np.ndarray) -> int:
 
 
 def mesh_normals(mesh: Mesh) -> np.ndarray:
-    """The mesh's own unit vertex normals, or area-weighted ones computed from its faces."""
-    if mesh.normals is not None:
-        return mesh.normals
-    return vertex_normals(mesh.vertices, mesh.faces)
+    """Unit vertex normals for a file: the mesh's own, or area-weighted ones computed from
+    its faces; every one of unit length (:func:`unit_normals`)."""
+    normals = vertex_normals(mesh.vertices, mesh.faces) if mesh.normals is None else mesh.normals
+    return unit_normals(normals, mesh.vertices, mesh.faces)
+
+
+def unit_normals(normals: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """``normals`` (N, 3) as unit vectors, float32, every one of them.
+
+    A zero or non-finite normal (a vertex that only degenerate triangles use, gradient
+    normals that cancel, a vertex no triangle uses) would be written as a zero vector,
+    which glTF forbids (the Khronos validator's ACCESSOR_VECTOR3_NON_UNIT) and which
+    lights as black. It becomes, in this order: the area-weighted normal of its
+    triangles, the mean of its triangle neighbours' normals, or +z.
+    """
+    n = np.asarray(normals, dtype=np.float64)
+    length = np.linalg.norm(n, axis=1)
+    bad = ~np.isfinite(length) | (length < 1e-12)
+    out = np.divide(n, length[:, None], out=np.zeros_like(n), where=~bad[:, None])
+    if bad.any():
+        faces = np.asarray(faces)
+        area_weighted = vertex_normals(vertices, faces).astype(np.float64)
+        out[bad] = area_weighted[bad]
+        bad &= ~np.any(area_weighted != 0, axis=1)
+    if bad.any() and len(faces):
+        neighbours = np.zeros_like(out)
+        for k in range(3):
+            for j in range(3):
+                if j != k:
+                    np.add.at(neighbours, faces[:, k], out[faces[:, j]])
+        length = np.linalg.norm(neighbours, axis=1)
+        found = bad & (length > 1e-12)
+        out[found] = neighbours[found] / length[found, None]
+        bad &= ~found
+    out[bad] = (0.0, 0.0, 1.0)
+    return out.astype(np.float32)

@@ -1,6 +1,7 @@
-// A model's page for its owner (model.html at /models/{id}): waits for the model if it is still being built,
-// draws it in GLB or VRML mode, lists its statistics and downloads, opens the
-// model's consultation room, the share dialog and the replay of past sessions.
+// A model's page for its owner (model.html at /models/{id}): waits for the model
+// if it is still being built, draws it in GLB or VRML mode, lists its statistics
+// and downloads, opens the model's consultation room, the share dialog and the
+// replay of past sessions.
 
 import { api, urls, watchModel } from '../api.js';
 import { Consultation } from '../room/consult.js';
