@@ -63,7 +63,8 @@ def mesh_normals(mesh: Mesh) -> np.ndarray:
 
 
 def unit_normals(normals: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """``normals`` (N, 3) as unit vectors, float32, every one of them.
+    """``normals`` (N, 3) as unit vectors, float32, every one of them (those of unit
+    length already are returned unchanged).
 
     A zero or non-finite normal (a vertex that only degenerate triangles use, gradient
     normals that cancel, a vertex no triangle uses) would be written as a zero vector,
@@ -71,24 +72,36 @@ def unit_normals(normals: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -
     lights as black. It becomes, in this order: the area-weighted normal of its
     triangles, the mean of its triangle neighbours' normals, or +z.
     """
-    n = np.asarray(normals, dtype=np.float64)
-    length = np.linalg.norm(n, axis=1)
-    bad = ~np.isfinite(length) | (length < 1e-12)
-    out = np.divide(n, length[:, None], out=np.zeros_like(n), where=~bad[:, None])
-    if bad.any():
-        faces = np.asarray(faces)
-        area_weighted = vertex_normals(vertices, faces).astype(np.float64)
-        out[bad] = area_weighted[bad]
-        bad &= ~np.any(area_weighted != 0, axis=1)
+    out = np.array(normals, dtype=np.float32)  # unit ones stay as they are, bit for bit
+    length = np.sqrt(np.einsum("ij,ij->i", out, out))
+    bad = ~(np.isfinite(length) & (length > 1e-12))
+    off = ~bad & (np.abs(length - 1) > 1e-5)
+    out[off] /= length[off, None]
+    out[bad] = 0.0
+    faces = np.asarray(faces)
     if bad.any() and len(faces):
-        neighbours = np.zeros_like(out)
+        # Only the triangles of the bad vertices matter: both fallbacks sum over them.
+        near = faces[bad[faces[:, 0]] | bad[faces[:, 1]] | bad[faces[:, 2]]]
+        area_weighted = np.zeros(out.shape)
+        normals_of_near = face_normals(vertices, near)
         for k in range(3):
-            for j in range(3):
-                if j != k:
-                    np.add.at(neighbours, faces[:, k], out[faces[:, j]])
-        length = np.linalg.norm(neighbours, axis=1)
-        found = bad & (length > 1e-12)
-        out[found] = neighbours[found] / length[found, None]
-        bad &= ~found
+            np.add.at(area_weighted, near[:, k], normals_of_near)
+        _fill(out, bad, area_weighted)
+        if bad.any():
+            neighbours = np.zeros(out.shape)
+            for k in range(3):
+                for j in range(3):
+                    if j != k:
+                        np.add.at(neighbours, near[:, k], out[near[:, j]])
+            _fill(out, bad, neighbours)
     out[bad] = (0.0, 0.0, 1.0)
-    return out.astype(np.float32)
+    return out
+
+
+def _fill(out: np.ndarray, bad: np.ndarray, sums: np.ndarray) -> None:
+    """Where ``bad`` and ``sums`` has a direction: that direction into ``out``; those
+    vertices leave ``bad`` (both changed in place)."""
+    length = np.linalg.norm(sums, axis=1)
+    found = bad & (length > 1e-12)
+    out[found] = sums[found] / length[found, None]
+    bad &= ~found
