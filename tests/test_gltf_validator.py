@@ -66,21 +66,15 @@ def assert_valid(reports: dict[str, dict[str, Any]]) -> None:
         assert issues["numErrors"] == 0 and issues["numWarnings"] == 0, (name, bad[:5])
 
 
-def degenerate() -> miss.Mesh:
-    """A fan with a zero-area triangle, a vertex only it uses, and an unused vertex."""
-    v = np.array([[0, 0, 0], [1, 0, 0], [2, 0, 0], [0, 1, 0], [1, 1, 0], [9, 9, 9]], float)
-    f = np.array([[0, 1, 2], [0, 1, 3], [1, 4, 3]])
-    return miss.Mesh(v, f)
-
-
-def test_phantom_and_degenerate_meshes(validate: Validate) -> None:
+def test_phantom_and_degenerate_meshes(validate: Validate, degenerate_mesh: miss.Mesh) -> None:
     volume = phantom()
     surface = miss.extract_surface(volume, 300.0, sample_rate=2)
     decimated = miss.decimate(surface, reduce=0.9, measure=False)[0]
     files = both("bone", surface) | both("bone-decimated", decimated)
-    files |= both("degenerate", degenerate())
-    given = degenerate()
-    zero = miss.Mesh(given.vertices, given.faces, normals=np.zeros((6, 3), np.float32))
+    files |= both("degenerate", degenerate_mesh)
+    zero = miss.Mesh(
+        degenerate_mesh.vertices, degenerate_mesh.faces, normals=np.zeros((6, 3), np.float32)
+    )
     files |= both("zero-normals", zero)
     assert_valid(validate(files))
 

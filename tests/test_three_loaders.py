@@ -10,7 +10,6 @@ import shutil
 import subprocess
 from pathlib import Path
 
-import numpy as np
 import pytest
 import trimesh
 
@@ -34,13 +33,12 @@ def three_counts(fmt: str, paths: list[Path]) -> list[int]:
     return [json.loads(line)["triangles"] for line in out.stdout.splitlines()]
 
 
-def meshes(datasets: Path | None) -> dict[str, miss.Mesh]:
+def meshes(datasets: Path | None, degenerate: miss.Mesh) -> dict[str, miss.Mesh]:
     bone = miss.extract_surface(phantom(), 300.0, sample_rate=2)
-    v = np.array([[0, 0, 0], [1, 0, 0], [2, 0, 0], [0, 1, 0], [1, 1, 0], [9, 9, 9]], float)
     out = {
         "phantom-bone": bone,
         "decimated": miss.decimate(bone, reduce=0.9, measure=False)[0],
-        "degenerate": miss.Mesh(v, np.array([[0, 1, 2], [0, 1, 3], [1, 4, 3]])),
+        "degenerate": degenerate,
     }
     if datasets is not None:
         cthead = miss.load_volume(datasets / "ct_head_stanford_cthead" / "CThead.nhdr")
@@ -50,13 +48,13 @@ def meshes(datasets: Path | None) -> dict[str, miss.Mesh]:
 
 @pytest.mark.parametrize("fmt", FORMATS)
 def test_three_and_trimesh_read_every_triangle(
-    fmt: str, tmp_path: Path, request: pytest.FixtureRequest
+    fmt: str, tmp_path: Path, request: pytest.FixtureRequest, degenerate_mesh: miss.Mesh
 ) -> None:
     try:
         datasets = request.getfixturevalue("datasets")
     except pytest.skip.Exception:
         datasets = None  # the synthetic meshes still run; the real scan needs ../shared
-    found = meshes(datasets)
+    found = meshes(datasets, degenerate_mesh)
     paths = []
     for name, mesh in found.items():
         paths.append(tmp_path / f"{name}.{fmt}")
