@@ -2,24 +2,29 @@
 
 ``execute`` is the one path every job takes, from ``miss convert`` and from the
 server's workers alike: the spec's source loads the volume, :func:`run` builds the
-scene (one level is a scene of one part) and encodes it, and a :class:`Sink` delivers
+scene (one level is a scene of one part) and encodes it, and a :class:`Sink` takes
 the files (to paths on the command line, to the data folder in the server; back to a
 PACS next). No web, no globals.
+
+The order is the one a waiting physician needs: a coarse preview first when the sink
+asks for one, then the model's GLB, then the other formats, and the error measurement
+last, once every file is out.
 """
 
 from __future__ import annotations
 
 import json
+import math
 import os
 import time
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import cached_property
 from pathlib import Path
 from typing import Any, Protocol
 
 from miss.decimate import DecimationReport
-from miss.errors import BadParameter
+from miss.errors import BadParameter, EmptySurface
 from miss.export import export
 from miss.scene import Scene
 from miss.spec import JobSpec
@@ -76,32 +81,99 @@ def run(
     label_map: Volume | None = None,
     table: TableSpec = None,
     export_options: ExportOptions | None = None,
+    sink: Sink | None = None,
 ) -> JobResult:
-    """Build the scene ``spec`` asks of ``volume`` (and ``label_map``), then encode it in
-    every format of ``spec.outputs``; ``progress(stage, 0..1)`` hears each stage.
+    """Build the scene ``spec`` asks of ``volume`` (and ``label_map``), encode it in every
+    format of ``spec.outputs``, then measure its error; ``progress(stage, 0..1)`` hears
+    each stage.
 
-    ``export_options`` maps a format to its writer's options, e.g.
+    With a ``sink``, each file goes to ``sink.put`` as soon as it is encoded, GLB first
+    (a viewer can draw the model while the rest is written and the error measured), and a
+    sink that asks for a preview gets a coarse GLB (``put("preview", ...)``) before the
+    model is built. ``export_options`` maps a format to its writer's options, e.g.
     ``{"glb": {"compress": True}}`` (the server sends meshopt-compressed glTF).
     """
     report = progress or _no_progress
+    seconds: dict[str, float] = {}
+    if sink is not None and sink.wants_preview:
+        start = time.perf_counter()
+        report("preview", 0.0)
+        data = preview(volume, spec, label_map=label_map, table=table, title=title)
+        if data is not None:
+            sink.put(PREVIEW, data)
+            seconds["preview"] = time.perf_counter() - start
     report("surface", 0.0)
-    built = build_scene(volume, spec, label_map=label_map, table=table, title=title)
-    seconds = dict(built.seconds)
+    built = build_scene(volume, spec, label_map=label_map, table=table, title=title, measure=False)
+    seconds |= built.seconds
     start = time.perf_counter()
     artifacts: dict[str, bytes] = {}
-    formats = spec.outputs.formats
+    formats = sorted(spec.outputs.formats, key=lambda f: f != "glb")  # what viewers load first
     for i, fmt in enumerate(formats):
-        report("write", 0.7 + 0.3 * i / len(formats))
+        report("write", 0.7 + 0.25 * i / len(formats))
         options = (export_options or {}).get(fmt, {})
         artifacts[fmt] = export(built.scene, fmt, title=title, metadata=metadata, **options)
+        if sink is not None:
+            sink.put(fmt, artifacts[fmt])
     seconds["write"] = time.perf_counter() - start
+    report("measure", 0.95)
+    built = built.measured()
+    seconds["measure"] = built.seconds.get("measure", 0.0)
     report("done", 1.0)
+    artifacts = {fmt: artifacts[fmt] for fmt in spec.outputs.formats}  # in the asked order
     report_ = combined_report(built.reports)
     return JobResult(built.scene, report_, artifacts, seconds, dict(metadata or {}))
 
 
+#: The name a sink gets a job's preview under (a coarse GLB, before the model).
+PREVIEW = "preview"
+#: A region of fewer voxels than this gets no preview: its model comes about as fast.
+PREVIEW_MIN_VOXELS = 2_000_000
+#: The preview's sample rate, times the job's, and the least it decimates.
+PREVIEW_STEP, PREVIEW_REDUCE = 2, 0.9
+
+
+def preview(
+    volume: Volume,
+    spec: JobSpec,
+    *,
+    label_map: Volume | None = None,
+    table: TableSpec = None,
+    title: str | None = None,
+) -> bytes | None:
+    """A coarse, compressed GLB of the job's scene, for a viewer to draw within a second:
+    every other voxel of the job's sampling, quadric-decimated, nothing measured. None
+    when the region is small (its model is nearly as quick) or has no surface that coarse.
+    """
+    box = spec.region.box(volume.dims)
+    voxels = math.prod(
+        (hi - lo) // s + 1 for (lo, hi), s in zip(box, spec.region.steps, strict=True)
+    )
+    if voxels < PREVIEW_MIN_VOXELS:
+        return None
+    coarse = replace(
+        spec,
+        region=replace(spec.region, sample_rate=tuple(s * PREVIEW_STEP for s in spec.region.steps)),
+        decimation=replace(
+            spec.decimation, method="quadric", reduce=max(spec.decimation.reduce, PREVIEW_REDUCE)
+        ),
+    )
+    try:
+        built = build_scene(
+            volume, coarse, label_map=label_map, table=table, title=title, measure=False
+        )
+    except EmptySurface:  # thin structures may vanish at half the resolution
+        return None
+    return export(built.scene, "glb", title=title, compress=True)
+
+
 class Sink(Protocol):
-    """Where a job's files go: ``deliver`` gets the finished result once."""
+    """Where a job's files go: ``put`` gets each one once it is encoded (GLB first; a
+    ``preview`` before the model when ``wants_preview``), ``deliver`` the finished result
+    (every file put, the error measured)."""
+
+    wants_preview: bool
+
+    def put(self, fmt: str, data: bytes) -> None: ...
 
     def deliver(self, result: JobResult) -> Any: ...
 
@@ -112,14 +184,18 @@ class Files:
     file beside it, renamed, so no half-written file is left behind."""
 
     paths: Mapping[str, tuple[Path, ...]]
+    wants_preview = False
+
+    def put(self, fmt: str, data: bytes) -> None:
+        for path in self.paths.get(fmt, ()):
+            write_atomic(path, data)
 
     def deliver(self, result: JobResult) -> list[dict[str, Any]]:
-        written = []
-        for fmt, paths in self.paths.items():
-            for path in paths:
-                write_atomic(path, result.artifacts[fmt])
-                written.append({"path": str(path), "bytes": path.stat().st_size})
-        return written
+        return [
+            {"path": str(path), "bytes": path.stat().st_size}
+            for paths in self.paths.values()
+            for path in paths
+        ]
 
 
 def write_atomic(path: Path, data: bytes) -> None:
@@ -166,7 +242,7 @@ def execute(
     result = run(
         loaded.volume, spec, progress, title=loaded.title,
         metadata=provenance(spec, loaded.provenance), label_map=loaded.label_map,
-        table=loaded.table, export_options=export_options,
+        table=loaded.table, export_options=export_options, sink=sink,
     )  # fmt: skip
     delivered = sink.deliver(result)
     result.seconds = {"read": read, **result.seconds, "total": time.perf_counter() - start}

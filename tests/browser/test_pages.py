@@ -203,10 +203,9 @@ def test_generate_view_and_download(
     page.screenshot(path=artifacts / "volume-page.png")
 
     page.click("#generate")
-    page.wait_for_selector("#job:not([hidden])")
-    page.wait_for_url("**/models/*", timeout=150_000)
+    page.wait_for_url("**/models/*")  # at once: the model's page follows the job
     model_id = page.url.rstrip("/").split("/")[-1].split("?")[0]
-    model = server.get(f"/api/models/{model_id}")
+    model = server.wait_model(model_id, timeout=150)
     assert model["status"] == "done"
     assert model["params"]["end_slice"] == end
     assert model["params"]["level"] == 300

@@ -19,7 +19,7 @@ Both bounds are fractions of the mesh's bounding-box diagonal, as in the paper
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from typing import TYPE_CHECKING, Any, Literal
 
 from miss.errors import BadParameter
@@ -29,6 +29,8 @@ if TYPE_CHECKING:
     from miss.types import Mesh
 
 Method = Literal["none", "quadric", "schroeder"]
+#: Points sampled on each surface to measure a decimation's deviation.
+SAMPLES = 100_000
 
 
 @dataclass(frozen=True)
@@ -87,7 +89,7 @@ def decimate(
     *,
     max_error: float = 0.01,
     measure: bool = True,
-    samples: int = 100_000,
+    samples: int = SAMPLES,
     paper_passes: int = 0,
 ) -> tuple[Mesh, DecimationReport]:
     """Decimate ``mesh``; returns the new mesh and a report with the measured error.
@@ -119,7 +121,6 @@ def decimate(
     # The native libraries load on the first call, not with ``import miss``.
     from miss.decimate.quadric import quadric
     from miss.decimate.schroeder import schroeder
-    from miss.deviation import deviation
     from miss.geometry import compact, vertex_normals
     from miss.types import Mesh
 
@@ -139,10 +140,7 @@ def decimate(
         out = Mesh(vertices=vertices, faces=faces, normals=vertex_normals(vertices, faces))
     else:
         out = mesh
-    seconds = time.perf_counter() - start
-    t1 = time.perf_counter()
-    dev = deviation(mesh, out, samples=samples) if measure and method != "none" else None
-    return out, DecimationReport(
+    report = DecimationReport(
         method=method,
         reduce=reduce,
         error_bound=error_bound,
@@ -150,8 +148,32 @@ def decimate(
         triangles_out=out.n_triangles,
         achieved_reduction=1.0 - out.n_triangles / max(mesh.n_triangles, 1),
         final_bound_mm=final_mm,
-        max_error_mm=dev.max_mm if dev else (0.0 if method == "none" else None),
-        mean_error_mm=dev.mean_mm if dev else (0.0 if method == "none" else None),
-        seconds=seconds,
-        measure_seconds=time.perf_counter() - t1,
+        max_error_mm=0.0 if method == "none" else None,
+        mean_error_mm=0.0 if method == "none" else None,
+        seconds=time.perf_counter() - start,
+        measure_seconds=0.0,
+    )
+    return out, measured(report, mesh, out, samples) if measure else report
+
+
+def measured(
+    report: DecimationReport, before: Mesh, after: Mesh, samples: int = SAMPLES
+) -> DecimationReport:
+    """``report`` with the two-sided deviation of ``after`` from ``before`` measured (mm),
+    from ``samples`` points on each surface; a report already measured is returned as is.
+
+    A job measures after its files are written (the viewer draws the model meanwhile):
+    ``decimate(..., measure=False)`` now, this later.
+    """
+    if report.max_error_mm is not None:
+        return report
+    from miss.deviation import deviation
+
+    start = time.perf_counter()
+    dev = deviation(before, after, samples=samples)
+    return replace(
+        report,
+        max_error_mm=dev.max_mm,
+        mean_error_mm=dev.mean_mm,
+        measure_seconds=time.perf_counter() - start,
     )

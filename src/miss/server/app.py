@@ -18,7 +18,7 @@ from miss.server import errors
 from miss.server.accounts import ADMIN_NAME, ensure_admin
 from miss.server.headers import SecurityHeaders
 from miss.server.ingest import register_demo
-from miss.server.jobs import JobQueue
+from miss.server.jobs import JobQueue, WorkerProcess
 from miss.server.ratelimit import ApiLimits, JobLimit, OverLimit, RateLimitMiddleware, too_many
 from miss.server.rooms import Hub
 from miss.server.routes import audit, auth, models, pages, rooms, shares, volumes
@@ -41,7 +41,7 @@ def _open(settings: Settings) -> tuple[Store, JobQueue]:
         register_demo(store)
     _first_admin(store, settings)
     store.appender.start()
-    queue = JobQueue(store, settings.workers)
+    queue = JobQueue(store, settings.workers, WorkerProcess(store, settings.spare_workers))
     queue.start()
     return store, queue
 

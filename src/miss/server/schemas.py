@@ -17,7 +17,7 @@ from starlette.requests import ClientDisconnect
 from miss.errors import BadParameter
 from miss.export import FORMATS, WRITERS
 from miss.server.errors import BodyTooLarge
-from miss.server.storage.db import DONE, ModelRow, VolumeRow
+from miss.server.storage.db import DONE, RUNNING, ModelRow, VolumeRow
 from miss.spec import GROUPS, JobSpec, Structure, default_of, form_name
 
 #: Largest JSON request body: the biggest real one (a job with many labels) is under 2 KB.
@@ -177,7 +177,13 @@ class ModelOut(BaseModel):
     started: datetime | None
     finished: datetime | None
     files: dict[str, dict[str, Any]] | None = Field(
-        description="per format: url, bytes, mime, filename, description"
+        description="per format: url, bytes, mime, filename, description; while the job "
+        "runs, the files written so far (the GLB first)"
+    )
+    preview: str | None = Field(
+        None,
+        description="while the job runs: the URL of a coarse GLB of the model, to draw until "
+        "the model's own GLB is in ``files``",
     )
 
 
@@ -219,7 +225,7 @@ def params_of(row: ModelRow) -> dict[str, Any]:
 
 def model_out(row: ModelRow, volume: VolumeRow | None = None) -> ModelOut:
     files = None
-    if row.status == DONE and row.files:
+    if row.status in (DONE, RUNNING) and row.files:
         files = {
             fmt: {
                 **meta,
@@ -243,7 +249,14 @@ def model_out(row: ModelRow, volume: VolumeRow | None = None) -> ModelOut:
         started=_utc(row.started_at),
         finished=_utc(row.finished_at),
         files=files,
+        preview=preview_url(row),
     )
+
+
+def preview_url(row: ModelRow) -> str | None:
+    """The running job's preview GLB, with its ETag in the query (a new one, a new URL)."""
+    preview = (row.stats or {}).get("preview") if row.status == RUNNING else None
+    return f"/api/models/{row.id}/preview.glb?v={preview['etag']}" if preview else None
 
 
 def _number(value: float) -> str:

@@ -24,13 +24,14 @@ from typing import Any
 import numpy as np
 from scipy import ndimage
 
-from miss.decimate import DecimationReport, decimate
+from miss.decimate import SAMPLES, DecimationReport, decimate, measured
 from miss.errors import BadParameter, EmptySurface
 from miss.scene import DEFAULT_SCENE_TITLE, Part, Scene
 from miss.smooth import VOLUME_TOLERANCE, smooth_mesh
 from miss.spec import Decimation, JobSpec, Structure
 from miss.structures.components import relabel_components, select_components
 from miss.structures.labelmap import (
+    MEASURE_SAMPLES,
     LabelSurface,
     align_labels,
     label_counts,
@@ -58,11 +59,32 @@ TRANSLUCENT = 0.35
 
 @dataclass(frozen=True)
 class SceneBuild:
-    """A scene with what it took: one decimation report per part, seconds per stage."""
+    """A scene with what it took: one decimation report per part, seconds per stage.
+
+    Built with ``measure=False``, it keeps each part's surface before decimation (and the
+    samples a side its measurement takes) in ``sources``, for :meth:`measured` to use later.
+    """
 
     scene: Scene
     reports: tuple[DecimationReport, ...]
     seconds: dict[str, float] = field(default_factory=dict)
+    sources: tuple[tuple[Mesh, int], ...] = ()
+
+    def measured(self) -> SceneBuild:
+        """This build with each part's deviation from its undecimated surface measured (mm);
+        ``seconds["measure"]`` says how long that took."""
+        if not self.sources:
+            return self
+        start = time.perf_counter()
+        parts = zip(self.reports, self.scene.parts, self.sources, strict=True)
+        reports = tuple(measured(r, mesh, part.mesh, n) for r, part, (mesh, n) in parts)
+        seconds = {**self.seconds, "measure": time.perf_counter() - start}
+        return replace(self, reports=reports, seconds=seconds, sources=())
+
+
+#: A built part: the part, its decimation report, its surface before decimation and the
+#: samples a side that measuring the two takes.
+Built = tuple[Part, DecimationReport, Mesh, int]
 
 
 def extract_scene(
@@ -148,7 +170,7 @@ def build_scene(
     if label_items:  # aligned before the crop, so the map's region is the volume's
         labels_volume = align_labels(label_map, volume) if label_map is not None else volume
     region = spec.region.apply(volume)
-    built: list[tuple[Part, DecimationReport]] = []
+    built: list[Built] = []
     notes: list[str] = []
     ranked = sorted(p.level for p in items if p.level is not None)
     for item in items:
@@ -162,11 +184,12 @@ def build_scene(
         built += _label_parts(
             labels_region, label_items, spec.decimation, measure, resolve_table(table), notes
         )
-    decimating = sum(report.seconds + report.measure_seconds for _, report in built)
-    scene = Scene(tuple(p for p, _ in built), title or DEFAULT_SCENE_TITLE, tuple(notes))
+    decimating = sum(b[1].seconds + b[1].measure_seconds for b in built)
+    scene = Scene(tuple(b[0] for b in built), title or DEFAULT_SCENE_TITLE, tuple(notes))
     total = time.perf_counter() - start
     seconds = {"surface": total - decimating, "decimate": decimating}
-    return SceneBuild(scene, tuple(r for _, r in built), seconds)
+    sources = () if measure else tuple((b[2], b[3]) for b in built)
+    return SceneBuild(scene, tuple(b[1] for b in built), seconds, sources)
 
 
 def level_style(
@@ -196,7 +219,7 @@ def _level_parts(
     decimation: Decimation,
     measure: bool,
     notes: list[str],
-) -> list[tuple[Part, DecimationReport]]:
+) -> list[Built]:
     """One iso-level: the whole surface, its largest piece, or one part per piece.
     The part's own name, colour and opacity win over the level's style."""
     assert item.level is not None
@@ -218,7 +241,8 @@ def _level_parts(
             smoothed, decimation.method, decimation.reduce, decimation.error_bound,
             max_error=decimation.max_error, measure=measure,
         )  # fmt: skip
-        out.append((Part(part_name, decimated, part_color, opacity), report))
+        part = Part(part_name, decimated, part_color, opacity)
+        out.append((part, report, smoothed, SAMPLES))
     return out
 
 
@@ -277,7 +301,7 @@ def _label_parts(
     measure: bool,
     table: LabelTable | None,
     notes: list[str],
-) -> list[tuple[Part, DecimationReport]]:
+) -> list[Built]:
     """One part per chosen label (per piece with ``split``), boundaries shared. The label
     parts share their cleanup (:class:`~miss.spec.Structures` checks that)."""
     first = items[0]
@@ -302,7 +326,10 @@ def _label_parts(
     )  # fmt: skip
     styles = {p.labels[0]: p for p in items if isinstance(p.labels, tuple) and len(p.labels) == 1}
     parts = _named_parts(surfaces, origin, table, label_counts(work) or {}, work, notes)
-    return [(_restyled(p, styles.get(p.label or 0), table), r) for p, r in parts]
+    return [
+        (_restyled(p, styles.get(p.label or 0), table), r, surface.full, MEASURE_SAMPLES)
+        for (p, r), surface in zip(parts, surfaces, strict=True)
+    ]
 
 
 def _restyled(part: Part, item: Structure | None, table: LabelTable | None) -> Part:

@@ -29,8 +29,7 @@ from scipy import ndimage
 from vtk.util import numpy_support
 
 from miss._vtk import image_data, polydata_to_arrays
-from miss.decimate import DecimationReport, decimate
-from miss.deviation import deviation
+from miss.decimate import DecimationReport, decimate, measured
 from miss.errors import BadParameter, EmptySurface
 from miss.geometry import compact, vertex_normals
 from miss.smooth import windowed_sinc
@@ -286,8 +285,6 @@ def _shared_result(
     measure: bool,
 ) -> LabelSurface:
     """A part's patch-decimated surface with the report :func:`miss.decimate` would give."""
-    t0 = time.perf_counter()
-    dev = deviation(full, mesh, samples=MEASURE_SAMPLES) if measure else None
     report = DecimationReport(
         method="quadric",
         reduce=reduce,
@@ -296,9 +293,11 @@ def _shared_result(
         triangles_out=mesh.n_triangles,
         achieved_reduction=1.0 - mesh.n_triangles / max(full.n_triangles, 1),
         final_bound_mm=max_error * full.diagonal(),
-        max_error_mm=dev.max_mm if dev else None,
-        mean_error_mm=dev.mean_mm if dev else None,
+        max_error_mm=None,
+        mean_error_mm=None,
         seconds=seconds,
-        measure_seconds=time.perf_counter() - t0,
+        measure_seconds=0.0,
     )
+    if measure:
+        report = measured(report, full, mesh, MEASURE_SAMPLES)
     return LabelSurface(label, full, mesh, report)

@@ -20,7 +20,7 @@ import signal
 import subprocess
 import sys
 import threading
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Protocol
 
@@ -112,6 +112,9 @@ sys.exit(main(sys.argv[1:]))
 """
 
 
+#: Where spare workers write until they have a job (then they write to its worker.log).
+SPARES_LOG = "spare-workers.log"
+
 #: Environment variables a worker does not need and must not see.
 WORKER_HIDDEN_ENV = frozenset({"MISS_ADMIN_PASSWORD", "MISS_DATABASE_URL"})
 
@@ -131,9 +134,14 @@ class Running(Protocol):
 class Runner(Protocol):
     """Where a queued job runs: ``start`` it and hand back its :class:`Running`. The job
     itself (``miss.server.jobs.worker.run_job``) records its outcome in the database; an exit
-    code other than 0 without one is a crash the queue records."""
+    code other than 0 without one is a crash the queue records. ``prepare`` (called by each
+    queue thread before it waits for work) may get workers ready ahead; ``close`` ends them."""
 
     def start(self, model_id: str) -> Running: ...
+
+    def prepare(self) -> None: ...
+
+    def close(self) -> None: ...
 
 
 class JobQueue:
@@ -181,12 +189,15 @@ class JobQueue:
         for proc in list(self._running.values()):
             if proc.poll() is None:
                 proc.kill()  # each thread then queues its job again
+        self.runner.close()
         for thread in self._threads:
             thread.join(timeout=10)
+        self.runner.close()  # any a thread started meanwhile
 
     def _loop(self) -> None:
         while not self._stopping.is_set():
             try:
+                self.runner.prepare()
                 row = self.state.claim_next()
                 if row is None:
                     with self._wake:
@@ -225,23 +236,76 @@ class JobQueue:
             )
 
 
-@dataclass(frozen=True, eq=False)
+@dataclass(eq=False)
 class WorkerProcess:
     """Each job in a child process of its own (``python -m miss.server.jobs.worker``): native
-    code that crashes or runs out of memory costs one job, never the server."""
+    code that crashes or runs out of memory costs one job, never the server.
+
+    ``spares`` processes are started ahead: each imports and warms up everything a job
+    uses (``worker.warm_up``), then waits on its stdin for a model id, so a job starts
+    computing at once instead of a second later. Still one job a process, with the same
+    memory cap and the same log. Spares are started by the queue's own threads, which live
+    as long as the server: Linux sends a worker's death signal when the *thread* that
+    started it ends (``PR_SET_PDEATHSIG``).
+    """
 
     store: Store
+    spares: int = 0
+    _ready: list[subprocess.Popen[bytes]] = field(default_factory=list)
+    _lock: threading.Lock = field(default_factory=threading.Lock)
+    _closed: bool = False
 
     def start(self, model_id: str) -> subprocess.Popen[bytes]:
-        """Start the worker; its output goes to ``models/<id>/worker.log``."""
+        """A spare given ``model_id``, or a new worker for it; its output goes to
+        ``models/<id>/worker.log``."""
         folder = self.store.model_dir(model_id)
         folder.mkdir(parents=True, exist_ok=True)
+        proc = self._spare_for(model_id)
+        if proc is None:
+            proc = self._spawn(model_id, folder / "worker.log")
+        self.prepare()
+        return proc
+
+    def prepare(self) -> None:
+        """Start spares until ``spares`` are waiting (dead ones are dropped)."""
+        with self._lock:
+            self._ready = [p for p in self._ready if p.poll() is None]
+            while not self._closed and len(self._ready) < self.spares:
+                self._ready.append(self._spawn("-", self.store.data_dir / SPARES_LOG))
+
+    def close(self) -> None:
+        """End the waiting spares: they hold nothing but loaded code."""
+        with self._lock:
+            self._closed = True
+            ready, self._ready = self._ready, []
+        for proc in ready:
+            proc.kill()
+            proc.wait()
+            with contextlib.suppress(OSError):
+                assert proc.stdin is not None
+                proc.stdin.close()
+
+    def _spare_for(self, model_id: str) -> subprocess.Popen[bytes] | None:
+        while True:
+            with self._lock:
+                if not self._ready:
+                    return None
+                proc = self._ready.pop(0)
+            assert proc.stdin is not None
+            try:
+                proc.stdin.write(f"{model_id}\n".encode())
+                proc.stdin.close()
+                return proc
+            except (BrokenPipeError, ValueError):  # it died while waiting: the next one
+                proc.wait()
+
+    def _spawn(self, model_id: str, log_path: Path) -> subprocess.Popen[bytes]:
         # The database URL (it may hold a password) goes through stdin, not the command
         # line, which every local user can read in ps; the admin password stays behind.
         cmd = [sys.executable, "-c", _BOOTSTRAP, model_id, str(self.store.data_dir), "-"]
         cmd.append(str(os.getpid()))
         env = {k: v for k, v in os.environ.items() if k not in WORKER_HIDDEN_ENV}
-        with open(folder / "worker.log", "ab") as log_file:
+        with open(log_path, "ab") as log_file:
             # A session of its own: a Ctrl-C in the server's terminal reaches the server,
             # which stops the workers itself and queues their jobs again.
             proc = subprocess.Popen(
@@ -256,5 +320,8 @@ class WorkerProcess:
         assert proc.stdin is not None
         with contextlib.suppress(BrokenPipeError):  # a worker that died at once
             proc.stdin.write(self.store.database_url.encode() + b"\n")
-            proc.stdin.close()
+            if model_id == "-":
+                proc.stdin.flush()  # a spare reads its model id later
+            else:
+                proc.stdin.close()
         return proc

@@ -1,5 +1,9 @@
 """A job's life in its database row: queued -> running -> done | failed.
 
+While running, the row also says what can already be shown: a preview (in ``stats``) and
+the files written so far (``files``, the GLB first); ``done`` means every file is written
+and the error measured.
+
 Every change is a conditional UPDATE (``WHERE status = ...``), so the server's threads
 and the worker processes can race without a lock: a claim, a finish or a failure
 either applies to the state it expects or does nothing.
@@ -57,6 +61,18 @@ class JobState:
             stage=stage,
             progress=float(min(max(fraction, 0.0), 1.0)),
         )
+
+    def set_preview(self, model_id: str, preview: dict[str, Any]) -> bool:
+        """Record a running job's preview (``preview.glb``: bytes, etag); it shows in the
+        row's stats until the job is done. False when the job is no longer running."""
+        return self.store.update_model(
+            model_id, ModelRow.status == RUNNING, stats={"preview": preview}
+        )
+
+    def set_files(self, model_id: str, files: dict[str, Any]) -> bool:
+        """Record the files a running job has written so far (the GLB first: a viewer draws
+        it while the rest are written); False when the job is no longer running."""
+        return self.store.update_model(model_id, ModelRow.status == RUNNING, files=files)
 
     def finish(self, model_id: str, stats: dict[str, Any], files: dict[str, Any]) -> bool:
         return self.store.update_model(

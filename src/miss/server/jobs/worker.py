@@ -36,19 +36,19 @@ import sys
 import time
 import traceback
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
 from miss.errors import BadParameter, MissError
 from miss.export import FORMATS, WRITERS
-from miss.pipeline import JobResult, execute
+from miss.pipeline import PREVIEW, JobResult, execute
 from miss.server import labelmaps
 from miss.server.jobs.state import JobState
 from miss.server.settings import Settings
 from miss.server.storage.db import VolumeRow
-from miss.server.storage.store import PART, Store, is_disk_full, write_atomic
+from miss.server.storage.store import PART, PREVIEW_FILE, Store, is_disk_full, write_atomic
 from miss.spec import JobSpec, Loaded
 
 #: Seconds between progress writes within one stage: enough for a live bar, light on the DB.
@@ -56,6 +56,7 @@ PROGRESS_INTERVAL = 0.3
 #: Memory a job may use, MB, beyond the worker's code and the volume's mapped voxels.
 MEMORY_ENV = "MISS_WORKER_MEMORY_MB"
 OUT_OF_MEMORY = "out of memory; choose a larger sample rate or fewer slices."
+ZIP = b"PK\x03\x04"
 
 
 class Stop(Exception):
@@ -130,7 +131,7 @@ def limit_memory(store: Store, volume_id: str, cap: int) -> None:
 
 def remove_outputs(folder: Path) -> None:
     """Drop the model files of a failed run: no half set stays, a full disk gets room."""
-    for path in (*folder.glob("model.*"), *folder.glob(f".*{PART}")):
+    for path in (*folder.glob("model.*"), folder / PREVIEW_FILE, *folder.glob(f".*{PART}")):
         path.unlink(missing_ok=True)
 
 
@@ -162,30 +163,49 @@ def _provenance(row: VolumeRow) -> dict[str, str]:
     }
 
 
-@dataclass(frozen=True)
+@dataclass
 class DataFolder:
-    """A job's files in the server: ``models/<id>/model.<fmt>``, each written atomically;
-    delivers {fmt: {bytes, etag, mime}}."""
+    """A job's files in the server: ``models/<id>/model.<fmt>`` (and ``preview.glb``), each
+    written atomically and recorded in the running job's row as soon as it is in place, so
+    the viewer draws the preview and then the model while the rest is written; delivers
+    {fmt: {bytes, etag, mime}} in the formats' order."""
 
     folder: Path
+    state: JobState
+    model_id: str
+    wants_preview: bool = True
+    files: dict[str, dict[str, Any]] = field(default_factory=dict)
+    #: Seconds from ``started`` (the job's start) until the model's GLB was in place.
+    started: float = field(default_factory=time.perf_counter)
+    ready_seconds: float | None = None
+
+    def put(self, fmt: str, data: bytes) -> None:
+        self.folder.mkdir(parents=True, exist_ok=True)
+        meta = {"bytes": len(data), "etag": hashlib.sha256(data).hexdigest()[:32]}
+        if fmt == PREVIEW:
+            write_atomic(self.folder / PREVIEW_FILE, data)
+            if not self.state.set_preview(self.model_id, meta):
+                raise Stop
+            return
+        write_atomic(self.folder / f"model.{fmt}", data)
+        # A scene goes into a zip in the formats of one mesh a file (STL, PLY, OBJ).
+        self.files[fmt] = meta | {"mime": WRITERS[fmt].mime_of(2 if data[:4] == ZIP else 1)}
+        if fmt == "glb" and self.ready_seconds is None:
+            self.ready_seconds = time.perf_counter() - self.started
+        if not self.state.set_files(self.model_id, self.files):
+            raise Stop
 
     def deliver(self, result: JobResult) -> dict[str, Any]:
-        self.folder.mkdir(parents=True, exist_ok=True)
-        files = {}
-        for fmt, data in result.artifacts.items():
-            write_atomic(self.folder / f"model.{fmt}", data)
-            files[fmt] = {
-                "bytes": len(data),
-                "etag": hashlib.sha256(data).hexdigest()[:32],
-                "mime": WRITERS[fmt].mime_of(len(result.scene.parts)),
-            }
-        return files
+        return {fmt: self.files[fmt] for fmt in result.artifacts}
 
 
-def summarize(result: JobResult) -> dict[str, Any]:
+def summarize(result: JobResult, ready_seconds: float | None = None) -> dict[str, Any]:
     """The stats the API shows: triangles, vertices, seconds per stage, bytes, error in mm,
-    parts, the bounding box in patient mm (the rooms check pins against it), provenance."""
+    parts, the bounding box in patient mm (the rooms check pins against it), provenance,
+    and ``ready_seconds``: how long the job took until the model could be drawn."""
     stats = result.stats()
+    if ready_seconds is not None:
+        stats["ready_seconds"] = ready_seconds
     stats["max_error_mm"] = result.report.max_error_mm
     stats["mean_error_mm"] = result.report.mean_error_mm
     if result.scene.n_vertices:
@@ -200,16 +220,17 @@ EXPORT_OPTIONS = {"glb": {"compress": True}}
 
 def run_job(store: Store, model_id: str, parent: int) -> None:
     """Compute one model and record it as done (or raise)."""
+    started = time.perf_counter()
     row = store.get_model(model_id)
     limit_memory(store, row.volume_id, memory_cap(os.environ))
     state = JobState(store)
     reporter = Reporter(state, model_id, parent)
     source = StoredVolume(store, row.volume_id)
     spec = JobSpec.from_dict({**row.spec, "formats": FORMATS}, source)
-    folder = DataFolder(store.model_dir(model_id))
+    folder = DataFolder(store.model_dir(model_id), state, model_id, started=started)
     result, files = execute(spec, folder, reporter, export_options=EXPORT_OPTIONS)
     reporter("store", 1.0)
-    if not state.finish(model_id, summarize(result), files):
+    if not state.finish(model_id, summarize(result, folder.ready_seconds), files):
         raise Stop
 
 
@@ -228,15 +249,55 @@ def failure_reason(exc: Exception, model_id: str, data_dir: Path) -> str:
 
 
 def main(argv: list[str]) -> int:
-    """Exit 0 when the outcome (done or a failure reason) is in the database."""
+    """Exit 0 when the outcome (done or a failure reason) is in the database.
+
+    ``-`` as the model id makes a spare: it loads everything a job needs first
+    (:func:`warm_up`), then reads its model id from stdin and writes its output to that
+    model's ``worker.log``; an empty line (the server has no job for it) ends it."""
     model_id, data_dir, db_url, parent = argv[0], Path(argv[1]), argv[2], int(argv[3])
     if db_url == "-":  # from the server: on stdin, out of sight of ps
         db_url = sys.stdin.readline().strip()
     store = Store(data_dir, db_url)
     try:
+        if model_id == "-":
+            warm_up()
+            model_id = sys.stdin.readline().strip()
+            if not model_id:
+                return 3
+            log_to(store.model_dir(model_id) / "worker.log")
         return attempt(store, model_id, parent)
     finally:
         store.close()
+
+
+def warm_up() -> None:
+    """Import and run, on a small phantom, everything a job uses (VTK, meshoptimizer, the
+    numba kernels, every writer, the measurement), so that a spare worker's job starts
+    computing at once: about a second of imports and first calls done before it comes."""
+    import numpy as np
+
+    from miss._schroeder import warm_up as warm_schroeder
+    from miss.demo import phantom
+    from miss.pipeline import run
+    from miss.types import Volume
+
+    warm_schroeder()
+    head = phantom(40, spacing=5.0)
+    run(head, JobSpec.of(level=300, formats=FORMATS), export_options=EXPORT_OPTIONS)
+    labels = np.asfortranarray((head.data > -500).astype(np.uint8) + (head.data > 300))
+    spec = JobSpec.of(labels="all", formats=("glb",))
+    run(Volume(labels, head.affine), spec, export_options=EXPORT_OPTIONS)
+
+
+def log_to(path: Path) -> None:
+    """Send this process's stdout and stderr (native code's too) to the end of ``path``."""
+    sys.stdout.flush()
+    sys.stderr.flush()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o600)
+    os.dup2(fd, 1)
+    os.dup2(fd, 2)
+    os.close(fd)
 
 
 def attempt(store: Store, model_id: str, parent: int) -> int:

@@ -35,15 +35,16 @@ from miss.server.schemas import (
     model_out,
 )
 from miss.server.storage.caches import ByteCaches
-from miss.server.storage.db import DONE, FAILED, ModelRow, VolumeRow
-from miss.server.storage.store import Store
+from miss.server.storage.db import DONE, FAILED, RUNNING, ModelRow, VolumeRow
+from miss.server.storage.store import PREVIEW_FILE, Store
 from miss.spec import JobSpec
 from miss.structures.labelmap import label_counts
 
 router = APIRouter(prefix="/api/models", tags=["models"], route_class=JSONRoute)
 
-#: Seconds between looks at a job's row while streaming its progress.
-EVENT_POLL = 0.25
+#: Seconds between looks at a job's row while streaming its progress: a preview or the
+#: model's GLB is drawn at most this much later than it was written.
+EVENT_POLL = 0.1
 
 
 def check_against_volume(spec: JobSpec, volume: VolumeRow, store: Store) -> None:
@@ -175,11 +176,13 @@ def delete_model(model: ModelDep, store: StoreDep, queue: QueueDep, request: Req
 @router.get("/{model_id}/events", response_class=EventSourceResponse)
 async def model_events(model: ModelDep, store: StoreDep) -> AsyncIterator[ServerSentEvent]:
     """Server-Sent Events: the model (as GET /api/models/{id}) each time its status,
-    stage or progress changes, until it is done or failed; then the stream ends."""
+    stage, progress, preview or files change, until it is done or failed; then the
+    stream ends."""
     volume = await run_in_threadpool(store.get_volume, model.volume_id)
     row, last = model, None
     while True:
-        state = (row.status, row.stage, round(row.progress, 3))
+        preview = (row.stats or {}).get("preview")
+        state = (row.status, row.stage, round(row.progress, 3), str(preview), str(row.files))
         if state != last:
             last = state
             yield ServerSentEvent(data=model_out(row, volume).model_dump(mode="json"))
@@ -191,6 +194,25 @@ async def model_events(model: ModelDep, store: StoreDep) -> AsyncIterator[Server
         except NotFound:
             yield ServerSentEvent(data={"id": model.id, "status": FAILED, "error": "model deleted"})
             return
+
+
+@router.get(
+    "/{model_id}/preview.glb",
+    response_class=FileResponse,
+    responses={404: {"description": "this job made no preview (a small region)"}},
+)
+def preview(model: ModelDep, store: StoreDep) -> FileResponse:
+    """A running job's coarse GLB (every other voxel, decimated hard), drawn until the
+    model's own GLB is written; the model's ``preview`` field links it while it runs."""
+    path = store.model_dir(model.id) / PREVIEW_FILE
+    if not path.is_file():
+        raise NotFound(
+            f"model {model.id} has no preview (small regions get none); "
+            "load its model.glb once it is listed in the model's files."
+        )
+    # Its URL carries its ETag (``?v=``): a job run again writes a new one under a new URL.
+    headers = {"Cache-Control": "private, max-age=3600"}
+    return FileResponse(path, media_type=WRITERS["glb"].mime, headers=headers)
 
 
 def _etag_matches(header: str | None, etag: str) -> bool:
@@ -237,7 +259,8 @@ def model_file(model: ModelRow, fmt: str, request: Request, store: Store) -> Res
     """A model's file with type, name, ETag (304 when unchanged): for owners and links."""
     if fmt not in WRITERS:
         raise NotFound(f"no format {fmt!r}; choose one of {', '.join(FORMATS)}.")
-    if model.status != DONE or not model.files or fmt not in model.files:
+    # A running job's files are listed as soon as each is in place (the GLB first).
+    if model.status not in (DONE, RUNNING) or not model.files or fmt not in model.files:
         reason = f": {model.error}" if model.status == FAILED else f" ({model.progress:.0%})"
         raise NotReady(
             f"model {model.id} is {model.status}{reason}; download it once its status is done."

@@ -60,6 +60,8 @@ class DataDirInUse(RuntimeError):
 
 #: Suffix of a file being written; ``Store.init`` removes the ones a crash left behind.
 PART = ".part"
+#: A running job's coarse first look at its model, in the model's folder.
+PREVIEW_FILE = "preview.glb"
 
 
 def new_id() -> str:

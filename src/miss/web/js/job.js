@@ -5,9 +5,11 @@ import { el } from './format.js';
 // The pipeline's stages in order, with words a physician reads.
 export const STAGES = [
 	[ 'queued', 'Waiting for a worker' ],
+	[ 'preview', 'Preview' ],
 	[ 'surface', 'Marching cubes' ],
 	[ 'decimate', 'Decimation' ],
 	[ 'write', 'Writing files' ],
+	[ 'measure', 'Measuring the error' ],
 	[ 'done', 'Done' ],
 ];
 

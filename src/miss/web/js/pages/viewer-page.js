@@ -1,7 +1,7 @@
-// A model's page for its owner (model.html at /models/{id}): waits for the model
-// if it is still being built, draws it in GLB or VRML mode, lists its statistics
-// and downloads, opens the model's consultation room, the share dialog and the
-// replay of past sessions.
+// A model's page for its owner (model.html at /models/{id}): follows the job while
+// the model is built (a preview first, then the model), draws it in GLB or VRML
+// mode, lists its statistics and downloads, opens the model's consultation room,
+// the share dialog and the replay of past sessions.
 
 import { api, urls, watchModel } from '../api.js';
 import { Consultation } from '../room/consult.js';
@@ -17,11 +17,45 @@ import { ModelViewer } from '../viewer/viewer.js';
 const $ = ( id ) => document.getElementById( id );
 const modelId = decodeURIComponent( location.pathname.split( '/' ).filter( Boolean ).pop() );
 
-async function waitUntilBuilt( model ) {
-	if ( model.status === 'done' ) return model;
-	const update = ( m ) => overlay( `Building the model: ${stageLabel( m.status === 'queued' ? 'queued' : m.stage )}`, percent( m ), { progress: m.progress || 0, model: m } );
+// While the job runs: its progress, then its preview (a coarse GLB) as soon as there is
+// one, then the model's own GLB as soon as it is written, the view kept as the user
+// turned it; resolves with the finished model and whether its GLB is drawn already.
+async function follow( viewer, model ) {
+	let drawn = null; // 'preview' | 'full': what is drawn or on its way
+	let queue = Promise.resolve();
+	const draw = ( m ) => {
+		const url = m.files?.glb?.url || m.preview;
+		const kind = m.files?.glb ? 'full' : 'preview';
+		if ( ! url || drawn === 'full' || drawn === kind ) return;
+		drawn = kind;
+		queue = queue.then( async () => {
+			const triangles = await viewer.load( url, 'glb', undefined, { keepView: status.drawn != null } );
+			Object.assign( status, { drawn: kind, triangles } );
+			$( 'overlay' ).hidden = true;
+		} ).catch( ( err ) => {
+			if ( kind === 'full' ) drawn = 'preview'; // the finished model draws it again
+			console.warn( `the ${kind} could not be drawn yet: ${err.message || err}` );
+		} );
+	};
+	const update = ( m ) => {
+		const stage = stageLabel( m.status === 'queued' ? 'queued' : m.stage );
+		if ( status.drawn ) {
+			$( 'building' ).hidden = false;
+			$( 'building' ).textContent = `${status.drawn === 'preview' ? 'Preview · ' : ''}${stage} · ${percent( m )}`;
+		} else {
+			overlay( `Building the model: ${stage}`, percent( m ), { progress: m.progress || 0, model: m } );
+		}
+		draw( m );
+	};
 	update( model );
-	return watchModel( modelId, update );
+	try {
+		model = await watchModel( modelId, update );
+	} finally {
+		$( 'building' ).hidden = true;
+	}
+	draw( model );
+	await queue;
+	return { model, drawn: status.drawn === 'full' };
 }
 
 function showVolume( volume ) {
@@ -34,6 +68,8 @@ function showVolume( volume ) {
 }
 
 export async function start() {
+	const asked = api.model( modelId ); // on its way while the viewer starts up
+	asked.catch( () => {} ); // awaited below
 	showSession();
 	const viewer = new ModelViewer( $( 'stage' ) );
 	let consult = null;
@@ -44,16 +80,17 @@ export async function start() {
 	};
 	const display = setupDisplay( viewer, ( fmt ) => urls.download( modelId, fmt ), { onLoaded } );
 	try {
-		let model = await api.model( modelId );
+		let model = await asked;
 		api.volume( model.volume ).then( showVolume ).catch( () => {} );
-		model = await waitUntilBuilt( model );
+		let drawn = false;
+		if ( model.status !== 'done' ) ( { model, drawn } = await follow( viewer, model ) );
 		fillStats( model );
 		structures.setStats( model.stats );
 		fillDownloads( model.files );
 		consult = new Consultation( { viewer, modelId, container: $( 'room' ) } );
 		const replay = new Replay( viewer, modelId, $( 'history' ), consult );
 		replay.list().catch( () => {} );
-		await display( new URLSearchParams( location.search ).get( 'mode' ) );
+		await display( new URLSearchParams( location.search ).get( 'mode' ), { drawn } );
 	} catch ( err ) {
 		overlay( 'This model cannot be shown', err.message || String( err ) );
 		status.error = err.message || String( err );

@@ -1,13 +1,12 @@
 // Volume page: three orthogonal slices, window/level, the histogram with a
 // threshold, the 1998 form's choices (start/end slice, sample rate,
-// decimation, error bound, reduce rate) and Generate with live progress.
+// decimation, error bound, reduce rate) and Generate, which opens the model's page.
 
 import { showSession } from '../session.js';
-import { api, urls, watchModel } from '../api.js';
+import { api, urls } from '../api.js';
 import { describeVolume, el, formatCount } from '../format.js';
 import { Histogram, binEdges } from '../histogram.js';
 import { LabelMapPanel } from '../labelmap.js';
-import { percent, renderStages, stageLabel } from '../job.js';
 import { SliceRange } from '../range.js';
 import { showPrivacy } from '../privacy.js';
 import { SliceView } from '../slices.js';
@@ -245,14 +244,8 @@ function modelParams( volume ) {
 	return params;
 }
 
-function showJob( model ) {
-	$( 'job' ).hidden = false;
-	$( 'job-stage' ).textContent = model.status === 'failed' ? 'Failed' : stageLabel( model.status === 'queued' ? 'queued' : model.stage );
-	$( 'job-percent' ).textContent = percent( model );
-	$( 'job-progress' ).value = model.progress || 0;
-	renderStages( $( 'job-stages' ), model );
-}
-
+// Generate opens the model's page at once: it shows the job's progress, draws a
+// coarse preview within a second and then the model, while the rest is written.
 async function generate( volume ) {
 	showError( null );
 	const inputs = [ ...document.querySelectorAll( '.side input' ) ];
@@ -260,22 +253,12 @@ async function generate( volume ) {
 	if ( bad ) return void bad.reportValidity();
 	const button = $( 'generate' );
 	button.disabled = true;
-	$( 'job-link' ).hidden = true;
 	try {
 		const job = await api.createModel( modelParams( volume ) );
-		showJob( { progress: 0, ...job } );
-		const model = await watchModel( job.id, showJob );
-		showJob( model );
-		const link = $( 'job-link' );
-		link.href = urls.viewerPage( model.id || job.id );
-		link.hidden = false;
-		loadModels();
-		// A short pause so the finished stages are seen, then on to the viewer.
-		setTimeout( () => location.assign( link.href ), 600 );
+		location.assign( urls.viewerPage( job.id ) );
 	} catch ( err ) {
 		showError( err );
 		loadModels();
-	} finally {
 		button.disabled = false;
 	}
 }

@@ -70,8 +70,9 @@ export function fillDownloads( files ) {
 }
 
 // Loads the GLB or the VRML file (urlOf(fmt)) into the viewer; resolves once
-// drawn, after calling onLoaded().
-export async function show( viewer, mode, urlOf, onLoaded = () => {} ) {
+// drawn, after calling onLoaded(). drawn: the GLB is on the stage already (drawn
+// while the job was finishing), so GLB mode only says so.
+export async function show( viewer, mode, urlOf, onLoaded = () => {}, { drawn = false } = {} ) {
 	status.ready = false;
 	status.mode = mode;
 	for ( const b of document.querySelectorAll( '[data-mode]' ) ) b.setAttribute( 'aria-pressed', String( b.dataset.mode === mode ) );
@@ -80,9 +81,9 @@ export async function show( viewer, mode, urlOf, onLoaded = () => {} ) {
 	url.searchParams.set( 'mode', mode );
 	history.replaceState( null, '', url );
 	const file = mode === 'vrml' ? 'wrl' : 'glb';
-	overlay( `Loading ${file.toUpperCase()}…`, '', { progress: 0 } );
+	if ( ! ( drawn && mode === 'glb' ) ) overlay( `Loading ${file.toUpperCase()}…`, '', { progress: 0 } );
 	try {
-		const triangles = await viewer.load( urlOf( file ), mode, ( e ) => {
+		const triangles = drawn && mode === 'glb' ? status.triangles : await viewer.load( urlOf( file ), mode, ( e ) => {
 			if ( e.lengthComputable ) $( 'overlay-progress' ).value = e.loaded / e.total;
 			$( 'overlay-text' ).textContent = formatBytes( e.loaded );
 		} );
@@ -115,5 +116,5 @@ export function setupDisplay( viewer, urlOf, { canVrml = () => true, onLoaded = 
 		b.addEventListener( 'click', () => status.mode !== b.dataset.mode && canVrml() && show( viewer, b.dataset.mode, urlOf, onLoaded ) );
 	}
 	status.cameraLps = () => viewer.pose();
-	return ( mode ) => show( viewer, mode === 'vrml' && canVrml() ? 'vrml' : 'glb', urlOf, onLoaded );
+	return ( mode, options ) => show( viewer, mode === 'vrml' && canVrml() ? 'vrml' : 'glb', urlOf, onLoaded, options );
 }

@@ -201,8 +201,9 @@ export class ModelViewer {
 		this.render();
 	}
 
-	// mode 'glb' or 'vrml'; resolves with the number of triangles drawn.
-	async load( url, mode, onProgress ) {
+	// mode 'glb' or 'vrml'; resolves with the number of triangles drawn. keepView: the
+	// camera stays where it is (a preview replaced by its model), else it frames the model.
+	async load( url, mode, onProgress, { keepView = false } = {} ) {
 		const object = mode === 'vrml' ? await this.loadVRML( url, onProgress ) : await this.loadGLB( url, onProgress );
 		const meshes = [];
 		object.traverse( ( o ) => {
@@ -222,7 +223,8 @@ export class ModelViewer {
 		this.model = object;
 		this.scene.add( object );
 		this.gizmo.setFrame( this.lpsToWorld );
-		this.fit();
+		if ( keepView ) this.requestRender();
+		else this.fit();
 		return countTriangles( object );
 	}
 

@@ -1,0 +1,276 @@
+"""Generate -> pixels, as a radiologist meets it: chromium clicks Generate on the volume page
+and the benchmark waits for the model's pixels on the viewer's canvas.
+
+    .venv/bin/python benchmarks/first_pixels.py [--runs 5] [--baseline OTHER/src]
+
+A real ``miss serve`` (a temporary data folder, SQLite, the default job workers) gets the
+CThead (256 x 256 x 113, uploaded as NIfTI); each run sets another level near the bone (so
+no earlier model is reused), clicks Generate and watches the canvas. Nothing in MISS's
+pages is asked when pixels change: a script put in every page before MISS's own makes the
+WebGL canvas keep its drawing buffer and reads its middle quarter once per animation frame;
+a frame counts as drawn when over 0.5 % of those pixels differ from the background colour
+the viewer says it clears to. The
+click's time is the event's own timestamp, kept across the move to the viewer page.
+
+- first pixels: click -> the first frame with the model (a preview or the model) on it;
+- full model: click -> the first frame drawn after the full model was put in the scene
+  (the page says which one it drew in ``window.__miss.drawn``; a page that draws no
+  preview draws the full model first);
+- job: the seconds the job itself computed before the full model's GLB existed (read,
+  preview, surface, decimation, GLB), from the model's stats; "full - job" is what the
+  waiting, the page and the browser add.
+
+``--baseline SRC`` starts a second server from another source tree (``PYTHONPATH=SRC``, e.g.
+a ``git worktree`` of an older commit) and alternates runs between the two, so both meet
+the same noise. Writes ``results/first_pixels.{json,md}``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import httpx
+from common import CACHE, markdown_table, save, write_nifti
+from load import PASSWORD, log_in, start_server, upload
+
+CTHEAD = Path(__file__).resolve().parents[2] / "shared/datasets/ct_head_stanford_cthead/CThead.nhdr"
+CHROMIUM = "/usr/bin/chromium"
+CHROMIUM_ARGS = [
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--no-first-run",
+]
+LAPTOP = {"width": 1366, "height": 768}
+#: Levels near the bone of the CThead's raw values (0..3272), one a run.
+BONE = 1500
+#: Share of the probed pixels that must differ from the background for a frame to count.
+DRAWN = 0.005
+
+#: Put in every page before its own scripts: keeps WebGL's drawing buffer and reads the
+#: middle of the canvas once a frame; records the click on Generate.
+PROBE = """
+(() => {
+  document.addEventListener('click', (e) => {
+    if (e.target.closest && e.target.closest('#generate'))
+      sessionStorage.setItem('clickAt', String(performance.timeOrigin + e.timeStamp));
+  }, true);
+  const getContext = HTMLCanvasElement.prototype.getContext;
+  HTMLCanvasElement.prototype.getContext = function (type, attrs) {
+    const gl = type === 'webgl2' || type === 'webgl';
+    const ctx = getContext.call(this, type, gl ? { ...(attrs || {}), preserveDrawingBuffer: true } : attrs);
+    if (gl && ctx && !window.__probe) watch(this, ctx);
+    return ctx;
+  };
+  function watch(canvas, gl) {
+    const probe = window.__probe = { frames: [] };
+    let last = -1, buffer = null, cleared = false;
+    const tick = () => {
+      const w = gl.drawingBufferWidth, h = gl.drawingBufferHeight;
+      const x = w >> 2, y = h >> 2, pw = w >> 1, ph = h >> 1;
+      if (pw > 0 && ph > 0) {
+        if (!buffer || buffer.length !== pw * ph * 4) buffer = new Uint8Array(pw * ph * 4);
+        gl.readPixels(x, y, pw, ph, gl.RGBA, gl.UNSIGNED_BYTE, buffer);
+        // The viewer's clear colour, as it says (before it first draws: nothing counts).
+        const hex = (window.__miss || {}).backgroundColor;
+        if (!hex) { requestAnimationFrame(tick); return; }
+        const r = parseInt(hex.slice(1, 3), 16), g = parseInt(hex.slice(3, 5), 16),
+              b = parseInt(hex.slice(5, 7), 16);
+        // Nothing counts before the viewer has cleared the canvas once (a corner shows it).
+        if (!cleared) cleared = Math.abs(buffer[0] - r) + Math.abs(buffer[1] - g) + Math.abs(buffer[2] - b) <= 24;
+        if (!cleared) { requestAnimationFrame(tick); return; }
+        let other = 0, sum = 0;
+        for (let i = 0; i < buffer.length; i += 4) {
+          const d = Math.abs(buffer[i] - r) + Math.abs(buffer[i + 1] - g) + Math.abs(buffer[i + 2] - b);
+          if (d > 24) other++;
+          sum = (sum + buffer[i] * 3 + buffer[i + 1] * 5 + buffer[i + 2] * 7) % 1000000007;
+        }
+        if (sum !== last) {
+          last = sum;
+          const miss = window.__miss || {};
+          probe.frames.push({ t: performance.timeOrigin + performance.now(),
+                              share: other / (pw * ph), drawn: miss.drawn || null });
+        }
+      }
+      requestAnimationFrame(tick);
+    };
+    requestAnimationFrame(tick);
+  }
+})();
+"""
+
+
+def cthead_file() -> Path:
+    """CThead as an uncompressed NIfTI in the benchmark cache (made once)."""
+    path = CACHE / "cthead_256x256x113.nii"
+    if not path.is_file():
+        from miss.io import load_volume
+
+        write_nifti(load_volume(CTHEAD), path)
+    return path
+
+
+class Target:
+    """One running server (this tree's, or a baseline's) with the CThead uploaded."""
+
+    def __init__(self, name: str, src: Path | None, work: Path) -> None:
+        self.name = name
+        data = work / name / "data"
+        data.mkdir(parents=True)
+        env = dict(os.environ)
+        if src is not None:
+            env["PYTHONPATH"] = str(src)
+        old = dict(os.environ)
+        os.environ.clear()
+        os.environ.update(env)
+        try:
+            self.proc, self.url = start_server(data, workers=1)
+        finally:
+            os.environ.clear()
+            os.environ.update(old)
+        self.headers = log_in(self.url, "admin")
+        self.volume = upload(self.url, self.headers, cthead_file())["id"]
+        self.runs: list[dict[str, Any]] = []
+
+    def stop(self) -> None:
+        self.proc.terminate()
+        try:
+            self.proc.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+
+    def model(self, model_id: str) -> dict[str, Any]:
+        r = httpx.get(f"{self.url}/api/models/{model_id}", headers=self.headers, timeout=30)
+        r.raise_for_status()
+        return r.json()
+
+
+def one_run(browser: Any, target: Target, level: int) -> dict[str, Any]:
+    """Click Generate at ``level``; click -> first pixels and -> full model, seconds."""
+    context = browser.new_context(viewport=LAPTOP, base_url=target.url)
+    try:
+        r = context.request.post("/api/auth/login", data={"username": "admin", "password": PASSWORD})
+        assert r.status == 200, r.text()
+        context.add_init_script(PROBE)
+        page = context.new_page()
+        page.set_default_timeout(120_000)
+        page.goto(f"/volumes/{target.volume}")
+        page.wait_for_selector("body[data-ready='1']")
+        page.fill("#threshold", str(level))
+        time.sleep(0.5)  # the page settles (slice previews, histogram) as a user's would
+        page.click("#generate")
+        page.wait_for_url("**/models/*")
+        page.wait_for_function(
+            f"""() => {{
+                const p = window.__probe, m = window.__miss;
+                return p && m && p.frames.some((f) => f.share > {DRAWN} && f.drawn !== 'preview')
+                    && (m.ready || m.drawn === 'full');
+            }}"""
+        )
+        click = float(page.evaluate("() => sessionStorage.getItem('clickAt')"))
+        frames = page.evaluate("() => window.__probe.frames")
+        model_id = page.url.rstrip("/").split("/")[-1].split("?")[0]
+    finally:
+        context.close()
+    drawn = [f for f in frames if f["share"] > DRAWN]
+    full = next(f for f in drawn if f["drawn"] != "preview")
+    model = wait_done(target, model_id)
+    seconds = model["stats"]["seconds"]
+    job = sum(v for k, v in seconds.items() if k in ("read", "preview", "surface", "decimate"))
+    job += seconds.get("glb", seconds.get("write", 0.0))
+    return {
+        "level": level,
+        "first_s": (drawn[0]["t"] - click) / 1000,
+        "first_kind": drawn[0]["drawn"] or "full",
+        "full_s": (full["t"] - click) / 1000,
+        "job_s": job,
+        "triangles": model["stats"]["triangles"],
+        "seconds": seconds,
+    }
+
+
+def wait_done(target: Target, model_id: str, timeout: float = 300) -> dict[str, Any]:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        model = target.model(model_id)
+        if model["status"] in ("done", "failed"):
+            assert model["status"] == "done", model
+            return model
+        time.sleep(0.2)
+    raise RuntimeError(f"model {model_id} not done after {timeout} s")
+
+
+def summary(target: Target) -> list[Any]:
+    runs = target.runs
+    med = {k: statistics.median(r[k] for r in runs) for k in ("first_s", "full_s", "job_s")}
+    kinds = sorted({r["first_kind"] for r in runs})
+    return [
+        target.name,
+        len(runs),
+        med["first_s"],
+        "/".join(kinds),
+        med["full_s"],
+        med["job_s"],
+        med["full_s"] - med["job_s"],
+        int(statistics.median(r["triangles"] for r in runs)),
+    ]
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--runs", type=int, default=5)
+    parser.add_argument("--baseline", type=Path, help="another source tree to compare with")
+    args = parser.parse_args(argv)
+    if not CTHEAD.is_file():
+        print(f"first_pixels: the CThead is not at {CTHEAD} (../shared/datasets)", file=sys.stderr)
+        return 2
+    from playwright.sync_api import sync_playwright
+
+    work = Path(tempfile.mkdtemp(prefix="miss-first-pixels-"))
+    targets: list[Target] = []
+    try:
+        targets.append(Target("this tree", None, work))
+        if args.baseline:
+            targets.append(Target(f"baseline {args.baseline}", args.baseline.resolve(), work))
+        with sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+            for i in range(args.runs + 1):  # the first round warms the browser's cache
+                for target in targets:
+                    run = one_run(browser, target, BONE + i)
+                    if i:
+                        target.runs.append(run)
+                    print(target.name, {k: run[k] for k in ("first_s", "full_s", "job_s")})
+            browser.close()
+    finally:
+        for target in targets:
+            target.stop()
+        shutil.rmtree(work, ignore_errors=True)
+    header = ["server", "runs", "first pixels s", "first drawn", "full model s", "job s",
+              "full - job s", "triangles"]  # fmt: skip
+    rows = [summary(t) for t in targets]
+    table = markdown_table(header, rows)
+    if len(targets) == 2:
+        a, b = rows
+        table += (
+            f"\nbaseline / this tree: first pixels {b[2] / a[2]:.2f}x, "
+            f"full model {b[4] / a[4]:.2f}x (medians of {args.runs} alternating runs)\n"
+        )
+    print(table)
+    save("first_pixels", {"runs": {t.name: t.runs for t in targets}}, table)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
