@@ -161,7 +161,9 @@ def one_run(browser: Any, target: Target, level: int) -> dict[str, Any]:
     """Click Generate at ``level``; click -> first pixels and -> full model, seconds."""
     context = browser.new_context(viewport=LAPTOP, base_url=target.url)
     try:
-        r = context.request.post("/api/auth/login", data={"username": "admin", "password": PASSWORD})
+        r = context.request.post(
+            "/api/auth/login", data={"username": "admin", "password": PASSWORD}
+        )
         assert r.status == 200, r.text()
         context.add_init_script(PROBE)
         page = context.new_page()
