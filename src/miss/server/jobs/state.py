@@ -45,6 +45,8 @@ class JobState:
                 started_at=utcnow(),
                 attempts=ModelRow.attempts + 1,
                 error=None,
+                stats=None,  # no preview nor files of an earlier, interrupted attempt
+                files=None,
             )
             if self.store.update_model(model_id, ModelRow.status == QUEUED, **values):
                 return self.store.get_model(model_id)

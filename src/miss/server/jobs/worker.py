@@ -260,11 +260,20 @@ def main(argv: list[str]) -> int:
     store = Store(data_dir, db_url)
     try:
         if model_id == "-":
+            start = time.monotonic()
             warm_up()
+            warm = time.monotonic() - start
             model_id = sys.stdin.readline().strip()
             if not model_id:
                 return 3
             log_to(store.model_dir(model_id) / "worker.log")
+            waited = time.monotonic() - start - warm
+            print(
+                f"spare worker {os.getpid()} (warmed up in {warm:.2f} s, then waited "
+                f"{waited:.1f} s) takes job {model_id}",
+                file=sys.stderr,
+                flush=True,
+            )
         return attempt(store, model_id, parent)
     finally:
         store.close()

@@ -1,0 +1,192 @@
+"""What a waiting physician sees first: a running job's preview and its GLB are listed and
+served as soon as each is in place (the other formats and the error come later), and jobs
+start in spare workers that loaded everything before the job came."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import struct
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from fastapi.testclient import TestClient
+
+from miss.demo import phantom
+from miss.export import FORMATS
+from miss.pipeline import PREVIEW, JobResult, run
+from miss.server.jobs.state import JobState
+from miss.server.jobs.worker import DataFolder
+from miss.server.schemas import model_out
+from miss.server.settings import Settings
+from miss.server.storage.db import RUNNING, ModelRow
+from miss.server.storage.store import Store, new_id
+from miss.spec import JobSpec
+
+
+def glb_triangles(data: bytes) -> int:
+    """Triangles of a GLB, from its JSON chunk (index accessors' counts / 3)."""
+    (length,) = struct.unpack_from("<I", data, 12)
+    gltf = json.loads(data[20 : 20 + length])
+    accessors = gltf["accessors"]
+    return sum(
+        accessors[p["indices"]]["count"] // 3 for m in gltf["meshes"] for p in m["primitives"]
+    )
+
+
+class Recorder:
+    """A sink that notes what it got, in order, and whether the error was measured by then."""
+
+    def __init__(self, wants_preview: bool) -> None:
+        self.wants_preview = wants_preview
+        self.put_order: list[str] = []
+        self.files: dict[str, bytes] = {}
+        self.delivered: JobResult | None = None
+
+    def put(self, fmt: str, data: bytes) -> None:
+        self.put_order.append(fmt)
+        self.files[fmt] = data
+
+    def deliver(self, result: JobResult) -> None:
+        self.delivered = result
+
+
+def test_preview_first_then_glb_then_the_rest_then_the_error() -> None:
+    head = phantom(128, spacing=1.5)  # 2.1 M voxels: big enough for a preview
+    sink = Recorder(wants_preview=True)
+    spec = JobSpec.of(level=300, formats=FORMATS)
+    result = run(head, spec, sink=sink, export_options={"glb": {"compress": True}})
+    sink.deliver(result)
+    assert sink.put_order == [PREVIEW, "glb", *(f for f in FORMATS if f != "glb")]
+    assert list(result.artifacts) == list(FORMATS)  # the asked order, as before
+    assert result.report.max_error_mm is not None and result.report.max_error_mm > 0
+    assert {"preview", "surface", "decimate", "write", "measure"} <= set(result.seconds)
+    preview, model = glb_triangles(sink.files[PREVIEW]), glb_triangles(sink.files["glb"])
+    assert 0 < preview < model / 2, (preview, model)
+
+
+def test_no_preview_for_a_small_region_or_a_sink_that_wants_none() -> None:
+    small = Recorder(wants_preview=True)
+    run(phantom(48, spacing=4.0), JobSpec.of(level=300, formats=("stl", "glb")), sink=small)
+    assert small.put_order == ["glb", "stl"]
+    big = Recorder(wants_preview=False)
+    run(phantom(128, spacing=1.5), JobSpec.of(level=300, formats=("glb",)), sink=big)
+    assert big.put_order == ["glb"]
+
+
+def _running_row(store: Store, volume_id: str) -> str:
+    """A model row a test drives by hand: running, never claimed by the app's queue."""
+    model_id = new_id()
+    with store.session.begin() as s:
+        s.add(ModelRow(id=model_id, volume_id=volume_id, key=model_id, status=RUNNING,
+                       spec=JobSpec.of(level=300).to_dict(), stage="surface"))  # fmt: skip
+    return model_id
+
+
+def test_a_running_jobs_preview_and_glb_are_served_before_it_is_done(
+    client: TestClient, demo_id: str
+) -> None:
+    store: Store = client.app.state.store
+    model_id = _running_row(store, demo_id)
+    state = JobState(store)
+    folder = DataFolder(store.model_dir(model_id), state, model_id)
+    assert client.get(f"/api/models/{model_id}").json()["preview"] is None
+    assert client.get(f"/api/models/{model_id}/preview.glb").status_code == 404
+
+    folder.put(PREVIEW, b"glTF preview bytes")
+    body = client.get(f"/api/models/{model_id}").json()
+    assert body["status"] == "running" and body["files"] is None
+    r = client.get(body["preview"])
+    assert r.status_code == 200 and r.content == b"glTF preview bytes"
+    assert r.headers["content-type"] == "model/gltf-binary"
+
+    folder.put("glb", b"glTF model bytes")
+    body = client.get(f"/api/models/{model_id}").json()
+    assert list(body["files"]) == ["glb"]
+    r = client.get(body["files"]["glb"]["url"])
+    assert r.status_code == 200 and r.content == b"glTF model bytes"
+    r = client.get(f"/api/models/{model_id}/model.wrl")  # not written yet
+    assert r.status_code == 409 and "running" in r.json()["detail"]
+
+    folder.put("wrl", b"#VRML V2.0 utf8\n")
+    assert state.finish(model_id, {"triangles": 1}, {"glb": folder.files["glb"]})
+    body = client.get(f"/api/models/{model_id}").json()
+    assert body["status"] == "done" and body["preview"] is None
+
+
+def test_a_job_run_again_shows_nothing_of_its_earlier_attempt(data_dir: Path) -> None:
+    store = Store(data_dir, Settings(data_dir=data_dir).database_url)  # no app, no queue
+    try:
+        model_id = _running_row(store, store.list_volumes()[0].id)
+        folder = DataFolder(store.model_dir(model_id), JobState(store), model_id)
+        folder.put(PREVIEW, b"old preview")
+        folder.put("glb", b"old model")
+        assert JobState(store).requeue(model_id, count_attempt=True)  # as after a restart
+        claimed = JobState(store).claim_next()
+        assert claimed is not None and claimed.id == model_id
+        assert claimed.files is None and claimed.stats is None
+        assert model_out(claimed).preview is None and model_out(claimed).files is None
+    finally:
+        store.close()
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    # a zombie is dead for our purposes
+    stat = Path(f"/proc/{pid}/stat").read_text().split()
+    return stat[2] != "Z"
+
+
+def _spare(client: TestClient, timeout: float = 30) -> Any:
+    runner = client.app.state.queue.runner
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        with runner._lock:
+            if runner._ready:
+                return runner._ready[0]
+        time.sleep(0.05)
+    raise AssertionError("no spare worker was started")
+
+
+def test_jobs_run_in_spare_workers_started_before_them(make_client: Any, wait_done: Any) -> None:
+    client = make_client(demo=True, spare_workers=1)
+    demo = client.get("/api/volumes").json()[0]["id"]
+    spare = _spare(client)
+    r = client.post("/api/models", json={"volume": demo, "level": 300, "sample_rate": 2})
+    assert r.status_code == 202, r.text
+    model_id = r.json()["id"]
+    assert wait_done(client, model_id)["status"] == "done"
+    store: Store = client.app.state.store
+    log = (store.model_dir(model_id) / "worker.log").read_text()
+    assert f"spare worker {spare.pid} " in log and f"takes job {model_id}" in log
+    nxt = _spare(client)  # the next one is ready for the next job
+    assert nxt.pid != spare.pid and _alive(nxt.pid)
+
+    os.kill(nxt.pid, signal.SIGKILL)  # a spare that dies while waiting costs nothing
+    r = client.post("/api/models", json={"volume": demo, "level": 400, "sample_rate": 2})
+    assert wait_done(client, r.json()["id"])["status"] == "done"
+
+    last = _spare(client)
+    client.app.state.queue.stop()  # as when the server stops: no spare is left behind
+    deadline = time.monotonic() + 10
+    while _alive(last.pid) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not _alive(last.pid)
+
+
+def test_without_spares_each_job_starts_its_own_worker(make_client: Any, wait_done: Any) -> None:
+    client = make_client(demo=True, spare_workers=0)
+    demo = client.get("/api/volumes").json()[0]["id"]
+    r = client.post("/api/models", json={"volume": demo, "level": 300, "sample_rate": 2})
+    model_id = r.json()["id"]
+    assert wait_done(client, model_id)["status"] == "done"
+    assert client.app.state.queue.runner._ready == []
+    log = (client.app.state.store.model_dir(model_id) / "worker.log").read_text()
+    assert "spare worker" not in log
+    assert np.isfinite(client.get(f"/api/models/{model_id}").json()["stats"]["max_error_mm"])
