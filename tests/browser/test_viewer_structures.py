@@ -66,9 +66,9 @@ def test_structures_in_the_viewer(page: Any, server: Any, artifacts: Path) -> No
     page.screenshot(path=artifacts / "structures-volume-page.png")
 
     page.click("#generate")
-    page.wait_for_url("**/models/*", timeout=180_000)
+    page.wait_for_url("**/models/*")  # at once: the model's page follows the job
     model_id = page.url.rstrip("/").split("/")[-1].split("?")[0]
-    model = server.get(f"/api/models/{model_id}")
+    model = server.wait_model(model_id, timeout=180)
     assert model["status"] == "done"
     # Names and colours travel with the job and are written into the model by the server.
     assert model["params"]["parts"] == [
@@ -207,8 +207,8 @@ def test_label_map_uploaded_on_the_volume_page_becomes_parts(
     page.fill("#sample-rate", "4")
     page.screenshot(path=artifacts / "labelmap-volume-page.png")
     page.click("#generate")
-    page.wait_for_url("**/models/*", timeout=180_000)
-    model = server.get(f"/api/models/{page.url.rstrip('/').split('/')[-1].split('?')[0]}")
+    page.wait_for_url("**/models/*")
+    model = server.wait_model(page.url.rstrip("/").split("/")[-1].split("?")[0], timeout=180)
     assert model["status"] == "done", model["error"]
     assert model["params"]["labels"] == "all" and model["params"]["level"] is None
     assert [p["label"] for p in model["stats"]["parts"]] == [1, 2]

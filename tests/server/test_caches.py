@@ -257,14 +257,16 @@ def test_a_running_jobs_progress_is_read_afresh(
     store: Store = client.app.state.store
     url = f"/api/models/{model['id']}"
     assert client.get(url).json()["status"] == "done"  # a snapshot in memory now
-    store.update_model(model["id"], status=RUNNING, progress=0.0)  # the server's own change
+    model_files = store.get_model(model["id"]).files
+    # The server's own change, as when a job is claimed again: no files of the earlier run.
+    store.update_model(model["id"], status=RUNNING, progress=0.0, files=None)
     assert client.get(f"{url}/model.glb").status_code == 409
     worker = Store(store.data_dir, store.database_url)  # as the worker process opens it
     try:
         for progress in (0.25, 0.5):
             worker.update_model(model["id"], progress=progress, durable=False)
             assert client.get(url).json()["progress"] == progress
-        worker.update_model(model["id"], status="done", progress=1.0)
+        worker.update_model(model["id"], status="done", progress=1.0, files=model_files)
         assert client.get(url).json()["status"] == "done"
         assert client.get(f"{url}/model.glb").status_code == 200
     finally:
