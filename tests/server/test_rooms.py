@@ -20,7 +20,7 @@ from sqlalchemy import update
 from starlette.websockets import WebSocketDisconnect
 
 from miss.server import rooms
-from miss.server.rooms import BURST, MAX_MESSAGE_BYTES
+from miss.server.rooms import BURST, MAX_MESSAGE_BYTES, RATE
 from miss.server.rooms import record as roomlog
 from miss.server.storage.db import ShareRow, utcnow
 
@@ -190,17 +190,21 @@ def test_a_flood_is_cut_off_and_the_others_go_on(client: TestClient, room: dict)
         joined(client, url(model, room["token"], "Quiet")) as quiet,
     ):
         with joined(client, url(model, room["token"], "Noisy")) as noisy:
+            start = time.monotonic()
             for _ in range(400):
                 noisy.send_json({"type": "ping"})
             seen: list[dict] = []
             with pytest.raises(WebSocketDisconnect) as closed:
                 while True:
                     seen.append(noisy.receive_json())
+            elapsed = time.monotonic() - start
             assert closed.value.code == 1008
             codes = [m.get("code") for m in seen if m["type"] == "error"]
             assert "rate_limited" in codes and codes[-1] == "flood"
+            # The burst, and what the bucket refilled meanwhile (a loaded machine is slow).
             pongs = sum(m["type"] == "pong" for m in seen)
-            assert BURST <= pongs < BURST + 20, pongs
+            assert BURST <= pongs <= BURST + RATE * elapsed + 1, (pongs, elapsed)
+            assert pongs < 400 / 2
         alice.send_json({"type": "chat", "text": "after the storm"})
         assert until(quiet, "chat")["item"]["text"] == "after the storm"
 
