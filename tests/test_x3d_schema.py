@@ -4,7 +4,7 @@ unmodified in tests/validators/x3d with their licence), checked by lxml (libxml2
 network: the schema's includes resolve to the files beside it, and the test checks that
 nothing else was asked for. Cases as in test_gltf_validator.py: the demo phantom, a mesh
 with degenerate triangles, split and layered scenes with names, colours and opacity,
-titles and provenance with characters XML must escape, and the real scans
+titles and provenance with characters XML must escape or cannot hold, and the real scans
 (CThead bone, the frog's label map). Hand-broken documents are rejected, so the check
 cannot pass on a schema that accepts anything."""
 
@@ -199,3 +199,22 @@ def test_real_scans(datasets: Path) -> None:
             "cthead-bone-mesh": export(bone.scene.parts[0].mesh, "x3d", title=TITLE),
         }
     )
+
+
+def test_text_xml_cannot_hold_becomes_a_replacement_character(degenerate_mesh: miss.Mesh) -> None:
+    """Controls from a label table or a DICOM text field, a file name's non-UTF-8 byte (a lone
+    surrogate once Python decodes it): each becomes U+FFFD, the rest of the text stays."""
+    title = "CT\x00head \x1b[1mbone\x1b[0m \udcff.nii"
+    metadata = {"series\x0c": "description\x01", "ok": "tab\tnew line\n\x7f kept"}
+    part = Part("femur\x0b left", degenerate_mesh, label=7)
+    files = {
+        "mesh": x3d(degenerate_mesh, title=title, metadata=metadata),
+        "scene": x3d(Scene((part,), title=title), metadata=metadata),
+    }
+    assert_valid(files)
+    root = etree.fromstring(files["scene"])
+    metas = {m.get("name"): m.get("content") for m in root.iter("meta")}
+    assert metas["title"] == "CT\ufffdhead \ufffd[1mbone\ufffd[0m \ufffd.nii"
+    assert metas["series\ufffd"] == "description\ufffd"
+    assert metas["ok"] == metadata["ok"]
+    assert root.find(".//MetadataString").get("value") == '"femur\ufffd left" "label 7"'
