@@ -6,7 +6,7 @@ PIP := $(PY) -m pip
 WEB := src/miss/web
 VALIDATORS := tests/validators
 
-.PHONY: run test lint format bench web-deps validators chromium clean
+.PHONY: run test lint format bench web-deps validators vrml-reader chromium clean
 
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -33,6 +33,13 @@ validators:
 		cd $(VALIDATORS) && (npm ci --ignore-scripts --no-audit --no-fund --silent || npm install --ignore-scripts --no-audit --no-fund --silent) && touch node_modules; \
 	fi
 
+# Castle Game Engine's tovrmlx3d (in Debian's view3dscene) reads MISS's VRML in the tests.
+vrml-reader:
+	@if [ ! -x /usr/bin/tovrmlx3d ]; then \
+		echo "installing Debian's view3dscene (tovrmlx3d) for the VRML tests"; \
+		apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends view3dscene >/dev/null; \
+	fi
+
 # Debian's chromium for the browser tests (Playwright drives /usr/bin/chromium).
 chromium:
 	@if [ ! -x /usr/bin/chromium ]; then \
@@ -44,7 +51,7 @@ chromium:
 run: $(VENV)/.installed web-deps
 	$(VENV)/bin/miss serve $(if $(HOST),--host $(HOST)) $(if $(PORT),--port $(PORT))
 
-test: $(VENV)/.installed web-deps validators chromium
+test: $(VENV)/.installed web-deps validators vrml-reader chromium
 	$(VENV)/bin/ruff check src tests benchmarks
 	$(VENV)/bin/ruff format --check src tests benchmarks
 	$(VENV)/bin/pytest -q

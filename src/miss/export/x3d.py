@@ -7,11 +7,14 @@ is the metre; the ``units`` meta element says what the numbers are).
 
 The document is assembled from strings rather than an element tree: the numeric
 attributes are megabytes of digits that need no escaping, while titles and
-metadata, the only free text, go through ``quoteattr``.
+metadata, the only free text, go through ``quoteattr``; characters XML 1.0 cannot hold
+at all (C0 controls but tab and line ends, lone surrogates, U+FFFE and U+FFFF), which a
+label table or a file name can bring, become U+FFFD rather than an unreadable document.
 """
 
 from __future__ import annotations
 
+import re
 from xml.sax.saxutils import quoteattr
 
 import numpy as np
@@ -21,6 +24,10 @@ from miss.export.vrml import BONE_RGB, DEFAULT_TITLE, viewpoint
 from miss.geometry import mesh_normals
 from miss.scene import Part, Scene, safe_names
 from miss.types import Mesh
+
+# Not even a character reference can write these in XML 1.0. A lone surrogate is how Python
+# decodes a file name's non-UTF-8 byte; UTF-8 cannot encode it either.
+_NOT_XML = re.compile(r"[\x00-\x08\x0b\x0c\x0e-\x1f\ud800-\udfff\ufffe\uffff]")
 
 # Interchange is the smallest profile with IndexedTriangleSet and Viewpoint.
 _OPENING = (
@@ -53,10 +60,14 @@ def _head(title: str | None, metadata: dict[str, str] | None) -> str:
         *(metadata or {}).items(),
     ]
     metas = "".join(
-        f"  <meta name={quoteattr(str(key))} content={quoteattr(str(value))}/>\n"
-        for key, value in entries
+        f"  <meta name={_attribute(key)} content={_attribute(value)}/>\n" for key, value in entries
     )
     return f" <head>\n{metas} </head>\n"
+
+
+def _attribute(text: object) -> str:
+    """``text`` quoted as an XML attribute value, U+FFFD for what XML cannot hold."""
+    return quoteattr(_NOT_XML.sub("\ufffd", str(text)))
 
 
 def _scene_opening(mesh: Mesh) -> str:
@@ -111,7 +122,7 @@ def _shape(part: Part, key: str) -> bytes:
     r, g, b = (f"{c:.4f}" for c in part.color)
     opening = (
         f'  <Shape DEF="{key}">\n'
-        f'   <MetadataString containerField="metadata" name="part" value={quoteattr(mfstring)}/>\n'
+        f'   <MetadataString containerField="metadata" name="part" value={_attribute(mfstring)}/>\n'
         "   <Appearance>\n"
         f'    <Material diffuseColor="{r} {g} {b}" specularColor="0.2 0.2 0.2" shininess="0.2"'
         f' transparency="{1.0 - part.opacity:.4f}"/>\n'
