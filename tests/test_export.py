@@ -219,6 +219,19 @@ def _sf_string(token: str) -> str:
     return re.sub(r"\\(.)", r"\1", token[1:-1])
 
 
+@pytest.mark.parametrize("fmt", FORMATS)
+def test_a_title_from_an_undecodable_file_name_is_written(sphere: Mesh, fmt: str) -> None:
+    """``miss convert`` titles a model with its file's name; a non-UTF-8 byte in it reaches
+    the writers as a lone surrogate, which UTF-8 cannot encode: U+FFFD instead of an error."""
+    title = b"sch\xe4del.nii".decode("utf-8", "surrogateescape")
+    data = export(sphere, fmt, title=title, metadata={"source\udcff": "x"})
+    if fmt in ("wrl", "x3d", "obj"):
+        text = data.decode("utf-8")  # valid UTF-8 throughout
+        assert "sch\ufffddel" in text
+    if fmt == "wrz":
+        assert "sch\ufffddel" in gzip.decompress(data).decode("utf-8")
+
+
 @pytest.mark.parametrize("name", ["sphere", "skewed"])
 def test_vrml_parses_strictly_and_matches_the_mesh(
     name: str, request: pytest.FixtureRequest

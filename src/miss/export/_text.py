@@ -16,9 +16,20 @@ decimal ties may round the other way from printf (both within half a unit).
 
 from __future__ import annotations
 
+import re
 from functools import cache
 
 import numpy as np
+
+# A lone surrogate is how Python decodes a file name's non-UTF-8 byte (surrogateescape).
+_SURROGATE = re.compile(r"[\ud800-\udfff]")
+
+
+def utf8(text: str) -> bytes:
+    """``text`` in UTF-8, a lone surrogate (a title from an undecodable file name) as U+FFFD
+    rather than an error."""
+    return _SURROGATE.sub("\ufffd", text).encode("utf-8")
+
 
 # Rows per slice: keeps the byte workspace to a few MB whatever the mesh size.
 _CHUNK_ROWS = 65536

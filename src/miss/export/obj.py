@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from miss.export._text import format_rows
+from miss.export._text import format_rows, utf8
 from miss.export._zip import manifest, zip_files
 from miss.geometry import mesh_normals
 from miss.scene import Scene, safe_names
@@ -42,7 +42,7 @@ def write(mesh: Mesh, *, title: str | None = None, metadata: dict[str, str] | No
     indices = mesh.faces[:, [0, 0, 1, 1, 2, 2]].astype(np.int64) + 1
     return b"".join(
         [
-            head.encode("utf-8"),
+            utf8(head),
             format_rows(mesh.vertices, b"v {} {} {}\n", 3),
             format_rows(normals, b"vn {} {} {}\n", 4),
             format_rows(indices, b"f {}//{} {}//{} {}//{}\n"),
@@ -66,7 +66,7 @@ def write_scene(
         *(f"{key}: {value}" for key, value in (metadata or {}).items()),
     ]
     head = "".join(f"# {' '.join(str(text).splitlines())}\n" for text in comments)
-    body = [(head + "mtllib scene.mtl\n").encode("utf-8")]
+    body = [utf8(head + "mtllib scene.mtl\n")]
     offset = 1  # OBJ indices are 1-based and global
     for part, key in zip(scene.parts, names, strict=True):
         mesh = part.mesh
@@ -92,4 +92,4 @@ def _mtl(scene: Scene, names: list[str]) -> bytes:
         f"Ks 0.2 0.2 0.2\nNs 20\nd {part.opacity:.4f}\nillum 2\n"
         for part, key in zip(scene.parts, names, strict=True)
     ]
-    return ("# MISS scene materials\n" + "\n".join(blocks)).encode("utf-8")
+    return utf8("# MISS scene materials\n" + "\n".join(blocks))

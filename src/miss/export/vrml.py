@@ -18,7 +18,7 @@ import math
 
 import numpy as np
 
-from miss.export._text import format_rows
+from miss.export._text import format_rows, utf8
 from miss.geometry import mesh_normals
 from miss.scene import Part, Scene, safe_names
 from miss.types import Mesh
@@ -40,7 +40,7 @@ def write(mesh: Mesh, *, title: str | None = None, metadata: dict[str, str] | No
     normals = mesh_normals(mesh)
     return b"".join(
         [
-            _header(mesh, title, metadata).encode("utf-8"),
+            utf8(_header(mesh, title, metadata)),
             _face_set_rows(mesh, normals),
         ]
     )
@@ -114,8 +114,7 @@ def write_scene(
     parts_info = {f"part {key}": part.name for key, part in zip(names, scene.parts, strict=True)}
     head = _scene_header(scene, title or scene.title, {**(metadata or {}), **parts_info})
     return b"".join(
-        [head.encode("utf-8")]
-        + [_shape(part, key) for part, key in zip(scene.parts, names, strict=True)]
+        [utf8(head)] + [_shape(part, key) for part, key in zip(scene.parts, names, strict=True)]
     )
 
 
@@ -157,7 +156,7 @@ def _shape(part: Part, key: str) -> bytes:
         "  geometry IndexedFaceSet {\n    solid TRUE\n    ccw TRUE\n"
         "    normalPerVertex TRUE\n    coord Coordinate { point [\n"
     )
-    return opening.encode("utf-8") + _face_set_rows(mesh, normals)
+    return utf8(opening) + _face_set_rows(mesh, normals)
 
 
 def _face_set_rows(mesh: Mesh, normals: np.ndarray) -> bytes:
