@@ -155,6 +155,29 @@ def test_distances_are_exact(skull: Mesh) -> None:
         )
 
 
+def test_distances_are_exact_on_slivers_and_points_off_the_grid(degenerate_mesh: Mesh) -> None:
+    """A zero-area triangle counts by its edges; points far outside the mesh's box, on every
+    side, search outwards until the whole grid is covered."""
+    mesh = Mesh(degenerate_mesh.vertices.astype(np.float32), degenerate_mesh.faces.astype(np.int32))
+    rng = np.random.default_rng(5)
+    points = np.concatenate(
+        [rng.uniform(-40, 40, (200, 3)), rng.uniform(-0.5, 2.5, (200, 3)), mesh.vertices[:5]]
+    )
+    np.testing.assert_allclose(
+        distances_to(points, mesh), _brute_force(points, mesh), rtol=1e-9, atol=1e-6
+    )
+
+
+def test_samples_are_the_vertices_and_points_inside_triangles(skull: Mesh) -> None:
+    from miss.deviation import sample_surface
+
+    points = sample_surface(skull, 4000, np.random.default_rng(1))
+    assert points.shape == (4000, 3) and points.dtype == np.float64
+    corners = {tuple(v) for v in skull.vertices.astype(np.float64).tolist()}
+    assert all(tuple(p) in corners for p in points[:2000].tolist())
+    assert distances_to(points[2000:], skull).max() < 1e-4  # on the surface
+
+
 def test_deviation_is_zero_to_itself_and_symmetric_in_its_samples(skull: Mesh) -> None:
     assert deviation(skull, skull, samples=5000).max_mm == pytest.approx(0.0, abs=1e-5)
     shifted = Mesh(skull.vertices + np.float32(0.25), skull.faces)
