@@ -14,6 +14,7 @@ import pytest
 from miss import BadParameter, Mesh, Volume, decimate, extract_surface
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+import measure as measure_bench  # noqa: E402
 import paper as bench  # noqa: E402  (benchmarks/, not part of the package)
 import paper_tables  # noqa: E402
 from paper import MODES, SAMPLE_RATES, markdown, paper_rows, resample_axis  # noqa: E402
@@ -183,6 +184,24 @@ def test_deviation_is_zero_to_itself_and_symmetric_in_its_samples(skull: Mesh) -
     shifted = Mesh(skull.vertices + np.float32(0.25), skull.faces)
     dev = deviation(skull, shifted, samples=5000)
     assert 0.0 < dev.mean_mm <= dev.max_mm <= np.sqrt(3) * 0.25 + 1e-5
+
+
+def test_measure_benchmark_writes_its_table(tmp_path, capsys) -> None:
+    """benchmarks/measure.py in a quick mode: one small scan, one run of each kind."""
+    case = "MR headsq skin"
+    if not measure_bench.cases()[case][0].is_file():
+        pytest.skip("../shared/datasets is not beside the repository")
+    argv = ["--cases", case, "--repeats", "1", "--fresh-repeats", "1", "--out", str(tmp_path)]
+    assert measure_bench.main(argv) == 0
+    data = json.loads((tmp_path / "measure.json").read_text())
+    (row,) = data["rows"]
+    assert row[0] == case and row[1] > 10_000
+    new_max, old_max, new_mean, old_mean = row[10:14]
+    if not np.isnan(old_max):  # git history at hand: the same figures as before
+        assert new_max == pytest.approx(old_max, rel=0.01)
+        assert new_mean == pytest.approx(old_mean, rel=0.01)
+    assert "share % (fresh)" in (tmp_path / "measure.md").read_text()
+    assert "| MR headsq skin |" in capsys.readouterr().out
 
 
 # ----------------------------------------------------------------------------- parallel quadric
