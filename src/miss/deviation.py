@@ -177,7 +177,8 @@ def _build_grid(verts, faces, lo, cell, dims):
     cursor = np.empty(0, dtype=np.int32)
     for fill in (False, True):
         if fill:
-            offsets = np.cumsum(offsets).astype(np.int32)
+            for c in range(1, len(offsets)):  # in place: np.cumsum would make an int64 copy
+                offsets[c] += offsets[c - 1]
             items = np.empty(offsets[-1], dtype=np.int32)
             cursor = offsets[:-1].copy()
         for f in range(len(faces)):
