@@ -10,7 +10,12 @@ cells around it, skipping cells and triangles whose box is farther than the best
 far, and stops once the best is nearer than the outside of the searched block (Ericson's
 closest-point-on-triangle for each candidate). Queries run in parallel (numba) in cell order,
 so neighbouring queries share cached triangles. Zero-area triangles count by their edges;
-checked against brute force in the tests.
+checked against brute force in the tests. On CThead's bone (545 796 triangles against its
+10 % decimation, 100 000 samples a side, 2 shared cores): 0.42 s warm and 0.40 s in a fresh
+process with the kernels loaded from numba's cache, against 0.95 s and 0.97 s for the
+previous search (a second ring of cells always, no box test per triangle), with the same
+samples and distances (``benchmarks/measure.py``). ``vtkImplicitPolyDataDistance``, used
+before that, took 0.57 s for the 100 000 points of one side alone, serially.
 """
 
 from __future__ import annotations
