@@ -97,6 +97,11 @@ def _status(field: str) -> int:
     raise RuntimeError(f"{field} not in /proc/self/status")
 
 
+def resident_peak() -> int:
+    """Bytes of this process's highest resident set so far (``VmHWM``)."""
+    return _status("VmHWM")
+
+
 def start_peak() -> int:
     """Reset the high-water mark; returns the resident bytes now (the baseline)."""
     Path("/proc/self/clear_refs").write_text("5")

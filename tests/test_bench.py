@@ -14,6 +14,7 @@ import pytest
 from miss import BadParameter, Mesh, Volume, decimate, extract_surface
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+import measure as measure_bench  # noqa: E402
 import paper as bench  # noqa: E402  (benchmarks/, not part of the package)
 import paper_tables  # noqa: E402
 from paper import MODES, SAMPLE_RATES, markdown, paper_rows, resample_axis  # noqa: E402
@@ -155,11 +156,52 @@ def test_distances_are_exact(skull: Mesh) -> None:
         )
 
 
+def test_distances_are_exact_on_slivers_and_points_off_the_grid(degenerate_mesh: Mesh) -> None:
+    """A zero-area triangle counts by its edges; points far outside the mesh's box, on every
+    side, search outwards until the whole grid is covered."""
+    mesh = Mesh(degenerate_mesh.vertices.astype(np.float32), degenerate_mesh.faces.astype(np.int32))
+    rng = np.random.default_rng(5)
+    points = np.concatenate(
+        [rng.uniform(-40, 40, (200, 3)), rng.uniform(-0.5, 2.5, (200, 3)), mesh.vertices[:5]]
+    )
+    np.testing.assert_allclose(
+        distances_to(points, mesh), _brute_force(points, mesh), rtol=1e-9, atol=1e-6
+    )
+
+
+def test_samples_are_the_vertices_and_points_inside_triangles(skull: Mesh) -> None:
+    from miss.deviation import sample_surface
+
+    points = sample_surface(skull, 4000, np.random.default_rng(1))
+    assert points.shape == (4000, 3) and points.dtype == np.float64
+    corners = {tuple(v) for v in skull.vertices.astype(np.float64).tolist()}
+    assert all(tuple(p) in corners for p in points[:2000].tolist())
+    assert distances_to(points[2000:], skull).max() < 1e-4  # on the surface
+
+
 def test_deviation_is_zero_to_itself_and_symmetric_in_its_samples(skull: Mesh) -> None:
     assert deviation(skull, skull, samples=5000).max_mm == pytest.approx(0.0, abs=1e-5)
     shifted = Mesh(skull.vertices + np.float32(0.25), skull.faces)
     dev = deviation(skull, shifted, samples=5000)
     assert 0.0 < dev.mean_mm <= dev.max_mm <= np.sqrt(3) * 0.25 + 1e-5
+
+
+def test_measure_benchmark_writes_its_table(tmp_path, capsys) -> None:
+    """benchmarks/measure.py in a quick mode: one small scan, one run of each kind."""
+    case = "MR headsq skin"
+    if not measure_bench.cases()[case][0].is_file():
+        pytest.skip("../shared/datasets is not beside the repository")
+    argv = ["--cases", case, "--repeats", "1", "--fresh-repeats", "1", "--out", str(tmp_path)]
+    assert measure_bench.main(argv) == 0
+    data = json.loads((tmp_path / "measure.json").read_text())
+    (row,) = data["rows"]
+    assert row[0] == case and row[1] > 10_000
+    new_max, old_max, new_mean, old_mean = row[10:14]
+    if not np.isnan(old_max):  # git history at hand: the same figures as before
+        assert new_max == pytest.approx(old_max, rel=0.01)
+        assert new_mean == pytest.approx(old_mean, rel=0.01)
+    assert "share % (fresh)" in (tmp_path / "measure.md").read_text()
+    assert "| MR headsq skin |" in capsys.readouterr().out
 
 
 # ----------------------------------------------------------------------------- parallel quadric

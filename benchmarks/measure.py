@@ -1,0 +1,315 @@
+"""What measuring a decimation's error costs, beside the job it measures.
+
+    .venv/bin/python benchmarks/measure.py [--repeats 5] [--fresh-repeats 5] [--out DIR]
+
+The job is the public API's: ``load_volume`` -> ``extract_surface`` (or ``extract_scene``
+for a label map) -> quadric decimation to 10 % -> GLB and VRML, with ``measure=False``. The
+measurement is :func:`miss.deviation.deviation` on what the job made: 100 000 samples a side
+for a surface, ``MEASURE_SAMPLES`` a part for a label map's scene, as the job itself would
+measure. "Old" is the implementation before issue 14 (``git show BEFORE:src/miss/deviation.py``
+loaded as a module of its own), run in the same session, alternately with the new one.
+
+- **warm**: one process; the job, the new measurement and the old one round-robin
+  ``--repeats`` times (after one untimed round), medians.
+- **fresh**: a new interpreter per run, new and old alternately, ``--fresh-repeats`` each: the
+  job with every import it needs, then the measurement with every import *it* still needs
+  (the old module's kernels, loaded from numba's cache) and its first calls. The job's peak
+  is the process's ``VmHWM``; the measurement's is its high-water mark above the job's
+  resident set (the mark is reset between them).
+
+Share = measurement / (job + measurement): the part of a measured job spent measuring.
+
+Writes ``results/measure.{json,md}``.
+"""
+
+from __future__ import annotations
+
+import time
+
+START = time.perf_counter()  # a fresh child's clock starts before its first import
+
+import argparse  # noqa: E402
+import importlib.util  # noqa: E402
+import json  # noqa: E402
+import statistics  # noqa: E402
+import subprocess  # noqa: E402
+import sys  # noqa: E402
+from collections.abc import Callable  # noqa: E402
+from pathlib import Path  # noqa: E402
+from types import ModuleType  # noqa: E402
+from typing import Any  # noqa: E402
+
+HERE = Path(__file__).resolve().parent
+#: The commit whose deviation.py is "old": main before issue 14.
+BEFORE = "5984b47"
+REDUCE = 0.9
+
+
+def datasets() -> Path:
+    return HERE.parent.parent / "shared" / "datasets"
+
+
+def cases() -> dict[str, tuple[Path, dict[str, Any]]]:
+    """Name -> (file, what to extract): levels in the file's units."""
+    root = datasets()
+    cthead = root / "ct_head_stanford_cthead" / "CThead.nhdr"
+    return {
+        "CThead bone": (cthead, {"level": 1500.0}),
+        "CThead skin": (cthead, {"level": 600.0}),
+        "MR headsq skin": (root / "mr_headsq_quarter" / "quarter.nhdr", {"level": 500.0}),
+        "frog label map": (root / "labels_frogtissue" / "frogtissue.mhd", {"labels": "all"}),
+    }
+
+
+# ----------------------------------------------------------------------------- the job
+
+
+Pair = tuple[Any, Any, int]  # (undecimated, decimated, samples)
+
+
+def run_job(path: Path, what: dict[str, Any]) -> list[Pair]:
+    """The job with ``measure=False``; returns what a measuring job would have compared."""
+    import miss
+
+    volume = miss.load_volume(path)
+    if "level" in what:
+        surface = miss.extract_surface(volume, what["level"])
+        mesh, _ = miss.decimate(surface, "quadric", REDUCE, measure=False)
+        miss.export(mesh, "glb")
+        miss.export(mesh, "wrl")
+        return [(surface, mesh, 100_000)]
+    return _scene_pairs(volume, what["labels"])
+
+
+def _scene_pairs(volume: Any, labels: str) -> list[Pair]:
+    """A label map's job: every part's surfaces, caught where the scene would measure them
+    (the stand-in answers at once, so the job is timed without its measurement)."""
+    import miss
+    from miss.deviation import Deviation
+    from miss.structures import labelmap
+
+    pairs: list[Pair] = []
+
+    def catch(a: Any, b: Any, samples: int = 100_000, seed: int = 0) -> Deviation:
+        pairs.append((a, b, samples))
+        return Deviation(0.0, 0.0, 0)
+
+    measure = labelmap.deviation
+    labelmap.deviation = catch
+    try:
+        scene = miss.extract_scene(volume, labels=labels, reduce=REDUCE, measure=True)
+    finally:
+        labelmap.deviation = measure
+    miss.export(scene, "glb")
+    miss.export(scene, "wrl")
+    return pairs
+
+
+def measure(pairs: list[Pair], deviation: Callable[..., Any]) -> tuple[float, float]:
+    """Max and mean error (mm) over the pairs: the largest maximum, the mean of the means
+    weighted by samples (one pair: its own figures)."""
+    devs = [deviation(a, b, samples=n) for a, b, n in pairs]
+    total = sum(d.samples for d in devs)
+    return max(d.max_mm for d in devs), sum(d.mean_mm * d.samples for d in devs) / total
+
+
+def old_module() -> ModuleType | None:
+    """deviation.py as it was at ``BEFORE``, importable beside the new one (None without git)."""
+    from common import CACHE
+
+    path = CACHE / f"deviation_{BEFORE}.py"
+    if not path.is_file():
+        proc = subprocess.run(
+            ["git", "show", f"{BEFORE}:src/miss/deviation.py"],
+            cwd=HERE,
+            capture_output=True,
+            text=True,
+            check=False,
+        )
+        if proc.returncode != 0:
+            return None
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(proc.stdout)
+    spec = importlib.util.spec_from_file_location(path.stem, path)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # its dataclass looks itself up there
+    spec.loader.exec_module(module)
+    return module
+
+
+# ----------------------------------------------------------------------------- fresh runs
+
+
+def child(case: str, impl: str) -> dict[str, Any]:
+    """In a fresh interpreter: the job, then the measurement with its remaining imports."""
+    path, what = cases()[case]
+    pairs = run_job(path, what)
+    job_seconds = time.perf_counter() - START
+    from common import peak_since, resident_peak, start_peak
+
+    job_peak = resident_peak()
+    baseline = start_peak()
+    t0 = time.perf_counter()
+    if impl == "old":
+        old = old_module()
+        assert old is not None
+        deviation = old.deviation
+    else:
+        from miss.deviation import deviation
+    worst, mean = measure(pairs, deviation)
+    return {
+        "job_seconds": job_seconds,
+        "measure_seconds": time.perf_counter() - t0,
+        "job_peak_mb": job_peak / 2**20,
+        "measure_peak_mb": peak_since(baseline) / 2**20,
+        "max_mm": worst,
+        "mean_mm": mean,
+    }
+
+
+def fresh(case: str, impl: str) -> dict[str, Any]:
+    proc = subprocess.run(
+        [sys.executable, str(Path(__file__)), "--child", case, impl],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        check=False,
+    )
+    if proc.returncode != 0:
+        raise RuntimeError(f"measure.py --child {case} {impl} failed:\n{proc.stderr[-2000:]}")
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+# ----------------------------------------------------------------------------- the table
+
+
+def warm(case: str, repeats: int, old: ModuleType | None) -> dict[str, Any]:
+    """Job, new and old measurement round-robin in this process; medians and figures."""
+    from common import median, round_robin
+
+    from miss.deviation import deviation
+
+    path, what = cases()[case]
+    pairs = run_job(path, what)
+    candidates: dict[str, Callable[[], Any]] = {
+        "job": lambda: run_job(path, what),
+        "new": lambda: measure(pairs, deviation),
+    }
+    if old is not None:
+        candidates["old"] = lambda: measure(pairs, old.deviation)
+    round_robin(candidates, 1)  # untimed: kernels loaded, caches warm
+    seconds, last = round_robin(candidates, repeats)
+    return {
+        "job_seconds": median(seconds["job"]),
+        "new_seconds": median(seconds["new"]),
+        "old_seconds": median(seconds["old"]) if old is not None else None,
+        "new": last["new"],
+        "old": last.get("old"),
+        "triangles": sum(a.n_triangles for a, _, _ in pairs),
+        "parts": len(pairs),
+    }
+
+
+def row(case: str, w: dict[str, Any], f: dict[str, list[dict[str, Any]]]) -> list[Any]:
+    def med(impl: str, key: str) -> float:
+        runs = f.get(impl) or []
+        return statistics.median(r[key] for r in runs) if runs else float("nan")
+
+    def share(measure_s: float, job_s: float) -> float:
+        return 100.0 * measure_s / (job_s + measure_s)
+
+    old = w["old"] or (float("nan"), float("nan"))
+    return [
+        case,
+        w["triangles"],
+        w["job_seconds"],
+        w["new_seconds"],
+        w["old_seconds"] if w["old_seconds"] is not None else float("nan"),
+        share(w["new_seconds"], w["job_seconds"]),
+        med("new", "job_seconds"),
+        med("new", "measure_seconds"),
+        med("old", "measure_seconds"),
+        share(med("new", "measure_seconds"), med("new", "job_seconds")),
+        w["new"][0],
+        old[0],
+        w["new"][1],
+        old[1],
+        med("new", "job_peak_mb"),
+        med("new", "measure_peak_mb"),
+        med("old", "measure_peak_mb"),
+    ]
+
+
+HEADER = [
+    "case",
+    "triangles",
+    "job s (warm)",
+    "measure s (warm)",
+    "old measure s (warm)",
+    "share % (warm)",
+    "job s (fresh)",
+    "measure s (fresh)",
+    "old measure s (fresh)",
+    "share % (fresh)",
+    "max mm",
+    "old max mm",
+    "mean mm",
+    "old mean mm",
+    "job peak MB",
+    "measure peak MB",
+    "old measure peak MB",
+]
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--fresh-repeats", type=int, default=5)
+    parser.add_argument("--cases", default=",".join(cases()), help="comma-separated names")
+    parser.add_argument("--out", type=Path, default=None, help="folder for measure.{json,md}")
+    parser.add_argument("--child", nargs=2, metavar=("CASE", "IMPL"), help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args.child:
+        print(json.dumps(child(*args.child)))
+        return 0
+
+    from common import RESULTS, markdown_table, save
+
+    names = [c for c in args.cases.split(",") if c]
+    unknown = sorted(set(names) - set(cases()))
+    if unknown:
+        parser.error(f"unknown case(s) {', '.join(unknown)}; choose from {', '.join(cases())}")
+    old = old_module()
+    rows, data = [], {}
+    for case in names:
+        w = warm(case, args.repeats, old)
+        f: dict[str, list[dict[str, Any]]] = {"new": [], "old": []}
+        for _ in range(args.fresh_repeats):
+            for impl in ("new", "old") if old is not None else ("new",):
+                f[impl].append(fresh(case, impl))
+        rows.append(row(case, w, f))
+        data[case] = {"warm": w, "fresh": f}
+        print(markdown_table(HEADER, rows[-1:]), flush=True)
+    table = markdown_table(HEADER, rows)
+    note = (
+        f"\nShare = measurement / (job + measurement). Warm: medians of {args.repeats} "
+        f"round-robin runs in one process; fresh: medians of {args.fresh_repeats} new "
+        "interpreters each, new and old alternately (the job's time counts its imports, the "
+        "measurement's its own). Old = deviation.py at "
+        f"{BEFORE}. Peak: the job's VmHWM; the measurement's above the job's resident set.\n"
+    )
+    print(table + note)
+    out = args.out or RESULTS
+    if out == RESULTS:
+        save("measure", {"cases": data, "header": HEADER, "rows": rows}, table + note)
+    else:
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "measure.json").write_text(json.dumps({"cases": data, "rows": rows}, indent=1))
+        (out / "measure.md").write_text(table + note)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.path.insert(0, str(HERE))
+    sys.exit(main())
