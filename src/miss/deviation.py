@@ -65,7 +65,7 @@ def sample_surface(mesh: Mesh, count: int, rng: np.random.Generator) -> np.ndarr
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _inner_points(verts, faces, pick, r1, r2, out):
     """out[i] = the point (r1, r2) of triangle pick[i], folded back inside when r1 + r2 > 1."""
     for i in range(len(pick)):
@@ -78,7 +78,7 @@ def _inner_points(verts, faces, pick, r1, r2, out):
             out[i, k] = ak + s * (float(b[k]) - ak) + t * (float(c[k]) - ak)
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, nogil=True)
 def _double_areas(verts, faces):
     """Twice the area of each triangle, float64, without (F, 3) gathers of the corners."""
     out = np.empty(len(faces))
@@ -171,7 +171,7 @@ def _cell_range(verts, face, lo, cell, dims, axis):
     return max(0, min(first, dims[axis] - 1)), max(0, min(last, dims[axis] - 1))
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _build_grid(verts, faces, lo, cell, dims):
     """CSR lists of the triangles whose bounding box meets each cell: (offsets, items).
 
@@ -280,7 +280,7 @@ def _nearest_sq(p, grid):
                             best = _cell_sq(p, (k * dims[1] + j) * dims[0] + i, best, grid)
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, nogil=True)
 def _grid_distances(points, grid):
     """Exact distance from each point to the nearest triangle of the grid's mesh."""
     out = np.empty(len(points))
