@@ -40,3 +40,25 @@ def test_documented_names_are_the_functions_after_their_modules_load() -> None:
     assert callable(miss.export) and miss.export.__name__ == "export"
     assert miss.extract_scene.__module__ == "miss.structures.build"
     assert miss.Volume.__module__ == "miss.types"
+
+
+def _imported_by(*args: str) -> set[str]:
+    """Every module a ``python -m miss.cli ARGS`` process imported (``-X importtime``)."""
+    proc = subprocess.run(
+        [sys.executable, "-X", "importtime", "-m", "miss.cli", *args],
+        capture_output=True, text=True, check=True, timeout=600,
+    )  # fmt: skip
+    lines = [line for line in proc.stderr.splitlines() if line.startswith("import time:")]
+    return {line.rsplit("|", 1)[-1].strip() for line in lines[1:]}
+
+
+def test_miss_help_loads_not_even_numpy() -> None:
+    """``miss --help`` answers before numpy (a tenth of a second) would have loaded."""
+    assert not _imported_by("--help") & {"numpy", *HEAVY}
+
+
+def test_python_dash_m_miss_is_the_command() -> None:
+    proc = subprocess.run(
+        [sys.executable, "-m", "miss", "--help"], capture_output=True, text=True, timeout=600
+    )
+    assert proc.returncode == 0 and "convert" in proc.stdout
