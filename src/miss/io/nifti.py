@@ -17,14 +17,9 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import BinaryIO
+from typing import TYPE_CHECKING, BinaryIO
 
-import nibabel as nib
 import numpy as np
-from nibabel import imageglobals
-from nibabel.filebasedimages import ImageFileError
-from nibabel.nifti1 import data_type_codes
-from nibabel.spatialimages import HeaderDataError
 
 from miss.errors import UnreadableVolume
 from miss.io.common import (
@@ -39,6 +34,11 @@ from miss.io.common import (
 )
 from miss.types import Volume
 
+if TYPE_CHECKING:
+    import nibabel as nib
+
+# nibabel (0.2 s to load) is imported by the functions that read: ``sniff`` and the other
+# formats never load it.
 NIFTI1_MAGICS = (b"n+1\0", b"ni1\0")
 NIFTI2_MAGICS = (b"n+2\0", b"ni2\0")
 GZIP_MAGIC = b"\x1f\x8b"
@@ -59,6 +59,9 @@ def sniff(path: Path, head: bytes) -> bool:
 
 def read(path: Path, series: str | None) -> Volume:
     """Read a NIfTI volume; see the module docstring for scaling and orientation."""
+    from nibabel.filebasedimages import ImageFileError
+    from nibabel.spatialimages import HeaderDataError
+
     no_series(path, series, "NIfTI")
     declared = _check_header(path)
     try:
@@ -106,6 +109,8 @@ class _Collect(logging.Handler):
 def _nibabel_notes() -> Iterator[list[str]]:
     """What nibabel logs (``pixdim[1,2,3] should be non-zero; setting 0 dims to 1``) and
     warns about, as notes instead of stray lines on stderr. Filled when the block ends."""
+    from nibabel import imageglobals
+
     logger = imageglobals.logger
     handlers, collect = logger.handlers[:], _Collect()
     for handler in handlers:
@@ -126,6 +131,8 @@ def _nibabel_notes() -> Iterator[list[str]]:
 def _load(path: Path, declared: Declared) -> nib.Nifti1Image:
     """``nib.load``, or (when the name says .gz and the bytes do not, or the other way
     round) the same image read through the opener the content needs."""
+    import nibabel as nib
+
     if path.name.lower().endswith(".gz") == _gzipped(path) or declared.pair:
         return nib.load(path, mmap=False)
     klass = nib.Nifti2Image if declared.version == 2 else nib.Nifti1Image
@@ -191,6 +198,8 @@ def _check_header(path: Path) -> Declared:
 
 def _declared(path: Path, header: bytes) -> Declared:
     """Parse dim, datatype and vox_offset (NIfTI-1 or -2, either byte order) and check them."""
+    from nibabel.nifti1 import data_type_codes
+
     version = 2 if header[4:8] in NIFTI2_MAGICS else 1
     if version == 2 and len(header) < 540:
         raise _truncated(path, f"the NIfTI-2 header stops after {len(header)} of 540 bytes")

@@ -142,11 +142,11 @@ def read_color_table(path: str | os.PathLike[str]) -> LabelTable:
 
 def nifti_label_table(path: str | os.PathLike[str]) -> LabelTable | None:
     """The CaretExtension ``LabelTable`` in a NIfTI header, or None when there is none."""
-    import nibabel as nib
-
     name = str(path).lower()
     if not name.endswith((".nii", ".nii.gz")):
         return None
+    import nibabel as nib  # 0.2 s to load: for NIfTI files only
+
     try:
         extensions = nib.load(path).header.extensions
     except Exception:  # a damaged header is the reader's to diagnose, not ours
