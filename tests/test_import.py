@@ -6,6 +6,9 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from pathlib import Path
+
+import pytest
 
 HEAVY = ["vtk", "numba", "meshoptimizer", "pydicom", "SimpleITK", "nibabel", "scipy"]
 
@@ -62,3 +65,23 @@ def test_python_dash_m_miss_is_the_command() -> None:
         [sys.executable, "-m", "miss", "--help"], capture_output=True, text=True, timeout=600
     )
     assert proc.returncode == 0 and "convert" in proc.stdout
+
+
+def _tiny_nrrd(path: Path) -> Path:
+    """A 4 x 4 x 4 label map (0 and 1) as an attached NRRD."""
+    header = b"NRRD0004\ntype: uint8\ndimension: 3\nsizes: 4 4 4\nencoding: raw\n\n"
+    path.write_bytes(header + bytes(32) + bytes([1]) * 32)
+    return path
+
+
+@pytest.mark.parametrize("kind", ["nrrd", "nifti"])
+def test_miss_info_loads_only_the_reader_it_needs(
+    kind: str, tmp_path: Path, demo_file: Path
+) -> None:
+    """``miss info`` reads and counts labels with numpy (and nibabel for NIfTI): no surface
+    library, no other format's reader."""
+    banned = {"vtkmodules", "scipy.ndimage", *HEAVY}
+    path = _tiny_nrrd(tmp_path / "labels.nrrd") if kind == "nrrd" else demo_file
+    if kind == "nifti":  # nibabel itself imports pydicom and scipy's top level
+        banned -= {"nibabel", "pydicom", "scipy"}
+    assert not _imported_by("info", str(path)) & banned

@@ -61,11 +61,11 @@ def label_listing(volume: Any, path: str) -> dict[str, Any]:
     """The labels of a label map with voxel counts, mL and known names.
 
     Empty for anything that is not a label map (float data, negative values, or
-    more than :data:`miss.structures.labelmap.MAX_LABELS` distinct values).
+    more than :data:`miss.structures.counts.MAX_LABELS` distinct values).
     """
     import numpy as np
 
-    from miss.structures.labelmap import label_counts
+    from miss.structures.counts import label_counts
     from miss.structures.labels import find_label_table
 
     counts = label_counts(volume)
