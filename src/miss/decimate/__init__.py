@@ -116,10 +116,10 @@ def decimate(
             f"paper_passes is the schedule of the paper's own decimation; use method "
             f"'schroeder' with it, not {method!r}."
         )
-    # The native libraries load on the first call, not with ``import miss``.
+    # The native libraries load on the first call, not with ``import miss``; the
+    # measurement's (numba) only when measuring.
     from miss.decimate.quadric import quadric
     from miss.decimate.schroeder import schroeder
-    from miss.deviation import deviation
     from miss.geometry import compact, vertex_normals
     from miss.types import Mesh
 
@@ -141,7 +141,11 @@ def decimate(
         out = mesh
     seconds = time.perf_counter() - start
     t1 = time.perf_counter()
-    dev = deviation(mesh, out, samples=samples) if measure and method != "none" else None
+    dev = None
+    if measure and method != "none":
+        from miss.deviation import deviation
+
+        dev = deviation(mesh, out, samples=samples)
     return out, DecimationReport(
         method=method,
         reduce=reduce,

@@ -24,13 +24,11 @@ from dataclasses import dataclass
 
 import meshoptimizer
 import numpy as np
-import vtk
-from scipy import ndimage
-from vtk.util import numpy_support
+from vtkmodules.util import numpy_support
+from vtkmodules.vtkFiltersCore import vtkSurfaceNets3D
 
 from miss._vtk import image_data, polydata_to_arrays
 from miss.decimate import DecimationReport, decimate
-from miss.deviation import deviation
 from miss.errors import BadParameter, EmptySurface
 from miss.geometry import compact, vertex_normals
 from miss.smooth import windowed_sinc
@@ -54,6 +52,8 @@ def align_labels(labels: Volume, reference: Volume) -> Volume:
     Volume
         data with the reference's dims, the label map's dtype; the reference's affine.
     """
+    from scipy import ndimage  # 0.3 s to load: only when a label map is laid over a scan
+
     to_labels = np.linalg.inv(labels.affine) @ reference.affine  # reference index -> label index
     out = np.zeros(reference.dims, dtype=labels.data.dtype, order="F")
     ndimage.affine_transform(
@@ -83,7 +83,7 @@ def surface_nets(
     """
     padded = np.zeros(tuple(s + 2 for s in data.shape), dtype=data.dtype, order="F")
     padded[1:-1, 1:-1, 1:-1] = data  # background all round: every part closes
-    nets = vtk.vtkSurfaceNets3D()
+    nets = vtkSurfaceNets3D()
     nets.SetInputData(image_data(padded))
     for i, label in enumerate(labels):
         nets.SetLabel(i, float(label))
@@ -263,7 +263,11 @@ def _shared_result(
 ) -> LabelSurface:
     """A part's patch-decimated surface with the report :func:`miss.decimate` would give."""
     t0 = time.perf_counter()
-    dev = deviation(full, mesh, samples=MEASURE_SAMPLES) if measure else None
+    dev = None
+    if measure:
+        from miss.deviation import deviation  # numba: only when measuring
+
+        dev = deviation(full, mesh, samples=MEASURE_SAMPLES)
     report = DecimationReport(
         method="quadric",
         reduce=reduce,
