@@ -14,6 +14,7 @@ volume or VTK's whole-volume working arrays: the peak stays near the volume plus
 from __future__ import annotations
 
 import os
+import sys
 from collections.abc import Sequence
 
 import numpy as np
@@ -226,9 +227,12 @@ def _keep_and_number(
     below) keep it, the others get start, start + 1, ... in first-use order. Returns the
     faces (int32) and the local indices of the newly numbered vertices; fills ``ids``.
 
-    numpy, no compiled loop: a command line pays numba's start (about 0.6 s) once per
-    process, for a few milliseconds of work here.
+    numpy here; numba's loop (:mod:`miss._jit`) when numba is loaded already.
     """
+    if "numba" in sys.modules:
+        from miss._jit import keep_and_number
+
+        return keep_and_number(faces, beyond, ids, start)
     out = beyond[faces[:, 0]] | beyond[faces[:, 1]] | beyond[faces[:, 2]]
     flat = np.compress(~out, faces, axis=0).ravel()  # 8x faster than faces[mask] here
     first = np.full(len(ids), len(flat), dtype=np.int64)

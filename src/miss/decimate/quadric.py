@@ -6,6 +6,7 @@ from __future__ import annotations
 import ctypes
 import itertools
 import os
+import sys
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
@@ -96,23 +97,31 @@ def _partition(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Faces (F, 3) bucketed by the slab (between ``cuts``) of their centroid's ``coord``:
     flat uint32 indices slab after slab (each slab's faces in their order), and the slabs'
-    first faces (len(cuts) + 2)."""
-    centre = coord[faces[:, 0]] + coord[faces[:, 1]] + coord[faces[:, 2]]
+    first faces (len(cuts) + 2). numba's loop (:mod:`miss._jit`) when numba is loaded."""
+    if "numba" in sys.modules:
+        from miss._jit import partition
+
+        return partition(faces, coord, cuts)
+    centre = coord.take(faces[:, 0]) + coord.take(faces[:, 1]) + coord.take(faces[:, 2])
     slab = np.searchsorted(cuts, centre, side="right").astype(np.uint8)  # _SLABS <= 256
     order = np.argsort(slab, kind="stable")  # a radix sort for bytes
     starts = np.zeros(len(cuts) + 2, dtype=np.int64)
     np.cumsum(np.bincount(slab, minlength=len(cuts) + 1), out=starts[1:])
-    return faces[order].astype(np.uint32).ravel(), starts
+    return faces.take(order, axis=0).astype(np.uint32).ravel(), starts
 
 
 def _roots(faces: np.ndarray, n_vertices: int) -> np.ndarray:
     """(N,) connected-component root of every vertex: its piece's smallest vertex index.
 
-    Union-find in whole-array steps (numpy, no compiled loop: a command line would pay
-    numba's start, about 0.6 s, for it): every edge hooks the larger of its two roots
-    under the smaller, then paths are halved until every vertex points at a root; a few
-    rounds, as each joins pieces pairwise along all their edges at once.
+    Union-find in whole-array steps: every edge hooks the larger of its two roots under
+    the smaller, then paths are halved until every vertex points at a root; a few rounds,
+    as each joins pieces pairwise along all their edges at once. numba's loop
+    (:mod:`miss._jit`) when numba is loaded already.
     """
+    if "numba" in sys.modules:
+        from miss._jit import roots
+
+        return roots(faces, n_vertices)
     parent = np.arange(n_vertices)
     a = np.concatenate([faces[:, 0], faces[:, 0]])
     b = np.concatenate([faces[:, 1], faces[:, 2]])
@@ -121,9 +130,9 @@ def _roots(faces: np.ndarray, n_vertices: int) -> np.ndarray:
         differ = ra != rb
         if not differ.any():
             return parent
-        ra, rb = ra[differ], rb[differ]
+        ra, rb = np.compress(differ, ra), np.compress(differ, rb)  # 5x faster than ra[differ]
         np.minimum.at(parent, np.maximum(ra, rb), np.minimum(ra, rb))
-        a, b = a[differ], b[differ]  # edges already inside one piece stay there
+        a, b = np.compress(differ, a), np.compress(differ, b)  # joined edges stay joined
         while True:
             grand = parent[parent]
             if np.array_equal(grand, parent):
