@@ -74,11 +74,23 @@ def _tiny_nrrd(path: Path) -> Path:
     return path
 
 
-@pytest.mark.parametrize("kind", ["nrrd", "nifti"])
+def _tiny_nifti(path: Path) -> Path:
+    """The same label map as a plain .nii.gz (an sform, no scaling, no extensions)."""
+    import nibabel as nib
+    import numpy as np
+
+    labels = np.zeros((4, 4, 4), dtype=np.uint8)
+    labels[:, :, 2:] = 1
+    nib.save(nib.Nifti1Image(labels, np.eye(4)), path)
+    return path
+
+
+@pytest.mark.parametrize("kind", ["nrrd", "nifti", "CT"])
 def test_miss_info_loads_only_the_reader_it_needs(
     kind: str, tmp_path: Path, demo_file: Path
 ) -> None:
     """``miss info`` reads and counts labels with numpy: no surface library, no other
     format's reader, and for a plain NIfTI file not even nibabel (which loads pydicom)."""
-    path = _tiny_nrrd(tmp_path / "labels.nrrd") if kind == "nrrd" else demo_file
+    make = {"nrrd": _tiny_nrrd, "nifti": _tiny_nifti, "CT": lambda p: demo_file}[kind]
+    path = make(tmp_path / ("labels.nrrd" if kind == "nrrd" else "labels.nii.gz"))
     assert not _imported_by("info", str(path)) & {"vtkmodules", "scipy", *HEAVY}
