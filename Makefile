@@ -66,6 +66,7 @@ format:
 bench: $(VENV)/.bench-installed
 	$(PY) benchmarks/paper_tables.py
 	$(PY) benchmarks/peers.py
+	$(PY) benchmarks/cli.py
 
 clean:
 	rm -rf $(VENV) $(WEB)/node_modules $(VALIDATORS)/node_modules .pytest_cache miss-data miss-demo-*

@@ -144,8 +144,8 @@ def _cell(value: Any) -> str:
     return str(value)
 
 
-def save(name: str, data: dict[str, Any], table: str) -> None:
-    """``results/NAME.json`` (with the machine) and ``results/NAME.md``."""
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / f"{name}.json").write_text(json.dumps({"machine": machine(), **data}, indent=1))
-    (RESULTS / f"{name}.md").write_text(table)
+def save(name: str, data: dict[str, Any], table: str, folder: Path = RESULTS) -> None:
+    """``results/NAME.json`` (with the machine) and ``results/NAME.md`` (or in ``folder``)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / f"{name}.json").write_text(json.dumps({"machine": machine(), **data}, indent=1))
+    (folder / f"{name}.md").write_text(table)

@@ -179,8 +179,38 @@ NOTES = """## How to read these numbers
 
 
 #: The runs after the paper's tables: (results name, section title, its targets), in order.
+def cli_targets(cli: dict[str, Any]) -> list[str]:
+    """Whole ``miss`` processes (benchmarks/cli.py): --help, info, convert beside the peer."""
+    timing, dev = cli["timing"], cli["deviation"]
+    peer = timing["peer script"]
+    lines = [
+        f"- `miss --help` {timing['miss --help']['seconds']:.3f} s as a whole process (target "
+        f"<= 0.15 s): {_yes(timing['miss --help']['seconds'] <= 0.15)}; `miss info` on "
+        f"CThead.nhdr {timing['miss info']['seconds']:.3f} s (target <= 0.4 s): "
+        f"{_yes(timing['miss info']['seconds'] <= 0.4)}."
+    ]
+    for name in ("miss convert", "miss convert, no measurement"):
+        ours = timing[name]
+        ratio = peer["seconds"] / ours["seconds"]
+        ok = ratio >= 1.5 and ours["rss_mib"] <= peer["rss_mib"]
+        lines.append(
+            f"- `{name}` as a whole process {ratio:.2f}x the peer script's speed, peak RSS "
+            f"{ours['rss_mib']:.0f} vs {peer['rss_mib']:.0f} MiB (target >= 1.5x, RSS no "
+            f"higher): {_yes(ok)}."
+        )
+    ours, theirs = dev["miss convert"], dev["peer script"]
+    lines.append(
+        f"- Its measured deviation: max {ours['max_error_mm']:.2f} vs "
+        f"{theirs['max_error_mm']:.2f} mm, mean {ours['mean_error_mm']:.3f} vs "
+        f"{theirs['mean_error_mm']:.3f} mm (target no worse): "
+        f"{_yes(ours['max_error_mm'] <= theirs['max_error_mm'] and ours['mean_error_mm'] <= theirs['mean_error_mm'])}."
+    )
+    return lines
+
+
 SECTIONS: tuple[tuple[str, str, Callable[[dict[str, Any]], list[str]]], ...] = (
     ("peers", "Beside the peers (`benchmarks/peers.py`)", peer_targets),
+    ("cli", "Commands as a person feels them (`benchmarks/cli.py`)", cli_targets),
     ("scaling", "Scaling (`benchmarks/scaling.py`)", scaling_targets),
     ("robustness", "Bad input (`benchmarks/robustness.py`)", robustness_targets),
     ("load", "Load (`benchmarks/load.py`)", load_targets),

@@ -109,6 +109,25 @@ def test_paper_tables_writes_the_three_files(tmp_path, monkeypatch, capsys) -> N
     assert SAMPLE_RATES == (1, 2, 4)
 
 
+def test_cli_benchmark_times_whole_processes(tmp_path: Path) -> None:
+    """benchmarks/cli.py in a quick mode: one round of every command on a small phantom."""
+    pytest.importorskip("trimesh")
+    import cli
+    from common import write_nifti
+
+    small = write_nifti(phantom(48, spacing=4.0), tmp_path / "small.nii")
+    argv = ["--repeats", "1", "--volume", str(small), "--info", str(small), "--level", "300"]
+    assert cli.main([*argv, "--out", str(tmp_path)]) == 0
+    data = json.loads((tmp_path / "cli.json").read_text())
+    assert set(data["timing"]) == {cli.HELP, cli.INFO, cli.CONVERT, cli.NO_MEASURE_NAME, cli.PEER}
+    for timing in data["timing"].values():
+        assert timing["seconds"] > 0 and timing["rss_mib"] > 0 and len(timing["runs"]) == 1
+    for result in data["deviation"].values():
+        assert 0 < result["triangles"] < result["triangles_before"]
+        assert result["mean_error_mm"] <= result["max_error_mm"] < 10
+    assert "| peer script |" in (tmp_path / "cli.md").read_text()
+
+
 # ----------------------------------------------------------------------------- deviation
 
 

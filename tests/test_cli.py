@@ -116,3 +116,55 @@ def test_cthead_bone_gives_about_545k_triangles(datasets: Path, tmp_path: Path) 
         ).stdout
     )
     assert stats["triangles"] == pytest.approx(545_000, rel=0.03)
+
+
+def test_json_keeps_its_keys(demo_file: Path, tmp_path: Path) -> None:
+    """``--json`` still says everything it said: scripts read these names."""
+    args = ["convert", str(demo_file), "--level", "300", "--sample-rate", "3", "--json"]
+    stats = json.loads(miss(*args, "-o", str(tmp_path / "b.glb")).stdout)
+    assert set(stats) >= {
+        "triangles", "vertices", "seconds", "decimation", "parts", "notes", "outputs",
+    }  # fmt: skip
+    assert set(stats["seconds"]) >= {"read", "surface", "decimate", "write", "total"}
+    assert set(stats["decimation"]) >= {
+        "method", "reduce", "error_bound", "triangles_before", "achieved_reduction",
+        "max_error_mm", "mean_error_mm",
+    }  # fmt: skip
+    (part,) = stats["parts"]
+    assert set(part) >= {
+        "name", "label", "color", "opacity", "triangles", "vertices", "volume_ml", "area_cm2",
+    }  # fmt: skip
+    assert [set(o) for o in stats["outputs"]] == [{"path", "bytes"}]
+    assert stats["decimation"]["max_error_mm"] > 0  # measured, as a command line always does
+
+
+def _convert_stderr(demo_file: Path, out: Path, terminal: bool) -> str:
+    """What ``miss convert`` writes on stderr when stderr is a terminal, or a pipe."""
+    import os
+    import pty
+
+    args = [sys.executable, "-m", "miss", "convert", str(demo_file), "--level", "300",
+            "--sample-rate", "3", "-o", str(out)]  # fmt: skip
+    if not terminal:
+        return subprocess.run(args, capture_output=True, text=True, timeout=600, check=True).stderr
+    leader, follower = pty.openpty()
+    proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=follower)
+    os.close(follower)
+    chunks = []
+    while True:
+        try:
+            chunk = os.read(leader, 4096)
+        except OSError:  # the follower side closed: the process is done writing
+            break
+        if not chunk:
+            break
+        chunks.append(chunk)
+    os.close(leader)
+    assert proc.wait(timeout=600) == 0
+    return b"".join(chunks).decode()
+
+
+def test_progress_bar_on_a_terminal_and_nothing_on_a_pipe(demo_file: Path, tmp_path: Path) -> None:
+    drawn = _convert_stderr(demo_file, tmp_path / "a.stl", terminal=True)
+    assert "[" + "#" * 30 + "] 100%" in drawn and "surface" in drawn
+    assert _convert_stderr(demo_file, tmp_path / "b.stl", terminal=False) == ""

@@ -6,6 +6,9 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from pathlib import Path
+
+import pytest
 
 HEAVY = ["vtk", "numba", "meshoptimizer", "pydicom", "SimpleITK", "nibabel", "scipy"]
 
@@ -40,3 +43,54 @@ def test_documented_names_are_the_functions_after_their_modules_load() -> None:
     assert callable(miss.export) and miss.export.__name__ == "export"
     assert miss.extract_scene.__module__ == "miss.structures.build"
     assert miss.Volume.__module__ == "miss.types"
+
+
+def _imported_by(*args: str) -> set[str]:
+    """Every module a ``python -m miss.cli ARGS`` process imported (``-X importtime``)."""
+    proc = subprocess.run(
+        [sys.executable, "-X", "importtime", "-m", "miss.cli", *args],
+        capture_output=True, text=True, check=True, timeout=600,
+    )  # fmt: skip
+    lines = [line for line in proc.stderr.splitlines() if line.startswith("import time:")]
+    return {line.rsplit("|", 1)[-1].strip() for line in lines[1:]}
+
+
+def test_miss_help_loads_not_even_numpy() -> None:
+    """``miss --help`` answers before numpy (a tenth of a second) would have loaded."""
+    assert not _imported_by("--help") & {"numpy", *HEAVY}
+
+
+def test_python_dash_m_miss_is_the_command() -> None:
+    proc = subprocess.run(
+        [sys.executable, "-m", "miss", "--help"], capture_output=True, text=True, timeout=600
+    )
+    assert proc.returncode == 0 and "convert" in proc.stdout
+
+
+def _tiny_nrrd(path: Path) -> Path:
+    """A 4 x 4 x 4 label map (0 and 1) as an attached NRRD."""
+    header = b"NRRD0004\ntype: uint8\ndimension: 3\nsizes: 4 4 4\nencoding: raw\n\n"
+    path.write_bytes(header + bytes(32) + bytes([1]) * 32)
+    return path
+
+
+def _tiny_nifti(path: Path) -> Path:
+    """The same label map as a plain .nii.gz (an sform, no scaling, no extensions)."""
+    import nibabel as nib
+    import numpy as np
+
+    labels = np.zeros((4, 4, 4), dtype=np.uint8)
+    labels[:, :, 2:] = 1
+    nib.save(nib.Nifti1Image(labels, np.eye(4)), path)
+    return path
+
+
+@pytest.mark.parametrize("kind", ["nrrd", "nifti", "CT"])
+def test_miss_info_loads_only_the_reader_it_needs(
+    kind: str, tmp_path: Path, demo_file: Path
+) -> None:
+    """``miss info`` reads and counts labels with numpy: no surface library, no other
+    format's reader, and for a plain NIfTI file not even nibabel (which loads pydicom)."""
+    make = {"nrrd": _tiny_nrrd, "nifti": _tiny_nifti, "CT": lambda p: demo_file}[kind]
+    path = make(tmp_path / ("labels.nrrd" if kind == "nrrd" else "labels.nii.gz"))
+    assert not _imported_by("info", str(path)) & {"vtkmodules", "scipy", *HEAVY}

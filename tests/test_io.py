@@ -14,7 +14,7 @@ import pytest
 import SimpleITK as sitk
 
 from miss.errors import BadParameter, UnreadableVolume
-from miss.io import list_series, load_volume, metaimage, slices
+from miss.io import list_series, load_volume, metaimage, nifti_header, slices
 from miss.types import Volume
 
 GANTRY = "ct_head_dicom_ge_gantrytilt"
@@ -121,6 +121,86 @@ def test_nifti_affine_is_lps(datasets: Path, name: str, dtype: type) -> None:
     np.testing.assert_allclose(vol.affine, np.diag([-1, -1, 1, 1]) @ img.affine)
     assert vol.data.dtype == dtype
     np.testing.assert_allclose(vol.data, img.get_fdata(), rtol=1e-6)
+
+
+def _nibabel_only(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Every NIfTI file read through nibabel, as files MISS does not read itself are."""
+    monkeypatch.setattr(nifti_header.Declared, "plain", property(lambda self: False))
+
+
+def _same_volume(a: Volume, b: Volume) -> None:
+    assert a.data.dtype == b.data.dtype and a.data.flags.f_contiguous == b.data.flags.f_contiguous
+    np.testing.assert_array_equal(a.data, b.data)
+    np.testing.assert_array_equal(a.affine, b.affine)
+    assert a.meta == b.meta
+
+
+@pytest.mark.parametrize(
+    ("dtype", "endian", "name"),
+    [
+        (np.int16, ">", "v.nii"),
+        (np.uint8, "<", "v.nii.gz"),
+        (np.float32, "<", "v.nii"),
+        (np.uint16, ">", "v.nii.gz"),
+        (np.int64, "<", "v.nii"),
+        (np.float64, ">", "v.nii"),
+    ],
+)
+def test_plain_nifti_is_read_as_nibabel_reads_it(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, dtype: type, endian: str, name: str
+) -> None:
+    """MISS's own reading of a plain file (one .nii(.gz), an sform, no scaling) gives what
+    nibabel gives: voxels, dtype, affine, notes."""
+    rng = np.random.default_rng(1)
+    data = (rng.random((5, 4, 3)) * 100 - 20).astype(dtype)
+    if data.dtype.kind == "f":
+        data[0, 0, 0] = np.nan  # replaced by the smallest value, with a note
+    affine = np.array([[0, -0.9, 0.1, 40], [1.1, 0, 0, -30], [0, 0.2, 2.5, 7], [0, 0, 0, 1]])
+    image = nib.Nifti1Image(data, affine, nib.Nifti1Header(endianness=endian))
+    image.header["descrip"] = b"CT head HU"
+    nib.save(image, tmp_path / name)
+    assert nifti_header.check_header(tmp_path / name).plain
+    ours = load_volume(tmp_path / name)
+    _nibabel_only(monkeypatch)
+    _same_volume(ours, load_volume(tmp_path / name))
+    assert ours.meta["units"] == "HU"
+
+
+@pytest.mark.parametrize(
+    "change",
+    ["scaled", "qform only", "extension", "zero pixdim", "4-D", "odd offset"],
+)
+def test_nifti_that_is_not_plain_goes_to_nibabel(tmp_path: Path, change: str) -> None:
+    image = nib.Nifti1Image(np.arange(60, dtype=np.int16).reshape(5, 4, 3), np.eye(4))
+    header = image.header
+    if change == "scaled":
+        header.set_slope_inter(2.0, -1.0)
+    elif change == "qform only":
+        header.set_sform(None, code=0)
+        header.set_qform(np.eye(4), code=1)
+    elif change == "extension":
+        header.extensions.append(nib.nifti1.Nifti1Extension("comment", b"a note"))
+    elif change == "zero pixdim":
+        header["pixdim"][2] = 0
+    elif change == "4-D":
+        image = nib.Nifti1Image(np.zeros((5, 4, 3, 1), np.int16), np.eye(4))
+    nib.save(image, tmp_path / "v.nii")
+    if change == "odd offset":
+        raw = bytearray((tmp_path / "v.nii").read_bytes())
+        raw[108:112] = np.array([360.0], "<f4").tobytes()  # vox_offset 360: not a multiple of 16
+        (tmp_path / "v.nii").write_bytes(bytes(raw[:352] + bytes(8) + raw[352:]))
+    assert not nifti_header.check_header(tmp_path / "v.nii").plain
+    load_volume(tmp_path / "v.nii")  # nibabel reads it
+
+
+@pytest.mark.parametrize("name", ["nifti/CT_pitch.nii.gz", "ct_abdomen_totalseg/example_ct.nii.gz"])
+def test_real_plain_nifti_as_nibabel_reads_it(
+    datasets: Path, monkeypatch: pytest.MonkeyPatch, name: str
+) -> None:
+    assert nifti_header.check_header(datasets / name).plain
+    ours = load_volume(datasets / name)
+    _nibabel_only(monkeypatch)
+    _same_volume(ours, load_volume(datasets / name))
 
 
 def test_headsq_space_with_spacings(datasets: Path) -> None:

@@ -8,8 +8,8 @@ the triangles stay the same, so surfaces sharing vertices keep sharing them.
 from __future__ import annotations
 
 import numpy as np
-import vtk
-from vtk.util import numpy_support
+from vtkmodules.util import numpy_support
+from vtkmodules.vtkFiltersCore import vtkWindowedSincPolyDataFilter
 
 from miss._vtk import to_polydata
 from miss.geometry import enclosed_volume, vertex_normals
@@ -43,7 +43,7 @@ def windowed_sinc(
     check_smoothing(iterations, passband)
     if iterations == 0 or len(faces) == 0:
         return np.asarray(vertices, dtype=np.float64)
-    sinc = vtk.vtkWindowedSincPolyDataFilter()
+    sinc = vtkWindowedSincPolyDataFilter()
     sinc.SetInputData(to_polydata(vertices, faces))
     sinc.SetNumberOfIterations(int(iterations))
     sinc.SetPassBand(float(passband))

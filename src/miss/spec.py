@@ -22,12 +22,12 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import numbers
+import sys
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import MISSING, Field, dataclass, field, fields, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
-
-import numpy as np
 
 from miss.errors import BadParameter
 
@@ -57,12 +57,14 @@ def param(default: Any, help: str, **cli: Any) -> Any:
 # ---------------------------------------------------------------- value checks
 
 
+# numbers' ABCs, not numpy's types: numpy registers its scalars there when it loads, and
+# the command line reads a job without loading numpy at all.
 def _is_int(x: Any) -> bool:
-    return isinstance(x, int | np.integer) and not isinstance(x, bool)
+    return isinstance(x, numbers.Integral) and not isinstance(x, bool)
 
 
 def _is_num(x: Any) -> bool:
-    return isinstance(x, int | float | np.integer | np.floating) and not isinstance(x, bool)
+    return isinstance(x, numbers.Real) and not isinstance(x, bool)
 
 
 def _whole(name: str, value: Any, low: int) -> None:
@@ -220,6 +222,8 @@ class Region:
         """The region at the sample rate, positions still in patient mm (the affine is
         shifted and scaled). The whole volume at rate 1 is returned as it is (no copy);
         striding a label map is nearest-neighbour subsampling."""
+        import numpy as np
+
         from miss.types import Volume
 
         box = self.box(volume.dims)
@@ -664,6 +668,7 @@ def _plain(value: Any) -> Any:
     """Tuples as lists, numpy scalars as Python numbers: what JSON keeps."""
     if isinstance(value, tuple | list):
         return [_plain(v) for v in value]
-    if isinstance(value, np.generic):
+    np = sys.modules.get("numpy")  # not loaded: no value can be a numpy scalar
+    if np is not None and isinstance(value, np.generic):
         return value.item()
     return value

@@ -5,8 +5,6 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-import numpy as np
-
 
 def add_parser(sub: Any) -> None:
     demo = sub.add_parser("demo", help="write the synthetic CT head phantom as NIfTI")
@@ -15,6 +13,7 @@ def add_parser(sub: Any) -> None:
 
 def cmd_demo(args: argparse.Namespace) -> int:
     import nibabel as nib
+    import numpy as np
 
     from miss.demo import phantom
 

@@ -6,8 +6,6 @@ import argparse
 import json
 from typing import Any
 
-import numpy as np
-
 from miss.cli.options import add_source_options
 
 
@@ -20,6 +18,8 @@ def add_parser(sub: Any) -> None:
 
 
 def describe(volume: Any) -> dict[str, Any]:
+    import numpy as np
+
     lo, hi = volume.value_range()
     return {
         "dims": list(volume.dims),
@@ -61,9 +61,11 @@ def label_listing(volume: Any, path: str) -> dict[str, Any]:
     """The labels of a label map with voxel counts, mL and known names.
 
     Empty for anything that is not a label map (float data, negative values, or
-    more than :data:`miss.structures.labelmap.MAX_LABELS` distinct values).
+    more than :data:`miss.structures.counts.MAX_LABELS` distinct values).
     """
-    from miss.structures.labelmap import label_counts
+    import numpy as np
+
+    from miss.structures.counts import label_counts
     from miss.structures.labels import find_label_table
 
     counts = label_counts(volume)

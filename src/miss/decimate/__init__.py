@@ -118,7 +118,8 @@ def decimate(
             f"paper_passes is the schedule of the paper's own decimation; use method "
             f"'schroeder' with it, not {method!r}."
         )
-    # The native libraries load on the first call, not with ``import miss``.
+    # The native libraries load on the first call, not with ``import miss``; the
+    # measurement's (numba) only when measuring.
     from miss.decimate.quadric import quadric
     from miss.decimate.schroeder import schroeder
     from miss.geometry import compact, vertex_normals

@@ -6,12 +6,12 @@ from __future__ import annotations
 import ctypes
 import itertools
 import os
+import sys
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import meshoptimizer
 import numpy as np
-from numba import njit
 
 from miss.types import Mesh, column_bounds
 
@@ -92,54 +92,52 @@ def _slabs(faces: np.ndarray, positions: np.ndarray, count: int) -> list[np.ndar
     return [flat[3 * a : 3 * b] for a, b in itertools.pairwise(starts)]
 
 
-@njit(cache=True)
 def _partition(
     faces: np.ndarray, coord: np.ndarray, cuts: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
     """Faces (F, 3) bucketed by the slab (between ``cuts``) of their centroid's ``coord``:
-    flat uint32 indices slab after slab, and the slabs' first faces (len(cuts) + 2)."""
-    n = faces.shape[0]
-    slab = np.empty(n, dtype=np.int64)
+    flat uint32 indices slab after slab (each slab's faces in their order), and the slabs'
+    first faces (len(cuts) + 2). numba's loop (:mod:`miss._jit`) when numba is loaded."""
+    if "numba" in sys.modules:
+        from miss._jit import partition
+
+        return partition(faces, coord, cuts)
+    centre = coord.take(faces[:, 0]) + coord.take(faces[:, 1]) + coord.take(faces[:, 2])
+    slab = np.searchsorted(cuts, centre, side="right").astype(np.uint8)  # _SLABS <= 256
+    order = np.argsort(slab, kind="stable")  # a radix sort for bytes
     starts = np.zeros(len(cuts) + 2, dtype=np.int64)
-    for f in range(n):
-        c = coord[faces[f, 0]] + coord[faces[f, 1]] + coord[faces[f, 2]]
-        s = np.searchsorted(cuts, c, side="right")
-        slab[f] = s
-        starts[s + 1] += 1
-    starts = np.cumsum(starts)
-    at = starts[:-1].copy()
-    out = np.empty(3 * n, dtype=np.uint32)
-    for f in range(n):
-        p = 3 * at[slab[f]]
-        at[slab[f]] += 1
-        out[p], out[p + 1], out[p + 2] = faces[f, 0], faces[f, 1], faces[f, 2]
-    return out, starts
+    np.cumsum(np.bincount(slab, minlength=len(cuts) + 1), out=starts[1:])
+    return faces.take(order, axis=0).astype(np.uint32).ravel(), starts
 
 
-@njit(cache=True)
 def _roots(faces: np.ndarray, n_vertices: int) -> np.ndarray:
     """(N,) connected-component root of every vertex: its piece's smallest vertex index.
 
-    Union-find over the faces' edges, always linking the larger root under the smaller,
-    so that one final pass in index order resolves every vertex in O(1).
+    Union-find in whole-array steps: every triangle hooks the roots of its corners under
+    the smallest of them, then paths are halved until every vertex points at a root; a few
+    rounds, each on the triangles whose corners still have different roots (int32 and
+    column by column, so the work arrays stay a fraction of the mesh). numba's loop
+    (:mod:`miss._jit`) when numba is loaded already.
     """
-    parent = np.arange(n_vertices)
-    for f in range(faces.shape[0]):
-        for k in range(1, 3):
-            a, b = faces[f, 0], faces[f, k]
-            while parent[a] != a:
-                parent[a] = parent[parent[a]]
-                a = parent[a]
-            while parent[b] != b:
-                parent[b] = parent[parent[b]]
-                b = parent[b]
-            if a < b:
-                parent[b] = a
-            elif b < a:
-                parent[a] = b
-    for v in range(n_vertices):
-        parent[v] = parent[parent[v]]  # parent[v] <= v is already resolved
-    return parent
+    if "numba" in sys.modules:
+        from miss._jit import roots
+
+        return roots(faces, n_vertices)
+    corners = [np.ascontiguousarray(faces[:, k], dtype=np.int32) for k in range(3)]
+    parent = np.arange(n_vertices, dtype=np.int32)
+    low = np.minimum(np.minimum(corners[0], corners[1]), corners[2])
+    while True:
+        for corner in corners:
+            np.minimum.at(parent, corner, low)
+        while not np.array_equal(grand := parent.take(parent), parent):
+            parent = grand
+        corners = [parent.take(corner) for corner in corners]  # their roots, to hook next
+        low = np.minimum(np.minimum(corners[0], corners[1]), corners[2])
+        apart = (corners[0] != low) | (corners[1] != low) | (corners[2] != low)
+        if not apart.any():
+            return parent.astype(np.int64)
+        low = np.compress(apart, low)
+        corners = [np.compress(apart, corner) for corner in corners]
 
 
 # Pieces the reduce rate would leave fewer triangles than this are kept whole.

@@ -11,18 +11,20 @@ from __future__ import annotations
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
-
-from pydicom.dataset import Dataset
-from pydicom.multival import MultiValue
+from typing import TYPE_CHECKING, Any
 
 from miss.deid import IDENTIFYING
 from miss.errors import BadParameter, MissError, UnreadableVolume, UnsupportedFormat
-from miss.io import dicom_stack
 from miss.io.common import make_volume, recorded_warnings
-from miss.io.dicom_files import Entry, number, open_source, read_dataset
-from miss.types import Volume
 
+if TYPE_CHECKING:
+    from pydicom.dataset import Dataset
+
+    from miss.io.dicom_files import Entry
+    from miss.types import Volume
+
+# pydicom (0.3 s to load) and the modules built on it are imported by the functions that
+# read: a volume in any other format, and ``sniff``, never load it.
 EXTENSIONS = {".dcm", ".dicom", ".ima", ".zip"}
 #: Identifying attributes go to ``Volume.patient``, apart from ``meta`` (see miss.deid).
 PATIENT_TAGS = IDENTIFYING
@@ -47,6 +49,8 @@ def sniff(path: Path, head: bytes) -> bool:
 
 def list_series(path: Path) -> list[dict[str, Any]]:
     """Describe every series found: [{"uid", "description", "modality", "slices", "dims"}]."""
+    from miss.io.dicom_files import open_source
+
     with open_source(path) as entries:
         groups, _ = _grouped_headers(path, entries)
     return [_describe(uid, headers) for uid, headers in groups.items()]
@@ -54,6 +58,9 @@ def list_series(path: Path) -> list[dict[str, Any]]:
 
 def read(path: Path, series: str | None) -> Volume:
     """Read one series as a ``Volume`` (the one with most slices unless ``series`` names a UID)."""
+    from miss.io import dicom_stack
+    from miss.io.dicom_files import open_source
+
     with open_source(path) as entries:
         groups, notes = _grouped_headers(path, entries)
         uid = _choose(path, groups, series)
@@ -82,6 +89,8 @@ def read(path: Path, series: str | None) -> Volume:
 
 def _text(value: Any) -> str:
     """A header value as text; multi-valued ones joined by backslash, as DICOM stores them."""
+    from pydicom.multival import MultiValue
+
     if isinstance(value, MultiValue | list | tuple):
         return "\\".join(str(v) for v in value)
     return str(value)
@@ -116,6 +125,8 @@ def _grouped_headers(path: Path, entries: list[Entry]) -> tuple[dict[str, list[H
 
 def _read_header(entry: Entry) -> Dataset | None:
     """The header of an image file, or None for non-DICOM files and non-image objects."""
+    from miss.io.dicom_files import read_dataset
+
     try:
         ds = read_dataset(entry, header_only=True)
         for _ in ds:  # convert every value now: a damaged one skips the file here, not later
@@ -131,6 +142,8 @@ def _read_header(entry: Entry) -> Dataset | None:
 
 def _refuse_multiframe(headers: list[Header]) -> None:
     """Enhanced (multi-frame) objects keep geometry per frame; SimpleITK may still read them."""
+    from miss.io.dicom_files import number
+
     for header in headers:
         if number(header.ds, "NumberOfFrames", 1) > 1:
             raise UnsupportedFormat(
@@ -155,6 +168,8 @@ def _choose(path: Path, groups: dict[str, list[Header]], series: str | None) -> 
 
 
 def _describe(uid: str, headers: list[Header]) -> dict[str, Any]:
+    from miss.io.dicom_files import number
+
     ds = headers[0].ds
     return {
         "uid": uid,

@@ -11,17 +11,17 @@ import math
 import re
 from collections.abc import Sequence
 from pathlib import Path
+from types import ModuleType
+from typing import TYPE_CHECKING
 
 import numpy as np
-import SimpleITK as sitk
 
 from miss.errors import UnreadableVolume, UnsupportedFormat
 from miss.io.common import affine_from, check_declared_size, make_volume, no_series, zyx_to_xyz
 from miss.types import Volume
 
-# ITK prints its warnings ("unexpected scales in sform") straight to stderr, which would
-# put stray lines before the CLI's one-line message; MISS reports through notes instead.
-sitk.ProcessObject.SetGlobalWarningDisplay(False)
+if TYPE_CHECKING:
+    import SimpleITK as sitk
 
 #: Values per byte on disk beyond which a header for the catch-all formats is refused.
 #: Far above what real compression reaches (DEFLATE ~1000:1; LZW on empty masks more):
@@ -29,12 +29,24 @@ sitk.ProcessObject.SetGlobalWarningDisplay(False)
 MAX_RATIO = 100_000
 
 
+def _simpleitk() -> ModuleType:
+    """SimpleITK (0.1 s to load: only when a file gets this far), its warnings off.
+
+    ITK prints its warnings ("unexpected scales in sform") straight to stderr, which would
+    put stray lines before the CLI's one-line message; MISS reports through notes instead.
+    """
+    import SimpleITK
+
+    SimpleITK.ProcessObject.SetGlobalWarningDisplay(False)
+    return SimpleITK
+
+
 def sniff(path: Path, head: bytes) -> bool:
     """Files for which ITK's IO factory finds an image reader."""
     if path.is_dir():
         return False
     try:
-        return bool(sitk.ImageFileReader().GetImageIOFromFileName(str(path)))
+        return bool(_simpleitk().ImageFileReader().GetImageIOFromFileName(str(path)))
     except RuntimeError:
         return False
 
@@ -52,7 +64,7 @@ def read_image(path: Path, on_disk: int | None = None) -> sitk.Image:
     ``on_disk`` that can hold the voxels, ``MAX_RATIO``), so an absurd header is refused
     before ITK allocates the image.
     """
-    reader = sitk.ImageFileReader()
+    reader = _simpleitk().ImageFileReader()
     reader.SetFileName(str(path))
     try:
         reader.ReadImageInformation()
@@ -92,7 +104,7 @@ def to_volume(
     notes = list(notes)
     dim = image.GetDimension()
     # A copy, not GetArrayViewFromImage: views of ITK's buffer were seen to go stale.
-    zyx = sitk.GetArrayFromImage(image)
+    zyx = _simpleitk().GetArrayFromImage(image)
     if image.GetNumberOfComponentsPerPixel() > 1:
         notes.append(
             f"{image.GetNumberOfComponentsPerPixel()} components per voxel: read the first"

@@ -1,10 +1,12 @@
 """MetaImage reader (``.mha``, ``.mhd`` + ``.raw``/``.zraw``).
 
 MISS's own small parser (:mod:`miss.io.metaimage_header`) reads the header first and
-checks it: a data file outside the header's folder, sizes the data cannot hold and
-damaged compressed data are refused before anything is allocated. It then reads the
-voxels itself (raw or zlib, LOCAL or one data file); SimpleITK reads only the variants
-it lacks (ASCII data, lists of data files, 4-D images, element types it does not know).
+checks it: a data file outside the header's folder and sizes the data cannot hold are
+refused before anything is allocated. It then reads the voxels itself (raw or zlib, LOCAL
+or one data file), inflating compressed data once (memory grows with what the data really
+inflates to, never past the declared size) and refusing data that is damaged or falls
+short; SimpleITK reads only the variants it lacks (ASCII data, lists of data files, 4-D
+images, element types it does not know).
 
 SimpleITK is kept away from the rest because hostile headers hang it (a TransformMatrix
 holding 1e308), crash the process (NDims = 100000), or make it print on stderr; and
@@ -35,8 +37,6 @@ from miss.types import Volume
 
 #: Every MetaImage header fits in this many bytes at the start of its file.
 HEADER_BYTES = 1 << 20
-#: Bytes read (and inflated) at a time when checking compressed data.
-CHUNK = 1 << 20
 
 
 def sniff(path: Path, head: bytes) -> bool:
@@ -92,6 +92,11 @@ def read_fallback(path: Path, notes: list[str] | None = None) -> Volume:
     header = parse(path, text)
     need = _need(header)
     payload = _payload(path, header, text, need)
+    if len(payload) < need and header.compressed:
+        raise UnreadableVolume(
+            f"{path.name}: the compressed voxel data is truncated: it inflates to {len(payload)} "
+            f"of the {need} bytes DimSize calls for; copy the data file again."
+        )
     if len(payload) < need:
         raise _truncated(path, len(payload), need)
     count = need // header.dtype.itemsize
@@ -144,7 +149,9 @@ def _data_bytes(path: Path, header: MetaHeader) -> int | None:
 
 
 def _check_data(path: Path, header: MetaHeader) -> None:
-    """Refuse declared sizes the data cannot hold, and compressed data that does not inflate."""
+    """Refuse declared sizes the data cannot hold. Compressed data is inflated once, by
+    :func:`read_fallback`, at most to the declared size, and refused there when it falls
+    short (SimpleITK would fill the rest with whatever memory held, without an error)."""
     available = _data_bytes(path, header)
     shape = [*header.sizes, header.channels]
     if available is None:  # before SimpleITK, which prints its own complaint on stderr
@@ -155,38 +162,6 @@ def _check_data(path: Path, header: MetaHeader) -> None:
             raise _truncated(path, max(available, 0), _need(header))
         return
     check_declared_size(path, shape, header.dtype.itemsize, max(available, 0), fix="fix DimSize")
-    inflated = _inflated_bytes(path, header, _need(header))
-    if inflated < _need(header):
-        raise UnreadableVolume(
-            f"{path.name}: the compressed voxel data is truncated: it inflates to {inflated} of "
-            f"the {_need(header)} bytes DimSize calls for; copy the data file again."
-        )
-
-
-def _inflated_bytes(path: Path, header: MetaHeader, limit: int) -> int:
-    """How many bytes (up to ``limit``) the compressed data inflates to, in bounded memory.
-
-    SimpleITK fills what it cannot inflate with whatever memory held, without an error,
-    so a cut or damaged stream is caught here first.
-    """
-    source = path if header.data_file is None else header.data_file
-    skip = (header.data_offset if header.data_file is None else 0) + max(header.header_size, 0)
-    inflater = zlib.decompressobj(zlib.MAX_WBITS | 32)
-    produced = 0
-    try:
-        with source.open("rb") as stream:
-            stream.seek(skip)
-            while produced < limit and (chunk := stream.read(CHUNK)):
-                while chunk and produced < limit:
-                    produced += len(inflater.decompress(chunk, min(CHUNK, limit - produced)))
-                    chunk = inflater.unconsumed_tail
-                if inflater.eof:
-                    break
-    except zlib.error as exc:
-        raise UnreadableVolume(
-            f"{path.name}: the compressed voxel data is damaged ({exc}); copy it again."
-        ) from exc
-    return produced
 
 
 def _compressed_size_mismatch(path: Path, header: MetaHeader) -> str:

@@ -24,45 +24,20 @@ from dataclasses import dataclass
 
 import meshoptimizer
 import numpy as np
-import vtk
-from scipy import ndimage
-from vtk.util import numpy_support
+from vtkmodules.util import numpy_support
+from vtkmodules.vtkFiltersCore import vtkSurfaceNets3D
 
 from miss._vtk import image_data, polydata_to_arrays
 from miss.decimate import DecimationReport, decimate, measured
 from miss.errors import BadParameter, EmptySurface
 from miss.geometry import compact, vertex_normals
 from miss.smooth import windowed_sinc
+from miss.structures.counts import label_counts
 from miss.types import Mesh, Volume
 
 #: Points sampled on each surface when measuring a part's decimation error: a
 #: tenth of miss.decimate's default, as a scene measures dozens of parts.
 MEASURE_SAMPLES = 10_000
-
-#: More distinct values than this and a volume is an image, not a label map.
-MAX_LABELS = 512
-
-
-def label_counts(volume: Volume, max_labels: int = MAX_LABELS) -> dict[int, int] | None:
-    """Voxel count per label (0, the background, left out), or None for a non-label volume.
-
-    A label map here is an integer volume with values in 0..65535 and at most
-    ``max_labels`` distinct values; float volumes are images.
-    """
-    data = volume.data
-    if not np.issubdtype(data.dtype, np.integer) or data.size == 0:
-        return None
-    lo, hi = int(data.min()), int(data.max())
-    if lo < 0 or hi > 65535:
-        return None
-    # Slice by slice: bincount casts to int64, and a whole-volume cast is 10x slower.
-    counts = np.zeros(hi + 1, dtype=np.int64)
-    for k in range(data.shape[2]):
-        counts += np.bincount(data[:, :, k].ravel(order="K"), minlength=hi + 1)
-    present = np.flatnonzero(counts)
-    if len(present) > max_labels + 1:
-        return None
-    return {int(label): int(counts[label]) for label in present if label != 0}
 
 
 def align_labels(labels: Volume, reference: Volume) -> Volume:
@@ -77,6 +52,8 @@ def align_labels(labels: Volume, reference: Volume) -> Volume:
     Volume
         data with the reference's dims, the label map's dtype; the reference's affine.
     """
+    from scipy import ndimage  # 0.3 s to load: only when a label map is laid over a scan
+
     to_labels = np.linalg.inv(labels.affine) @ reference.affine  # reference index -> label index
     out = np.zeros(reference.dims, dtype=labels.data.dtype, order="F")
     ndimage.affine_transform(
@@ -106,7 +83,7 @@ def surface_nets(
     """
     padded = np.zeros(tuple(s + 2 for s in data.shape), dtype=data.dtype, order="F")
     padded[1:-1, 1:-1, 1:-1] = data  # background all round: every part closes
-    nets = vtk.vtkSurfaceNets3D()
+    nets = vtkSurfaceNets3D()
     nets.SetInputData(image_data(padded))
     for i, label in enumerate(labels):
         nets.SetLabel(i, float(label))

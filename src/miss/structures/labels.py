@@ -142,11 +142,11 @@ def read_color_table(path: str | os.PathLike[str]) -> LabelTable:
 
 def nifti_label_table(path: str | os.PathLike[str]) -> LabelTable | None:
     """The CaretExtension ``LabelTable`` in a NIfTI header, or None when there is none."""
-    import nibabel as nib
-
     name = str(path).lower()
-    if not name.endswith((".nii", ".nii.gz")):
+    if not name.endswith((".nii", ".nii.gz")) or not _has_extensions(Path(path)):
         return None
+    import nibabel as nib  # 0.3 s to load: for NIfTI files with header extensions only
+
     try:
         extensions = nib.load(path).header.extensions
     except Exception:  # a damaged header is the reader's to diagnose, not ours
@@ -156,6 +156,19 @@ def nifti_label_table(path: str | os.PathLike[str]) -> LabelTable | None:
         if isinstance(content, bytes) and b"<LabelTable" in content:
             return _caret_table(content)
     return None
+
+
+def _has_extensions(path: Path) -> bool:
+    """The NIfTI-1/2 header's extension flag (byte 348 or 540) is set; True when unsure."""
+    from miss.io.nifti_header import NIFTI2_MAGICS, TRUNCATION_ERRORS, open_stream
+
+    try:
+        with open_stream(path) as stream:
+            head = stream.read(544)
+    except (*TRUNCATION_ERRORS, OSError):
+        return True  # let nibabel try, and fail, as before
+    at = 540 if head[4:8] in NIFTI2_MAGICS else 348
+    return len(head) <= at or head[at] != 0
 
 
 def _caret_table(xml: bytes) -> LabelTable | None:

@@ -1,0 +1,7 @@
+"""``python -m miss``: the ``miss`` command."""
+
+import sys
+
+from miss.cli import main
+
+sys.exit(main())
