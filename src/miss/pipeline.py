@@ -83,6 +83,7 @@ def run(
     table: TableSpec = None,
     export_options: ExportOptions | None = None,
     sink: Sink | None = None,
+    measure: bool = True,
 ) -> JobResult:
     """Build the scene ``spec`` asks of ``volume`` (and ``label_map``), encode it in every
     format of ``spec.outputs``, then measure its error; ``progress(stage, 0..1)`` hears
@@ -93,6 +94,7 @@ def run(
     sink that asks for a preview gets a coarse GLB (``put("preview", ...)``) before the
     model is built. ``export_options`` maps a format to its writer's options, e.g.
     ``{"glb": {"compress": True}}`` (the server sends meshopt-compressed glTF).
+    ``measure=False`` leaves the error unmeasured (None in the report).
     """
     report = progress or _no_progress
     seconds: dict[str, float] = {}
@@ -119,12 +121,13 @@ def run(
             artifacts[fmt] = export(built.scene, fmt, title=title, metadata=metadata, **options)
             if sink is not None:
                 sink.put(fmt, artifacts[fmt])
-            measuring = measuring or pool.submit(built.measured)
+            if measure:
+                measuring = measuring or pool.submit(built.measured)
         seconds["write"] = time.perf_counter() - start
-        report("measure", 0.95)
-        assert measuring is not None  # formats are never empty (Outputs checks)
-        built = measuring.result()
-    seconds["measure"] = built.seconds.get("measure", 0.0)
+        if measuring is not None:
+            report("measure", 0.95)
+            built = measuring.result()
+            seconds["measure"] = built.seconds.get("measure", 0.0)
     report("done", 1.0)
     artifacts = {fmt: artifacts[fmt] for fmt in spec.outputs.formats}  # in the asked order
     report_ = combined_report(built.reports)
@@ -234,6 +237,7 @@ def execute(
     progress: Progress | None = None,
     *,
     export_options: ExportOptions | None = None,
+    measure: bool = True,
 ) -> tuple[JobResult, Any]:
     """Load ``spec.source``, run the job, deliver the files: (result, what the sink said).
 
@@ -249,7 +253,7 @@ def execute(
     result = run(
         loaded.volume, spec, progress, title=loaded.title,
         metadata=provenance(spec, loaded.provenance), label_map=loaded.label_map,
-        table=loaded.table, export_options=export_options, sink=sink,
+        table=loaded.table, export_options=export_options, sink=sink, measure=measure,
     )  # fmt: skip
     delivered = sink.deliver(result)
     result.seconds = {"read": read, **result.seconds, "total": time.perf_counter() - start}
