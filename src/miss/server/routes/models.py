@@ -202,7 +202,7 @@ async def model_events(model: ModelDep, store: StoreDep) -> AsyncIterator[Server
     responses={404: {"description": "this job made no preview (a small region)"}},
 )
 def preview(model: ModelDep, store: StoreDep) -> FileResponse:
-    """A running job's coarse GLB (every other voxel, decimated hard), drawn until the
+    """A running job's coarse GLB (every n-th voxel, decimated hard), drawn until the
     model's own GLB is written; the model's ``preview`` field links it while it runs."""
     path = store.model_dir(model.id) / PREVIEW_FILE
     if not path.is_file():
