@@ -94,9 +94,10 @@ PROBE = """
         if (!hex) { requestAnimationFrame(tick); return; }
         const r = parseInt(hex.slice(1, 3), 16), g = parseInt(hex.slice(3, 5), 16),
               b = parseInt(hex.slice(5, 7), 16);
-        // Nothing counts before the viewer has cleared the canvas once (a corner shows it).
+        // Nothing counts before the viewer has cleared the canvas once (a corner shows it),
+        // nor a buffer just resized and not drawn yet (transparent: the viewer draws opaque).
         if (!cleared) cleared = Math.abs(buffer[0] - r) + Math.abs(buffer[1] - g) + Math.abs(buffer[2] - b) <= 24;
-        if (!cleared) { requestAnimationFrame(tick); return; }
+        if (!cleared || buffer[3] === 0) { requestAnimationFrame(tick); return; }
         let other = 0, sum = 0;
         for (let i = 0; i < buffer.length; i += 4) {
           const d = Math.abs(buffer[i] - r) + Math.abs(buffer[i + 1] - g) + Math.abs(buffer[i + 2] - b);

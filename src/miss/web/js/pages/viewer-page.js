@@ -29,11 +29,16 @@ async function follow( viewer, model ) {
 		if ( ! url || drawn === 'full' || drawn === kind ) return;
 		drawn = kind;
 		queue = queue.then( async () => {
+			if ( kind === 'preview' ) viewer.setCoarse( true );
 			const triangles = await viewer.load( url, 'glb', undefined, { keepView: status.drawn != null } );
+			if ( kind === 'full' ) viewer.setCoarse( false ); // before the frame that draws it
 			Object.assign( status, { drawn: kind, triangles } );
 			$( 'overlay' ).hidden = true;
 		} ).catch( ( err ) => {
-			if ( kind === 'full' ) drawn = 'preview'; // the finished model draws it again
+			if ( kind === 'full' ) {
+				drawn = 'preview'; // the finished model draws it again
+				viewer.setCoarse( false );
+			}
 			console.warn( `the ${kind} could not be drawn yet: ${err.message || err}` );
 		} );
 	};

@@ -187,6 +187,16 @@ export class ModelViewer {
 		this.gizmo.render( r, this.camera );
 	}
 
+	// A coarse look (a running job's preview) is drawn at half the pixels a side: a
+	// quarter of the work where WebGL runs in software, as on many hospital desktops.
+	// The next render (requested by the caller) uses it.
+	setCoarse( coarse ) {
+		this.renderer.setPixelRatio( Math.min( window.devicePixelRatio, 2 ) * ( coarse ? 0.5 : 1 ) );
+		const { clientWidth: w, clientHeight: h } = this.container;
+		if ( w && h ) this.renderer.setSize( w, h, false );
+		this.requestRender();
+	}
+
 	resize() {
 		const { clientWidth: w, clientHeight: h } = this.container;
 		if ( ! w || ! h ) return;
