@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from miss.scene import Scene
 from miss.types import Mesh
 
 REPO = Path(__file__).resolve().parents[1]
@@ -22,6 +23,25 @@ def datasets() -> Path:
     if not (DATASETS / "README.md").is_file():
         pytest.skip(f"real scans not found at {DATASETS} (clone ../shared beside the repo)")
     return DATASETS
+
+
+@pytest.fixture(scope="session")
+def real_scenes(datasets: Path) -> dict[str, Scene]:
+    """The real-scan scenes every format's reference reader is tried on, built once:
+    CThead's bone at 1500 undecimated and decimated (the server's defaults), and the frog's
+    label map, all labels at sample rate 2. Errors are not measured (no test reads them)."""
+    from miss.io import load_volume
+    from miss.pipeline import run
+    from miss.spec import JobSpec
+
+    cthead = load_volume(datasets / "ct_head_stanford_cthead" / "CThead.nhdr")
+    frog = load_volume(datasets / "labels_frogtissue" / "frogtissue.mhd")
+    jobs = {
+        "cthead-bone": (cthead, JobSpec.of(level=1500, decimate="none")),
+        "cthead-bone-decimated": (cthead, JobSpec.of(level=1500)),
+        "frog-labels": (frog, JobSpec.of(labels="all", sample_rate=2)),
+    }
+    return {name: run(v, spec, measure=False).scene for name, (v, spec) in jobs.items()}
 
 
 @pytest.fixture(scope="session")

@@ -12,7 +12,6 @@ from __future__ import annotations
 import shutil
 import subprocess
 from collections.abc import Callable
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -20,7 +19,7 @@ from lxml import etree
 
 import miss
 from miss.demo import phantom
-from miss.export import WRITERS
+from miss.export import WRITERS, export
 from miss.export.vrml import BONE_RGB
 from miss.pipeline import run
 from miss.scene import Part, Scene, safe_names
@@ -145,11 +144,8 @@ def test_the_reader_is_strict(castle: Read, degenerate_mesh: miss.Mesh) -> None:
             castle(f"{name}.wrl", data)
 
 
-def test_real_scans(castle: Read, datasets: Path) -> None:
-    cthead = miss.load_volume(datasets / "ct_head_stanford_cthead" / "CThead.nhdr")
-    bone = run(cthead, JobSpec.of(level=1500, decimate="none", formats=("wrz",)))
-    frog = miss.load_volume(datasets / "labels_frogtissue" / "frogtissue.mhd")
-    labels = run(frog, JobSpec.of(labels="all", sample_rate=2, formats=("wrl",)))
-    assert len(labels.scene.parts) > 20
-    assert_scene(castle("cthead-bone.wrz", bone.artifacts["wrz"]), bone.scene)
-    assert_scene(castle("frog-labels.wrl", labels.artifacts["wrl"]), labels.scene)
+def test_real_scans(castle: Read, real_scenes: dict[str, Scene]) -> None:
+    bone, labels = real_scenes["cthead-bone"], real_scenes["frog-labels"]
+    assert len(labels.parts) > 20
+    assert_scene(castle("cthead-bone.wrz", export(bone, "wrz")), bone)
+    assert_scene(castle("frog-labels.wrl", export(labels, "wrl")), labels)

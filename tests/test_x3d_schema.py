@@ -184,21 +184,11 @@ def test_part_names_that_clash_or_are_no_xml_names(degenerate_mesh: miss.Mesh) -
     assert_valid({"names": x3d(Scene(parts, title="<scene>"), metadata=METADATA)})
 
 
-def test_real_scans(datasets: Path) -> None:
-    cthead = miss.load_volume(datasets / "ct_head_stanford_cthead" / "CThead.nhdr")
-    bone = run(cthead, JobSpec.of(level=1500, decimate="none", formats=("x3d",)))
-    decimated = run(cthead, JobSpec.of(level=1500, formats=("x3d",)))
-    frog = miss.load_volume(datasets / "labels_frogtissue" / "frogtissue.mhd")
-    labels = run(frog, JobSpec.of(labels="all", sample_rate=2, formats=("x3d",)))
-    assert len(labels.scene.parts) > 20
-    assert_valid(
-        {
-            "cthead-bone": bone.artifacts["x3d"],
-            "cthead-bone-decimated": decimated.artifacts["x3d"],
-            "frog-labels": labels.artifacts["x3d"],
-            "cthead-bone-mesh": export(bone.scene.parts[0].mesh, "x3d", title=TITLE),
-        }
-    )
+def test_real_scans(real_scenes: dict[str, Scene]) -> None:
+    assert len(real_scenes["frog-labels"].parts) > 20
+    files = {name: export(scene, "x3d") for name, scene in real_scenes.items()}
+    files["cthead-bone-mesh"] = export(real_scenes["cthead-bone"].parts[0].mesh, "x3d", title=TITLE)
+    assert_valid(files)
 
 
 def test_text_xml_cannot_hold_becomes_a_replacement_character(degenerate_mesh: miss.Mesh) -> None:
