@@ -81,9 +81,10 @@ export async function show( viewer, mode, urlOf, onLoaded = () => {}, { drawn = 
 	url.searchParams.set( 'mode', mode );
 	history.replaceState( null, '', url );
 	const file = mode === 'vrml' ? 'wrl' : 'glb';
-	if ( ! ( drawn && mode === 'glb' ) ) overlay( `Loading ${file.toUpperCase()}…`, '', { progress: 0 } );
+	const onStage = drawn && mode === 'glb';
+	if ( ! onStage ) overlay( `Loading ${file.toUpperCase()}…`, '', { progress: 0 } );
 	try {
-		const triangles = drawn && mode === 'glb' ? status.triangles : await viewer.load( urlOf( file ), mode, ( e ) => {
+		const triangles = onStage ? status.triangles : await viewer.load( urlOf( file ), mode, ( e ) => {
 			if ( e.lengthComputable ) $( 'overlay-progress' ).value = e.loaded / e.total;
 			$( 'overlay-text' ).textContent = formatBytes( e.loaded );
 		} );
