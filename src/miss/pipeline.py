@@ -86,8 +86,8 @@ def run(
     measure: bool = True,
 ) -> JobResult:
     """Build the scene ``spec`` asks of ``volume`` (and ``label_map``), encode it in every
-    format of ``spec.outputs``, then measure its error; ``progress(stage, 0..1)`` hears
-    each stage.
+    format of ``spec.outputs`` and measure its error meanwhile; ``progress(stage, 0..1)``
+    hears each stage.
 
     With a ``sink``, each file goes to ``sink.put`` as soon as it is encoded, GLB first
     (a viewer can draw the model while the rest is written and the error measured), and a
