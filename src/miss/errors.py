@@ -42,6 +42,15 @@ class DiskFull(MissError, RuntimeError):
     """No room left for an upload or a job in the data folder: 507 Insufficient Storage."""
 
 
+class PacsError(MissError, RuntimeError):
+    """A PACS that did not answer, answered with an error, or sent something that is not
+    what was asked for: 502 Bad Gateway (the message names the PACS and what to check)."""
+
+
+class PacsTimeout(PacsError):
+    """A PACS that took longer than the timeout: 504 Gateway Timeout (try again later)."""
+
+
 def is_disk_full(exc: BaseException) -> bool:
     """True for "no space left on device" (or over a disk quota)."""
     if not isinstance(exc, OSError):

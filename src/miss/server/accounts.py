@@ -41,10 +41,18 @@ class User:
     name: str
     is_admin: bool
     disabled: bool = False
+    #: May use the PACS (search, import, send); granted by an administrator.
+    pacs: bool = False
 
 
 def _user(row: UserRow) -> User:
-    return User(id=row.id, name=row.name, is_admin=row.is_admin, disabled=bool(row.disabled))
+    return User(
+        id=row.id,
+        name=row.name,
+        is_admin=row.is_admin,
+        disabled=bool(row.disabled),
+        pacs=bool(row.pacs),
+    )
 
 
 def token_hash(token: str) -> str:
@@ -67,13 +75,16 @@ def check_password(password: str) -> str:
     return password
 
 
-def create_user(store: Store, name: str, password: str, is_admin: bool = False) -> User:
+def create_user(
+    store: Store, name: str, password: str, is_admin: bool = False, pacs: bool = False
+) -> User:
     """Add an account; raises BadParameter for a bad or taken name, a short password."""
     row = UserRow(
         id=new_id(),
         name=check_name(name),
         password=_HASHER.hash(check_password(password)),
         is_admin=is_admin,
+        pacs=pacs,
     )
     try:
         with store.session.begin() as s:
@@ -216,6 +227,15 @@ def check_password_of(store: Store, user_id: str, password: str) -> bool:
 def set_disabled(store: Store, user_id: str, disabled: bool) -> None:
     with store.session.begin() as s:
         s.execute(update(UserRow).where(UserRow.id == user_id).values(disabled=disabled))
+
+
+def set_pacs(store: Store, user_id: str, allowed: bool) -> None:
+    """Grant or take back the ``pacs`` permission; the account's logins see it at their
+    next request (their cached rows are dropped, the logins go on)."""
+    with store.session.begin() as s:
+        s.execute(update(UserRow).where(UserRow.id == user_id).values(pacs=allowed))
+        live = list(s.scalars(select(SessionRow.id).where(SessionRow.user_id == user_id)))
+    store.rows.drop(*[("session", hashed) for hashed in live])
 
 
 def ensure_admin(store: Store, password: str = "") -> str | None:

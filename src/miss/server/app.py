@@ -19,9 +19,10 @@ from miss.server.accounts import ADMIN_NAME, ensure_admin
 from miss.server.headers import SecurityHeaders
 from miss.server.ingest import register_demo
 from miss.server.jobs import JobQueue, WorkerProcess
+from miss.server.pacs import PacsImports
 from miss.server.ratelimit import ApiLimits, JobLimit, OverLimit, RateLimitMiddleware, too_many
 from miss.server.rooms import Hub
-from miss.server.routes import audit, auth, models, pages, rooms, shares, volumes
+from miss.server.routes import audit, auth, models, pacs, pages, rooms, shares, volumes
 from miss.server.routes.pages import WEB
 from miss.server.settings import Settings
 from miss.server.storage.caches import ByteCaches
@@ -91,11 +92,14 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         confinement = await run_in_threadpool(confined.probe, settings.data_dir)
         _say_confinement(confinement)
         app.state.reading = (confinement, settings.parse_limits())
+        app.state.pacs_imports = PacsImports(store, settings, lambda: app.state.reading)
+        await run_in_threadpool(app.state.pacs_imports.start)
         app.state.rooms = Hub(store)
         app.state.rooms.start()
         try:
             yield
         finally:
+            app.state.pacs_imports.stop()
             await app.state.rooms.stop()
             await run_in_threadpool(queue.stop)
             store.close()
@@ -127,6 +131,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(rooms.router)
     app.include_router(shares.router)
     app.include_router(audit.router)
+    app.include_router(pacs.router)
     app.include_router(pages.router)
 
     @app.get("/api/health", tags=["server"])

@@ -17,7 +17,14 @@ from fastapi.responses import JSONResponse, Response
 from python_multipart.exceptions import FormParserError
 from starlette.exceptions import HTTPException
 
-from miss.errors import DiskFull, InputTooLarge, MissError, UnsupportedFormat
+from miss.errors import (
+    DiskFull,
+    InputTooLarge,
+    MissError,
+    PacsError,
+    PacsTimeout,
+    UnsupportedFormat,
+)
 from miss.server.logmask import mask
 
 log = logging.getLogger("miss.server")
@@ -67,6 +74,8 @@ STATUS: tuple[tuple[type[MissError], int], ...] = (
     (UnsupportedFormat, 415),
     (NotReady, 409),
     (DiskFull, 507),
+    (PacsTimeout, 504),
+    (PacsError, 502),
 )
 
 

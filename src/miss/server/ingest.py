@@ -43,6 +43,8 @@ _META_KEYS = (
     "units",
     "series_description",
     "series_uid",
+    "study_uid",  # remapped, as the series UID: a model sent back finds its study by them
+    "frame_of_reference",
     "series",
     "source_format",
     "notes",
@@ -111,9 +113,11 @@ def ingest(
     work: Path,
     reading: Reading,
     owner_id: str | None = None,
+    origin: dict[str, Any] | None = None,
 ) -> VolumeRow:
     """Read an uploaded file once (confined: :mod:`miss.io.confined`), de-identify it and
-    store it for ``owner_id``."""
+    store it for ``owner_id``. ``origin`` (where a PACS series came from: the PACS, the
+    original UIDs of its study, series and images) joins the owner-only identity record."""
     assert upload.path is not None
     try:
         series = original_series(store, work, upload, reading)
@@ -132,6 +136,8 @@ def ingest(
     identity = clean.identity
     if identity:  # the file name people give a series often is the patient's name
         identity = {**identity, "upload_filename": upload.filename}
+    if origin:
+        identity = {**identity, "origin": origin}
     name = display_name(upload, clean.volume, identity_values(clean.identity.get("patient", {})))
     staged, info = stage(store, clean.volume, clean.report)
     return store.add_volume(

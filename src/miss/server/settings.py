@@ -23,6 +23,10 @@ Environment variables (all optional):
 ``MISS_PARSE_SECONDS``    longest an upload's confined reader may run, seconds (600)
 ``MISS_UPLOADS_PER_USER`` uploads one account may send at once (2); more get 429
 ``MISS_UPLOADS_AT_ONCE``  uploads the server receives at once from everyone (4)
+``MISS_PACS_URL``         DICOMweb root of the hospital's PACS (none); ``MISS_PACS_NAME``,
+                          ``MISS_PACS_AUTH_FILE``, ``MISS_PACS_TIMEOUT`` and more PACS as
+                          ``MISS_PACS2_URL`` ...: see ``miss.pacs.server``
+``MISS_PACS_IMPORTS``     PACS series imported at once (2)
 """
 
 from __future__ import annotations
@@ -34,6 +38,7 @@ from pathlib import Path
 from typing import Any
 
 from miss.io.confined import Limits
+from miss.pacs.server import PacsServer, configured_servers
 
 MB = 1024 * 1024
 
@@ -63,6 +68,9 @@ class Settings:
     parse_seconds: float = 600.0
     uploads_per_user: int = 2
     uploads_at_once: int = 4
+    #: The PACS MISS may search, import from and send to (``MISS_PACS_URL`` ...).
+    pacs: tuple[PacsServer, ...] = ()
+    pacs_imports: int = 2
 
     def __post_init__(self) -> None:
         # Resolve once so the worker subprocesses, which get these as arguments, see the
@@ -96,6 +104,8 @@ class Settings:
                 "MISS_UPLOADS_PER_USER must be at least 1 and MISS_UPLOADS_AT_ONCE at least "
                 f"as large, got {self.uploads_per_user} and {self.uploads_at_once}."
             )
+        if self.pacs_imports < 1:
+            raise ValueError(f"MISS_PACS_IMPORTS must be at least 1, got {self.pacs_imports}.")
         if self.worker_memory_mb is not None and not self.worker_memory_mb >= 0:
             raise ValueError(
                 f"MISS_WORKER_MEMORY_MB must be a size in MB (0 for no cap), "
@@ -110,8 +120,15 @@ class Settings:
         for name, key, cast in _ENV:
             if env.get(key, "").strip():
                 values[name] = _parse(key, env[key].strip(), cast)
+        values["pacs"] = configured_servers(env)
         values.update({k: v for k, v in overrides.items() if v is not None})
         return cls(**values)
+
+    def pacs_server(self, name: str | None = None) -> PacsServer | None:
+        """The PACS called ``name`` (the first when None); None when there is no such one."""
+        if not name:
+            return self.pacs[0] if self.pacs else None
+        return next((p for p in self.pacs if p.name == name), None)
 
     @property
     def max_upload_bytes(self) -> int:
@@ -171,6 +188,7 @@ _ENV: tuple[tuple[str, str, Any], ...] = (
     ("parse_seconds", "MISS_PARSE_SECONDS", float),
     ("uploads_per_user", "MISS_UPLOADS_PER_USER", int),
     ("uploads_at_once", "MISS_UPLOADS_AT_ONCE", int),
+    ("pacs_imports", "MISS_PACS_IMPORTS", int),
 )
 
 

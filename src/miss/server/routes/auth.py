@@ -84,6 +84,7 @@ class UserOut(BaseModel):
     name: str
     admin: bool
     disabled: bool = False
+    pacs: bool = False
 
 
 class NewUser(BaseModel):
@@ -92,10 +93,13 @@ class NewUser(BaseModel):
     name: str = Field(max_length=64)
     password: str = Field(max_length=1024)
     admin: bool = False
+    pacs: bool = Field(default=False, description="may search, import from and send to the PACS")
 
 
 def user_out(user: accounts.User) -> UserOut:
-    return UserOut(id=user.id, name=user.name, admin=user.is_admin, disabled=user.disabled)
+    return UserOut(
+        id=user.id, name=user.name, admin=user.is_admin, disabled=user.disabled, pacs=user.pacs
+    )
 
 
 def _require_json(request: Request) -> None:
@@ -176,8 +180,11 @@ def list_users(store: StoreDep, admin: AdminDep) -> list[UserOut]:
 @router.post("/api/users", status_code=201, response_model=UserOut)
 def add_user(body: NewUser, store: StoreDep, admin: AdminDep, request: Request) -> Any:
     """Create an account (administrators only); ``miss user add`` does the same offline."""
-    user = accounts.create_user(store, body.name, body.password, body.admin)
-    audit.record(store, "user_add", admin.name, user.name, audit.address(request), admin=body.admin)
+    user = accounts.create_user(store, body.name, body.password, body.admin, body.pacs)
+    audit.record(
+        store, "user_add", admin.name, user.name, audit.address(request),
+        admin=body.admin, pacs=body.pacs,
+    )  # fmt: skip
     return user_out(user)
 
 
@@ -219,6 +226,7 @@ class UserChange(BaseModel):
 
     disabled: bool | None = Field(default=None, description="disable or enable the account")
     password: str | None = Field(default=None, max_length=1024, description="a new password")
+    pacs: bool | None = Field(default=None, description="grant or take back the PACS permission")
 
 
 @router.patch("/api/users/{name}", response_model=UserOut)
@@ -234,10 +242,12 @@ def change_user(
         accounts.set_password(store, user.id, body.password)
     if body.disabled is not None:
         accounts.set_disabled(store, user.id, body.disabled)
+    if body.pacs is not None:
+        accounts.set_pacs(store, user.id, body.pacs)
     if body.password is not None or body.disabled:
         accounts.end_sessions(store, user.id)
         request.app.state.rooms.end("user", user.id)
-    changes = {k: v for k, v in (("disabled", body.disabled),) if v is not None}
+    changes = {k: v for k, v in (("disabled", body.disabled), ("pacs", body.pacs)) if v is not None}
     audit.record(
         store, "user_change", admin.name, user.name, audit.address(request),
         password_reset=body.password is not None, **changes,

@@ -49,6 +49,8 @@ class UserRow(Base):
     is_admin: Mapped[bool] = mapped_column(default=False)
     created_at: Mapped[datetime] = mapped_column(default=utcnow)
     disabled: Mapped[bool] = mapped_column(default=False)
+    #: May search the PACS, import from it and send models to it (an administrator grants).
+    pacs: Mapped[bool] = mapped_column(default=False)
 
 
 class SessionRow(Base):
@@ -180,6 +182,32 @@ class RoomEventRow(Base):
     data: Mapped[dict[str, Any]] = mapped_column(default=dict)
 
 
+class PacsImportRow(Base):
+    """A series being brought in from a PACS, for its owner only: the PACS's name and the
+    original study and series UIDs (identity, like the ``identities`` table), the job's
+    state, and the volume it became."""
+
+    __tablename__ = "pacs_imports"
+
+    id: Mapped[str] = mapped_column(String(32), primary_key=True)
+    owner_id: Mapped[str] = mapped_column(ForeignKey("users.id", ondelete="CASCADE"), index=True)
+    pacs: Mapped[str] = mapped_column(String(64))
+    study: Mapped[str] = mapped_column(String(64))
+    series: Mapped[str] = mapped_column(String(64))
+    segmentation: Mapped[str] = mapped_column(String(64), default="auto")
+    name: Mapped[str] = mapped_column(String(200), default="")
+    status: Mapped[str] = mapped_column(String(16), default=QUEUED, index=True)
+    stage: Mapped[str] = mapped_column(String(64), default="")
+    progress: Mapped[float] = mapped_column(default=0.0)
+    volume_id: Mapped[str | None] = mapped_column(
+        ForeignKey("volumes.id", ondelete="SET NULL"), default=None
+    )
+    labels: Mapped[int] = mapped_column(default=0)
+    error: Mapped[str | None] = mapped_column(Text, default=None)
+    created_at: Mapped[datetime] = mapped_column(default=utcnow)
+    finished_at: Mapped[datetime | None] = mapped_column(default=None)
+
+
 class SecretRow(Base):
     """Server-wide random keys made on first use (the UID remapping key)."""
 
@@ -197,6 +225,7 @@ ADDED_COLUMNS = (
     ("models", "submitted_by", "VARCHAR(64)"),
     ("users", "disabled", "BOOLEAN NOT NULL DEFAULT FALSE"),
     ("shares", "message", "VARCHAR(1000) NOT NULL DEFAULT ''"),
+    ("users", "pacs", "BOOLEAN NOT NULL DEFAULT FALSE"),
 )
 
 
