@@ -11,13 +11,13 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from server.conftest import ADMIN_PASSWORD, TestClient, bearer, log_in, wait_for_model
 
 from miss.pacs.server import PacsServer
 from miss.server.app import create_app
 from miss.server.settings import Settings
 from pacs.conftest import Series
 from pacs.orthanc import Orthanc
-from server.conftest import ADMIN_PASSWORD, TestClient, bearer, log_in, wait_for_model
 
 GE = "ct_head_dicom_ge_gantrytilt"
 ENCAPSULATED_STL = "1.2.840.10008.5.1.4.1.1.104.3"
