@@ -282,13 +282,13 @@ def rtstruct_rois(affine: np.ndarray, dims: tuple[int, int, int]) -> list[Roi]:
 
     r = 10 * min(dx, dy)
     polygon = 0.5 * 128 * math.sin(2 * math.pi / 128)  # area of a unit-radius 128-gon
-    cylinder = [disc(dims[0] * 0.65, dims[1] * 0.3, r, k) for k in ks]
+    cylinder = [disc(dims[0] * 0.75, dims[1] * 0.22, r, k) for k in ks]
     cylinder_ml = polygon * r * r * height / 1000
-    r_out, r_in = 0.3 * min(dims[0] * dx, dims[1] * dy), 0.12 * min(dims[0] * dx, dims[1] * dy)
+    r_out, r_in = 0.2 * min(dims[0] * dx, dims[1] * dy), 0.08 * min(dims[0] * dx, dims[1] * dy)
     tube = []
     for k in ks:
-        tube += [disc(dims[0] / 2, dims[1] * 0.7, r_out, k + 0.3)]
-        tube += [disc(dims[0] / 2, dims[1] * 0.7, r_in, k + 0.3)]
+        tube += [disc(dims[0] * 0.4, dims[1] * 0.64, r_out, k + 0.3)]
+        tube += [disc(dims[0] * 0.4, dims[1] * 0.64, r_in, k + 0.3)]
     tube_ml = polygon * (r_out**2 - r_in**2) * height / 1000
     return [
         Roi(1, "box", (220, 40, 40), box, box_ml),

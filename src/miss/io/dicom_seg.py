@@ -139,13 +139,15 @@ def _header(path: str | os.PathLike[str], kind: str, what: str) -> Any:
     name = Path(path).name
     try:
         header = pydicom.dcmread(path, stop_before_pixels=True)
-    except (InvalidDicomError, EOFError, ValueError, TypeError, AttributeError) as exc:
+        for _ in header.iterall():  # pydicom parses sequences when first touched
+            pass
+    except (FileNotFoundError, PermissionError, IsADirectoryError) as exc:
+        raise UnreadableSegmentation(f"{name}: cannot read it ({exc.strerror}).") from None
+    except (InvalidDicomError, OSError, EOFError, ValueError, TypeError, AttributeError) as exc:
         raise UnreadableSegmentation(
             f"{name} is not a readable DICOM file ({_short(exc)}); it is damaged or "
             f"truncated: export {what} again."
         ) from None
-    except OSError as exc:
-        raise UnreadableSegmentation(f"{name}: cannot read it ({exc.strerror}).") from None
     found = KINDS.get(_sop_class(header))
     if found != kind:
         sop = _sop_class(header) or "none"
@@ -185,7 +187,9 @@ def _check_seg_size(header: Any, name: str) -> None:
 
 
 #: What highdicom and pydicom raise on a damaged or incomplete SEG.
-_DAMAGED = (ValueError, TypeError, KeyError, AttributeError, IndexError, RuntimeError, EOFError)
+_DAMAGED = (
+    ValueError, TypeError, KeyError, AttributeError, IndexError, RuntimeError, EOFError, OSError,
+)  # fmt: skip
 
 
 def _segread(path: str | os.PathLike[str], name: str) -> Any:
