@@ -89,6 +89,28 @@ def test_seg_of_totalsegmentator_labels_matches_the_nifti_voxel_for_voxel(
         assert np.allclose(info.color, colors[by_name[info.name]].color, atol=1.01 / 255)
 
 
+def test_the_builders_reference_their_series(
+    abdomen_seg: Path, datasets: Path, phantom: Path
+) -> None:
+    ct = read_series(datasets / ABDOMEN / "dicom")[0]
+    seg = pydicom.dcmread(abdomen_seg, stop_before_pixels=True)
+    assert seg.StudyInstanceUID == ct[0].StudyInstanceUID
+    assert seg.FrameOfReferenceUID == ct[0].FrameOfReferenceUID
+    (series,) = seg.ReferencedSeriesSequence
+    assert series.SeriesInstanceUID == ct[0].SeriesInstanceUID
+    assert len(series.ReferencedInstanceSequence) == len(ct) == 20
+    images = read_series(phantom / "ct")[0]
+    rt = pydicom.dcmread(phantom / "rt" / "rtstruct.dcm")
+    assert rt.StudyInstanceUID == images[0].StudyInstanceUID
+    (frame,) = rt.ReferencedFrameOfReferenceSequence
+    assert frame.FrameOfReferenceUID == images[0].FrameOfReferenceUID
+    referenced = frame.RTReferencedStudySequence[0].RTReferencedSeriesSequence[0]
+    assert referenced.SeriesInstanceUID == images[0].SeriesInstanceUID
+    assert {i.ReferencedSOPInstanceUID for i in referenced.ContourImageSequence} == {
+        s.SOPInstanceUID for s in images
+    }
+
+
 def test_seg_liver_lands_on_liver_density(abdomen_seg: Path, datasets: Path) -> None:
     from miss.structures.labelmap import align_labels
 
