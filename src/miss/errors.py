@@ -17,6 +17,11 @@ class UnreadableVolume(MissError, ValueError):
     """A file or folder that cannot be read as a volume (missing, truncated, wrong magic)."""
 
 
+class UnreadableSegmentation(UnreadableVolume):
+    """A DICOM SEG or RT-STRUCT that cannot be laid over its series (not one, no segments,
+    no geometry, contours off the image planes)."""
+
+
 class UnsupportedFormat(MissError, ValueError):
     """A file extension or format MISS has no reader or writer for."""
 

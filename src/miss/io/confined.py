@@ -47,6 +47,7 @@ from miss.errors import (
     EmptySurface,
     InputTooLarge,
     MissError,
+    UnreadableSegmentation,
     UnreadableVolume,
     UnsafeArchive,
     UnsupportedFormat,
@@ -66,6 +67,7 @@ ERRORS: dict[str, type[MissError]] = {
         DiskFull,
         EmptySurface,
         InputTooLarge,
+        UnreadableSegmentation,
         UnreadableVolume,
         UnsafeArchive,
         UnsupportedFormat,
@@ -214,13 +216,16 @@ def parse_upload(
     limits: Limits,
     mode: str = "volume",
     series: str | None = None,
+    grid: dict[str, Any] | None = None,
 ) -> Parsed:
     """Read ``work/upload`` (a zip is unpacked into ``work/unzipped`` first) in a child.
 
     ``mode``: ``volume`` (one volume; ``series`` picks a DICOM series by its UID in the
-    files), ``series`` (list the DICOM series only) or ``labels`` (a label map and the
-    label table that comes with it). Raises the reader's ``MissError`` as the child
-    reported it.
+    files), ``series`` (list the DICOM series only), ``labels`` (a label map and the
+    label table that comes with it) or ``segmentation`` (the one DICOM SEG or RT-STRUCT
+    among the files as a label map and its table; an RT-STRUCT is rasterised on ``grid``,
+    ``{"affine": 4x4 voxel-to-LPS-mm rows, "dims": [X, Y, Z]}`` of its image series).
+    Raises the reader's ``MissError`` as the child reported it.
     """
     out = work / OUT
     _remove(out)
@@ -229,6 +234,7 @@ def parse_upload(
         "mode": mode,
         "upload": upload,
         "series": series or "",
+        "grid": grid or {},
         "roots": list(confinement.read_roots),
         "confined": confinement.confined,
         "unzipped_bytes": limits.unzipped_bytes,
@@ -525,7 +531,15 @@ def _probe(config: dict[str, Any]) -> dict[str, Any]:
 
 def _source(config: dict[str, Any]) -> Path:
     """The upload, or what to read from it once unpacked (a zip, once per folder)."""
-    from miss.io.archive import extract_zip, is_zip, pick_source
+    from miss.io.archive import pick_source
+
+    unpacked = _unpack(config)
+    return pick_source(unpacked) if unpacked.is_dir() else unpacked
+
+
+def _unpack(config: dict[str, Any]) -> Path:
+    """The upload file, or the folder ``unzipped`` (a zip upload is unpacked there)."""
+    from miss.io.archive import extract_zip, is_zip
 
     work = Path.cwd()
     unpacked = work / "unzipped"
@@ -534,9 +548,7 @@ def _source(config: dict[str, Any]) -> Path:
         unpacked.mkdir(exist_ok=True)
         extract_zip(upload, unpacked, int(config["unzipped_bytes"]), _free_space_check(config))
         upload.unlink()  # halve the disk the upload takes meanwhile
-    if unpacked.is_dir():
-        return pick_source(unpacked)
-    return upload
+    return unpacked if unpacked.is_dir() else upload
 
 
 def _free_space_check(config: dict[str, Any]) -> Any:
@@ -587,6 +599,43 @@ def _labels(config: dict[str, Any]) -> dict[str, Any]:
     return answer
 
 
+def _segmentation(config: dict[str, Any]) -> dict[str, Any]:
+    """A DICOM SEG or RT-STRUCT (the upload, or the one among the unpacked files) as a
+    label map; an RT-STRUCT on ``config["grid"]``. DICOM names no other file, so this
+    reads alike confined or not."""
+    from miss.io.dicom_seg import find_segmentation, read_rtstruct, read_seg, segmentation_kind
+
+    found = _unpack(config)
+    source = find_segmentation(found) if found.is_dir() else found
+    if segmentation_kind(source) == "rtstruct":
+        labels, table = read_rtstruct(source, _grid(config.get("grid")))
+    else:  # read_seg says what else it is
+        labels, table = read_seg(source)
+    rows = [{"label": k, "name": v.name, "color": list(v.color or ())} for k, v in table.items()]
+    return {
+        "volume": _write_volume(labels),
+        "table": rows,
+        "table_source": labels.meta.get("source_format", ""),
+        "source_name": _relative(source),
+    }
+
+
+def _grid(described: Any) -> Volume:
+    """The image grid an RT-STRUCT is drawn on, as a Volume without voxels (a read-only
+    zero-stride view of one 0: only its dims and affine are used)."""
+    try:
+        affine = np.array(described["affine"], dtype=np.float64)
+        dims = tuple(int(d) for d in described["dims"])
+    except (KeyError, TypeError, ValueError):
+        raise BadParameter(
+            "an RT-STRUCT is drawn on its image series: give the series' grid "
+            "({affine, dims}) with it."
+        ) from None
+    if affine.shape != (4, 4) or len(dims) != 3 or min(dims) < 1:
+        raise BadParameter("the image grid needs a 4x4 affine and three positive dims.")
+    return Volume(np.broadcast_to(np.zeros(1, np.uint8), dims), affine)
+
+
 def _refuse_pointers(source: Path) -> None:
     """Unconfined, only formats that cannot name another file are read."""
     from miss.io import self_contained
@@ -624,4 +673,10 @@ def _write_json(path: Path, value: Any) -> None:
     path.write_text(json.dumps(value))
 
 
-_CHILD_MODES = {"probe": _probe, "volume": _read, "series": _series, "labels": _labels}
+_CHILD_MODES = {
+    "probe": _probe,
+    "volume": _read,
+    "series": _series,
+    "labels": _labels,
+    "segmentation": _segmentation,
+}

@@ -47,21 +47,66 @@ def read_labelmap(
     if not counts:
         raise BadParameter(f"{path.name} holds no labels (every voxel is 0, the background).")
     align_labels(labels, volume)  # raises BadParameter when the two do not overlap in mm
-    table = _table(parsed.table)
+    return labels, _meta(labels, counts, _table(parsed.table), parsed.table_source)
+
+
+def read_segmentation(
+    path: Path, volume: Volume, work: Path, reading: tuple[Confinement, Limits]
+) -> tuple[Volume, dict[str, Any]]:
+    """Read a DICOM SEG or RT-STRUCT (confined) as a label map over ``volume``.
+
+    Parameters
+    ----------
+    path : Path
+        The segmentation file directly inside ``work``, or the folder ``work/unzipped``
+        of files among which is exactly one SEG or RT-STRUCT (e.g. a series fetched from
+        the PACS).
+    volume : Volume
+        The stored image volume: an RT-STRUCT is rasterised on its grid (affine, dims), a
+        SEG keeps its own grid and must overlap it in patient mm.
+    work : Path
+        The job's working folder (the confined child may write only there).
+
+    Returns
+    -------
+    labels, meta
+        As :func:`read_labelmap`: ``meta["labels"]`` names and colours each label from
+        the file, ``meta["table"]`` is ``"DICOM SEG"`` or ``"RT-STRUCT"``; store both
+        with :func:`save`.
+    """
+    if path.is_dir() and path != work / "unzipped":
+        raise ValueError(f"put the files in {work / 'unzipped'}, not {path}")
+    upload = path.name if path.is_file() else ".segmentation"  # none: read unzipped/
+    grid = {"affine": volume.affine.tolist(), "dims": list(volume.dims)}
+    try:
+        parsed = parse_upload(work, upload, *reading, mode="segmentation", grid=grid)
+    except MissError as exc:  # the server's folders are none of the client's business
+        raise type(exc)(str(exc).replace(f"{work}/", "")) from None
+    assert parsed.volume is not None
+    labels = parsed.volume
+    counts = label_counts(labels)
+    if not counts:  # the readers refuse an empty map; this guards the child's answer
+        raise BadParameter(f"{path.name} holds no labelled voxels.")
+    align_labels(labels, volume)  # raises BadParameter when the two do not overlap in mm
+    return labels, _meta(labels, counts, _table(parsed.table), parsed.table_source)
+
+
+def _meta(labels: Volume, counts: dict[int, int], table: LabelTable, source: str) -> dict[str, Any]:
+    """``labels.json``: the map's grid, its labels (count, name, colour), where the names
+    came from, and the hash jobs key their cache on."""
     entries = []
     for label, voxels in sorted(counts.items()):
         info = describe(label, table)
         entries.append(
             {"label": label, "name": info.name, "voxels": voxels, "color": list(info.color or ())}
         )
-    meta = {
+    return {
         "affine": labels.affine.tolist(),
         "dims": list(labels.dims),
         "labels": entries,
-        "table": parsed.table_source,
+        "table": source,
         "sha256": source_hash(labels.data, labels.affine),
     }
-    return labels, meta
 
 
 def _table(rows: list[dict[str, Any]]) -> LabelTable:
