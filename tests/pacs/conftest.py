@@ -23,6 +23,9 @@ PATIENTS = {
 }
 
 
+ABDOMEN = "ct_abdomen_totalseg/dicom"
+
+
 @dataclass
 class Series:
     """A series as the PACS holds it: its patient and its original UIDs."""
@@ -35,6 +38,7 @@ class Series:
     series: str
     frame_of_reference: str
     instances: int
+    segmentation: str = ""
 
 
 def read_series(folder: Path, patient: tuple[str, str, str, str]) -> list:
@@ -53,6 +57,8 @@ def read_series(folder: Path, patient: tuple[str, str, str, str]) -> list:
             continue
         ds.PatientName, ds.PatientID, ds.PatientBirthDate = name, pid, birth
         ds.AccessionNumber = accession
+        if not ds.get("SOPClassUID"):  # the abdomen CT keeps it only in the file meta
+            ds.SOPClassUID = ds.file_meta.MediaStorageSOPClassUID
         for key in ("StudyInstanceUID", "SeriesInstanceUID", "SOPInstanceUID"):
             if not ds.get(key):
                 one = path.name if key == "SOPInstanceUID" else ""
@@ -85,7 +91,9 @@ def orthanc(tmp_path_factory: pytest.TempPathFactory) -> Iterator[orthanc_mod.Or
 
 
 @pytest.fixture(scope="session")
-def pacs_series(orthanc: orthanc_mod.Orthanc, datasets: Path) -> dict[str, Series]:
+def pacs_series(
+    orthanc: orthanc_mod.Orthanc, datasets: Path, tmp_path_factory: pytest.TempPathFactory
+) -> dict[str, Series]:
     """The three real series, stored in the Orthanc with their made-up patients."""
     out: dict[str, Series] = {}
     for folder, patient in PATIENTS.items():
@@ -96,4 +104,12 @@ def pacs_series(orthanc: orthanc_mod.Orthanc, datasets: Path) -> dict[str, Serie
             folder, patient[0], patient[1], patient[3], str(first.StudyInstanceUID),
             str(first.SeriesInstanceUID), str(first.get("FrameOfReferenceUID", "")), len(found),
         )  # fmt: skip
+        if folder == ABDOMEN:  # its TotalSegmentator labels as a DICOM SEG beside it
+            import pydicom
+
+            from pacs.dicom_data import write_seg
+
+            seg = pydicom.dcmread(write_seg(tmp_path_factory.mktemp("seg"), datasets, found))
+            stow(orthanc, [seg])
+            out[folder].segmentation = str(seg.SeriesInstanceUID)
     return out

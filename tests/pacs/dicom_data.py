@@ -52,6 +52,11 @@ def read_series(series_dir: Path) -> tuple[list[Dataset], np.ndarray]:
         Voxel (column, row, slice) to LPS mm.
     """
     slices = [pydicom.dcmread(p) for p in sorted(Path(series_dir).iterdir()) if p.is_file()]
+    return sort_series(slices)
+
+
+def sort_series(slices: list[Dataset]) -> tuple[list[Dataset], np.ndarray]:
+    """:func:`read_series` of datasets already read (e.g. changed in memory)."""
     slices = [s for s in slices if "ImagePositionPatient" in s]
     for s in slices:  # the abdomen CT keeps its SOP class only in the file meta
         if not s.get("SOPClassUID"):
@@ -134,19 +139,22 @@ def _save(ds: Dataset, path: Path) -> Path:
 # --------------------------------------------------------------------------- SEG
 
 
-def write_seg(out_dir: Path, datasets: Path = DATASETS) -> Path:
+def write_seg(
+    out_dir: Path, datasets: Path = DATASETS, slices: list[Dataset] | None = None
+) -> Path:
     """A DICOM SEG (BINARY) of the abdomen CT with TotalSegmentator's 31 labels.
 
     Segment numbers are 1..31 in the order of TotalSegmentator's label ids; each
     segment's label is TotalSegmentator's name and its colour MISS's TotalSegmentator
-    colour. Same study as the CT, references every CT slice. About 2 s.
+    colour. Same study as the CT, references every CT slice. About 2 s. ``slices``: the
+    CT as read and changed in memory (a PACS's copy with its own UIDs), else as on disk.
     """
     import nibabel as nib
 
     from miss.structures.labels import totalsegmentator_table
 
     folder = datasets / ABDOMEN
-    slices, affine = read_series(folder / "dicom")
+    slices, affine = sort_series(slices) if slices else read_series(folder / "dicom")
     nifti = nib.load(folder / "example_seg_dicom.nii.gz")
     ras_to_lps = np.diag([-1.0, -1.0, 1.0, 1.0])
     labels = _resample(np.asarray(nifti.dataobj), ras_to_lps @ nifti.affine, affine, _dims(slices))

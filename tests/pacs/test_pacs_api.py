@@ -185,3 +185,35 @@ def test_sent_instance_passes_dciodvfy(
     said = out.stdout + out.stderr
     assert "EncapsulatedSTL" in said, said
     assert "Error" not in said, said
+
+
+def test_a_dicom_seg_beside_the_series_becomes_its_label_map(
+    app: TestClient, radiologist: dict[str, str], pacs_series: dict[str, Series]
+) -> None:
+    """The abdomen CT (JPEG 2000 on the PACS, read as stored) comes with its
+    TotalSegmentator SEG: the volume gets the 31 labels, named, and Generate makes one
+    named, coloured part per segment."""
+    abdomen = pacs_series["ct_abdomen_totalseg/dicom"]
+    series = app.get(f"/api/pacs/studies/{abdomen.study}/series", headers=radiologist).json()
+    kinds = {s["series"]: (s["modality"], s["importable"], s["segmentation"]) for s in series}
+    assert kinds == {
+        abdomen.series: ("CT", True, False),
+        abdomen.segmentation: ("SEG", False, True),
+    }
+    done = import_series(app, radiologist, abdomen)
+    assert done["status"] == "done", done
+    assert done["labels"] == 31
+    volume = app.get(f"/api/volumes/{done['volume_id']}", headers=radiologist).json()
+    labelmap = volume["labelmap"]
+    assert labelmap["table"] == "DICOM SEG" and len(labelmap["labels"]) == 31
+    names = {e["name"] for e in labelmap["labels"]}
+    assert {"liver", "spleen", "stomach"} <= names
+    body = {"volume": done["volume_id"], "labels": "all", "decimate": "quadric"}
+    r = app.post("/api/models", json=body, headers=radiologist)
+    model = wait_for_model(app, r.json()["id"])
+    assert model["status"] == "done", model
+    parts = model["stats"]["parts"]
+    assert {p["name"] for p in parts} <= names and "liver" in {p["name"] for p in parts}
+    colors = {e["name"]: e["color"] for e in labelmap["labels"]}
+    liver = next(p for p in parts if p["name"] == "liver")
+    assert liver["color"] == pytest.approx(colors["liver"], abs=1e-3)

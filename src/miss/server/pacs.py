@@ -51,6 +51,9 @@ log = logging.getLogger("miss.server")
 
 #: Most instances one imported series may have (slices; a multi-frame file counts once).
 MAX_INSTANCES = 5000
+#: Largest DICOM SEG or RT-STRUCT series retrieved (an uncompressed SEG of a 20-slice CT
+#: with 31 segments is 17 MB).
+MAX_SEGMENTATION_BYTES = 1 << 30
 RESTARTED = "the server restarted during the import; import the series again."
 
 
@@ -193,7 +196,8 @@ def find_segmentation(
     server: PacsServer, study: str, series: str, wanted: str, work: Path
 ) -> Path | None:
     """Retrieve the SEG or RT-STRUCT series ``wanted`` (a UID), or with ``auto`` the newest
-    one in ``study`` that refers to ``series``, into ``work/seg-N/``; None when none does."""
+    one in ``study`` that refers to ``series``, into ``work/unzipped/`` (where the confined
+    reader looks); None when none does."""
     rows = client.search_series(server, study)
     if wanted != "auto":
         rows = [r for r in rows if r["series"] == wanted]
@@ -202,13 +206,13 @@ def find_segmentation(
                 f"series {wanted} of the study is not a DICOM SEG or RT-STRUCT; pick one "
                 "from GET /api/pacs/studies/{study}/series, or send segmentation 'none'."
             )
-    candidates = [r for r in rows if r["segmentation"]]
-    for n, candidate in enumerate(reversed(candidates)):
-        folder = work / f"seg-{n}"
+    folder = work / "unzipped"
+    for candidate in reversed([r for r in rows if r["segmentation"]]):
+        shutil.rmtree(folder, ignore_errors=True)
         folder.mkdir()
         client.retrieve_series(
-            server, study, candidate["series"], folder, 256 << 20, candidate["instances"] or 64,
-            images=False,
+            server, study, candidate["series"], folder, MAX_SEGMENTATION_BYTES,
+            candidate["instances"] or 64, images=False,
         )  # fmt: skip
         if wanted != "auto" or refers_to(folder, series):
             return folder
