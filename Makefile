@@ -6,7 +6,7 @@ PIP := $(PY) -m pip
 WEB := src/miss/web
 VALIDATORS := tests/validators
 
-.PHONY: run test lint format bench web-deps validators vrml-reader chromium clean
+.PHONY: run test lint format bench web-deps validators vrml-reader chromium pacs-servers clean
 
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -47,11 +47,19 @@ chromium:
 		apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null; \
 	fi
 
+# A real PACS for the PACS tests (Debian's Orthanc with its DICOMweb plugin) and David
+# Clunie's dciodvfy (dicom3tools), which checks the DICOM files MISS sends.
+pacs-servers:
+	@if [ ! -x /usr/sbin/Orthanc ] || [ ! -f /usr/share/orthanc/plugins/libOrthancDicomWeb.so ] || [ ! -x /usr/bin/dciodvfy ]; then \
+		echo "installing Debian's orthanc, orthanc-dicomweb and dicom3tools for the PACS tests"; \
+		apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends orthanc orthanc-dicomweb dicom3tools >/dev/null; \
+	fi
+
 # Starts the web system on embedded defaults: SQLite + data folder ./miss-data, demo volume.
 run: $(VENV)/.installed web-deps
 	$(VENV)/bin/miss serve $(if $(HOST),--host $(HOST)) $(if $(PORT),--port $(PORT))
 
-test: $(VENV)/.installed web-deps validators vrml-reader chromium
+test: $(VENV)/.installed web-deps validators vrml-reader chromium pacs-servers
 	$(VENV)/bin/ruff check src tests benchmarks
 	$(VENV)/bin/ruff format --check src tests benchmarks
 	$(VENV)/bin/pytest -q
