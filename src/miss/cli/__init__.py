@@ -11,7 +11,7 @@ import sys
 from collections.abc import Callable, Sequence
 from typing import NoReturn
 
-from miss.cli import admin, convert, demo, info
+from miss.cli import admin, convert, demo, info, pacs
 
 EXIT_BAD_INPUT = 2
 
@@ -31,6 +31,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_parser(sub)
     admin.add_serve_parser(sub)
     admin.add_parsers(sub)
+    pacs.add_parser(sub)
     return parser
 
 
@@ -41,6 +42,7 @@ COMMANDS: dict[str, Callable[[argparse.Namespace], int]] = {
     "serve": admin.cmd_serve,
     "user": admin.cmd_user,
     "audit": admin.cmd_audit,
+    "pacs": pacs.cmd_pacs,
 }
 
 

@@ -24,11 +24,16 @@ def add_parsers(sub: Any) -> None:
     add = user_sub.add_parser("add", help="create an account; the password is read from stdin")
     add.add_argument("name")
     add.add_argument("--admin", action="store_true", help="may see everything and read the audit")
+    add.add_argument(
+        "--pacs", action="store_true", help="may search, import from and send to the PACS"
+    )
     add.add_argument("--data-dir", default=None, help="default: MISS_DATA_DIR or ./miss-data")
     helps = {
         "passwd": "set an account's password (read from stdin); its logins end",
         "disable": "disable an account: it cannot log in, and its logins end",
         "enable": "enable a disabled account again",
+        "grant-pacs": "let an account search, import from and send to the PACS",
+        "revoke-pacs": "take an account's PACS permission back",
     }
     for name, text in helps.items():
         change = user_sub.add_parser(name, help=text)
@@ -64,7 +69,7 @@ def _read_password() -> str:
 
 
 def cmd_user(args: argparse.Namespace) -> int:
-    """``miss user add|passwd|disable|enable NAME``. A running server drops the ended
+    """``miss user add|passwd|disable|enable|grant-pacs|revoke-pacs NAME``. A running server drops the ended
     logins within seconds (it checks its live sessions against the database)."""
     from miss.server import accounts, audit
     from miss.server.settings import Settings
@@ -75,8 +80,17 @@ def cmd_user(args: argparse.Namespace) -> int:
     try:
         store.init_schema()
         if args.user_command == "add":
-            user = accounts.create_user(store, args.name, _read_password(), is_admin=args.admin)
+            user = accounts.create_user(
+                store, args.name, _read_password(), is_admin=args.admin, pacs=args.pacs
+            )
             said = f"created {'administrator' if user.is_admin else 'user'} {user.name!r}"
+            said += " with PACS access" if user.pacs else ""
+        elif args.user_command in ("grant-pacs", "revoke-pacs"):
+            user = accounts.find_user(store, args.name)
+            accounts.set_pacs(store, user.id, args.user_command == "grant-pacs")
+            audit.record(store, "user_change", "(command line)", user.name,
+                         pacs=args.user_command == "grant-pacs")  # fmt: skip
+            said = f"{args.user_command}: {user.name!r}"
         else:
             user = accounts.find_user(store, args.name)
             if args.user_command == "passwd":

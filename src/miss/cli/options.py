@@ -12,7 +12,7 @@ from collections.abc import Callable
 from dataclasses import MISSING, Field, fields
 from typing import Any
 
-from miss.spec import FileSource, Structure, default_of, form_fields, form_name
+from miss.spec import FileSource, Source, Structure, default_of, form_fields, form_name
 
 
 def _ints(text: str) -> int | tuple[int, ...]:
@@ -131,6 +131,12 @@ def job_form(args: argparse.Namespace) -> dict[str, Any]:
     return form
 
 
-def source_of(args: argparse.Namespace) -> FileSource:
+def source_of(args: argparse.Namespace) -> Source:
+    """PATH as a source: ``dicomweb:STUDY/SERIES`` a series on the PACS, else a file."""
+    if str(args.path).startswith("dicomweb:"):
+        from miss.pacs.source import PacsSeries, parse, pick_server
+
+        study, series = parse(args.path)  # type: ignore[misc]
+        return PacsSeries(pick_server(), study, series)
     given = {f.name: getattr(args, f.name) for f in fields(FileSource)}
     return FileSource(**{k: v for k, v in given.items() if v is not None})
