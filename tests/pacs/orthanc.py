@@ -91,8 +91,9 @@ def available() -> str | None:
     return None
 
 
-def start(folder: Path) -> Orthanc:
-    """Start Orthanc in ``folder`` on a free loopback port; waits until it answers."""
+def start(folder: Path, lua: str = "") -> Orthanc:
+    """Start Orthanc in ``folder`` on a free loopback port; waits until it answers.
+    ``lua``: a Lua script Orthanc runs (e.g. a ``ReceivedInstanceFilter`` that refuses)."""
     folder.mkdir(parents=True, exist_ok=True)
     port = free_port()
     user, password = "miss", secrets.token_urlsafe(12)
@@ -114,6 +115,9 @@ def start(folder: Path) -> Orthanc:
         "Plugins": [str(DICOMWEB_PLUGIN)],
         "DicomWeb": {"Enable": True, "Root": "/dicom-web/", "EnableWado": False},
     }
+    if lua:
+        (folder / "filter.lua").write_text(lua)
+        config["LuaScripts"] = [str(folder / "filter.lua")]
     (folder / "orthanc.json").write_text(json.dumps(config, indent=1))
     auth_file = folder / "pacs-auth"
     auth_file.write_text(f"{user}:{password}\n")

@@ -165,6 +165,15 @@ def calling(server: PacsServer, what: str) -> Iterator[None]:
             f"{server.where} sent an answer MISS cannot read while {what} "
             f"({type(exc).__name__}); check that MISS_PACS_URL is its DICOMweb root."
         ) from None
+    except Exception as exc:
+        from pydicom.errors import InvalidDicomError
+
+        if not isinstance(exc, InvalidDicomError):
+            raise
+        raise PacsError(
+            f"{server.where} sent a part that is not a DICOM file (no preamble and 'DICM') "
+            f"while {what}; check the PACS's DICOMweb settings or ask its administrator."
+        ) from None
 
 
 def _reason(exc: Exception) -> str:
@@ -177,10 +186,15 @@ def _reason(exc: Exception) -> str:
 
 def _http_message(server: PacsServer, what: str, response: Any) -> str:
     code = getattr(response, "status_code", 0)
-    if code in (401, 403):
+    if code == 401:
         return (
-            f"{server.where} refused MISS's credentials ({code}) while {what}; check the "
+            f"{server.where} refused MISS's credentials (401) while {what}; check the "
             "file MISS_PACS_AUTH_FILE names (user:password or Bearer TOKEN)."
+        )
+    if code == 403:
+        return (
+            f"{server.where} refused (403 forbidden) while {what}: the account in "
+            "MISS_PACS_AUTH_FILE may not do this there; ask the PACS's administrator."
         )
     if code == 404:
         return (
@@ -544,8 +558,12 @@ def study_origin(server: PacsServer, study: str, series: str | None) -> Any:
 
 
 def store(server: PacsServer, datasets: Sequence[Any], study: str) -> list[str]:
-    """Send ``datasets`` into ``study``; the SOP Instance UIDs the PACS stored. A refusal,
-    whole or of one instance, raises :class:`PacsError` with the PACS's reason."""
+    """Send ``datasets`` (one new series) into ``study``; the SOP Instance UIDs stored.
+
+    What the PACS says is checked against what it holds: a refusal, whole or of one
+    instance, raises :class:`PacsError` with the PACS's reason, and so does an answer of
+    success for instances a query then does not find (Orthanc's DICOMweb plugin 1.7
+    reports instances its own filters dropped as stored)."""
     client = connect(server)
     with calling(server, "storing the model"):
         answer = client.store_instances(list(datasets), study_instance_uid=study)
@@ -557,14 +575,19 @@ def store(server: PacsServer, datasets: Sequence[Any], study: str) -> list[str]:
             f"failure reason {', '.join(reasons)}); ask its administrator whether it accepts "
             "Encapsulated STL (1.2.840.10008.5.1.4.1.1.104.3)."
         )
-    stored = [
-        str(item.get("ReferencedSOPInstanceUID", ""))
-        for item in answer.get("ReferencedSOPSequence") or []
-    ]
-    stored = [uid for uid in stored if uid]
-    if len(stored) != len(datasets):  # Orthanc lists neither a refusal nor the instance
+    sent = [str(ds.SOPInstanceUID) for ds in datasets]
+    series = str(datasets[0].SeriesInstanceUID)
+    with calling(server, "checking what it stored"):
+        found = client.search_for_instances(
+            study_instance_uid=study, series_instance_uid=series, fields=["SOPInstanceUID"]
+        )
+    held = {_uid_of(item, "00080018") for item in found if isinstance(item, Mapping)}
+    stored = [uid for uid in sent if uid in held]
+    if len(stored) != len(sent):
         raise PacsError(
-            f"{server.where} stored {len(stored)} of {len(datasets)} instance(s) and gave "
-            "no reason; see the PACS's log."
+            f"{server.where} holds {len(stored)} of the {len(sent)} instance(s) it was sent "
+            "(it answered without a refusal, yet a query does not find them: a filter on the "
+            "PACS may drop 3-D models); ask its administrator to accept Encapsulated STL "
+            "(1.2.840.10008.5.1.4.1.1.104.3)."
         )
     return stored

@@ -277,10 +277,10 @@ def describe(model: ModelRow, volume: VolumeRow) -> str:
     stats = model.stats or {}
     parts = [p.get("name") or "surface" for p in stats.get("parts") or []]
     level, units = (model.spec or {}).get("level"), volume.info.get("units") or ""
-    if len(parts) == 1 and level is not None:
+    if len(parts) == 1 and level is not None and f"{level:g}" not in parts[0]:
         what = f"{parts[0]} {level:g} {units}".strip()
     elif len(parts) == 1:
-        what = parts[0]
+        what = parts[0]  # the default name says its level: "bone (300 HU)"
     else:
         what = f"{len(parts)} structures"
     decimation = stats.get("decimation") or {}
