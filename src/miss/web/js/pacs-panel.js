@@ -102,7 +102,7 @@ function studyRow( study, onImported ) {
 	}, study.patient_name || '(no name)' );
 	return fill( row,
 		el( 'td', name ),
-		el( 'td.mono', study.patient_id || '–' ),
+		el( 'td', study.patient_id || '–' ),
 		el( 'td', formatDate( study.study_date ) ),
 		el( 'td', study.description || '' ),
 		el( 'td', ( study.modalities || [] ).join( ', ' ) ),

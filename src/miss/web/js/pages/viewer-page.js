@@ -89,10 +89,10 @@ function offerPacs( me, volume ) {
 			const n = sent.sop_instance_uids.length;
 			result.textContent = `Sent to ${sent.pacs}: ${sent.description} (${n} instance${n === 1 ? '' : 's'})`;
 			result.dataset.sent = '1';
+			button.textContent = 'Sent to PACS'; // once: a second send would be a second series
 		} catch ( err ) {
 			result.classList.add( 'error' );
 			result.textContent = err.message;
-		} finally {
 			button.disabled = false;
 		}
 	} );
