@@ -92,6 +92,13 @@ export const api = {
 	revokeShare: ( id ) => request( 'DELETE', `/api/shares/${enc( id )}` ),
 	roomSessions: ( modelId ) => request( 'GET', `/api/models/${enc( modelId )}/room/sessions` ),
 	roomEvents: ( modelId, session ) => request( 'GET', `/api/models/${enc( modelId )}/room/events?session=${enc( session )}` ),
+	// The PACS (only for accounts with the pacs permission; 404 for the others).
+	pacsServers: () => request( 'GET', '/api/pacs' ),
+	pacsStudies: ( filters ) => request( 'GET', `/api/pacs/studies?${new URLSearchParams( filters )}` ),
+	pacsSeries: ( study ) => request( 'GET', `/api/pacs/studies/${enc( study )}/series` ),
+	pacsImport: ( study, series ) => request( 'POST', '/api/pacs/import', { study, series, segmentation: 'auto' } ),
+	pacsImportStatus: ( id ) => request( 'GET', `/api/pacs/imports/${enc( id )}` ),
+	sendToPacs: ( modelId ) => request( 'POST', `/api/models/${enc( modelId )}/pacs`, {} ),
 };
 
 export const urls = {

@@ -1,9 +1,11 @@
-// Library page: the list of volumes as cards, upload by picker or drag and drop.
+// Library page: the list of volumes as cards, upload by picker or drag and drop, and
+// (for an account that may use one) the From PACS tab.
 
 import { showSession } from '../session.js';
 import { api, urls } from '../api.js';
 import { describeVolume, el } from '../format.js';
 import { looksLikeVolume, uploadVolume } from '../upload.js';
+import { setupPacs } from '../pacs-panel.js';
 
 const $ = ( id ) => document.getElementById( id );
 
@@ -115,6 +117,18 @@ function setupUpload() {
 	} );
 }
 
-showSession();
+// A volume imported from the PACS joins the list as an upload does.
+async function addVolume( id ) {
+	try {
+		const volume = await api.volume( id );
+		$( 'volumes' ).querySelector( `[data-id="${CSS.escape( id )}"]` )?.remove();
+		$( 'volumes' ).prepend( volumeCard( volume ) );
+		$( 'empty' ).hidden = true;
+	} catch ( err ) {
+		showError( $( 'list-error' ), err );
+	}
+}
+
+showSession().then( ( me ) => setupPacs( me, { onImported: addVolume } ) );
 setupUpload();
 refresh();

@@ -72,10 +72,36 @@ function showVolume( volume ) {
 	$( 'share' ).addEventListener( 'click', () => dialog.open() );
 }
 
+// "Send to PACS", for the volume's owner when the account may use a PACS (the server
+// answers 404 to anybody else, 422 for a volume that did not come from DICOM).
+function offerPacs( me, volume ) {
+	if ( ! me?.pacs || volume.owner !== me.name ) return;
+	const button = $( 'send-pacs' );
+	const result = $( 'pacs-result' );
+	button.hidden = false;
+	button.addEventListener( 'click', async () => {
+		button.disabled = true;
+		result.hidden = false;
+		result.classList.remove( 'error' );
+		result.textContent = 'Sending to the PACS…';
+		try {
+			const sent = await api.sendToPacs( modelId );
+			const n = sent.sop_instance_uids.length;
+			result.textContent = `Sent to ${sent.pacs}: ${sent.description} (${n} instance${n === 1 ? '' : 's'})`;
+			result.dataset.sent = '1';
+			button.textContent = 'Sent to PACS'; // once: a second send would be a second series
+		} catch ( err ) {
+			result.classList.add( 'error' );
+			result.textContent = err.message;
+			button.disabled = false;
+		}
+	} );
+}
+
 export async function start() {
 	const asked = api.model( modelId ); // on its way while the viewer starts up
 	asked.catch( () => {} ); // awaited below
-	showSession();
+	const me = showSession();
 	const viewer = new ModelViewer( $( 'stage' ) );
 	let consult = null;
 	const structures = new StructuresPanel( viewer );
@@ -86,12 +112,14 @@ export async function start() {
 	const display = setupDisplay( viewer, ( fmt ) => urls.download( modelId, fmt ), { onLoaded } );
 	try {
 		let model = await asked;
-		api.volume( model.volume ).then( showVolume ).catch( () => {} );
+		const volume = api.volume( model.volume );
+		volume.then( showVolume ).catch( () => {} );
 		let drawn = false;
 		if ( model.status !== 'done' ) ( { model, drawn } = await follow( viewer, model ) );
 		fillStats( model );
 		structures.setStats( model.stats );
 		fillDownloads( model.files );
+		Promise.all( [ me, volume ] ).then( ( [ m, v ] ) => offerPacs( m, v ) ).catch( () => {} );
 		consult = new Consultation( { viewer, modelId, container: $( 'room' ) } );
 		const replay = new Replay( viewer, modelId, $( 'history' ), consult );
 		replay.list().catch( () => {} );
