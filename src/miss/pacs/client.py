@@ -38,6 +38,7 @@ DECODED: frozenset[str] = frozenset(
     (
         "1.2.840.10008.1.2",  # implicit VR little endian
         "1.2.840.10008.1.2.1",  # explicit VR little endian
+        "1.2.840.10008.1.2.1.99",  # deflated explicit VR little endian
         "1.2.840.10008.1.2.2",  # explicit VR big endian
         "1.2.840.10008.1.2.4.90",  # JPEG 2000 lossless
         "1.2.840.10008.1.2.4.91",  # JPEG 2000
