@@ -175,6 +175,7 @@ def test_broken_series_get_the_same_answer_as_an_upload(
         assert imported["status"] == "done", imported
         volume = client.get(f"/api/volumes/{imported['volume_id']}", headers=rad).json()
         assert volume["dims"] == uploaded.json()["dims"]
+        assert volume["notes"] == uploaded.json()["notes"] and volume["notes"]  # said alike
     else:
         assert imported["status"] == "failed"
         assert imported["error"] == uploaded.json()["detail"]
