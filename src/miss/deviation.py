@@ -317,3 +317,75 @@ def deviation(a: Mesh, b: Mesh, samples: int = 100_000, seed: int = 0) -> Deviat
     d_ba = distances_to(sample_surface(b, samples, rng), a)
     both = np.concatenate([d_ab, d_ba])
     return Deviation(max_mm=float(both.max()), mean_mm=float(both.mean()), samples=len(both))
+
+
+@dataclass(frozen=True)
+class BoundCheck:
+    """The deviation of a decimation whose vertices are a subset of its input's, both ways.
+
+    ``to_output`` (N,): each input vertex's distance to the output surface (0 for the
+    vertices the output kept; NaN for vertices no input triangle uses). ``edges`` (E, 2) and
+    ``edge_mm`` (E,): the output's edges and their midpoints' distance to the input surface;
+    ``faces`` (G, 3) and ``face_mm`` (G,): the output's triangles and their centroids'
+    distance to it. All mm.
+    """
+
+    max_mm: float
+    mean_mm: float
+    samples: int
+    to_output: np.ndarray
+    edges: np.ndarray
+    edge_mm: np.ndarray
+    faces: np.ndarray
+    face_mm: np.ndarray
+
+
+def _edge_keys(faces: np.ndarray) -> np.ndarray:
+    """Sorted unique int64 keys (a << 32 | b, a < b) of the edges of ``faces`` (F, 3)."""
+    pairs = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]).astype(np.int64)
+    pairs.sort(axis=1)
+    return np.unique(pairs[:, 0] << 32 | pairs[:, 1])
+
+
+def bound_check(before: Mesh, faces: np.ndarray) -> BoundCheck:
+    """Two-sided deviation (mm) of the output ``faces`` (M, 3), which index ``before``'s
+    vertices, from ``before``'s surface: every input vertex the output dropped to the output
+    surface, and the output's edge midpoints and triangle centroids to the input surface.
+
+    The output's own vertices are input vertices (distance 0), so this covers every vertex
+    both ways exactly, plus the points where a new triangle bulges from the input most
+    (its edges' and interior's middles), not random samples.
+    """
+    faces = np.ascontiguousarray(faces)
+    used_in = np.zeros(before.n_vertices, dtype=bool)
+    used_in[before.faces.ravel()] = True
+    kept = np.zeros(before.n_vertices, dtype=bool)
+    kept[faces.ravel()] = True
+    to_output = np.where(used_in, 0.0, np.nan)
+    dropped = np.flatnonzero(used_in & ~kept)
+    after = Mesh(vertices=before.vertices, faces=faces)
+    if len(dropped):
+        to_output[dropped] = distances_to(before.vertices[dropped], after)
+    # an edge or triangle the input has too lies on it: its query ends at the first
+    # triangle (distance 0), cheaper than finding which ones they are
+    keys = _edge_keys(faces)
+    edges = np.stack([keys >> 32, keys & 0xFFFFFFFF], axis=1)
+    new = faces
+    v = before.vertices
+    mids = 0.5 * (v[edges[:, 0]].astype(np.float64) + v[edges[:, 1]])
+    cents = (v[new[:, 0]].astype(np.float64) + v[new[:, 1]] + v[new[:, 2]]) / 3.0
+    points = np.concatenate([mids, cents])
+    back = distances_to(points, before) if len(points) else np.zeros(0)
+    edge_mm, face_mm = back[: len(edges)], back[len(edges) :]
+    inside = to_output[used_in]
+    both = np.concatenate([inside, back])
+    return BoundCheck(
+        max_mm=float(both.max()) if len(both) else 0.0,
+        mean_mm=float(both.mean()) if len(both) else 0.0,
+        samples=len(both),
+        to_output=to_output,
+        edges=edges,
+        edge_mm=edge_mm,
+        faces=new,
+        face_mm=face_mm,
+    )

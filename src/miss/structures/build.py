@@ -236,9 +236,11 @@ def _level_parts(
         part_name = f"{name} {rank + 1}" if split else name
         part_color = PALETTE[rank % len(PALETTE)] if split and item.color is None else color
         smoothed = _smoothed(mesh, item.smooth or 0, item.passband, part_name, notes)
+        # a guaranteed bound is checked (and held) while decimating, whatever ``measure`` says
         decimated, report = decimate(
             smoothed, decimation.method, decimation.reduce, decimation.error_bound,
-            max_error=decimation.max_error, measure=measure,
+            max_error=decimation.max_error, schedule=decimation.schedule,
+            measure=measure or decimation.schedule == "guaranteed",
         )  # fmt: skip
         part = Part(part_name, decimated, part_color, opacity)
         out.append((part, report, smoothed, SAMPLES))
