@@ -529,25 +529,35 @@ def _patch_distance(pts, loop, tris, ntri, p, limit2):
 
 
 @njit(cache=True)
-def _patch_gap(pts, faces, v, fan, n, loop, n_loop, tris, ntri, point):
+def _patch_gap(pts, faces, v, fan, n, loop, n_loop, tris, ntri, point, limit):
     """Deviation (mm) between v's fan and the triangles that fill its hole, both ways, at
     the points where two such surfaces part most: from the fan, v, its spokes' midpoints
     and its triangles' centroids; from the patch, its chords' midpoints and its triangles'
     centroids. The loop vertices and loop edges lie on both. The decimation's own check
     (:func:`miss.deviation.bound_check`) measures the result exactly afterwards.
+
+    Returns as soon as the deviation passes ``limit`` (mm): the caller refuses the
+    deletion then, and a smaller figure than the whole still tells it so.
     """
+    limit2 = limit * limit
     worst2 = _patch_distance(pts, loop, tris, ntri, pts[v], 0.0)
     for k in range(n_loop):
+        if worst2 > limit2:
+            return math.sqrt(worst2)
         for c in range(3):
             point[c] = 0.5 * (pts[v, c] + pts[loop[k], c])
         worst2 = max(worst2, _patch_distance(pts, loop, tris, ntri, point, worst2))
     for k in range(n):
+        if worst2 > limit2:
+            return math.sqrt(worst2)
         f = fan[k]
         for c in range(3):
             point[c] = (pts[faces[f, 0], c] + pts[faces[f, 1], c] + pts[faces[f, 2], c]) / 3.0
         worst2 = max(worst2, _patch_distance(pts, loop, tris, ntri, point, worst2))
     closed = n_loop == n
     for t in range(ntri):
+        if worst2 > limit2:
+            return math.sqrt(worst2)
         for e in range(3):
             x, y = tris[t, e], tris[t, (e + 1) % 3]
             lo, hi = min(x, y), max(x, y)
@@ -667,7 +677,9 @@ def _try_delete(
     spent = 0.0
     if len(terr) > 0:
         # nrm is free once the hole is filled: scratch for the points measured
-        spent = carried + _patch_gap(pts, faces, v, fan, n, loop, n_loop, tris, ntri, nrm)
+        spent = carried + _patch_gap(
+            pts, faces, v, fan, n, loop, n_loop, tris, ntri, nrm, bound - carried
+        )
         if spent > bound:
             vmin[v] = spent
             return -1
