@@ -61,7 +61,7 @@ _QUADRIC_TIGHTER = 0.7
 # Quadric runs before a bound still not held is left to schroeder (whose accumulated error
 # holds it in one or two runs): at tight bounds (CThead bone at 0.0002) seven quadric runs
 # did not converge and the input came back whole.
-_QUADRIC_ROUNDS = 3
+_QUADRIC_ROUNDS = 5
 # Measured points within this fraction of the diagonal over the bound are round-off.
 _TOLERANCE = 1e-6
 
@@ -178,9 +178,10 @@ def decimate(
         faces, bound_mm, check, rounds, by = mesh.faces, 0.0, None, 0, "none"
     else:
         run = _runner(mesh, method, reduce, error_bound, max_error, paper_passes, schedule)
-        faces, bound_mm, check, rounds, by = (
-            _held(mesh, run) if measure else (*run(None, 1), None, 1)
-        )
+        if measure:
+            faces, bound_mm, check, rounds, by = _held(mesh, run)
+        else:
+            (faces, bound_mm, by), check, rounds = run(None, 1), None, 1
     if method != "none":
         vertices, faces = compact(mesh.vertices, faces)
         out = Mesh(vertices=vertices, faces=faces, normals=vertex_normals(vertices, faces))
@@ -294,22 +295,24 @@ def _held(
             return faces, bound_mm, (check, spent), round_, by
         if by != last and last:
             locked[:] = False
-        locked |= _out_of_bound(mesh, check, bound_mm, 1.0)
+        locked |= _out_of_bound(mesh, check, bound_mm)
         last = by
     raise AssertionError("unreachable: the last round keeps the input")
 
 
-def _out_of_bound(mesh: Mesh, check: BoundCheck, bound_mm: float, share: float = 0.5) -> np.ndarray:
+def _out_of_bound(
+    mesh: Mesh, check: BoundCheck, bound_mm: float, share: float = 1.0, rings: int = 2
+) -> np.ndarray:
     """(N,) bool: input vertices near where the output strays past ``share`` of the bound
     (dropped vertices, the ends of stray edges, the corners of stray triangles), grown by
-    one ring of the input's triangles."""
+    ``rings`` rings of the input's triangles."""
     import numpy as np
 
     half = share * bound_mm
     bad = np.nan_to_num(check.to_output) > half
     bad[check.edges[check.edge_mm > half].ravel()] = True
     bad[check.faces[check.face_mm > half].ravel()] = True
-    for _ in range(1):
+    for _ in range(rings):
         touched = bad[mesh.faces].any(axis=1)
         bad[mesh.faces[touched].ravel()] = True
     return bad
