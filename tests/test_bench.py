@@ -229,7 +229,7 @@ def test_measure_benchmark_writes_its_table(tmp_path, capsys) -> None:
 def test_two_phase_quadric_meets_the_target_and_stays_closed(monkeypatch) -> None:
     mesh = extract_surface(phantom(), 300.0, sample_rate=2)
     monkeypatch.setattr(decimate_module, "_PARALLEL_MIN_TRIANGLES", 1000)
-    out, report = decimate(mesh, "quadric", reduce=0.9, samples=20_000)
+    out, report = decimate(mesh, "quadric", reduce=0.9, samples=20_000, schedule="paper")
     assert abs(out.n_triangles - 0.1 * mesh.n_triangles) <= 0.01 * mesh.n_triangles
     assert boundary_edge_count(out.faces) == 0
     assert enclosed_volume(out.vertices, out.faces) == pytest.approx(
