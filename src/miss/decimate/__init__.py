@@ -24,8 +24,8 @@ Schedules
     (accumulated error); quadric's target error is the bound. Every run is checked
     (:func:`miss.deviation.bound_check`: every dropped input vertex to the output, every
     output edge's and triangle's middle to the input); where a region is out of bound its
-    vertices are locked and the run repeated (quadric hands a bound it has not held in five
-    runs to schroeder; ``finished_with`` says which method made the model; after seven
+    vertices are locked and the run repeated (quadric hands a bound it has not held in two
+    runs to schroeder, five under ``paper``; ``finished_with`` says which method made the model; after seven
     runs the input is kept), so the bound reported as held was measured to hold.
 ``paper``
     The 1998 pipeline's: the bound is raised up to ``max_error`` until ``reduce`` is met
@@ -61,9 +61,10 @@ ROUNDS = 8
 # locking the regions out of bound alone moves the excess next door (measured on CThead).
 _QUADRIC_TIGHTER = 0.7
 # Quadric runs before a bound still not held is left to schroeder (whose accumulated error
-# holds it in one or two runs): at tight bounds (CThead bone at 0.0002) seven quadric runs
-# did not converge and the input came back whole.
-_QUADRIC_ROUNDS = 5
+# holds it in one or two runs), per schedule: at tight bounds (CThead bone at 0.0002) seven
+# quadric runs did not converge and the input came back whole, and where they did, with
+# more triangles than schroeder's; the paper's loose raised bound took quadric five.
+_QUADRIC_ROUNDS = {"guaranteed": 2, "paper": 5}
 # Measured points within this fraction of the diagonal over the bound are round-off.
 _TOLERANCE = 1e-6
 
@@ -234,8 +235,8 @@ def _runner(
     schedule: str,
 ) -> Run:
     """One run of ``method`` given the vertices locked: (faces kept, the bound it is held
-    to, mm, the method that ran). Quadric runs after its first ``_QUADRIC_ROUNDS`` are
-    schroeder's, held to the same bound."""
+    to, mm, the method that ran). Quadric runs after its first ``_QUADRIC_ROUNDS`` (per
+    schedule) are schroeder's, held to the same bound."""
     import numpy as np
 
     from miss.decimate.quadric import quadric
@@ -247,10 +248,12 @@ def _runner(
         # meshoptimizer's error is relative to the mesh's extent (its largest side)
         extent = max(float(np.ptp(mesh.vertices, axis=0).max()), 1e-12)
 
+        runs = _QUADRIC_ROUNDS[schedule]
+
         def run_quadric(locked: np.ndarray | None, round_: int) -> tuple[np.ndarray, float, str]:
-            if round_ > _QUADRIC_ROUNDS:
+            if round_ > runs:
                 # quadric's locks are not schroeder's: its first run starts free
-                free = None if round_ == _QUADRIC_ROUNDS + 1 else locked
+                free = None if round_ == runs + 1 else locked
                 return (*schroeder(mesh, reduce, bound_mm / 8, bound_mm, 0, free), "schroeder")
             target = bound_mm / extent * _QUADRIC_TIGHTER ** (round_ - 1)
             return quadric(mesh, reduce, target, locked)[0], bound_mm, "quadric"
