@@ -73,6 +73,7 @@ format:
 
 bench: $(VENV)/.bench-installed
 	$(PY) benchmarks/paper_tables.py
+	$(PY) benchmarks/bounds.py
 	$(PY) benchmarks/peers.py
 	$(PY) benchmarks/cli.py
 

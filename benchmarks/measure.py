@@ -74,7 +74,7 @@ def run_job(path: Path, what: dict[str, Any]) -> list[Pair]:
     volume = miss.load_volume(path)
     if "level" in what:
         surface = miss.extract_surface(volume, what["level"])
-        mesh, _ = miss.decimate(surface, "quadric", REDUCE, measure=False)
+        mesh, _ = miss.decimate(surface, "quadric", REDUCE, measure=False, schedule="paper")
         miss.export(mesh, "glb")
         miss.export(mesh, "wrl")
         return [(surface, mesh, 100_000)]

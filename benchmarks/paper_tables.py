@@ -2,8 +2,11 @@
 
     .venv/bin/python benchmarks/paper_tables.py [--repeats 5] [--sample-rates 1,2,4]
                                                 [--volume CThead.nhdr] [--out DIR] [--render]
+                                                [--schedule both|paper|guaranteed]
 
-Writes ``results/paper_tables.{json,md,png}``; ``--render`` also draws the skin (600) and
+Writes ``results/paper_tables.{json,md,png}`` (the paper's schedule),
+``results/paper_tables_guaranteed.*`` (bounds held as caps) and, for both,
+``results/paper_tables_both.md`` (the decimated rows side by side); ``--render`` also draws the skin (600) and
 bone (1500) surfaces of the paper volume side by side, ``results/levels_600_1500.png``, the
 visual check that 600 is the skin in CThead's units.
 """
@@ -65,6 +68,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--volume", default=None, help="CThead.nhdr (default: ../shared)")
     parser.add_argument("--sample-rates", default="1,2,4", metavar="A,B,...")
     parser.add_argument("--render", action="store_true", help="also draw the two levels")
+    parser.add_argument("--schedule", choices=("both", *bench.SCHEDULES), default="both")
     args = parser.parse_args(argv)
     try:
         rates = tuple(int(r) for r in args.sample_rates.split(","))
@@ -77,9 +81,17 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(args.out)
     volume = Path(args.volume) if args.volume else None
     log = lambda line: print(line, file=sys.stderr)  # noqa: E731
-    result = bench.run_paper(out, args.repeats, volume, rates, log=log)
-    print(bench.markdown(bench.rows_from_json(result)))
-    print(f"wrote {out / 'paper_tables.json'}, .md and .png")
+    schedules = bench.SCHEDULES if args.schedule == "both" else (args.schedule,)
+    rows = {}
+    for schedule in schedules:
+        result = bench.run_paper(out, args.repeats, volume, rates, log=log, schedule=schedule)
+        rows[schedule] = bench.rows_from_json(result)
+        print(f"schedule {schedule}\n\n" + bench.markdown(rows[schedule]))
+    if len(rows) == 2:
+        both = bench.side_by_side(rows["paper"], rows["guaranteed"])
+        (out / "paper_tables_both.md").write_text(both)
+        print(both)
+    print(f"wrote {out / 'paper_tables*.json'}, .md and .png")
     if args.render:
         render_levels(bench.paper_volume(), out / "levels_600_1500.png")
     return 0

@@ -229,7 +229,7 @@ def test_measure_benchmark_writes_its_table(tmp_path, capsys) -> None:
 def test_two_phase_quadric_meets_the_target_and_stays_closed(monkeypatch) -> None:
     mesh = extract_surface(phantom(), 300.0, sample_rate=2)
     monkeypatch.setattr(decimate_module, "_PARALLEL_MIN_TRIANGLES", 1000)
-    out, report = decimate(mesh, "quadric", reduce=0.9, samples=20_000)
+    out, report = decimate(mesh, "quadric", reduce=0.9, samples=20_000, schedule="paper")
     assert abs(out.n_triangles - 0.1 * mesh.n_triangles) <= 0.01 * mesh.n_triangles
     assert boundary_edge_count(out.faces) == 0
     assert enclosed_volume(out.vertices, out.faces) == pytest.approx(
@@ -291,3 +291,32 @@ def test_the_paper_volume_is_looked_for_beside_the_repository(
     assert bench.default_cthead() == expected
     monkeypatch.setenv("MISS_CTHEAD", "/elsewhere/CThead.nhdr")
     assert bench.default_cthead() == Path("/elsewhere/CThead.nhdr")
+
+
+def test_bounds_rows_on_the_phantom() -> None:
+    """``benchmarks/bounds.py``: MISS's methods within each bound, peers at MISS's count,
+    every output measured the same way (here, not by the method)."""
+    import bounds
+
+    mesh = extract_surface(phantom(48, spacing=4.0), 200.0)
+    case = bounds.bench_case(mesh, (0.001, 0.01), peers=True, log=lambda line: None)
+    assert case["unbounded_quadric_seconds"] > 0
+    for entry in case["bounds"].values():
+        rows = {r["method"]: r for r in entry["rows"]}
+        assert set(rows) == {"MISS quadric", "MISS schroeder", *bounds.PEERS}
+        for name in ("MISS quadric", "MISS schroeder"):
+            assert rows[name]["holds"] and rows[name]["max_mm"] <= entry["bound_mm"] * 1.000001
+        best = min(rows["MISS quadric"]["triangles"], rows["MISS schroeder"]["triangles"])
+        assert abs(rows["pyfqmr"]["triangles"] - best) <= 0.02 * best + 2
+    assert len(bounds.verdict(case)) == 2
+    table = bounds.markdown({"cases": {"phantom": case}})
+    assert "| 0.001 |" in table and "MISS schroeder" in table and "holds" in table
+
+
+def test_bounds_rejects_bad_bounds_and_cases(capsys) -> None:
+    import bounds
+
+    assert bounds.main(["--bounds", "tight"]) == 2
+    assert "--bounds must be numbers" in capsys.readouterr().err
+    assert bounds.main(["--cases", "CThead knee"]) == 2
+    assert "unknown case" in capsys.readouterr().err

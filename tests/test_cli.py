@@ -33,7 +33,7 @@ def test_info_json_describes_the_volume(demo_file: Path) -> None:
 def test_convert_writes_every_output_and_reports_json(demo_file: Path, tmp_path: Path) -> None:
     outs = [tmp_path / f"bone.{ext}" for ext in ("wrl", "wrz", "glb", "stl")]
     args = ["convert", str(demo_file), "--level", "300", "--sample-rate", "2", "--json"]
-    args.append("--measure")
+    args += ["--measure", "--schedule", "paper"]
     for out in outs:
         args += ["-o", str(out)]
     stats = json.loads(miss(*args).stdout)
@@ -136,11 +136,16 @@ def test_json_keeps_its_keys(demo_file: Path, tmp_path: Path) -> None:
         "name", "label", "color", "opacity", "triangles", "vertices", "volume_ml", "area_cm2",
     }  # fmt: skip
     assert [set(o) for o in stats["outputs"]] == [{"path", "bytes"}]
-    # Measured when asked (about a second: numba loads); the keys are there either way.
-    assert stats["decimation"]["max_error_mm"] is None
+    # The default schedule holds its bound, so it always measures; the paper's measures
+    # when asked (about a second: numba loads); the keys are there either way.
+    decimation = stats["decimation"]
+    assert decimation["bound_held"] and decimation["max_error_mm"] <= decimation["bound_mm"]
+    assert decimation["stopped_by"] in ("bound", "reduce")
+    paper = [*args, "--schedule", "paper", "-o", str(tmp_path / "p.glb")]
+    assert json.loads(miss(*paper).stdout)["decimation"]["max_error_mm"] is None
     assert (
         "error not measured: add --measure"
-        in miss(*args[:-1], "-o", str(tmp_path / "c.glb")).stdout
+        in miss(*args[:-1], "--schedule", "paper", "-o", str(tmp_path / "c.glb")).stdout
     )
 
 

@@ -18,7 +18,14 @@ def skull() -> Mesh:
 
 @pytest.mark.parametrize("method", ["quadric", "schroeder"])
 def test_reduce_met_and_surface_stays_closed(skull: Mesh, method: str) -> None:
-    out, report = decimate(skull, method, reduce=0.8, error_bound=0.0002)
+    # the paper's schedule raises the bound until the target is met; schroeder's
+    # accumulated error needs it raised further than quadric's
+    out, report = decimate(
+        skull, method, reduce=0.8, error_bound=0.0002, schedule="paper",
+        max_error=0.05 if method == "schroeder" else 0.01,
+    )  # fmt: skip
+    assert report.stopped_by == "reduce" and report.bound_held
+    assert report.max_error_mm <= report.final_bound_mm
     assert report.triangles_in == skull.n_triangles
     assert out.n_triangles <= 0.25 * skull.n_triangles
     assert report.achieved_reduction >= 0.75
@@ -87,7 +94,7 @@ def test_quadric_keeps_small_pieces_of_a_real_skull(datasets) -> None:
     one simplification of the whole mesh lost some, for a measured max error of 70 mm."""
     volume = load_volume(datasets / "ct_head_stanford_cthead" / "CThead.nhdr")
     mesh = extract_surface(volume, 1500.0)
-    out, report = decimate(mesh, "quadric", reduce=0.9)
+    out, report = decimate(mesh, "quadric", reduce=0.9, schedule="paper")
     assert report.achieved_reduction >= 0.895
     assert boundary_edge_count(out.faces) == 0
     assert report.max_error_mm < 10.0

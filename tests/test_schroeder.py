@@ -172,7 +172,9 @@ def test_flat_square_goes_to_two_triangles_with_zero_error():
 
 def test_open_bump_keeps_one_boundary_and_drops_straight_boundary_vertices():
     vertices, faces = height_field(31, bump=2.0)
-    new, info = schroeder_decimate(vertices, faces, reduce=0.98, error_bound=0.05, max_error=0.5)
+    new, info = schroeder_decimate(
+        vertices, faces, reduce=0.98, error_bound=0.05, max_error=0.5, accumulate=False
+    )
     assert info["reduction"] >= 0.98
     assert_valid_mesh(vertices, faces, new)
     assert boundary_loop_count(new) == boundary_loop_count(faces) == 1
@@ -280,13 +282,14 @@ def test_random_height_fields_keep_their_boundary(seed, reduce, bound):
 @given(seed=st.integers(0, 2**31 - 1), passes=st.integers(1, 6), bound=st.floats(0.001, 0.02))
 def test_paper_schedule_runs_whole_passes_at_rising_bounds(seed, passes, bound):
     # vtkDecimate's iterations: pass k at k x bound, each pass to its end, at most N passes
+    # (the paper's local criterion: accumulated error would keep a noisy sphere whole)
     unit, faces = icosphere(3)
     vertices = unit * (1.0 + 0.1 * np.random.default_rng(seed).random(len(unit)))[:, None]
     one, info_one = schroeder_decimate(
-        vertices, faces, reduce=0.9, error_bound=bound, paper_passes=1
+        vertices, faces, reduce=0.9, error_bound=bound, paper_passes=1, accumulate=False
     )
     new, info = schroeder_decimate(
-        vertices, faces, reduce=0.9, error_bound=bound, paper_passes=passes
+        vertices, faces, reduce=0.9, error_bound=bound, paper_passes=passes, accumulate=False
     )
     assert_valid_mesh(vertices, faces, new)
     assert euler_characteristic(new) == 2
@@ -298,7 +301,7 @@ def test_paper_schedule_runs_whole_passes_at_rising_bounds(seed, passes, bound):
     if info["passes"] < passes:
         assert info["reduction"] >= 0.9
     strict, _ = schroeder_decimate(
-        vertices, faces, reduce=0.999, error_bound=bound, max_error=bound
+        vertices, faces, reduce=0.999, error_bound=bound, max_error=bound, accumulate=False
     )
     assert len(strict) <= len(one) < len(faces)  # strict mode repeats passes at the bound
 
@@ -408,11 +411,31 @@ def deviation(v0, f0, v1, f1, n=100_000) -> np.ndarray:
 
 
 @pytest.fixture(scope="module")
-def cthead(datasets):
-    vertices, faces = cthead_bone(datasets / "ct_head_stanford_cthead")
+def cthead_surface(datasets):
+    return cthead_bone(datasets / "ct_head_stanford_cthead")
+
+
+@pytest.fixture(scope="module")
+def cthead(cthead_surface):
+    """The paper's local criterion (no accumulated error), the bound raised to 10x."""
+    vertices, faces = cthead_surface
     diagonal = float(np.linalg.norm(np.ptp(vertices, axis=0)))
-    new, info = schroeder_decimate(vertices, faces, reduce=0.9, error_bound=0.0002 * diagonal)
+    new, info = schroeder_decimate(
+        vertices, faces, reduce=0.9, error_bound=0.0002 * diagonal, accumulate=False
+    )
     return vertices, faces, new, info, deviation(vertices, faces, vertices, new)
+
+
+@pytest.fixture(scope="module")
+def cthead_held(cthead_surface):
+    """The same job through ``miss.decimate`` with the paper's schedule: accumulated error,
+    and the result checked and held within the bound it ended at."""
+    from miss import Mesh, decimate
+
+    vertices, faces = cthead_surface
+    out, report = decimate(Mesh(vertices, faces), "schroeder", 0.9, 0.0002, schedule="paper")
+    info = {"final_bound_mm": report.final_bound_mm}
+    return out, report, info, deviation(vertices, faces, out.vertices, out.faces)
 
 
 def component_labels(faces: np.ndarray, n_vertices: int) -> np.ndarray:
@@ -474,11 +497,10 @@ def test_cthead_bone_max_deviation_like_decimatepro(cthead):
     assert dist.max() <= 1.5 * pro_dist.max()
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="the Schroeder criterion is local: deviations stack up over chained deletions "
-    "(measured max about 3.4 mm against a final bound of 0.70 mm)",
-)
-def test_cthead_bone_max_deviation_within_final_bound(cthead):
-    *_, info, dist = cthead
+def test_cthead_bone_max_deviation_within_final_bound(cthead_held):
+    # each triangle carries the error already spent on it (accumulated error) and the result
+    # is checked, so deviations no longer stack up past the bound over chained deletions;
+    # measured here by this file's own sampling, independently of the decimation's check
+    out, report, info, dist = cthead_held
+    assert report.bound_held and report.max_error_mm <= info["final_bound_mm"]
     assert dist.max() <= info["final_bound_mm"]

@@ -41,6 +41,7 @@ EXAMPLES: dict[str, tuple[list[str], Any]] = {
     "error_bound": (["--error-bound", "0.002"], 0.002),
     "reduce": (["--reduce", "0.5"], 0.5),
     "max_error": (["--max-error", "0.02"], 0.02),
+    "schedule": (["--schedule", "paper"], "paper"),
 }
 #: Fields a person does not type: the server writes every format, the CLI the -o ones.
 NOT_TYPED = {"formats"}
@@ -191,6 +192,10 @@ def test_rows_stored_before_the_spec_keep_their_keys(changes: dict[str, Any]) ->
               "max_error": 0.01, "formats": list(FORMATS), "levels": None, "labels": None,
               "components": "all", "min_size_mm3": 0.0, "smooth": None, "passband": 0.1,
               **changes}  # fmt: skip
-    assert JobSpec.from_dict(stored).key() == _key_before_the_spec(stored)
-    body = {k: v for k, v in changes.items()}
+    # models made before bounds were held used the paper's schedule: "schedule": "paper"
+    # finds them; a body without it asks for a guaranteed bound, a new model
+    paper = {**stored, "schedule": "paper"}
+    assert JobSpec.from_dict(paper).key() == _key_before_the_spec(stored)
+    assert JobSpec.from_dict(stored).key() != _key_before_the_spec(stored)
+    body = {**changes, "schedule": "paper"}
     assert _api_spec(body).key() == _key_before_the_spec(stored)

@@ -41,6 +41,8 @@ import math
 import numpy as np
 from numba import njit
 
+from miss.deviation import _point_triangle_sq
+
 SIMPLE, BOUNDARY, INTERIOR_EDGE, CORNER, COMPLEX = 0, 1, 2, 3, 4
 
 # Largest number of triangles a vertex may carry after a deletion (vtkDecimate's Degree was 25).
@@ -495,6 +497,83 @@ def _retriangulate(pts, faces, vf, vdeg, loop, n_loop, fn, n, vtype, p, q, buf, 
     return ntri
 
 
+# --------------------------------------------------------------------------- accumulated error
+
+
+@njit(cache=True)
+def _fan_distance(pts, faces, fan, n, p, limit2):
+    """Squared distance (mm^2) from point p to v's fan of n triangles; stops early once it is
+    below limit2 (the caller only needs to know it is no larger than that)."""
+    best = np.inf
+    for k in range(n):
+        f = fan[k]
+        best = min(
+            best, _point_triangle_sq(p, pts[faces[f, 0]], pts[faces[f, 1]], pts[faces[f, 2]])
+        )
+        if best <= limit2:
+            break
+    return best
+
+
+@njit(cache=True)
+def _patch_distance(pts, loop, tris, ntri, p, limit2):
+    """Squared distance (mm^2) from point p to the ntri new triangles (loop positions in
+    tris); stops early once it is below limit2."""
+    best = np.inf
+    for t in range(ntri):
+        a, b, c = pts[loop[tris[t, 0]]], pts[loop[tris[t, 1]]], pts[loop[tris[t, 2]]]
+        best = min(best, _point_triangle_sq(p, a, b, c))
+        if best <= limit2:
+            break
+    return best
+
+
+@njit(cache=True)
+def _patch_gap(pts, faces, v, fan, n, loop, n_loop, tris, ntri, point, limit):
+    """Deviation (mm) between v's fan and the triangles that fill its hole, both ways, at
+    the points where two such surfaces part most: from the fan, v, its spokes' midpoints
+    and its triangles' centroids; from the patch, its chords' midpoints and its triangles'
+    centroids. The loop vertices and loop edges lie on both. The decimation's own check
+    (:func:`miss.deviation.bound_check`) measures the result exactly afterwards.
+
+    Returns as soon as the deviation passes ``limit`` (mm): the caller refuses the
+    deletion then, and a smaller figure than the whole still tells it so.
+    """
+    limit2 = limit * limit
+    worst2 = _patch_distance(pts, loop, tris, ntri, pts[v], 0.0)
+    for k in range(n_loop):
+        if worst2 > limit2:
+            return math.sqrt(worst2)
+        for c in range(3):
+            point[c] = 0.5 * (pts[v, c] + pts[loop[k], c])
+        worst2 = max(worst2, _patch_distance(pts, loop, tris, ntri, point, worst2))
+    for k in range(n):
+        if worst2 > limit2:
+            return math.sqrt(worst2)
+        f = fan[k]
+        for c in range(3):
+            point[c] = (pts[faces[f, 0], c] + pts[faces[f, 1], c] + pts[faces[f, 2], c]) / 3.0
+        worst2 = max(worst2, _patch_distance(pts, loop, tris, ntri, point, worst2))
+    closed = n_loop == n
+    for t in range(ntri):
+        if worst2 > limit2:
+            return math.sqrt(worst2)
+        for e in range(3):
+            x, y = tris[t, e], tris[t, (e + 1) % 3]
+            lo, hi = min(x, y), max(x, y)
+            if hi - lo == 1 or (closed and lo == 0 and hi == n_loop - 1):
+                continue  # a loop edge: on the fan too
+            for c in range(3):
+                point[c] = 0.5 * (pts[loop[x], c] + pts[loop[y], c])
+            worst2 = max(worst2, _fan_distance(pts, faces, fan, n, point, worst2))
+        for c in range(3):
+            point[c] = (
+                pts[loop[tris[t, 0]], c] + pts[loop[tris[t, 1]], c] + pts[loop[tris[t, 2]], c]
+            ) / 3.0
+        worst2 = max(worst2, _fan_distance(pts, faces, fan, n, point, worst2))
+    return math.sqrt(worst2)
+
+
 # --------------------------------------------------------------------------- mesh update
 
 
@@ -562,13 +641,20 @@ def _deletion_bound(v, pts, faces, vf, vdeg, feature_cos, scratch_i, scratch_f):
 
 
 @njit(cache=True, inline="always")
-def _try_delete(v, pts, faces, alive, vf, vdeg, bound, feature_cos, scratch_i, scratch_f, vmin):
+def _try_delete(
+    v, pts, faces, alive, vf, vdeg, bound, feature_cos, scratch_i, scratch_f, vmin, terr
+):
     """Delete vertex v if its type and distance allow it and its hole can be re-triangulated.
 
     Returns the number of triangles freed (2 for a closed fan, 1 for a boundary fan) or -1.
     vmin caches, per vertex, the smallest bound (mm) under which it could go while its fan
     stays as it is (inf: never); 0 means unknown. A refusal because a neighbour's row is full
     is not cached, since it depends on more than v's fan.
+
+    ``terr`` (per face slot, mm) is the accumulated error, or has length 0 for the paper's
+    local criterion. With it, each triangle carries the deviation already spent on it: v goes
+    only if its distance plus the most its fan carries, and the fan-to-patch deviation plus
+    that, are within the bound; the new triangles then carry the latter.
     """
     fan, loop, a_s, b_s, buf, stack, tris = scratch_i
     fn, nrm, xyh = scratch_f
@@ -576,23 +662,41 @@ def _try_delete(v, pts, faces, alive, vf, vdeg, bound, feature_cos, scratch_i, s
     d, vtype, p, q, n_loop = _deletion_bound(
         v, pts, faces, vf, vdeg, feature_cos, scratch_i, scratch_f
     )
-    if d > bound:
-        vmin[v] = d
+    carried = 0.0
+    if len(terr) > 0:
+        for k in range(n):
+            carried = max(carried, terr[fan[k]])
+    if d + carried > bound:
+        vmin[v] = d + carried
         return -1
     scratch = (stack, tris, xyh)
     ntri = _retriangulate(pts, faces, vf, vdeg, loop, n_loop, fn, n, vtype, p, q, buf, scratch, nrm)
     if ntri < 0:
         vmin[v] = np.inf
         return -1
+    spent = 0.0
+    if len(terr) > 0:
+        # nrm is free once the hole is filled: scratch for the points measured
+        spent = carried + _patch_gap(
+            pts, faces, v, fan, n, loop, n_loop, tris, ntri, nrm, bound - carried
+        )
+        if spent > bound:
+            vmin[v] = spent
+            return -1
     if not _commit(v, faces, alive, vf, vdeg, fan, n, loop, n_loop, tris, ntri, a_s):
         return -1
+    if len(terr) > 0:
+        for t in range(ntri):
+            terr[fan[t]] = spent
     for t in range(n_loop):
         vmin[loop[t]] = 0.0  # their fans changed
     return n - ntri
 
 
 @njit(cache=True)
-def _decimate_pass(pts, faces, alive, vf, vdeg, bound, feature_cos, n_alive, target, vmin):
+def _decimate_pass(
+    pts, faces, alive, vf, vdeg, bound, feature_cos, n_alive, target, vmin, terr, locked
+):
     """One pass over all vertices in index order; stops once n_alive <= target.
 
     Vertices whose cached vmin (see _try_delete) exceeds the bound are skipped, so a pass with
@@ -615,10 +719,10 @@ def _decimate_pass(pts, faces, alive, vf, vdeg, bound, feature_cos, n_alive, tar
     for v in range(pts.shape[0]):
         if n_alive <= target:
             break
-        if vdeg[v] == 0 or vmin[v] > bound:
+        if vdeg[v] == 0 or vmin[v] > bound or locked[v]:
             continue
         freed = _try_delete(
-            v, pts, faces, alive, vf, vdeg, bound, feature_cos, scratch_i, scratch_f, vmin
+            v, pts, faces, alive, vf, vdeg, bound, feature_cos, scratch_i, scratch_f, vmin, terr
         )
         if freed >= 0:
             n_alive -= freed
@@ -670,16 +774,20 @@ def _check_inputs(
         raise ValueError(f"max_error is a distance in mm and must be >= 0; got {max_error}")
 
 
-def _run_passes(pts, faces, target, error_bound, max_error, feature_cos, whole_passes=0):
+def _run_passes(
+    pts, faces, target, error_bound, max_error, feature_cos, whole_passes, accumulate, locked
+):
     """Passes with a rising bound until n_alive <= target or a pass at max_error removes
     nothing. Edits faces in place; returns (alive mask, passes, last bound, vertices removed).
 
     ``whole_passes`` > 0: the paper's schedule instead (vtkDecimate's iterations): at most that
     many passes at k x error_bound (k = 1, 2, ...), each run to its end; the target is
-    looked at only between passes."""
+    looked at only between passes. ``accumulate``: triangles carry the error spent on them
+    (see _try_delete); ``locked`` (N,) bool: vertices that stay."""
     alive = np.ones(len(faces), dtype=bool)
     vf, vdeg = _vertex_faces(faces, len(pts), _VALENCE_CAP)
     vmin = np.zeros(len(pts), dtype=np.float64)
+    terr = np.zeros(len(faces) if accumulate else 0, dtype=np.float64)
     # Distances within round-off of zero count as zero, so a flat region goes at bound 0.
     slack = _ROUND_OFF * float(np.linalg.norm(np.ptp(pts, axis=0))) if len(pts) else 0.0
     bound, n_alive, passes, removed_total = error_bound, len(faces), 0, 0
@@ -687,16 +795,18 @@ def _run_passes(pts, faces, target, error_bound, max_error, feature_cos, whole_p
         for k in range(1, whole_passes + 1):
             bound = k * error_bound
             n_alive, removed = _decimate_pass(
-                pts, faces, alive, vf, vdeg, bound + slack, feature_cos, n_alive, -1, vmin
-            )
+                pts, faces, alive, vf, vdeg, bound + slack, feature_cos, n_alive, -1, vmin, terr,
+                locked,
+            )  # fmt: skip
             passes, removed_total = passes + 1, removed_total + removed
             if n_alive <= target:
                 break
         return alive, passes, bound, removed_total
     while True:
         n_alive, removed = _decimate_pass(
-            pts, faces, alive, vf, vdeg, bound + slack, feature_cos, n_alive, target, vmin
-        )
+            pts, faces, alive, vf, vdeg, bound + slack, feature_cos, n_alive, target, vmin, terr,
+            locked,
+        )  # fmt: skip
         passes += 1
         removed_total += removed
         if n_alive <= target or (bound >= max_error and removed == 0):
@@ -714,6 +824,8 @@ def schroeder_decimate(
     max_error: float | None = None,
     feature_angle: float = 75.0,
     paper_passes: int = 0,
+    accumulate: bool = True,
+    locked: np.ndarray | None = None,
 ) -> tuple[np.ndarray, dict]:
     """Decimate a triangle mesh by vertex removal (Schroeder, Zarge & Lorensen 1992).
 
@@ -739,6 +851,15 @@ def schroeder_decimate(
         iterations, its error increment equal to the initial bound): at most N whole passes
         at bounds 1, 2, ..., N x ``error_bound``, the target looked at only between passes,
         so a pass may overshoot it and the last may fall short; ``max_error`` is not used.
+    accumulate : bool
+        True (default): every triangle carries the deviation already spent on it (its
+        fan's most, plus the deviation between the fan and the triangles that replace
+        it), and a vertex goes only if that stays within the current bound, so the
+        surface stays within ``final_bound_mm`` of the input however deletions chain
+        (the refinement of the algorithm that ``vtkDecimatePro``'s ``AccumulateError``
+        approximates). False: the paper's local criterion alone; deviations stack up.
+    locked : (N,) bool array, optional
+        Vertices that must stay (the caller's repair of a region measured out of bound).
 
     Returns
     -------
@@ -758,9 +879,14 @@ def schroeder_decimate(
     # floor, so that meeting the target means info["reduction"] >= reduce
     target = math.floor(len(work) * (1.0 - reduce) + 1e-9)
     feature_cos = float(np.cos(np.radians(feature_angle)))
+    if locked is None:
+        locked = np.zeros(len(pts), dtype=np.bool_)
+    elif locked.shape != (len(pts),):
+        raise ValueError(f"locked must be an (N,) bool array, one per vertex; got {locked.shape}")
     alive, passes, bound, removed = _run_passes(
-        pts, work, target, error_bound, max(max_error, error_bound), feature_cos, paper_passes
-    )
+        pts, work, target, error_bound, max(max_error, error_bound), feature_cos, paper_passes,
+        accumulate, np.ascontiguousarray(locked, dtype=np.bool_),
+    )  # fmt: skip
     new_faces = work[alive]
     info = {
         "passes": passes,

@@ -250,17 +250,19 @@ def _home(p, lo, cell, dims):
 
 
 @njit(cache=True)
-def _nearest_sq(p, grid):
+def _nearest_sq(p, grid, cap2):
     """Squared distance from p to the nearest triangle: its own cell first, then rings of
     cells around it, skipping cells whose box is farther than the best triangle so far, until
-    the best is nearer than anything outside the searched block."""
+    the best is nearer than anything outside the searched block, or that block reaches
+    farther than sqrt(cap2) (then the answer is only known to be above it: the best so far,
+    inf if none)."""
     lo, cell, dims = grid[0], grid[1], grid[2]
     h = _home(p, lo, cell, dims)
     best = _cell_sq(p, (h[2] * dims[1] + h[1]) * dims[0] + h[0], np.inf, grid)
     r = 0
     while True:
         m = _margin(p, h, r, lo, cell, dims)
-        if m == np.inf or best <= m * m:
+        if m == np.inf or best <= m * m or m * m > cap2:
             return best
         r += 1
         for k in range(max(h[2] - r, 0), min(h[2] + r, dims[2] - 1) + 1):
@@ -281,30 +283,46 @@ def _nearest_sq(p, grid):
 
 
 @njit(cache=True, parallel=True, nogil=True)
-def _grid_distances(points, grid):
-    """Exact distance from each point to the nearest triangle of the grid's mesh."""
+def _grid_distances(points, grid, cap2):
+    """Exact distance from each point to the nearest triangle of the grid's mesh (see
+    _nearest_sq for ``cap2``)."""
     out = np.empty(len(points))
     for n in prange(len(points)):
-        out[n] = math.sqrt(_nearest_sq(points[n], grid))
+        out[n] = math.sqrt(_nearest_sq(points[n], grid, cap2))
     return out
 
 
-def distances_to(points: np.ndarray, mesh: Mesh) -> np.ndarray:
-    """Unsigned distance in mm from each of (P, 3) points to the surface of ``mesh``."""
-    pts = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
+def surface_grid(mesh: Mesh) -> tuple:
+    """The cells of ``mesh``'s triangles that :func:`distances_to` searches; made once for
+    several queries against one surface."""
     # float32 vertices and int32 faces as they are (the kernels compute in float64): no copies
     verts = np.ascontiguousarray(mesh.vertices)
     faces = np.ascontiguousarray(mesh.faces)
-    if len(faces) == 0:
-        return np.full(len(pts), np.inf)
     lo, cell, dims = _grid_shape(verts, faces)
     offsets, items = _build_grid(verts, faces, lo, cell, dims)
+    return (lo, cell, dims, offsets, items, verts, faces)
+
+
+def distances_to(
+    points: np.ndarray, mesh: Mesh, cap: float = math.inf, grid: tuple | None = None
+) -> np.ndarray:
+    """Unsigned distance in mm from each of (P, 3) points to the surface of ``mesh``.
+
+    Distances up to ``cap`` (mm) are exact; a larger one is only known to exceed it (a
+    check against a bound needs no more, and a point far from every triangle, where a
+    piece was lost, would otherwise search the whole grid). ``grid``: ``mesh``'s
+    :func:`surface_grid`, when the caller keeps it."""
+    pts = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
+    if mesh.n_triangles == 0:
+        return np.full(len(pts), np.inf)
+    grid = grid or surface_grid(mesh)
+    lo, cell, dims = grid[0], grid[1], grid[2]
     # neighbouring queries touch the same triangles: visiting them in cell order keeps the
     # triangles in cache
     home = np.clip(((pts - lo) / cell).astype(np.int64), 0, dims - 1)
     order = np.argsort((home[:, 2] * dims[1] + home[:, 1]) * dims[0] + home[:, 0])
     out = np.empty(len(pts))
-    out[order] = _grid_distances(pts[order], (lo, cell, dims, offsets, items, verts, faces))
+    out[order] = _grid_distances(pts[order], grid, cap * cap)
     return out
 
 
@@ -317,3 +335,101 @@ def deviation(a: Mesh, b: Mesh, samples: int = 100_000, seed: int = 0) -> Deviat
     d_ba = distances_to(sample_surface(b, samples, rng), a)
     both = np.concatenate([d_ab, d_ba])
     return Deviation(max_mm=float(both.max()), mean_mm=float(both.mean()), samples=len(both))
+
+
+@dataclass(frozen=True)
+class BoundCheck:
+    """The deviation of a decimation whose vertices are a subset of its input's, both ways.
+
+    ``to_output`` (N,): each input vertex's distance to the output surface (0 for the
+    vertices the output kept; NaN for vertices no input triangle uses). ``edges`` (E, 2) and
+    ``edge_mm`` (E,): the output's edges and their midpoints' distance to the input surface;
+    ``faces`` (G, 3) and ``face_mm`` (G,): the output's new triangles (not the input's) and
+    their centroids' distance to it; ``edges`` are the new triangles' edges. All mm.
+    """
+
+    max_mm: float
+    mean_mm: float
+    samples: int
+    to_output: np.ndarray
+    edges: np.ndarray
+    edge_mm: np.ndarray
+    faces: np.ndarray
+    face_mm: np.ndarray
+
+
+def _edge_keys(faces: np.ndarray) -> np.ndarray:
+    """Sorted unique int64 keys (a << 32 | b, a < b) of the edges of ``faces`` (F, 3)."""
+    pairs = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]).astype(np.int64)
+    pairs.sort(axis=1)
+    return np.unique(pairs[:, 0] << 32 | pairs[:, 1])
+
+
+def face_keys(faces: np.ndarray) -> np.ndarray:
+    """One int64 key per triangle of ``faces`` (F, 3) whatever its corners' order (vertex
+    indices below 2**21: larger meshes get no keys)."""
+    corners = np.sort(faces.astype(np.int64), axis=1)
+    return corners[:, 0] << 42 | corners[:, 1] << 21 | corners[:, 2]
+
+
+def _new_faces(before: Mesh, faces: np.ndarray, known: np.ndarray | None) -> np.ndarray:
+    """The rows of ``faces`` that are not triangles of ``before`` (all of them when the
+    vertex count is too large for keys). ``known``: ``before``'s sorted face keys."""
+    if before.n_vertices >= 2**21:
+        return faces
+    known = np.sort(face_keys(before.faces)) if known is None else known
+    keys = face_keys(faces)
+    at = np.minimum(np.searchsorted(known, keys), len(known) - 1)
+    return faces[known[at] != keys]
+
+
+def bound_check(
+    before: Mesh,
+    faces: np.ndarray,
+    cap: float = math.inf,
+    grid: tuple | None = None,
+    known: np.ndarray | None = None,
+) -> BoundCheck:
+    """Two-sided deviation (mm) of the output ``faces`` (M, 3), which index ``before``'s
+    vertices, from ``before``'s surface: every input vertex the output dropped to the output
+    surface, and the output's edge midpoints and triangle centroids to the input surface.
+
+    The output's own vertices are input vertices (distance 0), so this covers every vertex
+    both ways exactly, plus the points where a new triangle bulges from the input most
+    (its edges' and interior's middles), not random samples. Distances above ``cap`` (mm)
+    are only known to exceed it (see :func:`distances_to`). A triangle the input has too
+    lies on it, and so do its edges: only the new triangles and their edges are measured.
+    ``grid`` (``before``'s :func:`surface_grid`) and ``known`` (its sorted
+    :func:`face_keys`): kept by a caller that checks several outputs of one input.
+    """
+    faces = np.ascontiguousarray(faces)
+    used_in = np.zeros(before.n_vertices, dtype=bool)
+    used_in[before.faces.ravel()] = True
+    kept = np.zeros(before.n_vertices, dtype=bool)
+    kept[faces.ravel()] = True
+    to_output = np.where(used_in, 0.0, np.nan)
+    dropped = np.flatnonzero(used_in & ~kept)
+    after = Mesh(vertices=before.vertices, faces=faces)
+    if len(dropped):
+        to_output[dropped] = distances_to(before.vertices[dropped], after, cap)
+    new = _new_faces(before, faces, known)
+    keys = _edge_keys(new)
+    edges = np.stack([keys >> 32, keys & 0xFFFFFFFF], axis=1)
+    v = before.vertices
+    mids = 0.5 * (v[edges[:, 0]].astype(np.float64) + v[edges[:, 1]])
+    cents = (v[new[:, 0]].astype(np.float64) + v[new[:, 1]] + v[new[:, 2]]) / 3.0
+    points = np.concatenate([mids, cents])
+    back = distances_to(points, before, cap, grid) if len(points) else np.zeros(0)
+    edge_mm, face_mm = back[: len(edges)], back[len(edges) :]
+    inside = to_output[used_in]
+    both = np.concatenate([inside, back])
+    return BoundCheck(
+        max_mm=float(both.max()) if len(both) else 0.0,
+        mean_mm=float(both.mean()) if len(both) else 0.0,
+        samples=len(both),
+        to_output=to_output,
+        edges=edges,
+        edge_mm=edge_mm,
+        faces=new,
+        face_mm=face_mm,
+    )

@@ -168,7 +168,10 @@ def preview(
         spec,
         region=replace(spec.region, sample_rate=tuple(s * step for s in spec.region.steps)),
         decimation=replace(
-            spec.decimation, method="quadric", reduce=max(spec.decimation.reduce, PREVIEW_REDUCE)
+            spec.decimation,
+            method="quadric",
+            reduce=max(spec.decimation.reduce, PREVIEW_REDUCE),
+            schedule="paper",  # a coarse preview, replaced in a second: no bound is promised
         ),
     )
     try:

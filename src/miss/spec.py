@@ -39,6 +39,8 @@ RGB = tuple[float, float, float]
 
 #: Decimation methods (``miss.decimate`` implements them).
 METHODS: tuple[str, ...] = ("none", "quadric", "schroeder")
+#: How a bound is held: as a hard cap (measured), or raised as the 1998 pipeline did.
+SCHEDULES: tuple[str, ...] = ("guaranteed", "paper")
 #: What ``components`` may be: every piece, the largest, or one part per piece.
 COMPONENT_MODES: tuple[str, ...] = ("all", "largest", "split")
 #: Output formats (``miss.export.WRITERS`` holds one writer each).
@@ -452,23 +454,34 @@ class Structures:
 @dataclass(frozen=True)
 class Decimation:
     """Fewer triangles within an error bound; bounds are fractions of the bounding-box
-    diagonal (the paper's 0.0002 and 0.002), raised up to ``max_error`` until
-    ``reduce`` (fraction of triangles removed) is met."""
+    diagonal (the paper's 0.0002 and 0.002). ``guaranteed``: the output stays within the
+    bound of the input surface (two-sided, measured), and decimation stops at ``reduce``
+    (fraction of triangles removed) or when nothing more can go within the bound;
+    ``paper``: the bound is raised up to ``max_error`` until ``reduce`` is met."""
 
     method: str = param(
         "quadric", '"none", "schroeder" (the paper\'s) or "quadric" (fast)',
         name="decimate", choices=METHODS,
     )  # fmt: skip
     error_bound: float = param(
-        0.0002, "local error bound, fraction of the bounding-box diagonal (paper: 0.0002, 0.002)",
+        0.0002, "error bound, fraction of the bounding-box diagonal (paper: 0.0002, 0.002): "
+        "the most the model may deviate from the surface, measured (with schedule 'paper', "
+        "the first bound)",
         metavar="E", text="float",
     )  # fmt: skip
     reduce: float = param(
         0.9, "target fraction of triangles removed, 0 <= reduce < 1", metavar="R", text="float"
     )
     max_error: float = param(
-        0.01, "the bound is never raised past this fraction of the diagonal",
+        0.01, "schedule 'paper' only: the bound is raised until reduce is met, never past "
+        "this fraction of the diagonal",
         metavar="E", text="float",
+    )  # fmt: skip
+    schedule: str = param(
+        "guaranteed", '"guaranteed" (the bound is a cap, measured to hold) or "paper" '
+        "(the 1998 schedule: the bound raised up to max_error until reduce is met; the report "
+        "gives the bound it ended at, also measured to hold)",
+        choices=SCHEDULES,
     )  # fmt: skip
 
     def __post_init__(self) -> None:
@@ -476,16 +489,21 @@ class Decimation:
             raise BadParameter(
                 f"decimate must be one of {', '.join(METHODS)}, got {self.method!r}."
             )
+        if self.schedule not in SCHEDULES:
+            raise BadParameter(
+                f"schedule must be one of {', '.join(SCHEDULES)}, got {self.schedule!r}."
+            )
         for name in ("error_bound", "reduce", "max_error"):
             _finite(name, getattr(self, name))
         if not 0.0 <= self.reduce < 1.0:
             raise BadParameter(
                 f"reduce must be in [0, 1) (fraction removed, e.g. 0.9), got {self.reduce!r}."
             )
-        if not 0.0 < self.error_bound <= self.max_error:
+        cap = self.max_error if self.schedule == "paper" else math.inf
+        if not 0.0 < self.error_bound <= cap:
             raise BadParameter(
-                f"error_bound must be > 0 and <= max_error {self.max_error!r}, "
-                f"got {self.error_bound!r}."
+                f"error_bound must be > 0 (and <= max_error {self.max_error!r} with schedule "
+                f"'paper'), got {self.error_bound!r}."
             )
 
 
@@ -641,10 +659,14 @@ class JobSpec:
         """Stable hash of what shapes the model (not the formats, not the source).
 
         The structure fields at their defaults are left out, so the jobs of one level
-        made before scenes existed keep their keys, and with them their stored models.
+        made before scenes existed keep their keys, and with them their stored models; so is
+        the schedule "paper" (what every model made before bounds were held used), while
+        "guaranteed", the default now, makes new models.
         """
         d = self.to_dict()
         d.pop("formats")
+        if d.get("schedule") == "paper":
+            del d["schedule"]
         d["sample_rate"] = list(self.region.steps)
         for name in STRUCTURE_DEFAULTS:
             if d[name] == STRUCTURE_DEFAULTS[name]:

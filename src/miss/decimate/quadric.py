@@ -146,9 +146,12 @@ _SMALL_PIECE_TRIANGLES = 8
 _OWN_TARGET_TRIANGLES = 20_000
 
 
-def quadric(mesh: Mesh, reduce: float, max_error: float) -> tuple[np.ndarray, float]:
-    """meshoptimizer simplify to the reduce target, never past ``max_error`` (relative),
-    without losing small pieces.
+def quadric(
+    mesh: Mesh, reduce: float, max_error: float, locked: np.ndarray | None = None
+) -> tuple[np.ndarray, float]:
+    """meshoptimizer simplify to the reduce target, never past ``max_error`` (meshoptimizer's
+    target error: relative to the mesh's extent, an estimate), without losing small pieces.
+    ``locked`` (N,) bool: vertices that must stay.
 
     An edge-collapse simplifier working on the whole mesh can collapse a small closed piece
     (a bone chip, a calcification) to nothing or to a sliver: its own quadric error stays
@@ -163,38 +166,45 @@ def quadric(mesh: Mesh, reduce: float, max_error: float) -> tuple[np.ndarray, fl
     small = ~whole & (size < _OWN_TARGET_TRIANGLES)
     large = size >= _OWN_TARGET_TRIANGLES
     kept, error = [faces[whole]], 0.0
+    lock = np.zeros(mesh.n_vertices, np.uint8) if locked is None else locked.astype(np.uint8)
     if small.any():
-        kept.append(_each_piece(faces[small], face_root[small], mesh.vertices, reduce, max_error))
+        kept.append(
+            _each_piece(faces[small], face_root[small], mesh.vertices, reduce, max_error, lock)
+        )
     if large.any():
         # the large pieces make up what the kept and small pieces left of the target
         budget = (1.0 - reduce) * len(faces) - sum(len(k) for k in kept)
         share = min(1.0, max(budget, 1.0) / int(large.sum()))
-        faces_large, error = _quadric_all(faces[large], mesh.vertices, 1.0 - share, max_error)
+        faces_large, error = _quadric_all(faces[large], mesh.vertices, 1.0 - share, max_error, lock)
         kept.append(faces_large)
     return np.concatenate(kept), error
 
 
 def _each_piece(
-    faces: np.ndarray, face_root: np.ndarray, vertices: np.ndarray, reduce: float, max_error: float
+    faces: np.ndarray,
+    face_root: np.ndarray,
+    vertices: np.ndarray,
+    reduce: float,
+    max_error: float,
+    lock: np.ndarray,
 ) -> np.ndarray:
     """Simplify each connected piece of ``faces`` on its own to the reduce rate."""
     order = np.argsort(face_root, kind="stable")
     starts = np.flatnonzero(np.diff(face_root[order])) + 1
     positions = np.ascontiguousarray(vertices, dtype=np.float32)
-    unlocked = np.zeros(len(vertices), dtype=np.uint8)
     pieces = []
     for piece in np.split(faces[order].astype(np.uint32), starts):
         target = int(round(3 * len(piece) * (1.0 - reduce)))
         # SPARSE: a piece touches few vertices; cost follows the piece, not the buffer
         out, _ = _simplify(
-            piece.ravel(), positions, target, max_error, meshoptimizer.SIMPLIFY_SPARSE, unlocked
+            piece.ravel(), positions, target, max_error, meshoptimizer.SIMPLIFY_SPARSE, lock
         )
         pieces.append(out.reshape(-1, 3).astype(np.int32))
     return np.concatenate(pieces)
 
 
 def _quadric_all(
-    faces: np.ndarray, vertices: np.ndarray, reduce: float, max_error: float
+    faces: np.ndarray, vertices: np.ndarray, reduce: float, max_error: float, lock: np.ndarray
 ) -> tuple[np.ndarray, float]:
     """meshoptimizer simplify of ``faces`` (F, 3) to the reduce target.
 
@@ -212,7 +222,6 @@ def _quadric_all(
     faces = np.ascontiguousarray(faces, dtype=np.uint32)
     positions = np.ascontiguousarray(vertices, dtype=np.float32)
     target = int(round(3 * len(faces) * (1.0 - reduce)))
-    lock = np.zeros(len(positions), dtype=np.uint8)
     first_keep = _FIRST_PHASE_FACTOR * (1.0 - reduce)
     if len(faces) < _PARALLEL_MIN_TRIANGLES or first_keep > _FIRST_PHASE_MAX_KEEP:
         kept, error = _simplify(faces.ravel(), positions, target, max_error, 0, lock)

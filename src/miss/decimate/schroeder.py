@@ -9,9 +9,15 @@ from miss.types import Mesh
 
 
 def schroeder(
-    mesh: Mesh, reduce: float, bound_mm: float, max_mm: float, paper_passes: int = 0
+    mesh: Mesh,
+    reduce: float,
+    bound_mm: float,
+    max_mm: float,
+    paper_passes: int = 0,
+    locked: np.ndarray | None = None,
 ) -> tuple[np.ndarray, float]:
-    """Face indices kept, and the last bound used (mm)."""
+    """Face indices kept, and the last bound used (mm). Triangles carry the error spent
+    on them (accumulated error); ``locked`` (N,) bool: vertices that stay."""
     from miss._schroeder import schroeder_decimate  # numba: compiled on first use
 
     faces, info = schroeder_decimate(
@@ -21,5 +27,7 @@ def schroeder(
         error_bound=bound_mm,
         max_error=max_mm,
         paper_passes=paper_passes,
+        accumulate=True,
+        locked=locked,
     )
     return faces, float(info["final_bound_mm"])

@@ -236,9 +236,11 @@ def _level_parts(
         part_name = f"{name} {rank + 1}" if split else name
         part_color = PALETTE[rank % len(PALETTE)] if split and item.color is None else color
         smoothed = _smoothed(mesh, item.smooth or 0, item.passband, part_name, notes)
+        # a guaranteed bound is checked (and held) while decimating, whatever ``measure`` says
         decimated, report = decimate(
             smoothed, decimation.method, decimation.reduce, decimation.error_bound,
-            max_error=decimation.max_error, measure=measure,
+            max_error=decimation.max_error, schedule=decimation.schedule,
+            measure=measure or decimation.schedule == "guaranteed",
         )  # fmt: skip
         part = Part(part_name, decimated, part_color, opacity)
         out.append((part, report, smoothed, SAMPLES))
@@ -401,7 +403,9 @@ def _chosen_labels(labels_volume: Volume, wanted: str | list[int], notes: list[s
 
 def combined_report(reports: Sequence[DecimationReport]) -> DecimationReport:
     """One report for a whole scene: counts and seconds summed, the worst max error,
-    the triangle-weighted mean error; None where any part was not measured."""
+    the triangle-weighted mean error; None where any part was not measured. Each part is
+    held to its own bound (a fraction of its own diagonal): ``bound_mm`` is the largest,
+    ``stopped_by`` "bound" when any part stopped at its bound."""
     if not reports:
         raise EmptySurface("the scene has no parts to report on.")
     first = reports[0]
@@ -424,4 +428,11 @@ def combined_report(reports: Sequence[DecimationReport]) -> DecimationReport:
         ),
         seconds=sum(r.seconds for r in reports),
         measure_seconds=sum(r.measure_seconds for r in reports),
+        schedule=first.schedule,
+        bound_mm=max((r.bound_mm or 0.0) for r in reports),
+        stopped_by="bound" if any(r.stopped_by == "bound" for r in reports) else first.stopped_by,
+        bound_held=None
+        if any(r.bound_held is None for r in reports)
+        else all(r.bound_held for r in reports),
+        rounds=max(r.rounds for r in reports),
     )

@@ -1,0 +1,149 @@
+"""Error bounds that hold: every method keeps its output within the bound it was given.
+
+The bound (a fraction of the diagonal) is the most the output may deviate from the input
+surface, two-sided, in mm. The decimation checks itself (``miss.deviation.bound_check``);
+these tests measure independently, on points the check does not use: every input vertex
+to the output, and random points inside the triangles of both surfaces, both ways.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from miss import Mesh, decimate
+from miss.deviation import distances_to, sample_surface
+
+BOUNDS = (0.0001, 0.0002, 0.0005, 0.001, 0.002, 0.01)
+
+
+def icosphere(level: int) -> tuple[np.ndarray, np.ndarray]:
+    """Unit sphere, (V, 3) float64 and (F, 3) int32, counter-clockwise seen from outside."""
+    t = (1 + 5**0.5) / 2
+    v = np.array(
+        [[-1, t, 0], [1, t, 0], [-1, -t, 0], [1, -t, 0], [0, -1, t], [0, 1, t]]
+        + [[0, -1, -t], [0, 1, -t], [t, 0, -1], [t, 0, 1], [-t, 0, -1], [-t, 0, 1]],
+        dtype=np.float64,
+    )
+    f = np.array(
+        [[0, 11, 5], [0, 5, 1], [0, 1, 7], [0, 7, 10], [0, 10, 11], [1, 5, 9], [5, 11, 4]]
+        + [[11, 10, 2], [10, 7, 6], [7, 1, 8], [3, 9, 4], [3, 4, 2], [3, 2, 6], [3, 6, 8]]
+        + [[3, 8, 9], [4, 9, 5], [2, 4, 11], [6, 2, 10], [8, 6, 7], [9, 8, 1]]
+    )
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    for _ in range(level):
+        edges = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+        unique, inverse = np.unique(edges, axis=0, return_inverse=True)
+        mid = v[unique[:, 0]] + v[unique[:, 1]]
+        mid /= np.linalg.norm(mid, axis=1, keepdims=True)
+        ab, bc, ca = inverse.reshape(3, -1) + len(v)
+        a, b, c = f.T
+        f = np.concatenate(
+            [np.stack(t, axis=1) for t in ((a, ab, ca), (b, bc, ab), (c, ca, bc), (ab, bc, ca))]
+        )
+        v = np.concatenate([v, mid])
+    return v, f.astype(np.int32)
+
+
+def box(n: int, size: tuple[float, float, float]) -> tuple[np.ndarray, np.ndarray]:
+    """Closed box (mm) centred on 0, each side an n x n grid, welded: sharp creases and
+    corners; a small third size makes a thin plate (two sheets close together)."""
+    g = np.linspace(-0.5, 0.5, n)
+    u, w = (c.ravel() for c in np.meshgrid(g, g, indexing="xy"))
+    i, j = np.meshgrid(np.arange(n - 1), np.arange(n - 1), indexing="xy")
+    a = (j * n + i).ravel()
+    quads = np.concatenate([np.stack([a, a + 1, a + n + 1], 1), np.stack([a, a + n + 1, a + n], 1)])
+    verts, faces = [], []
+    for axis in range(3):
+        others = [k for k in range(3) if k != axis]
+        for sign in (-1.0, 1.0):
+            p = np.zeros((n * n, 3))
+            p[:, axis], p[:, others[0]], p[:, others[1]] = sign * 0.5, u, w
+            outward = (sign > 0) == ((axis + 1) % 3 == others[0])
+            faces.append((quads if outward else quads[:, ::-1]) + len(verts) * n * n)
+            verts.append(p)
+    v, inverse = np.unique(np.round(np.concatenate(verts), 9), axis=0, return_inverse=True)
+    return v * np.asarray(size), inverse.ravel()[np.concatenate(faces)].astype(np.int32)
+
+
+def scene(kind: str, seed: int, noise: float, pieces: int) -> Mesh:
+    """A test surface in mm: a noisy sphere, a thin plate or a creased box, with ``pieces``
+    small loose spheres (bone chips) beside it."""
+    rng = np.random.default_rng(seed)
+    if kind == "sphere":
+        v, f = icosphere(4)
+        v = v * 50.0
+    elif kind == "plate":
+        v, f = box(16, (80.0, 60.0, 0.6))
+    else:
+        v, f = box(12, (60.0, 40.0, 30.0))
+    v = v + noise * rng.standard_normal(v.shape)
+    parts_v, parts_f = [v], [f]
+    for k in range(pieces):
+        sv, sf = icosphere(1)
+        parts_f.append(sf + sum(len(p) for p in parts_v))
+        parts_v.append(sv * rng.uniform(0.5, 2.0) + [70.0 + 6.0 * k, rng.uniform(-20, 20), 0.0])
+    return Mesh(np.concatenate(parts_v).astype(np.float32), np.concatenate(parts_f))
+
+
+def independent_max(before: Mesh, after: Mesh, samples: int = 20_000) -> float:
+    """Max distance (mm), both ways: every input vertex to the output, and random points
+    inside both surfaces' triangles to the other surface."""
+    rng = np.random.default_rng(1)
+    to_after = distances_to(before.vertices[np.unique(before.faces)], after)
+    inside_before = distances_to(sample_surface(before, samples, rng), after)
+    inside_after = distances_to(sample_surface(after, samples, rng), before)
+    return float(max(to_after.max(), inside_before.max(), inside_after.max()))
+
+
+@settings(
+    max_examples=30, deadline=None, suppress_health_check=[HealthCheck.too_slow], derandomize=True
+)
+@given(
+    kind=st.sampled_from(["sphere", "plate", "box"]),
+    seed=st.integers(0, 2**16),
+    noise=st.sampled_from([0.0, 0.02, 0.2]),
+    pieces=st.integers(0, 3),
+    method=st.sampled_from(["quadric", "schroeder"]),
+    bound=st.sampled_from(BOUNDS),
+    schedule=st.sampled_from(["guaranteed", "paper"]),
+)
+def test_output_within_its_bound(
+    kind: str, seed: int, noise: float, pieces: int, method: str, bound: float, schedule: str
+) -> None:
+    mesh = scene(kind, seed, noise, pieces)
+    out, report = decimate(mesh, method, reduce=0.9, error_bound=bound, schedule=schedule)
+    slack = 1e-6 * mesh.diagonal()
+    if schedule == "guaranteed":
+        assert report.bound_mm == pytest.approx(bound * mesh.diagonal())
+    assert report.bound_held
+    assert report.max_error_mm <= report.bound_mm + slack
+    assert independent_max(mesh, out) <= report.bound_mm + slack
+    assert report.stopped_by == ("reduce" if report.achieved_reduction >= 0.9 else "bound")
+
+
+@pytest.mark.parametrize("method", ["quadric", "schroeder"])
+def test_a_loose_bound_meets_reduce_and_says_so(method: str) -> None:
+    mesh = scene("sphere", 0, 0.0, 0)
+    _, report = decimate(mesh, method, reduce=0.5, error_bound=0.01)
+    assert report.stopped_by == "reduce" and report.achieved_reduction >= 0.5
+    assert report.bound_held and report.max_error_mm <= report.bound_mm
+
+
+@pytest.mark.parametrize("method", ["quadric", "schroeder"])
+def test_a_tight_bound_stops_decimation_and_says_so(method: str) -> None:
+    mesh = scene("sphere", 0, 0.2, 0)
+    _, report = decimate(mesh, method, reduce=0.99, error_bound=0.0001)
+    assert report.stopped_by == "bound" and report.achieved_reduction < 0.99
+    assert report.bound_held and report.max_error_mm <= report.bound_mm + 1e-6
+
+
+def test_the_report_says_what_the_contract_asks() -> None:
+    mesh = scene("box", 0, 0.02, 1)
+    _, report = decimate(mesh, "quadric", reduce=0.9, error_bound=0.001)
+    summary = report.summary()
+    for key in ("stopped_by", "max_error_mm", "mean_error_mm", "bound_mm", "achieved_reduction"):
+        assert summary[key] is not None
+    assert summary["schedule"] == "guaranteed"
