@@ -38,7 +38,7 @@ EXAMPLES: dict[str, tuple[list[str], Any]] = {
         [{"level": 300, "name": "bone", "color": "#f1d691", "opacity": 0.5}, {"level": -500}],
     ),
     "decimate": (["--decimate", "schroeder"], "schroeder"),
-    "error_bound": (["--error-bound", "0.002"], 0.002),
+    "error_bound": (["--error-bound", "0.0005"], 0.0005),
     "reduce": (["--reduce", "0.5"], 0.5),
     "max_error": (["--max-error", "0.02"], 0.02),
     "schedule": (["--schedule", "paper"], "paper"),
@@ -197,5 +197,6 @@ def test_rows_stored_before_the_spec_keep_their_keys(changes: dict[str, Any]) ->
     paper = {**stored, "schedule": "paper"}
     assert JobSpec.from_dict(paper).key() == _key_before_the_spec(stored)
     assert JobSpec.from_dict(stored).key() != _key_before_the_spec(stored)
-    body = {**changes, "schedule": "paper"}
+    # and so does a body that says so, with the bound the old default had (0.0002)
+    body = {**changes, "schedule": "paper", "error_bound": 0.0002}
     assert _api_spec(body).key() == _key_before_the_spec(stored)

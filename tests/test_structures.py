@@ -478,11 +478,13 @@ def test_old_job_specs_keep_their_cache_key() -> None:
            "roi": None, "decimate": "quadric", "error_bound": 0.0002, "reduce": 0.9,
            "max_error": 0.01}  # fmt: skip
     expected = hashlib.sha256(json.dumps(old, sort_keys=True).encode()).hexdigest()[:32]
-    # models made before bounds were held used the paper's schedule: that finds them; the
-    # default now holds the bound, a different model with a different key
-    assert JobSpec.of(level=300.0, schedule="paper").key() == expected
+    # models made before bounds were held used the paper's schedule and the bound 0.0002:
+    # those find them; the default now holds a bound of 0.002, another model, another key
+    old_default = {"schedule": "paper", "error_bound": 0.0002}
+    assert JobSpec.of(level=300.0, **old_default).key() == expected
     assert JobSpec.of(level=300.0).key() != expected
-    assert JobSpec.of(level=300.0, levels=(300.0, -500.0), schedule="paper").key() != expected
+    assert JobSpec.of(level=300.0, schedule="paper").key() != expected
+    assert JobSpec.of(level=300.0, levels=(300.0, -500.0), **old_default).key() != expected
 
 
 def test_run_builds_a_scene_from_levels() -> None:

@@ -464,9 +464,9 @@ class Decimation:
         name="decimate", choices=METHODS,
     )  # fmt: skip
     error_bound: float = param(
-        0.0002, "error bound, fraction of the bounding-box diagonal (paper: 0.0002, 0.002): "
+        0.002, "error bound, fraction of the bounding-box diagonal (paper: 0.0002, 0.002): "
         "the most the model may deviate from the surface, measured (with schedule 'paper', "
-        "the first bound)",
+        "the first bound); 0.002 is 0.7 mm on a head CT, under a voxel",
         metavar="E", text="float",
     )  # fmt: skip
     reduce: float = param(

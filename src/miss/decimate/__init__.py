@@ -133,7 +133,7 @@ def decimate(
     mesh: Mesh,
     method: Method | str = "quadric",
     reduce: float = 0.9,
-    error_bound: float = 0.0002,
+    error_bound: float = 0.002,
     *,
     max_error: float = 0.01,
     measure: bool = True,

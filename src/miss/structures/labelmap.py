@@ -128,7 +128,7 @@ def label_surfaces(
     passband: float = 0.1,
     method: str = "quadric",
     reduce: float = 0.9,
-    error_bound: float = 0.0002,
+    error_bound: float = 0.002,
     max_error: float = 0.01,
     measure: bool = True,
 ) -> list[LabelSurface]:
