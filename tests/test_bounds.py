@@ -12,39 +12,12 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from test_schroeder import icosphere  # the same sphere as the kernel's tests
 
 from miss import Mesh, decimate
 from miss.deviation import distances_to, sample_surface
 
 BOUNDS = (0.0001, 0.0002, 0.0005, 0.001, 0.002, 0.01)
-
-
-def icosphere(level: int) -> tuple[np.ndarray, np.ndarray]:
-    """Unit sphere, (V, 3) float64 and (F, 3) int32, counter-clockwise seen from outside."""
-    t = (1 + 5**0.5) / 2
-    v = np.array(
-        [[-1, t, 0], [1, t, 0], [-1, -t, 0], [1, -t, 0], [0, -1, t], [0, 1, t]]
-        + [[0, -1, -t], [0, 1, -t], [t, 0, -1], [t, 0, 1], [-t, 0, -1], [-t, 0, 1]],
-        dtype=np.float64,
-    )
-    f = np.array(
-        [[0, 11, 5], [0, 5, 1], [0, 1, 7], [0, 7, 10], [0, 10, 11], [1, 5, 9], [5, 11, 4]]
-        + [[11, 10, 2], [10, 7, 6], [7, 1, 8], [3, 9, 4], [3, 4, 2], [3, 2, 6], [3, 6, 8]]
-        + [[3, 8, 9], [4, 9, 5], [2, 4, 11], [6, 2, 10], [8, 6, 7], [9, 8, 1]]
-    )
-    v /= np.linalg.norm(v, axis=1, keepdims=True)
-    for _ in range(level):
-        edges = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
-        unique, inverse = np.unique(edges, axis=0, return_inverse=True)
-        mid = v[unique[:, 0]] + v[unique[:, 1]]
-        mid /= np.linalg.norm(mid, axis=1, keepdims=True)
-        ab, bc, ca = inverse.reshape(3, -1) + len(v)
-        a, b, c = f.T
-        f = np.concatenate(
-            [np.stack(t, axis=1) for t in ((a, ab, ca), (b, bc, ab), (c, ca, bc), (ab, bc, ca))]
-        )
-        v = np.concatenate([v, mid])
-    return v, f.astype(np.int32)
 
 
 def box(n: int, size: tuple[float, float, float]) -> tuple[np.ndarray, np.ndarray]:

@@ -7,39 +7,23 @@ Screenshots land in test-artifacts/browser/ so a person can look at what the tes
 
 from __future__ import annotations
 
-import os
 import time
 from collections.abc import Iterator
-from pathlib import Path
 from typing import Any
 
 import pytest
+
+# chromium, its flags, the window and where screenshots go, as every browser test has
+# them (that module skips these tests where chromium or Playwright is missing)
+from browser.conftest import ARTIFACTS, CHROMIUM, CHROMIUM_ARGS, LAPTOP, sync_api
 from server.realserver import Server, serving
 
 from pacs.conftest import Series
 from pacs.orthanc import Orthanc
 
-REPO = Path(__file__).resolve().parents[2]
-ARTIFACTS = REPO / "test-artifacts" / "browser"
-CHROMIUM = Path(os.environ.get("MISS_CHROMIUM", "/usr/bin/chromium"))
-# As tests/browser/conftest.py: headless, software WebGL (SwiftShader).
-CHROMIUM_ARGS = [
-    "--headless",
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-    "--no-first-run",
-]
-LAPTOP = {"width": 1366, "height": 768}
 GE = "ct_head_dicom_ge_gantrytilt"
 ENCAPSULATED_STL = "1.2.840.10008.5.1.4.1.1.104.3"
 USER, PASSWORD = "radiologist", "radiologist-password"
-
-if not CHROMIUM.is_file():
-    pytest.skip(f"browser tests need Debian's chromium at {CHROMIUM}", allow_module_level=True)
-sync_api = pytest.importorskip("playwright.sync_api", reason="Playwright (Python) is not installed")
 
 
 @pytest.fixture(scope="module")
