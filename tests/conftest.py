@@ -5,7 +5,9 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -42,6 +44,18 @@ def real_scenes(datasets: Path) -> dict[str, Scene]:
         "frog-labels": (frog, JobSpec.of(labels="all", sample_rate=2)),
     }
     return {name: run(v, spec, measure=False).scene for name, (v, spec) in jobs.items()}
+
+
+@pytest.fixture(scope="session")
+def browser() -> Iterator[Any]:
+    """Debian's chromium through Playwright, one for the whole run: Playwright's sync API
+    allows one driver at a time in a process (tests/browser/ and tests/pacs/ share it)."""
+    from browser.conftest import CHROMIUM, CHROMIUM_ARGS, sync_api  # skips without them
+
+    with sync_api.sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
+        yield browser
+        browser.close()
 
 
 @pytest.fixture(scope="session")

@@ -186,7 +186,7 @@ def test_generate_view_and_download(
     assert float(page.input_value("#threshold")) == 300
     page.fill("#sample-rate", "2")
     assert page.input_value("#decimate") == "quadric"
-    assert float(page.input_value("#error-bound")) == 0.0002
+    assert float(page.input_value("#error-bound")) == 0.002
     assert float(page.input_value("#reduce")) == 0.9
 
     # Drag the end line on the sagittal view down a quarter: the top of the skull is cut off.

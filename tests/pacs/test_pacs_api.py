@@ -101,13 +101,14 @@ def test_search_import_generate_send_and_find_it_in_the_study(
     assert r.status_code == 200, r.text
     studies = r.json()["studies"]
     assert [s["study"] for s in studies] == [ge.study]
-    assert studies[0]["patient_name"] == "DOE JANE" and studies[0]["instances"] == ge.instances
+    # (models other tests sent into the study count among its instances and series)
+    assert studies[0]["patient_name"] == "DOE JANE" and studies[0]["instances"] >= ge.instances
     by_name = app.get("/api/pacs/studies", params={"patient_name": "doe"}, headers=radiologist)
     assert ge.study in [s["study"] for s in by_name.json()["studies"]]
     series = app.get(f"/api/pacs/studies/{ge.study}/series", headers=radiologist).json()
-    assert [(s["series"], s["modality"], s["importable"]) for s in series] == [
-        (ge.series, "CT", True)
-    ]
+    listed = [(s["series"], s["modality"], s["importable"]) for s in series]
+    assert (ge.series, "CT", True) in listed
+    assert all(modality == "M3D" and not ok for uid, modality, ok in listed if uid != ge.series)
     # import: a volume without identity, the identity for its owner only
     done = import_series(app, radiologist, ge)
     assert done["status"] == "done", done
@@ -142,7 +143,8 @@ def test_search_import_generate_send_and_find_it_in_the_study(
         study_instance_uid=ge.study, search_filters={"SOPClassUID": ENCAPSULATED_STL}
     )
     uids = [i["00080018"]["Value"][0] for i in found]
-    assert uids == sent["sop_instance_uids"]
+    assert set(sent["sop_instance_uids"]) <= set(uids)
+    uids = sent["sop_instance_uids"]
     # the file as Orthanc stores it, read with pydicom
     import io
 

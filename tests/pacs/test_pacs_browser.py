@@ -15,7 +15,7 @@ import pytest
 
 # chromium, its flags, the window and where screenshots go, as every browser test has
 # them (that module skips these tests where chromium or Playwright is missing)
-from browser.conftest import ARTIFACTS, CHROMIUM, CHROMIUM_ARGS, LAPTOP, sync_api
+from browser.conftest import ARTIFACTS, LAPTOP
 from server.realserver import Server, serving
 
 from pacs.conftest import Series
@@ -39,24 +39,22 @@ def miss(
 
 
 @pytest.fixture
-def page(miss: Server) -> Iterator[Any]:
+def page(browser: Any, miss: Server) -> Iterator[Any]:
     """A laptop-sized page, not logged in, whose script errors fail the test."""
-    with sync_api.sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
-        context = browser.new_context(viewport=LAPTOP, base_url=miss.url)
-        page = context.new_page()
-        errors: list[str] = []
-        page.on("pageerror", lambda exc: errors.append(f"page error: {exc}"))
+    context = browser.new_context(viewport=LAPTOP, base_url=miss.url)  # session chromium
+    page = context.new_page()
+    errors: list[str] = []
+    page.on("pageerror", lambda exc: errors.append(f"page error: {exc}"))
 
-        def on_console(msg: Any) -> None:
-            # chromium logs each 4xx answer; the test asks for one 422 on purpose
-            if msg.type == "error" and "status of 422" not in msg.text:
-                errors.append(f"console: {msg.text}")
+    def on_console(msg: Any) -> None:
+        # chromium logs each 4xx answer; the test asks for one 422 on purpose
+        if msg.type == "error" and "status of 422" not in msg.text:
+            errors.append(f"console: {msg.text}")
 
-        page.on("console", on_console)
-        page.set_default_timeout(30_000)
-        yield page
-        browser.close()
+    page.on("console", on_console)
+    page.set_default_timeout(30_000)
+    yield page
+    context.close()
     assert not errors, "the page logged errors:\n" + "\n".join(errors)
 
 
