@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 import httpx
+from pg import database_url
 
 ADMIN_PASSWORD = "admin-password-for-restarts"
 
@@ -80,6 +81,8 @@ class Server:
             "MISS_MAX_JOBS_PER_USER": "100",  # these tests queue several jobs at once
             **(env or {}),
         }
+        if "MISS_DATABASE_URL" not in environ and (url := database_url(data_dir)):
+            environ["MISS_DATABASE_URL"] = url  # MISS_TEST_DATABASE=postgres: tests/pg.py
         with open(log, "ab") as out:
             self.proc = subprocess.Popen(
                 cmd, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=environ
