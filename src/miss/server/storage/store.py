@@ -36,20 +36,19 @@ from sqlalchemy.exc import IntegrityError
 
 from miss.errors import is_disk_full
 from miss.server.errors import DiskFull, NotFound
+from miss.server.storage import schema
 from miss.server.storage.appender import Appender
 from miss.server.storage.caches import RowCache
 from miss.server.storage.db import (
     DONE,
     FAILED,
     QUEUED,
-    Base,
     IdentityRow,
     ModelRow,
     SecretRow,
     VolumeRow,
     make_engine,
     make_sessionmaker,
-    migrate,
 )
 from miss.types import Volume
 
@@ -189,13 +188,13 @@ class Store:
             ) from None
 
     def init_schema(self) -> None:
-        """Create missing tables and columns; safe beside a running server (``miss user``)."""
+        """Bring the database to the newest schema (``schema.upgrade``: Alembic); safe beside
+        a running server (``miss user``)."""
         if self.database_url.startswith("sqlite:///"):
             Path(self.database_url.removeprefix("sqlite:///")).parent.mkdir(
                 parents=True, exist_ok=True
             )
-        Base.metadata.create_all(self.engine)
-        migrate(self.engine)
+        schema.upgrade(self.engine)
 
     def secret(self, name: str) -> bytes:
         """A server-wide random key, made on first use and kept in the database."""
