@@ -20,11 +20,14 @@ import signal
 import subprocess
 import sys
 import threading
+import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Protocol
 
 from miss.server.jobs.state import JobState
+from miss.server.storage.db import ModelRow
 from miss.server.storage.store import Store
 
 log = logging.getLogger("miss.server.jobs")
@@ -157,6 +160,18 @@ class JobQueue:
         self._stopping = threading.Event()
         self._threads: list[threading.Thread] = []
         self._running: dict[str, Running] = {}
+        #: Told each job's outcome ("done", "failed", "requeued") and wall time, seconds.
+        self.on_finished: Callable[[str, float], None] = lambda outcome, seconds: None
+
+    def health(self) -> dict[str, object]:
+        """For ``/api/health?deep=1``: the threads alive, the jobs they run now."""
+        alive = sum(t.is_alive() for t in self._threads)
+        return {
+            "ok": alive == self.workers and not self._stopping.is_set(),
+            "alive": alive,
+            "of": self.workers,
+            "running": len(self._running),
+        }
 
     def start(self) -> None:
         """Recover interrupted jobs, start the threads (the store holds the folder's lock)."""
@@ -211,6 +226,7 @@ class JobQueue:
     def _run(self, model_id: str) -> None:
         log_path = self.store.model_dir(model_id) / "worker.log"
         offset = log_path.stat().st_size if log_path.exists() else 0
+        started = time.monotonic()
         proc = self.runner.start(model_id)
         self._running[model_id] = proc
         if self._stopping.is_set():  # claimed while stop() was killing the others
@@ -222,6 +238,10 @@ class JobQueue:
         finally:
             self._running.pop(model_id, None)
         log.info("job %s: worker ended with code %d", model_id, code)
+        try:
+            self._record(model_id, time.monotonic() - started)
+        except Exception:  # a metric never costs a job
+            log.exception("job %s: recording its duration", model_id)
         if self._stopping.is_set():
             self.state.requeue(model_id, count_attempt=False)
             return
@@ -234,6 +254,16 @@ class JobQueue:
             self.state.fail(
                 model_id, "worker ended without recording a result; see its worker.log."
             )
+
+    def _record(self, model_id: str, seconds: float) -> None:
+        if self._stopping.is_set():
+            self.on_finished("requeued", seconds)
+            return
+        with self.store.session() as s:
+            row = s.get(ModelRow, model_id)
+        self.on_finished(
+            row.status if row is not None and row.status != "running" else "failed", seconds
+        )
 
 
 @dataclass(eq=False)
