@@ -56,6 +56,7 @@ def _open(settings: Settings, metrics: Metrics | None = None) -> tuple[Store, Jo
     if metrics is not None:
         queue.on_finished = lambda outcome, seconds: metrics.jobs.labels(outcome).observe(seconds)
     queue.start()
+    store.share()  # started: other servers of the same PostgreSQL database may start too
     return store, queue
 
 
@@ -108,6 +109,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         await run_in_threadpool(app.state.pacs_imports.start)
         app.state.rooms = Hub(store)
         app.state.rooms.start()
+        store.bus.start()  # after every subscriber: the job queue, the rooms
         try:
             yield
         finally:

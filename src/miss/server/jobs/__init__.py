@@ -174,19 +174,29 @@ class JobQueue:
         }
 
     def start(self) -> None:
-        """Recover interrupted jobs, start the threads (the store holds the folder's lock)."""
-        requeued, failed = self.state.recover(MAX_ATTEMPTS)
-        if requeued or failed:
-            log.warning(
-                "after restart: %d job(s) queued again, %d failed", len(requeued), len(failed)
-            )
+        """Recover interrupted jobs, start the threads (the store holds the folder's lock).
+
+        Only a server that starts alone recovers: beside other servers of the same
+        database, the jobs marked running are theirs. Jobs queued by another server wake
+        a thread here at once (the bus); else a thread looks every ``POLL_SECONDS``."""
+        if self.store.alone:
+            requeued, failed = self.state.recover(MAX_ATTEMPTS)
+            if requeued or failed:
+                log.warning(
+                    "after restart: %d job(s) queued again, %d failed", len(requeued), len(failed)
+                )
+        self.store.bus.subscribe("jobs", lambda _data: self.wake())
         for n in range(self.workers):
             thread = threading.Thread(target=self._loop, name=f"miss-jobs-{n}", daemon=True)
             thread.start()
             self._threads.append(thread)
 
     def submit(self) -> None:
-        """Wake an idle thread: a job was queued."""
+        """Wake an idle thread, here or in another server process: a job was queued."""
+        self.wake()
+        self.store.bus.publish("jobs", None)
+
+    def wake(self) -> None:
         with self._wake:
             self._wake.notify()
 

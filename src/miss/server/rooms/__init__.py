@@ -330,11 +330,17 @@ class Hub:
         self._ended: dict[tuple[str, str], float] = {}  # written from any thread
         self._ended_lock = threading.Lock()
         self._watcher: asyncio.Task[None] | None = None
+        store.bus.subscribe("ended", lambda grant: self.end_here(*grant))
 
     def end(self, kind: str, value: str) -> None:
         """A grant ended (a session, a user's access, a link, a model, a volume): every
-        connection standing on it is closed within ``WATCH_EVERY`` seconds. Safe to call
-        from any thread (the routes that end grants run in the threadpool)."""
+        connection standing on it is closed within ``WATCH_EVERY`` seconds, in this
+        server process and the others of the same database. Safe to call from any thread
+        (the routes that end grants run in the threadpool)."""
+        self.end_here(kind, value)
+        self.store.bus.publish("ended", [kind, value])
+
+    def end_here(self, kind: str, value: str) -> None:
         with self._ended_lock:
             self._ended[(kind, value)] = time.monotonic()
 

@@ -1,0 +1,104 @@
+"""Two ``miss serve`` processes on one PostgreSQL database and one data folder, as behind
+a load balancer: what one changes the other sees at once (a revoked link closes a room
+connection on the other within a second, a deleted model is 404 there at the next
+request), a room's people on both see each other, and jobs submitted through both run
+once each. Needs PostgreSQL (``tests/pg.py``) whatever ``MISS_TEST_DATABASE`` says."""
+
+from __future__ import annotations
+
+import json
+import secrets
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pg
+import pytest
+from realserver import Server
+from websockets.exceptions import ConnectionClosed
+from websockets.sync.client import ClientConnection, connect
+
+pytestmark = pytest.mark.skipif(pg.missing() is not None, reason=str(pg.missing()))
+
+
+@pytest.fixture
+def two(tmp_path: Path) -> Iterator[tuple[Server, Server]]:
+    url = pg.shared().create(f"procs_{secrets.token_hex(4)}")
+    env = {"MISS_DATABASE_URL": url, "MISS_DEMO": "0", "MISS_WORKERS": "2"}
+    data = tmp_path / "data"
+    servers: list[Server] = []
+    try:
+        for name in ("a", "b"):
+            servers.append(Server(data, tmp_path / f"serve-{name}.log", workers=2, env=env))
+        yield servers[0], servers[1]
+    finally:
+        for server in servers:
+            if server.proc.poll() is None:
+                server.stop(15)
+
+
+def ws_url(server: Server, model: str, query: str = "") -> str:
+    return f"ws://127.0.0.1:{server.port}/ws/rooms/{model}{query}"
+
+
+def until(ws: ClientConnection, kind: str, limit: int = 50) -> dict[str, Any]:
+    for _ in range(limit):
+        message = json.loads(ws.recv(timeout=10))
+        if message["type"] == kind:
+            return message
+    raise AssertionError(f"no {kind!r} message in {limit}")
+
+
+def ball_model(a: Server, small_nifti: bytes) -> tuple[str, str]:
+    r = a.http.post("/api/volumes", files={"file": ("ball.nii.gz", small_nifti)})
+    assert r.status_code == 201, r.text
+    volume = r.json()["id"]
+    model = a.submit(volume, level=0, decimate="none")
+    assert a.wait(model, ("done", "failed"))["status"] == "done"
+    return volume, model
+
+
+def test_a_revoked_link_closes_a_guest_on_the_other_process(
+    two: tuple[Server, Server], small_nifti: bytes
+) -> None:
+    a, b = two
+    _, model = ball_model(a, small_nifti)
+    r = a.http.post("/api/shares", json={"model": model, "can_annotate": True})
+    share, token = r.json()["id"], r.json()["url"][3:]
+    with connect(ws_url(b, model, f"?share={token}&name=Lee"), open_timeout=30) as guest:
+        assert json.loads(guest.recv(timeout=10))["type"] == "welcome"
+        start = time.monotonic()
+        assert a.http.delete(f"/api/shares/{share}").status_code == 204
+        with pytest.raises(ConnectionClosed) as closed:
+            while True:
+                guest.recv(timeout=5)
+        assert time.monotonic() - start < 1.0
+        assert closed.value.rcvd is not None and closed.value.rcvd.code == 4410
+
+
+def test_a_model_deleted_through_one_is_gone_from_the_other(
+    two: tuple[Server, Server], small_nifti: bytes
+) -> None:
+    a, b = two
+    _, model = ball_model(a, small_nifti)
+    for server in (a, b):  # both hold the finished model's row and file in memory
+        assert server.http.get(f"/api/models/{model}").status_code == 200
+        assert server.http.get(f"/api/models/{model}/model.glb").status_code == 200
+    assert b.http.delete(f"/api/models/{model}").status_code == 204
+    assert a.http.get(f"/api/models/{model}").status_code == 404
+    assert a.http.get(f"/api/models/{model}/model.glb").status_code == 404
+
+
+def test_jobs_submitted_through_both_run_once_each(
+    two: tuple[Server, Server], small_nifti: bytes
+) -> None:
+    a, b = two
+    volume, _ = ball_model(a, small_nifti)
+    jobs = [
+        (a if n % 2 else b).submit(volume, level=-900 + 90 * n, decimate="none") for n in range(20)
+    ]
+    assert len(set(jobs)) == 20
+    done = [a.wait(job, ("done", "failed"), timeout=300) for job in jobs]
+    assert [d["status"] for d in done] == ["done"] * 20
+    assert [d["attempts"] for d in done] == [1] * 20  # each claim counts one attempt
