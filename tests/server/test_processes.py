@@ -59,6 +59,45 @@ def ball_model(a: Server, small_nifti: bytes) -> tuple[str, str]:
     return volume, model
 
 
+def test_people_on_two_processes_share_a_room(
+    two: tuple[Server, Server], small_nifti: bytes
+) -> None:
+    """The owner on A, a guest (share link) on B: presence, pins, chat and following the
+    presenter's view reach the other process; the pin is in the room's state on both."""
+    a, b = two
+    _, model = ball_model(a, small_nifti)
+    lo, hi = a.model(model)["stats"]["bounds_mm"]
+    centre = [(p + q) / 2 for p, q in zip(lo, hi, strict=True)]
+    token = a.http.post("/api/shares", json={"model": model, "can_annotate": True})
+    token = token.json()["url"][3:]
+    owner_headers = {"Authorization": f"Bearer {a.token}"}
+    with connect(ws_url(a, model), additional_headers=owner_headers, open_timeout=30) as owner:
+        assert until(owner, "welcome")["you"]["name"] == "admin"
+        with connect(ws_url(b, model, f"?share={token}&name=Lee"), open_timeout=30) as guest:
+            assert until(guest, "welcome")["you"]["name"] == "Lee (guest)"
+            assert until(owner, "joined")["participant"]["name"] == "Lee (guest)"
+            assert until(guest, "joined")["participant"]["name"] == "admin"  # B asked A
+
+            guest.send(json.dumps({"type": "pin", "model": model, "point": centre, "note": "here"}))
+            assert until(owner, "pin")["item"]["note"] == "here"
+            owner.send(json.dumps({"type": "chat", "text": "seen it"}))
+            assert until(guest, "chat")["item"]["text"] == "seen it"
+
+            owner.send(json.dumps({"type": "presenter", "on": True}))
+            assert until(guest, "presenter")["name"] == "admin"
+            view = {"position": [0, -300, 0], "target": centre, "up": [0, 0, 1]}
+            owner.send(json.dumps({"type": "camera", **view}))
+            assert until(guest, "camera")["position"] == [0, -300, 0]
+
+            headers = {"Authorization": f"Bearer {a.token}"}
+            with connect(ws_url(b, model), additional_headers=headers, open_timeout=30) as late:
+                welcome = until(late, "welcome")  # a later joiner on B: state from both
+                assert [p["note"] for p in welcome["pins"]] == ["here"]
+                assert [c["text"] for c in welcome["chat"]] == ["seen it"]
+                assert {p["name"] for p in welcome["participants"]} >= {"admin", "Lee (guest)"}
+                assert welcome["view"] is not None and welcome["presenter"]
+
+
 def test_a_revoked_link_closes_a_guest_on_the_other_process(
     two: tuple[Server, Server], small_nifti: bytes
 ) -> None:

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 import logging
+import queue
 import secrets
 import threading
 from collections.abc import Callable
@@ -44,7 +45,9 @@ class Bus:
         self._gaps: dict[str, Callable[[], None]] = {}
         self._stopping = threading.Event()
         self._thread: threading.Thread | None = None
-        self._conn: Any = None
+        self._outbox: queue.SimpleQueue[tuple[str, Any] | None] = queue.SimpleQueue()
+        self._sender: threading.Thread | None = None
+        self._sender_lock = threading.Lock()
         self.heard = 0  # messages from others handled (tests, metrics)
 
     def subscribe(
@@ -56,20 +59,49 @@ class Bus:
             self._gaps[channel] = on_gap
 
     def publish(self, channel: str, data: Any) -> None:
-        """Tell the other processes; never raises (a lost message costs a cache's TTL)."""
+        """Tell the other processes before returning (a row dropped: the caller answers
+        only after the others were told); never raises (a lost message costs a TTL)."""
+        if self.enabled:
+            self._send([(channel, data)])
+
+    def publish_soon(self, channel: str, data: Any) -> None:
+        """Tell the other processes without waiting (from the event loop: room messages),
+        in the order asked, by a thread of the bus."""
         if not self.enabled:
             return
-        payload = json.dumps({"o": self.origin, "d": data}, separators=(",", ":"))
-        if len(payload.encode()) > MAX_PAYLOAD:
-            log.warning("bus message on %s too long (%d bytes): not sent", channel, len(payload))
+        with self._sender_lock:
+            if self._sender is None:
+                self._sender = threading.Thread(target=self._send_loop, daemon=True)
+                self._sender.start()
+        self._outbox.put((channel, data))
+
+    def _send(self, messages: list[tuple[str, Any]]) -> None:
+        notes = []
+        for channel, data in messages:
+            payload = json.dumps({"o": self.origin, "d": data}, separators=(",", ":"))
+            if len(payload.encode()) > MAX_PAYLOAD:
+                log.warning(
+                    "bus message on %s too long (%d bytes): not sent", channel, len(payload)
+                )
+                continue
+            notes.append({"c": PREFIX + channel, "p": payload})
+        if not notes:
             return
         try:
             with self.engine.begin() as conn:
-                conn.execute(
-                    text("SELECT pg_notify(:c, :p)"), {"c": PREFIX + channel, "p": payload}
-                )
+                conn.execute(text("SELECT pg_notify(:c, :p)"), notes)
         except Exception:
-            log.exception("could not publish on %s", channel)
+            log.exception("could not publish %d bus message(s)", len(notes))
+
+    def _send_loop(self) -> None:
+        while True:
+            batch = [self._outbox.get()]
+            while len(batch) < 200 and not self._outbox.empty():
+                batch.append(self._outbox.get())
+            messages = [m for m in batch if m is not None]
+            self._send(messages)
+            if len(messages) < len(batch):
+                return
 
     def start(self) -> None:
         if self.enabled and self._thread is None:
@@ -78,6 +110,10 @@ class Bus:
 
     def stop(self) -> None:
         self._stopping.set()
+        if self._sender is not None:
+            self._outbox.put(None)
+            self._sender.join(timeout=5)
+            self._sender = None
         if self._thread is not None:
             self._thread.join(timeout=5)
             self._thread = None
