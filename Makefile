@@ -70,7 +70,7 @@ run: $(VENV)/.installed web-deps
 # The server tests again on PostgreSQL: PG_TESTS below (the rest is engine-independent).
 PG_TESTS := tests/server/test_api.py tests/server/test_rooms.py tests/server/test_faults.py \
 	tests/server/test_bad_input.py tests/server/test_schema.py tests/server/test_health.py \
-	tests/server/test_backup.py tests/server/test_processes.py
+	tests/server/test_backup.py
 
 test: $(VENV)/.installed web-deps validators vrml-reader chromium pacs-servers postgres
 	$(VENV)/bin/ruff check src tests benchmarks

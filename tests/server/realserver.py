@@ -49,7 +49,8 @@ class Server:
     """``miss serve`` in a subprocess on a free loopback port, logged in as admin.
 
     ``env`` adds to the environment (``MISS_*`` settings); ``wrap`` is a command prefix
-    that ends by running its arguments (e.g. ``unshare -m sh -c '... exec "$@"' sh``).
+    that ends by running its arguments (e.g. ``unshare -m sh -c '... exec "$@"' sh``);
+    ``args`` are more options of ``miss serve``.
     """
 
     def __init__(
@@ -59,6 +60,7 @@ class Server:
         workers: int = 1,
         env: dict[str, str] | None = None,
         wrap: Sequence[str] = (),
+        args: Sequence[str] = (),
     ) -> None:
         self.data_dir, self.log = data_dir, log
         self.port = free_port()
@@ -73,6 +75,7 @@ class Server:
             str(self.port),
             "--data-dir",
             str(data_dir),
+            *args,
         ]
         environ = {
             **os.environ,

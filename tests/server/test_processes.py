@@ -13,6 +13,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import httpx
 import pg
 import pytest
 from realserver import Server
@@ -141,3 +142,20 @@ def test_jobs_submitted_through_both_run_once_each(
     done = [a.wait(job, ("done", "failed"), timeout=300) for job in jobs]
     assert [d["status"] for d in done] == ["done"] * 20
     assert [d["attempts"] for d in done] == [1] * 20  # each claim counts one attempt
+
+
+def test_serve_processes_answers_from_several(tmp_path: Path) -> None:
+    """``miss serve --processes 2``: one port, two processes, one database."""
+    url = pg.shared().create(f"procs_{secrets.token_hex(4)}")
+    env = {"MISS_DATABASE_URL": url, "MISS_DEMO": "0"}
+    server = Server(tmp_path / "data", tmp_path / "serve.log", env=env, args=["--processes", "2"])
+    try:
+        seen = set()
+        for _ in range(40):  # a new connection each time
+            with httpx.Client(base_url=server.url, headers=server.http.headers) as fresh:
+                r = fresh.get("/api/health?deep=1")
+            assert r.status_code == 200, r.text
+            seen.add(r.json()["process"])
+        assert len(seen) == 2, seen
+    finally:
+        server.stop(15)

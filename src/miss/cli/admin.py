@@ -13,6 +13,13 @@ def add_serve_parser(sub: Any) -> None:
     serve.add_argument("--host", default=None)
     serve.add_argument("--port", type=int, default=None)
     serve.add_argument("--data-dir", default=None)
+    serve.add_argument(
+        "--processes",
+        type=int,
+        default=1,
+        help="server processes on the one port (more than 1 needs PostgreSQL); "
+        "MISS_WORKERS is the jobs each runs at once",
+    )
 
 
 def add_parsers(sub: Any) -> None:
@@ -59,7 +66,7 @@ def add_parsers(sub: Any) -> None:
 def cmd_serve(args: argparse.Namespace) -> int:
     from miss.server.main import serve
 
-    return serve(host=args.host, port=args.port, data_dir=args.data_dir)
+    return serve(host=args.host, port=args.port, data_dir=args.data_dir, processes=args.processes)
 
 
 def _read_password() -> str:

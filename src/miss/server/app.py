@@ -4,6 +4,7 @@ routes."""
 from __future__ import annotations
 
 import logging
+import os
 import sys
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
@@ -164,24 +165,40 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         """Without ``deep``: answered on the event loop itself (no thread, no database), its
         latency is the loop's, which load tests watch while jobs and uploads run. With
         ``?deep=1``: the database, the data folder and the job runners checked too; 503
-        when any of them is not well (for a load balancer's health check)."""
+        when any of them is not well (for a load balancer's health check). Only
+        administrators and the scrape token read the details (free space, the errors)."""
         if not deep:
             return {"status": "ok", "version": __version__}
         checks = await run_in_threadpool(_deep_checks, request.app)
         well = all(c["ok"] for c in checks.values())
-        body = {"status": "ok" if well else "failing", "version": __version__, **checks}
+        body: dict[str, Any] = {"status": "ok" if well else "failing", "version": __version__}
+        if await _is_operator(request):
+            body |= checks
+            body["process"] = os.getpid()  # which of several server processes answered
+        else:
+            body |= {name: {"ok": check["ok"]} for name, check in checks.items()}
         return JSONResponse(body, status_code=200 if well else 503)
 
     @app.get("/metrics", tags=["server"], include_in_schema=False)
     async def metrics(request: Request) -> Response:
         """Prometheus text format, for administrators or ``MISS_METRICS_TOKEN``'s bearer."""
         if not is_scraper(request.headers.get("authorization", ""), scrape_token()):
-            store = request.app.state.store
-            await current_admin(await current_user(request, store))
+            await current_admin(await current_user(request, request.app.state.store))
         body = await run_in_threadpool(request.app.state.metrics.text)
         return Response(body, media_type="text/plain; version=0.0.4; charset=utf-8")
 
     return app
+
+
+async def _is_operator(request: Request) -> bool:
+    """An administrator's session or the scrape token (``MISS_METRICS_TOKEN``)."""
+    if is_scraper(request.headers.get("authorization", ""), scrape_token()):
+        return True
+    try:
+        await current_admin(await current_user(request, request.app.state.store))
+    except (errors.Unauthorized, errors.Forbidden):
+        return False
+    return True
 
 
 def _deep_checks(app: FastAPI) -> dict[str, dict[str, Any]]:
