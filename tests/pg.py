@@ -113,7 +113,11 @@ class Cluster:
                 stderr=subprocess.STDOUT,
                 stdin=subprocess.DEVNULL,
             )
-        self._wait_ready()
+        try:
+            self._wait_ready()
+        except BaseException:
+            self.stop()
+            raise
 
     def _run(self, *cmd: object) -> None:
         subprocess.run(
@@ -159,8 +163,10 @@ class Cluster:
             return found.fetchone() is not None
 
     def stop(self) -> None:
+        """Fast shutdown (clients still connected are disconnected), folder removed."""
         if self.proc.poll() is None:
-            self.proc.terminate()  # smart shutdown would wait for clients: SIGTERM is "fast"
+            stop = [*self.as_user, str(BIN / "pg_ctl"), "-D", str(self.data), "-m", "fast"]
+            subprocess.run([*stop, "-w", "stop"], capture_output=True, timeout=60)
             try:
                 self.proc.wait(timeout=30)
             except subprocess.TimeoutExpired:

@@ -311,6 +311,7 @@ def test_an_older_models_table_gains_submitted_by(tmp_path: Path) -> None:
     store.init()
     with store.engine.begin() as con:
         con.execute(text("ALTER TABLE models DROP COLUMN submitted_by"))
+        con.execute(text("ALTER TABLE models DROP COLUMN runner"))  # revision 0002's
         con.execute(text("DROP TABLE alembic_version"))
     store.close()
     store = Store(tmp_path, url)

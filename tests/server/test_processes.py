@@ -144,6 +144,43 @@ def test_jobs_submitted_through_both_run_once_each(
     assert [d["attempts"] for d in done] == [1] * 20  # each claim counts one attempt
 
 
+def test_a_job_of_a_killed_process_is_run_by_the_other(tmp_path: Path) -> None:
+    """A kills -9 while its worker computes: B queues the job again (A's liveness lock is
+    free) within seconds and runs it to the end, as a restart would."""
+    import gzip
+
+    import nibabel as nib
+    import numpy as np
+
+    url = pg.shared().create(f"procs_{secrets.token_hex(4)}")
+    env = {"MISS_DATABASE_URL": url, "MISS_DEMO": "0", "MISS_SPARE_WORKERS": "0"}
+    data = tmp_path / "data"
+    noise = np.random.default_rng(0).integers(-1000, 1000, (64, 64, 64)).astype(np.int16)
+    content = gzip.compress(nib.Nifti1Image(noise, np.eye(4)).to_bytes(), compresslevel=1)
+    a = Server(data, tmp_path / "serve-a.log", env=env)
+    b = None
+    try:
+        r = a.http.post("/api/volumes", files={"file": ("noise.nii.gz", content)})
+        assert r.status_code == 201, r.text
+        job = a.submit(r.json()["id"], level=0, decimate="none")
+        assert a.wait(job, ("running",))["attempts"] == 1  # A's, before B is there
+        b = Server(data, tmp_path / "serve-b.log", env=env)
+        assert a.model(job)["status"] == "running", "the job ended too soon: make it longer"
+        a.proc.kill()
+        a.proc.wait()
+        start = time.monotonic()
+        deadline = time.monotonic() + 60
+        while (body := b.model(job))["attempts"] < 2:
+            assert time.monotonic() < deadline, body
+            time.sleep(0.1)
+        assert time.monotonic() - start < 15
+        assert b.wait(job, ("done", "failed"), timeout=300)["status"] == "done"
+    finally:
+        for server in (a, b):
+            if server is not None and server.proc.poll() is None:
+                server.stop(15)
+
+
 def test_serve_processes_answers_from_several(tmp_path: Path) -> None:
     """``miss serve --processes 2``: one port, two processes, one database."""
     url = pg.shared().create(f"procs_{secrets.token_hex(4)}")

@@ -38,6 +38,7 @@ def test_folder_from_before_alembic_keeps_its_rows(tmp_path: Path) -> None:
     engine = create_engine(url)
     Base.metadata.create_all(engine)
     with engine.begin() as conn:
+        conn.execute(text("ALTER TABLE models DROP COLUMN runner"))  # came with Alembic
         conn.execute(text("ALTER TABLE users DROP COLUMN pacs"))
         conn.execute(text("ALTER TABLE shares DROP COLUMN message"))
         now = utcnow()

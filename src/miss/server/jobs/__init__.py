@@ -36,6 +36,8 @@ MAX_ATTEMPTS = 2
 #: Seconds an idle thread sleeps before looking at the database again (jobs queued by
 #: another process, or a wake-up missed).
 POLL_SECONDS = 2.0
+#: Seconds between looks for jobs of server processes that are gone (PostgreSQL only).
+REAP_SECONDS = 5.0
 
 
 #: What native code and Python print when an allocation fails: the worker hit its memory
@@ -160,6 +162,7 @@ class JobQueue:
         self._stopping = threading.Event()
         self._threads: list[threading.Thread] = []
         self._running: dict[str, Running] = {}
+        self._reaper: threading.Thread | None = None
         #: Told each job's outcome ("done", "failed", "requeued") and wall time, seconds.
         self.on_finished: Callable[[str, float], None] = lambda outcome, seconds: None
 
@@ -190,6 +193,9 @@ class JobQueue:
             thread = threading.Thread(target=self._loop, name=f"miss-jobs-{n}", daemon=True)
             thread.start()
             self._threads.append(thread)
+        if self.store.shared:
+            self._reaper = threading.Thread(target=self._reap, name="miss-jobs-reap", daemon=True)
+            self._reaper.start()
 
     def submit(self) -> None:
         """Wake an idle thread, here or in another server process: a job was queued."""
@@ -215,7 +221,7 @@ class JobQueue:
             if proc.poll() is None:
                 proc.kill()  # each thread then queues its job again
         self.runner.close()
-        for thread in self._threads:
+        for thread in [*self._threads, *([self._reaper] if self._reaper else [])]:
             thread.join(timeout=10)
         self.runner.close()  # any a thread started meanwhile
 
@@ -232,6 +238,23 @@ class JobQueue:
             except Exception:  # keep the thread alive through a database hiccup
                 log.exception("job thread error")
                 self._stopping.wait(POLL_SECONDS)
+
+    def _reap(self) -> None:
+        """Queue again the jobs of server processes that died while others run on."""
+        while not self._stopping.wait(REAP_SECONDS):
+            try:
+                self.store.bus.hold_liveness()  # lost with its connection: taken again
+                requeued, failed = self.state.reap(MAX_ATTEMPTS)
+            except Exception:
+                log.exception("looking for jobs of stopped server processes")
+                continue
+            if requeued or failed:
+                log.warning(
+                    "jobs of a stopped server process: %d queued again, %d failed",
+                    len(requeued),
+                    len(failed),
+                )
+                self.wake()
 
     def _run(self, model_id: str) -> None:
         log_path = self.store.model_dir(model_id) / "worker.log"

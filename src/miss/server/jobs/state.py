@@ -49,6 +49,7 @@ class JobState:
             error=None,
             stats=None,  # no preview nor files of an earlier, interrupted attempt
             files=None,
+            runner=self.store.bus.origin,
         )
         while True:
             with self.store.session.begin() as s:
@@ -113,7 +114,7 @@ class JobState:
 
     def requeue(self, model_id: str, count_attempt: bool) -> bool:
         """Put a running job back in the queue; a clean shutdown does not count as an attempt."""
-        values: dict[str, Any] = dict(status=QUEUED, progress=0.0, stage="", pid=None)
+        values: dict[str, Any] = dict(status=QUEUED, progress=0.0, stage="", pid=None, runner=None)
         if not count_attempt:
             values["attempts"] = ModelRow.attempts - 1
         return self.store.update_model(model_id, ModelRow.status == RUNNING, **values)
@@ -133,4 +134,44 @@ class JobState:
                 failed.append(row.id)
             elif self.requeue(row.id, count_attempt=True):
                 requeued.append(row.id)
+        return requeued, failed
+
+    def reap(self, max_attempts: int = 2) -> tuple[list[str], list[str]]:
+        """Jobs whose server process is gone (several processes on PostgreSQL: its liveness
+        lock is free): queued again, or failed once interrupted twice, as at a restart."""
+        bus = self.store.bus
+        query = select(ModelRow.runner).where(
+            ModelRow.status == RUNNING, ModelRow.runner.is_not(None), ModelRow.runner != bus.origin
+        )
+        with self.store.session() as s:
+            runners = set(s.scalars(query.distinct()))
+        requeued: list[str] = []
+        failed: list[str] = []
+        for runner in runners:
+            if bus.is_alive(runner):
+                continue
+            with self.store.session() as s:
+                query = select(ModelRow).where(
+                    ModelRow.status == RUNNING, ModelRow.runner == runner
+                )
+                rows = list(s.scalars(query))
+            for row in rows:
+                if row.attempts >= max_attempts:
+                    reason = (
+                        f"interrupted twice (its server process stopped during "
+                        f"{row.stage or 'the job'}); submit the same parameters again to retry."
+                    )
+                    if self.fail(row.id, reason):
+                        failed.append(row.id)
+                elif self.store.update_model(
+                    row.id,
+                    ModelRow.status == RUNNING,
+                    ModelRow.runner == runner,
+                    status=QUEUED,
+                    progress=0.0,
+                    stage="",
+                    pid=None,
+                    runner=None,
+                ):
+                    requeued.append(row.id)
         return requeued, failed

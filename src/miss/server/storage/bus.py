@@ -49,6 +49,7 @@ class Bus:
         self._sender: threading.Thread | None = None
         self._sender_lock = threading.Lock()
         self.heard = 0  # messages from others handled (tests, metrics)
+        self._alive: Any = None  # the connection holding this process's liveness lock
 
     def subscribe(
         self, channel: str, handler: Callable[[Any], None], on_gap: Callable[[], None] | None = None
@@ -103,6 +104,38 @@ class Bus:
             if len(messages) < len(batch):
                 return
 
+    # -- liveness: whose running jobs are orphans -----------------------------------------
+
+    @staticmethod
+    def key(origin: str) -> int:
+        """The advisory lock key of a process (its 48-bit origin)."""
+        return int(origin, 16)
+
+    def hold_liveness(self) -> None:
+        """Hold this process's liveness lock, on a connection of its own, for its life:
+        while it is held (PostgreSQL frees it when the process or its connection dies),
+        the jobs whose ``runner`` is this process are this process's."""
+        if not self.enabled:
+            return
+        if self._alive is not None and not self._alive.closed and not self._alive.broken:
+            return
+        if self._alive is not None:
+            log.warning("liveness connection lost; taking the lock again")
+        self._alive = self._connect()
+        self._alive.execute("SELECT pg_advisory_lock(%s)", (self.key(self.origin),))
+
+    def is_alive(self, origin: str) -> bool:
+        """True while the process ``origin`` holds its liveness lock (always on SQLite)."""
+        if not self.enabled or origin == self.origin:
+            return True
+        key = {"k": self.key(origin)}
+        with self.engine.connect() as conn:
+            free = conn.execute(text("SELECT pg_try_advisory_lock(:k)"), key).scalar()
+            if free:
+                conn.execute(text("SELECT pg_advisory_unlock(:k)"), key)
+            conn.commit()
+        return not free
+
     def start(self) -> None:
         if self.enabled and self._thread is None:
             self._thread = threading.Thread(target=self._run, name="miss-bus", daemon=True)
@@ -117,6 +150,9 @@ class Bus:
         if self._thread is not None:
             self._thread.join(timeout=5)
             self._thread = None
+        if self._alive is not None:
+            self._alive.close()
+            self._alive = None
 
     def _run(self) -> None:
         first = True

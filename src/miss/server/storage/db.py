@@ -102,6 +102,9 @@ class ModelRow(Base):
     pid: Mapped[int | None] = mapped_column(default=None)
     #: The account that last queued the job (the per-account job limit counts these).
     submitted_by: Mapped[str | None] = mapped_column(String(64), default=None)
+    #: The server process running the job (its ``Bus.origin``): when that process is gone
+    #: (PostgreSQL: its liveness lock is free) another one queues the job again.
+    runner: Mapped[str | None] = mapped_column(String(32), default=None)
     created_at: Mapped[datetime] = mapped_column(default=utcnow)
     started_at: Mapped[datetime | None] = mapped_column(default=None)
     finished_at: Mapped[datetime | None] = mapped_column(default=None)

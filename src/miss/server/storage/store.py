@@ -168,6 +168,7 @@ class Store:
         """Lock the folder, create folders and tables, drop leftovers of an interrupted
         upload, job or delete (the server may have been killed at any point)."""
         self.lock()
+        self.bus.hold_liveness()  # before this process claims a job (PostgreSQL)
         for sub in ("volumes", "models", "tmp"):
             (self.data_dir / sub).mkdir(parents=True, exist_ok=True)
         self.init_schema()
