@@ -571,7 +571,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--think", type=float, default=1.0, help="mean pause per loop, s (1)")
     parser.add_argument("--slices", type=int, default=1, help="slice images per loop (1)")
     parser.add_argument(
-        "--workers", type=int, default=2, help="job workers (2; the server's default is 1)"
+        "--workers",
+        type=int,
+        default=2,
+        help="job workers in all, split between --processes (2; the server's default is 1)",
     )
     parser.add_argument("--database", choices=("sqlite", "postgres"), default="sqlite")
     parser.add_argument(
@@ -620,7 +623,10 @@ def one_run(args: argparse.Namespace, processes: int, cluster: Any) -> dict[str,
         work = Path(tmp)
         (work / "data").mkdir()
         database = cluster.create(f"load_{processes}") if cluster else ""
-        proc, url = start_server(work / "data", args.workers, database, processes)
+        # --workers is the jobs at once in all: split between the processes, so that 1
+        # and 2 processes run the same jobs side by side.
+        workers = max(1, args.workers // processes)
+        proc, url = start_server(work / "data", workers, database, processes)
         target = None
         if args.backup:
             target = {"data": str(work / "data"), "database": database, "dest": str(work / "b")}

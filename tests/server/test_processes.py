@@ -130,6 +130,31 @@ def test_a_model_deleted_through_one_is_gone_from_the_other(
     assert a.http.get(f"/api/models/{model}/model.glb").status_code == 404
 
 
+def test_logout_and_password_reset_through_one_end_sessions_on_the_other(
+    two: tuple[Server, Server],
+) -> None:
+    """Sessions are cached by each process (``RowCache``): the other's drop reaches it."""
+    a, b = two
+    r = a.http.post("/api/users", json={"name": "ann", "password": "ann-password"})
+    assert r.status_code == 201, r.text
+
+    def session() -> dict[str, str]:
+        body = {"username": "ann", "password": "ann-password"}
+        r = httpx.post(f"{a.url}/api/auth/login", json=body)
+        return {"Authorization": f"Bearer {r.json()['token']}"}
+
+    ann = session()
+    assert b.http.get("/api/volumes", headers=ann).status_code == 200  # cached on B
+    assert a.http.post("/api/auth/logout", headers=ann).status_code == 204
+    assert b.http.get("/api/volumes", headers=ann).status_code == 401
+
+    ann = session()
+    assert b.http.get("/api/volumes", headers=ann).status_code == 200
+    r = a.http.patch("/api/users/ann", json={"password": "a-new-password"})
+    assert r.status_code == 200, r.text
+    assert b.http.get("/api/volumes", headers=ann).status_code == 401
+
+
 def test_jobs_submitted_through_both_run_once_each(
     two: tuple[Server, Server], small_nifti: bytes
 ) -> None:

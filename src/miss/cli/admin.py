@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from typing import Any
 
@@ -145,6 +146,7 @@ def cmd_backup(args: argparse.Namespace) -> int:
     from miss.server.storage.backup import backup
 
     settings = Settings.from_env(data_dir=args.data_dir)
+    os.nice(10)  # like the job workers: viewers of the running server come first
     done = backup(settings.data_dir, settings.database_url, args.dest)
     print(
         f"backed up {done.files} files ({done.bytes / 2**20:.1f} MB) and the database "
