@@ -3,7 +3,9 @@
 ``upgrade(engine)`` brings any database to the newest revision: a new one gets every
 table, one made by an earlier MISS (tables made by ``create_all`` and the ALTERs of
 ``db.ADDED_COLUMNS``, no ``alembic_version`` table) gets those columns it still lacks and
-is stamped with the first revision, which is that schema, then upgraded like any other.
+and the tables it lacks, is stamped with the first revision, which is that schema, then
+upgraded like any other (a revision adding a column checks whether a table made just now
+has it already).
 
 Servers that start at once on one PostgreSQL database take turns (an advisory lock held
 for the transaction), so only one of them migrates. A new table or column is one more
@@ -21,7 +23,7 @@ from alembic.runtime.migration import MigrationContext
 from alembic.script import ScriptDirectory
 from sqlalchemy import Connection, Engine, inspect, text
 
-from miss.server.storage.db import ADDED_COLUMNS
+from miss.server.storage.db import ADDED_COLUMNS, Base
 
 MIGRATIONS = Path(__file__).with_name("migrations")
 #: The revision equal to the schema of MISS before Alembic (``create_all`` + ALTERs).
@@ -59,6 +61,8 @@ def upgrade(engine: Engine) -> None:
         tables = set(inspect(conn).get_table_names())
         if tables and "alembic_version" not in tables:
             _add_legacy_columns(conn, tables)
+            # Tables an old version did not have yet, as ``create_all`` made them then.
+            Base.metadata.create_all(conn)
             command.stamp(config(conn), BASELINE)
         command.upgrade(config(conn), "head")
 

@@ -18,6 +18,11 @@ depends_on = None
 
 
 def upgrade() -> None:
+    # A database from before Alembic whose models table was only now made (by
+    # ``schema._stamp_legacy``, from today's tables) has the column already.
+    columns = {c["name"] for c in sa.inspect(op.get_bind()).get_columns("models")}
+    if "runner" in columns:
+        return
     with op.batch_alter_table("models", schema=None) as batch_op:
         batch_op.add_column(sa.Column("runner", sa.String(length=32), nullable=True))
 
