@@ -6,7 +6,7 @@ PIP := $(PY) -m pip
 WEB := src/miss/web
 VALIDATORS := tests/validators
 
-.PHONY: run test lint format bench web-deps validators vrml-reader chromium pacs-servers clean
+.PHONY: run test lint format bench web-deps validators vrml-reader chromium pacs-servers postgres clean
 
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -55,14 +55,28 @@ pacs-servers:
 		apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends orthanc orthanc-dicomweb dicom3tools >/dev/null; \
 	fi
 
+# Debian's PostgreSQL for the tests that run the server on it; each test run starts its own
+# throw-away cluster (tests/pg.py), never the system's service.
+postgres:
+	@if ! ls /usr/lib/postgresql/*/bin/postgres >/dev/null 2>&1; then \
+		echo "installing Debian's postgresql for the PostgreSQL tests"; \
+		apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends postgresql >/dev/null; \
+	fi
+
 # Starts the web system on embedded defaults: SQLite + data folder ./miss-data, demo volume.
 run: $(VENV)/.installed web-deps
 	$(VENV)/bin/miss serve $(if $(HOST),--host $(HOST)) $(if $(PORT),--port $(PORT))
 
-test: $(VENV)/.installed web-deps validators vrml-reader chromium pacs-servers
+# The server tests again on PostgreSQL: PG_TESTS below (the rest is engine-independent).
+PG_TESTS := tests/server/test_api.py tests/server/test_rooms.py tests/server/test_faults.py \
+	tests/server/test_bad_input.py tests/server/test_schema.py tests/server/test_health.py \
+	tests/server/test_backup.py
+
+test: $(VENV)/.installed web-deps validators vrml-reader chromium pacs-servers postgres
 	$(VENV)/bin/ruff check src tests benchmarks
 	$(VENV)/bin/ruff format --check src tests benchmarks
 	$(VENV)/bin/pytest -q
+	MISS_TEST_DATABASE=postgres $(VENV)/bin/pytest -q $(PG_TESTS)
 
 lint:
 	$(VENV)/bin/ruff check src tests benchmarks

@@ -26,7 +26,14 @@ All requests come from 127.0.0.1 and the viewers are logged in, so the API's rat
 (20/s per account, bursts of 200) is raised for the run (``MISS_API_RATE`` and
 ``MISS_API_BURST`` = 10^6): its check still runs on every request, it just never refuses.
 
-Writes ``results/load.{json,md}``; exits 1 if any request failed.
+On PostgreSQL (``--database postgres``: a throw-away cluster, as the tests start one)
+the run can be repeated with several server processes (``--processes 1,2``: ``miss serve
+--processes N`` on one port); ``--backup`` takes ``miss backup`` while the jobs run,
+restores it into a fresh folder and database after the run and compares every row and
+file with the source (rows a job changed after the backup excepted).
+
+Writes ``results/load.{json,md}`` (``results/load_postgres.{json,md}`` on PostgreSQL);
+exits 1 if any request failed or the restored copy differs.
 """
 
 from __future__ import annotations
@@ -82,10 +89,13 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def start_server(data_dir: Path, workers: int = 2) -> tuple[subprocess.Popen[bytes], str]:
+def start_server(
+    data_dir: Path, workers: int = 2, database: str = "", processes: int = 1
+) -> tuple[subprocess.Popen[bytes], str]:
     port = free_port()
     env = {
         **os.environ,
+        **({"MISS_DATABASE_URL": database} if database else {}),
         "MISS_DATA_DIR": str(data_dir),
         "MISS_ADMIN_PASSWORD": PASSWORD,
         "MISS_DEMO": "0",
@@ -94,6 +104,7 @@ def start_server(data_dir: Path, workers: int = 2) -> tuple[subprocess.Popen[byt
         "MISS_API_BURST": "1000000",
     }
     cmd = [sys.executable, "-m", "miss.cli", "serve", "--port", str(port)]
+    cmd += ["--processes", str(processes)]
     log = open(data_dir.parent / "server.log", "wb")  # noqa: SIM115 (the server's lifetime)
     proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env)
     url = f"http://127.0.0.1:{port}"
@@ -305,6 +316,10 @@ def drive(url: str, env: dict[str, Any], big: Path, cfg: dict[str, Any]) -> dict
     jobs: list[dict[str, Any]] = []
     thread = threading.Thread(target=run_jobs, args=(url, env, jobs))
     thread.start()
+    backup = None
+    if cfg.get("backup"):
+        time.sleep(1.0)  # the jobs under way
+        backup = take_backup(cfg["backup"])
     thread.join(timeout=max(0.0, (cfg["start"] + cfg["end"]) / 2 - time.monotonic()))
     t0 = time.monotonic()
     upload(url, env["ana"], big)
@@ -317,12 +332,40 @@ def drive(url: str, env: dict[str, Any], big: Path, cfg: dict[str, Any]) -> dict
         "jobs": jobs,
         "job_phase": (min(j["submitted"] for j in jobs), max(j["done"] for j in jobs)),
         "upload_phase": uploaded,
+        "backup": backup,
     }
 
 
-def server_cpu(pid: int) -> float:
-    """CPU seconds of the server process (its own threads, not the workers)."""
-    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+def take_backup(target: dict[str, Any]) -> dict[str, Any]:
+    """``miss backup`` of the running server's folder and database; its figures."""
+    env = {**os.environ, "MISS_DATA_DIR": target["data"]}
+    if target["database"]:
+        env["MISS_DATABASE_URL"] = target["database"]
+    t0 = time.monotonic()
+    cmd = [sys.executable, "-m", "miss.cli", "backup", target["dest"]]
+    done = subprocess.run(cmd, env=env, capture_output=True, text=True)
+    seconds = time.monotonic() - t0
+    if done.returncode != 0:
+        raise RuntimeError(f"miss backup failed: {done.stderr}")
+    size = sum(p.stat().st_size for p in Path(target["dest"]).rglob("*") if p.is_file())
+    return {"seconds": round(seconds, 2), "mb": round(size / 2**20, 1), "said": done.stdout}
+
+
+def server_cpu(pid: int, processes: int = 1) -> float:
+    """CPU seconds of the server process (its own threads, not the workers); with
+    ``--processes N`` > 1, of its N server processes (the master's children) too."""
+    total = _cpu(pid)
+    if processes > 1:
+        for child in Path(f"/proc/{pid}/task").glob("*/children"):
+            total += sum(_cpu(int(c)) for c in child.read_text().split())
+    return total
+
+
+def _cpu(pid: int) -> float:
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except FileNotFoundError:
+        return 0.0
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
@@ -455,9 +498,18 @@ def upload_file() -> Path:
     return volume_file(UPLOAD_SHAPE)
 
 
-def measure(url: str, pid: int, env: dict[str, Any], args: argparse.Namespace, work: Path) -> dict:
+def measure(
+    url: str,
+    pid: int,
+    env: dict[str, Any],
+    args: argparse.Namespace,
+    work: Path,
+    processes: int = 1,
+    backup: dict[str, Any] | None = None,
+) -> dict:
     big = upload_file()
     cfg = {"url": url, "seconds": args.seconds, "think": args.think, "slices": args.slices}
+    cfg["backup"] = backup
     cfg |= {k: env[k] for k in ("sessions", "models", "volume", "views")}
     ctx = mp.get_context("spawn")
     stop, ready = ctx.Event(), ctx.Barrier(3)
@@ -472,7 +524,7 @@ def measure(url: str, pid: int, env: dict[str, Any], args: argparse.Namespace, w
     probe.start()
     synced_start(cfg, ready)
     start = cfg["start"]
-    cpu0 = server_cpu(pid)
+    cpu0 = server_cpu(pid, processes)
     try:
         driven = drive(url, env, big, cfg)
         viewers.join()
@@ -489,7 +541,9 @@ def measure(url: str, pid: int, env: dict[str, Any], args: argparse.Namespace, w
         "upload_s": driven["upload_phase"][1] - driven["upload_phase"][0],
         "load_before": load_before,
         "load_after": [round(x, 2) for x in os.getloadavg()],
-        "server_cpu_s": server_cpu(pid) - cpu0,
+        "server_cpu_s": server_cpu(pid, processes) - cpu0,
+        "processes": processes,
+        "backup": driven["backup"],
     }
     viewed = json.loads((work / "viewers.json").read_text())
     samples = viewed["samples"]
@@ -517,16 +571,68 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--think", type=float, default=1.0, help="mean pause per loop, s (1)")
     parser.add_argument("--slices", type=int, default=1, help="slice images per loop (1)")
     parser.add_argument(
-        "--workers", type=int, default=2, help="job workers (2; the server's default is 1)"
+        "--workers",
+        type=int,
+        default=2,
+        help="job workers in all, split between --processes (2; the server's default is 1)",
+    )
+    parser.add_argument("--database", choices=("sqlite", "postgres"), default="sqlite")
+    parser.add_argument(
+        "--processes", default="1", help="server processes, a run each: '1,2' (PostgreSQL)"
+    )
+    parser.add_argument(
+        "--backup", action="store_true", help="miss backup during the jobs, restored, compared"
     )
     args = parser.parse_args(argv)
+    counts = [int(n) for n in args.processes.split(",")]
+    cluster = None
+    if args.database == "postgres":
+        sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+        import pg
+
+        cluster = pg.Cluster()
+    results, tables, problems = [], [], []
+    try:
+        for n in counts:
+            result = one_run(args, n, cluster)
+            results.append(result)
+            problems += result.pop("problems", [])
+            title = f"### {n} server process(es), {args.database}\n\n" if cluster else ""
+            tables.append(title + report(result["rows"], result["jobs"], result["context"]))
+    finally:
+        if cluster is not None:
+            cluster.stop()
+    table = "\n".join(tables) + "".join(
+        f"\n{r['backup_report']}" for r in results if r.get("backup_report")
+    )
+    print(table)
+    name = "load" if args.database == "sqlite" else f"load_{args.database}"
+    save(name, {"runs": results} if len(results) > 1 else results[0], table)
+    failures = sum(r["failures"] for result in results for r in result["rows"])
+    if failures:
+        failed = [f for result in results for f in result["failed"]]
+        print(f"{failures} request(s) failed, e.g. {failed[:5]}", file=sys.stderr)
+    for problem in problems:
+        print(problem, file=sys.stderr)
+    return 1 if failures or problems else 0
+
+
+def one_run(args: argparse.Namespace, processes: int, cluster: Any) -> dict[str, Any]:
+    """Setup, the measured load and (``--backup``) the restored copy compared."""
     with tempfile.TemporaryDirectory(prefix="miss-load-") as tmp:
         work = Path(tmp)
         (work / "data").mkdir()
-        proc, url = start_server(work / "data", args.workers)
+        database = cluster.create(f"load_{processes}") if cluster else ""
+        # --workers is the jobs at once in all: split between the processes, so that 1
+        # and 2 processes run the same jobs side by side.
+        workers = max(1, args.workers // processes)
+        proc, url = start_server(work / "data", workers, database, processes)
+        target = None
+        if args.backup:
+            target = {"data": str(work / "data"), "database": database, "dest": str(work / "b")}
         try:
             env = setup(url, args.viewers)
-            result = measure(url, proc.pid, env, args, work)
+            result = measure(url, proc.pid, env, args, work, processes, target)
         except BaseException:
             print((work / "server.log").read_text()[-4000:], file=sys.stderr)
             raise
@@ -535,13 +641,77 @@ def main(argv: list[str] | None = None) -> int:
             proc.wait(timeout=60)
             # Kept for a look after the run (the data folder goes).
             shutil.copy(work / "server.log", Path(tempfile.gettempdir()) / "miss-load-server.log")
-    table = report(result["rows"], result["jobs"], result["context"])
-    print(table)
-    save("load", result, table)
-    failures = sum(r["failures"] for r in result["rows"])
-    if failures:
-        print(f"{failures} request(s) failed, e.g. {result['failed'][:5]}", file=sys.stderr)
-    return 1 if failures else 0
+        if target is not None:
+            restored = cluster.create(f"restored_{processes}") if cluster else ""
+            result["problems"], result["backup_report"] = check_backup(
+                work, database, restored, result["context"]["backup"]
+            )
+    return result
+
+
+def check_backup(
+    work: Path, database: str, restored: str, taken: dict[str, Any]
+) -> tuple[list[str], str]:
+    """Restore the backup into a fresh folder and database; compare with the source."""
+    from miss.server.storage.backup import MANIFEST, restore
+
+    source_url = database or f"sqlite:///{work / 'data' / 'miss.sqlite3'}"
+    fresh = work / "restored"
+    restored_url = restored or f"sqlite:///{fresh / 'miss.sqlite3'}"
+    t0 = time.monotonic()
+    restore(work / "b", fresh, restored_url)
+    restore_s = time.monotonic() - t0
+    manifest = json.loads((work / "b" / MANIFEST).read_text())
+    before, after = all_rows(source_url), all_rows(restored_url)
+    changed = {  # models whose row changed after the backup: the jobs under way
+        key for key, row in after["models"].items() if before["models"].get(key) != row
+    }
+    # Every restored row is in the source, equal (rows made after the backup, like the
+    # upload's volume, are only in the source).
+    problems = []
+    for table, rows in after.items():
+        for key, row in rows.items():
+            if table == "models" and key in changed:
+                continue
+            if before[table].get(key) != row:
+                problems.append(f"restored {table} row {key} differs from the source")
+    running = {key[0] for key in changed}
+    files = 0
+    for relative in manifest["files"]:
+        if any(f"models/{m}/" in relative for m in running):
+            continue
+        files += 1
+        if (fresh / relative).read_bytes() != (work / "data" / relative).read_bytes():
+            problems.append(f"restored {relative} differs from the source")
+    text = (
+        f"Backup during the jobs: {taken['mb']} MB in {taken['seconds']} s; restored in "
+        f"{restore_s:.1f} s; {sum(len(r) for r in after.values())} rows and {files} files "
+        f"compared ({len(changed)} model row(s) of jobs running at the backup left out): "
+        f"{len(problems)} difference(s).\n"
+    )
+    return problems[:20], text
+
+
+def all_rows(url: str) -> dict[str, dict[Any, Any]]:
+    """Every row of every table, by primary key."""
+    from sqlalchemy import create_engine, text
+
+    from miss.server.storage.db import Base
+
+    engine = create_engine(url)
+    out: dict[str, dict[Any, Any]] = {}
+    try:
+        with engine.connect() as conn:
+            for table in Base.metadata.sorted_tables:
+                key = [c.name for c in table.primary_key.columns]
+                found = conn.execute(text(f"SELECT * FROM {table.name}")).mappings()
+                out[table.name] = {
+                    tuple(r[k] for k in key): json.dumps(dict(r), sort_keys=True, default=str)
+                    for r in found
+                }
+    finally:
+        engine.dispose()
+    return out
 
 
 if __name__ == "__main__":

@@ -3,7 +3,6 @@ the administrator), upload files."""
 
 from __future__ import annotations
 
-import shutil
 import time
 import warnings
 import zipfile
@@ -19,6 +18,8 @@ with warnings.catch_warnings():
     # pytest settings) when only httpx is installed; the client works the same.
     warnings.simplefilter("ignore", StarletteDeprecationWarning)
     from fastapi.testclient import TestClient
+
+from pg import copy_seed, database_url, settings_for
 
 from miss.server.app import create_app
 from miss.server.ingest import register_demo
@@ -62,16 +63,11 @@ def seeded_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A data folder with the demo phantom registered, made once: the phantom takes seconds
     to compute, so every app below starts from a copy of this folder."""
     path = tmp_path_factory.mktemp("seed") / "data"
-    store = Store(path, Settings(data_dir=path).database_url)
+    store = Store(path, Settings(data_dir=path, database_url=database_url(path)).database_url)
     store.init()
     register_demo(store)
     store.close()
     return path
-
-
-def copy_seed(seeded_dir: Path, dest: Path) -> Path:
-    shutil.copytree(seeded_dir, dest)
-    return dest
 
 
 @pytest.fixture
@@ -83,7 +79,7 @@ def data_dir(seeded_dir: Path, tmp_path: Path) -> Path:
 def client(seeded_dir: Path, tmp_path_factory: pytest.TempPathFactory) -> Iterator[TestClient]:
     """One app per test module on its own copy of the seeded folder (default limits)."""
     data = copy_seed(seeded_dir, tmp_path_factory.mktemp("api") / "data")
-    with TestClient(create_app(Settings(data_dir=data, admin_password=ADMIN_PASSWORD))) as c:
+    with TestClient(create_app(settings_for(data, admin_password=ADMIN_PASSWORD))) as c:
         log_in(c)
         yield c
 
@@ -97,7 +93,7 @@ def make_client(tmp_path: Path) -> Iterator[Callable[..., TestClient]]:
     def start(**overrides: Any) -> TestClient:
         values = {"data_dir": tmp_path / f"data{len(clients)}", "demo": False}
         values |= {"admin_password": ADMIN_PASSWORD} | overrides
-        c = TestClient(create_app(Settings(**values)))
+        c = TestClient(create_app(settings_for(**values)))
         c.__enter__()
         clients.append(c)
         log_in(c)

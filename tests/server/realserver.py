@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 import httpx
+from pg import database_url
 
 ADMIN_PASSWORD = "admin-password-for-restarts"
 
@@ -48,7 +49,8 @@ class Server:
     """``miss serve`` in a subprocess on a free loopback port, logged in as admin.
 
     ``env`` adds to the environment (``MISS_*`` settings); ``wrap`` is a command prefix
-    that ends by running its arguments (e.g. ``unshare -m sh -c '... exec "$@"' sh``).
+    that ends by running its arguments (e.g. ``unshare -m sh -c '... exec "$@"' sh``);
+    ``args`` are more options of ``miss serve``.
     """
 
     def __init__(
@@ -58,6 +60,7 @@ class Server:
         workers: int = 1,
         env: dict[str, str] | None = None,
         wrap: Sequence[str] = (),
+        args: Sequence[str] = (),
     ) -> None:
         self.data_dir, self.log = data_dir, log
         self.port = free_port()
@@ -72,6 +75,7 @@ class Server:
             str(self.port),
             "--data-dir",
             str(data_dir),
+            *args,
         ]
         environ = {
             **os.environ,
@@ -80,6 +84,8 @@ class Server:
             "MISS_MAX_JOBS_PER_USER": "100",  # these tests queue several jobs at once
             **(env or {}),
         }
+        if "MISS_DATABASE_URL" not in environ and (url := database_url(data_dir)):
+            environ["MISS_DATABASE_URL"] = url  # MISS_TEST_DATABASE=postgres: tests/pg.py
         with open(log, "ab") as out:
             self.proc = subprocess.Popen(
                 cmd, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=environ

@@ -17,11 +17,11 @@ import pytest
 import trimesh
 from fastapi.testclient import TestClient
 from lxml import etree
+from pg import settings_for
 from PIL import Image
 
 from miss.server.app import create_app
 from miss.server.routes.pages import THREE, WEB
-from miss.server.settings import Settings
 
 DEMO = "Demo head phantom (synthetic CT)"
 FAST = {"level": 300, "sample_rate": 4, "decimate": "none"}
@@ -54,7 +54,7 @@ def zip_bytes(members: dict[str, bytes], symlink: str | None = None) -> bytes:
 
 
 def test_demo_volume_registered_once(data_dir: Path, login, admin_password: str) -> None:
-    settings = Settings(data_dir=data_dir, admin_password=admin_password)
+    settings = settings_for(data_dir, admin_password=admin_password)
     with TestClient(create_app(settings)) as c:
         volumes = login(c).get("/api/volumes").json()
     assert [v["name"] for v in volumes] == [DEMO]

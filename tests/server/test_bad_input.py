@@ -28,10 +28,10 @@ import pytest
 from corpus.cases import generate
 from corpus.upload import as_upload
 from fastapi.testclient import TestClient
+from pg import copy_seed, settings_for
 
 from miss.server.app import create_app
 from miss.server.schemas import MAX_JSON_BYTES
-from miss.server.settings import Settings
 from miss.spec import MAX_LEVELS
 
 PASSWORD = "admin-password-for-bad-input"
@@ -122,11 +122,8 @@ class Site:
 
 @pytest.fixture(scope="module")
 def site(seeded_dir: Path, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Site]:
-    import shutil
-
-    data = tmp_path_factory.mktemp("bad-input") / "data"
-    shutil.copytree(seeded_dir, data)
-    settings = Settings(data_dir=data, admin_password=PASSWORD, **UNLIMITED)
+    data = copy_seed(seeded_dir, tmp_path_factory.mktemp("bad-input") / "data")
+    settings = settings_for(data, admin_password=PASSWORD, **UNLIMITED)
     with TestClient(create_app(settings)) as c:
         log_in(c)
         yield Site(c)

@@ -305,12 +305,14 @@ def test_download_audit_entries_are_there_for_the_next_request(
 
 
 def test_an_older_models_table_gains_submitted_by(tmp_path: Path) -> None:
-    """The job limit's column is added to a database from before it."""
+    """The job limit's column is added to a database from before it (and before Alembic)."""
     url = Settings(data_dir=tmp_path).database_url
     store = Store(tmp_path, url)
     store.init()
     with store.engine.begin() as con:
         con.execute(text("ALTER TABLE models DROP COLUMN submitted_by"))
+        con.execute(text("ALTER TABLE models DROP COLUMN runner"))  # revision 0002's
+        con.execute(text("DROP TABLE alembic_version"))
     store.close()
     store = Store(tmp_path, url)
     store.init()

@@ -8,7 +8,6 @@ import gzip
 import os
 import shutil
 import signal
-import sqlite3
 import subprocess
 import sys
 import threading
@@ -21,8 +20,9 @@ import httpx
 import nibabel as nib
 import numpy as np
 import pytest
+from pg import ENGINE, sqlalchemy_url, sqlite_only
 from realserver import Server, serving, wait_dead
-from sqlalchemy import text
+from sqlalchemy import create_engine, text
 
 from miss.export import FORMATS
 from miss.server.jobs import crash_reason, read_log
@@ -71,16 +71,25 @@ def files_under(folder: Path) -> list[Path]:
     return sorted(p for p in folder.rglob("*") if p.is_file())
 
 
-def integrity(db: Path) -> tuple[str, list[Any]]:
-    """``PRAGMA integrity_check`` and ``foreign_key_check`` of a database file."""
-    con = sqlite3.connect(db)
+def query(data_dir: Path, sql: str, **params: Any) -> list[Any]:
+    """Rows of ``sql`` in the database of the server on ``data_dir`` (either engine)."""
+    engine = create_engine(sqlalchemy_url(data_dir))
     try:
-        return (
-            con.execute("PRAGMA integrity_check").fetchone()[0],
-            con.execute("PRAGMA foreign_key_check").fetchall(),
-        )
+        with engine.connect() as con:
+            return list(con.execute(text(sql), params))
     finally:
-        con.close()
+        engine.dispose()
+
+
+def integrity(data_dir: Path) -> tuple[str, list[Any]]:
+    """``PRAGMA integrity_check`` and ``foreign_key_check`` of the SQLite file; PostgreSQL
+    checks foreign keys at each commit and its pages on every read: ("ok", []) there."""
+    if ENGINE != "sqlite":
+        return ("ok", [])
+    return (
+        query(data_dir, "PRAGMA integrity_check")[0][0],
+        [tuple(r) for r in query(data_dir, "PRAGMA foreign_key_check")],
+    )
 
 
 def downloads(server: Server, model_id: str) -> dict[str, bytes]:
@@ -95,6 +104,7 @@ def downloads(server: Server, model_id: str) -> dict[str, bytes]:
 # -- the database -------------------------------------------------------------------------
 
 
+@sqlite_only("its journal mode and sync level")
 def test_sqlite_is_wal_with_full_sync(tmp_path: Path) -> None:
     """Full sync for what people are told is saved; the audit log and job progress
     (``light_engine``) are in the WAL before their commit returns, without the fsync."""
@@ -126,15 +136,9 @@ def test_download_audit_entries_survive_a_stop(
         if sig == signal.SIGKILL:
             time.sleep(0.5)
         server.stop(sig)
-    con = sqlite3.connect(data_dir / "miss.sqlite3")
-    try:
-        count = con.execute(
-            "SELECT count(*) FROM audit WHERE action = 'download' AND target = ?", (model,)
-        ).fetchone()[0]
-    finally:
-        con.close()
-    assert count == 60
-    assert integrity(data_dir / "miss.sqlite3") == ("ok", [])
+    sql = "SELECT count(*) FROM audit WHERE action = 'download' AND target = :model"
+    assert query(data_dir, sql, model=model)[0][0] == 60
+    assert integrity(data_dir) == ("ok", [])
 
 
 def test_kill_during_database_writes_keeps_every_acknowledged_write(
@@ -175,17 +179,14 @@ def test_kill_during_database_writes_keeps_every_acknowledged_write(
         t.join(timeout=60)
     assert not errors, errors[0]
     assert len(acked) >= 300
-    db = data_dir / "miss.sqlite3"
-    assert integrity(db) == ("ok", [])
-    con = sqlite3.connect(db)
-    stored = {row[0] for row in con.execute("SELECT id FROM shares")}
-    con.close()
+    assert integrity(data_dir) == ("ok", [])
+    stored = {row[0] for row in query(data_dir, "SELECT id FROM shares")}
     assert set(acked) <= stored  # every link the server answered is there
     with serving(data_dir, tmp_path / "server.log") as again:
         listed = {s["id"] for s in again.http.get("/api/shares").json()}
         assert set(acked) <= listed
         assert again.wait(job, ("done", "failed"))["status"] == "done"
-    assert integrity(db) == ("ok", [])
+    assert integrity(data_dir) == ("ok", [])
 
 
 # -- an upload cut short ------------------------------------------------------------------
@@ -235,7 +236,7 @@ def test_kill_during_upload_leaves_no_partial_file(
         r = again.http.get(f"/api/volumes/{earlier}/slices/axial/12.png")
         assert r.status_code == 200 and r.content == slice_png
         assert downloads(again, model) == models  # byte-identical
-    assert integrity(data_dir / "miss.sqlite3") == ("ok", [])
+    assert integrity(data_dir) == ("ok", [])
 
 
 # -- a worker out of memory ---------------------------------------------------------------

@@ -1,4 +1,4 @@
-"""The ``miss`` command line: info, convert, demo, serve, user, audit.
+"""The ``miss`` command line: info, convert, demo, serve, user, audit, backup, restore.
 
 Bad input ends with one line on stderr naming the problem and the fix, exit code 2.
 ``convert``'s job options are generated from the job's declaration (:mod:`miss.spec`).
@@ -42,6 +42,8 @@ COMMANDS: dict[str, Callable[[argparse.Namespace], int]] = {
     "serve": admin.cmd_serve,
     "user": admin.cmd_user,
     "audit": admin.cmd_audit,
+    "backup": admin.cmd_backup,
+    "restore": admin.cmd_restore,
     "pacs": pacs.cmd_pacs,
 }
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from typing import Any
 
@@ -13,6 +14,13 @@ def add_serve_parser(sub: Any) -> None:
     serve.add_argument("--host", default=None)
     serve.add_argument("--port", type=int, default=None)
     serve.add_argument("--data-dir", default=None)
+    serve.add_argument(
+        "--processes",
+        type=int,
+        default=1,
+        help="server processes on the one port (more than 1 needs PostgreSQL); "
+        "MISS_WORKERS is the jobs each runs at once",
+    )
 
 
 def add_parsers(sub: Any) -> None:
@@ -41,6 +49,14 @@ def add_parsers(sub: Any) -> None:
         change.add_argument(
             "--data-dir", default=None, help="default: MISS_DATA_DIR or ./miss-data"
         )
+    backup = sub.add_parser(
+        "backup", help="copy the database and the data folder, also while the server runs"
+    )
+    backup.add_argument("dest", help="a new or empty folder for the backup")
+    backup.add_argument("--data-dir", default=None)
+    restore = sub.add_parser("restore", help="make an empty data folder from a backup")
+    restore.add_argument("src", help="a folder made by 'miss backup'")
+    restore.add_argument("--data-dir", default=None)
     audit = sub.add_parser("audit", help="print the web system's audit log")
     audit.add_argument("--data-dir", default=None, help="default: MISS_DATA_DIR or ./miss-data")
     audit.add_argument("--limit", type=int, default=500, help="newest entries (default 500)")
@@ -51,7 +67,7 @@ def add_parsers(sub: Any) -> None:
 def cmd_serve(args: argparse.Namespace) -> int:
     from miss.server.main import serve
 
-    return serve(host=args.host, port=args.port, data_dir=args.data_dir)
+    return serve(host=args.host, port=args.port, data_dir=args.data_dir, processes=args.processes)
 
 
 def _read_password() -> str:
@@ -120,4 +136,34 @@ def cmd_audit(args: argparse.Namespace) -> int:
         store.close()
     for entry in entries:
         print(json.dumps(entry) if args.json else audit.format_line(entry))
+    return 0
+
+
+def cmd_backup(args: argparse.Namespace) -> int:
+    """``miss backup DEST``: the database (online: SQLite's backup API or ``pg_dump``),
+    then the volumes and models, each file with its SHA-256 in ``manifest.json``."""
+    from miss.server.settings import Settings
+    from miss.server.storage.backup import backup
+
+    settings = Settings.from_env(data_dir=args.data_dir)
+    os.nice(10)  # like the job workers: viewers of the running server come first
+    done = backup(settings.data_dir, settings.database_url, args.dest)
+    print(
+        f"backed up {done.files} files ({done.bytes / 2**20:.1f} MB) and the database "
+        f"({done.database_bytes / 2**20:.1f} MB) to {args.dest} in {done.seconds:.1f} s"
+    )
+    return 0
+
+
+def cmd_restore(args: argparse.Namespace) -> int:
+    """``miss restore SRC``: into an empty data folder (and an empty database)."""
+    from miss.server.settings import Settings
+    from miss.server.storage.backup import restore
+
+    settings = Settings.from_env(data_dir=args.data_dir)
+    done = restore(args.src, settings.data_dir, settings.database_url)
+    print(
+        f"restored {done.files} files ({done.bytes / 2**20:.1f} MB) and the database into "
+        f"{settings.data_dir} in {done.seconds:.1f} s"
+    )
     return 0

@@ -4,21 +4,32 @@ routes."""
 from __future__ import annotations
 
 import logging
+import os
 import sys
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
+from typing import Any
 
 from fastapi import FastAPI, Request
-from fastapi.responses import JSONResponse
+from fastapi.responses import JSONResponse, Response
 from starlette.concurrency import run_in_threadpool
 
 from miss import __version__
 from miss.io import confined
 from miss.server import errors
 from miss.server.accounts import ADMIN_NAME, ensure_admin
+from miss.server.deps import current_admin, current_user
 from miss.server.headers import SecurityHeaders
 from miss.server.ingest import register_demo
 from miss.server.jobs import JobQueue, WorkerProcess
+from miss.server.metrics import (
+    Metrics,
+    RequestMetrics,
+    check_data_folder,
+    check_database,
+    is_scraper,
+    scrape_token,
+)
 from miss.server.pacs import PacsImports
 from miss.server.ratelimit import ApiLimits, JobLimit, OverLimit, RateLimitMiddleware, too_many
 from miss.server.rooms import Hub
@@ -32,7 +43,7 @@ from miss.server.uploads import UploadSlots
 log = logging.getLogger("miss.server")
 
 
-def _open(settings: Settings) -> tuple[Store, JobQueue]:
+def _open(settings: Settings, metrics: Metrics | None = None) -> tuple[Store, JobQueue]:
     """Prepare the data folder and database, make the first administrator, register the
     demo, start the job threads."""
     store = Store(settings.data_dir, settings.database_url)
@@ -43,7 +54,10 @@ def _open(settings: Settings) -> tuple[Store, JobQueue]:
     _first_admin(store, settings)
     store.appender.start()
     queue = JobQueue(store, settings.workers, WorkerProcess(store, settings.spare_workers))
+    if metrics is not None:
+        queue.on_finished = lambda outcome, seconds: metrics.jobs.labels(outcome).observe(seconds)
     queue.start()
+    store.share()  # started: other servers of the same PostgreSQL database may start too
     return store, queue
 
 
@@ -87,7 +101,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-        store, queue = await run_in_threadpool(_open, settings)
+        store, queue = await run_in_threadpool(_open, settings, app.state.metrics)
         app.state.store, app.state.queue = store, queue
         confinement = await run_in_threadpool(confined.probe, settings.data_dir)
         _say_confinement(confinement)
@@ -96,6 +110,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         await run_in_threadpool(app.state.pacs_imports.start)
         app.state.rooms = Hub(store)
         app.state.rooms.start()
+        store.bus.start()  # after every subscriber: the job queue, the rooms
         try:
             yield
         finally:
@@ -116,13 +131,24 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     )
     app.state.settings = settings
     app.state.bytes = ByteCaches()
+    app.state.metrics = Metrics()
+    app.state.metrics.watch(
+        lambda: getattr(app.state, "store", None),
+        lambda: (
+            sum(len(r.people) for r in app.state.rooms.rooms.values())
+            if hasattr(app.state, "rooms")
+            else 0
+        ),
+    )
     app.state.failed_logins = auth.failed_login_limits()
     app.state.api_limits = ApiLimits(settings.api_rate, settings.api_burst)
     app.state.job_limit = JobLimit(settings.max_jobs_per_user)
     app.state.upload_slots = UploadSlots(settings.uploads_per_user, settings.uploads_at_once)
     app.add_middleware(RateLimitMiddleware, limits=app.state.api_limits)
-    # Added last, so outermost: the rate limiter's 429 and every error get the headers too.
+    # Added last, so outermost: the rate limiter's 429 and every error get the headers too,
+    # and the request counts see every answer, 429s included.
     app.add_middleware(SecurityHeaders, pages=WEB)
+    app.add_middleware(RequestMetrics, metrics=app.state.metrics)
     errors.install(app)
     app.add_exception_handler(OverLimit, _over_limit)
     app.include_router(auth.router)
@@ -134,10 +160,59 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(pacs.router)
     app.include_router(pages.router)
 
-    @app.get("/api/health", tags=["server"])
-    async def health() -> dict[str, str]:
-        """Answered on the event loop itself (no thread, no database): its latency is the
-        loop's, which load tests watch while jobs and uploads run."""
-        return {"status": "ok", "version": __version__}
+    @app.get("/api/health", tags=["server"], response_model=None)
+    async def health(request: Request, deep: bool = False) -> dict[str, Any] | JSONResponse:
+        """Without ``deep``: answered on the event loop itself (no thread, no database), its
+        latency is the loop's, which load tests watch while jobs and uploads run. With
+        ``?deep=1``: the database, the data folder and the job runners checked too; 503
+        when any of them is not well (for a load balancer's health check). Only
+        administrators and the scrape token read the details (free space, the errors)."""
+        if not deep:
+            return {"status": "ok", "version": __version__}
+        checks = await run_in_threadpool(_deep_checks, request.app)
+        well = all(c["ok"] for c in checks.values())
+        body: dict[str, Any] = {"status": "ok" if well else "failing", "version": __version__}
+        if await _is_operator(request):
+            body |= checks
+            body["process"] = os.getpid()  # which of several server processes answered
+        else:
+            body |= {name: {"ok": check["ok"]} for name, check in checks.items()}
+        return JSONResponse(body, status_code=200 if well else 503)
+
+    @app.get("/metrics", tags=["server"], include_in_schema=False)
+    async def metrics(request: Request) -> Response:
+        """Prometheus text format, for administrators or ``MISS_METRICS_TOKEN``'s bearer."""
+        if not is_scraper(request.headers.get("authorization", ""), scrape_token()):
+            await current_admin(await current_user(request, request.app.state.store))
+        body = await run_in_threadpool(request.app.state.metrics.text)
+        return Response(body, media_type="text/plain; version=0.0.4; charset=utf-8")
 
     return app
+
+
+async def _is_operator(request: Request) -> bool:
+    """An administrator's session or the scrape token (``MISS_METRICS_TOKEN``)."""
+    if is_scraper(request.headers.get("authorization", ""), scrape_token()):
+        return True
+    try:
+        await current_admin(await current_user(request, request.app.state.store))
+    except (errors.Unauthorized, errors.Forbidden):
+        return False
+    return True
+
+
+def _deep_checks(app: FastAPI) -> dict[str, dict[str, Any]]:
+    """Each check's answer, or its failure in words (never raised: the answer is the 503)."""
+    settings: Settings = app.state.settings
+    checks = {
+        "database": lambda: check_database(app.state.store),
+        "data_folder": lambda: check_data_folder(app.state.store, settings.min_free_bytes),
+        "job_runners": lambda: app.state.queue.health(),
+    }
+    out: dict[str, dict[str, Any]] = {}
+    for name, check in checks.items():
+        try:
+            out[name] = check()
+        except Exception as exc:  # what an operator needs to read is the reason
+            out[name] = {"ok": False, "error": f"{type(exc).__name__}: {exc}"[:300]}
+    return out

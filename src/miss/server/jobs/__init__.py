@@ -20,11 +20,14 @@ import signal
 import subprocess
 import sys
 import threading
+import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Protocol
 
 from miss.server.jobs.state import JobState
+from miss.server.storage.db import ModelRow
 from miss.server.storage.store import Store
 
 log = logging.getLogger("miss.server.jobs")
@@ -33,6 +36,8 @@ MAX_ATTEMPTS = 2
 #: Seconds an idle thread sleeps before looking at the database again (jobs queued by
 #: another process, or a wake-up missed).
 POLL_SECONDS = 2.0
+#: Seconds between looks for jobs of server processes that are gone (PostgreSQL only).
+REAP_SECONDS = 5.0
 
 
 #: What native code and Python print when an allocation fails: the worker hit its memory
@@ -157,21 +162,47 @@ class JobQueue:
         self._stopping = threading.Event()
         self._threads: list[threading.Thread] = []
         self._running: dict[str, Running] = {}
+        self._reaper: threading.Thread | None = None
+        #: Told each job's outcome ("done", "failed", "requeued") and wall time, seconds.
+        self.on_finished: Callable[[str, float], None] = lambda outcome, seconds: None
+
+    def health(self) -> dict[str, object]:
+        """For ``/api/health?deep=1``: the threads alive, the jobs they run now."""
+        alive = sum(t.is_alive() for t in self._threads)
+        return {
+            "ok": alive == self.workers and not self._stopping.is_set(),
+            "alive": alive,
+            "of": self.workers,
+            "running": len(self._running),
+        }
 
     def start(self) -> None:
-        """Recover interrupted jobs, start the threads (the store holds the folder's lock)."""
-        requeued, failed = self.state.recover(MAX_ATTEMPTS)
-        if requeued or failed:
-            log.warning(
-                "after restart: %d job(s) queued again, %d failed", len(requeued), len(failed)
-            )
+        """Recover interrupted jobs, start the threads (the store holds the folder's lock).
+
+        Only a server that starts alone recovers: beside other servers of the same
+        database, the jobs marked running are theirs. Jobs queued by another server wake
+        a thread here at once (the bus); else a thread looks every ``POLL_SECONDS``."""
+        if self.store.alone:
+            requeued, failed = self.state.recover(MAX_ATTEMPTS)
+            if requeued or failed:
+                log.warning(
+                    "after restart: %d job(s) queued again, %d failed", len(requeued), len(failed)
+                )
+        self.store.bus.subscribe("jobs", lambda _data: self.wake())
         for n in range(self.workers):
             thread = threading.Thread(target=self._loop, name=f"miss-jobs-{n}", daemon=True)
             thread.start()
             self._threads.append(thread)
+        if self.store.shared:
+            self._reaper = threading.Thread(target=self._reap, name="miss-jobs-reap", daemon=True)
+            self._reaper.start()
 
     def submit(self) -> None:
-        """Wake an idle thread: a job was queued."""
+        """Wake an idle thread, here or in another server process: a job was queued."""
+        self.wake()
+        self.store.bus.publish("jobs", None)
+
+    def wake(self) -> None:
         with self._wake:
             self._wake.notify()
 
@@ -190,7 +221,7 @@ class JobQueue:
             if proc.poll() is None:
                 proc.kill()  # each thread then queues its job again
         self.runner.close()
-        for thread in self._threads:
+        for thread in [*self._threads, *([self._reaper] if self._reaper else [])]:
             thread.join(timeout=10)
         self.runner.close()  # any a thread started meanwhile
 
@@ -208,9 +239,27 @@ class JobQueue:
                 log.exception("job thread error")
                 self._stopping.wait(POLL_SECONDS)
 
+    def _reap(self) -> None:
+        """Queue again the jobs of server processes that died while others run on."""
+        while not self._stopping.wait(REAP_SECONDS):
+            try:
+                self.store.bus.hold_liveness()  # lost with its connection: taken again
+                requeued, failed = self.state.reap(MAX_ATTEMPTS)
+            except Exception:
+                log.exception("looking for jobs of stopped server processes")
+                continue
+            if requeued or failed:
+                log.warning(
+                    "jobs of a stopped server process: %d queued again, %d failed",
+                    len(requeued),
+                    len(failed),
+                )
+                self.wake()
+
     def _run(self, model_id: str) -> None:
         log_path = self.store.model_dir(model_id) / "worker.log"
         offset = log_path.stat().st_size if log_path.exists() else 0
+        started = time.monotonic()
         proc = self.runner.start(model_id)
         self._running[model_id] = proc
         if self._stopping.is_set():  # claimed while stop() was killing the others
@@ -222,6 +271,10 @@ class JobQueue:
         finally:
             self._running.pop(model_id, None)
         log.info("job %s: worker ended with code %d", model_id, code)
+        try:
+            self._record(model_id, time.monotonic() - started)
+        except Exception:  # a metric never costs a job
+            log.exception("job %s: recording its duration", model_id)
         if self._stopping.is_set():
             self.state.requeue(model_id, count_attempt=False)
             return
@@ -234,6 +287,16 @@ class JobQueue:
             self.state.fail(
                 model_id, "worker ended without recording a result; see its worker.log."
             )
+
+    def _record(self, model_id: str, seconds: float) -> None:
+        if self._stopping.is_set():
+            self.on_finished("requeued", seconds)
+            return
+        with self.store.session() as s:
+            row = s.get(ModelRow, model_id)
+        self.on_finished(
+            row.status if row is not None and row.status != "running" else "failed", seconds
+        )
 
 
 @dataclass(eq=False)

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from sqlalchemy import select
+from sqlalchemy import select, update
 
 from miss.server.storage.db import DONE, FAILED, QUEUED, RUNNING, ModelRow, utcnow
 from miss.server.storage.store import Store
@@ -28,27 +28,38 @@ class JobState:
     def claim_next(self) -> ModelRow | None:
         """Mark the oldest queued job running and return it (None when the queue is empty).
 
-        The conditional update makes the claim safe between threads: only one wins.
+        One transaction reads and claims: on PostgreSQL the row is locked (``FOR UPDATE
+        SKIP LOCKED``), so the threads of several server processes each take a different
+        job without waiting on each other; on SQLite the write lock does the same. The
+        ``status = queued`` condition stays, so a claim can never apply twice.
         """
+        query = (
+            select(ModelRow.id)
+            .where(ModelRow.status == QUEUED)
+            .order_by(ModelRow.created_at)
+            .limit(1)
+            .with_for_update(skip_locked=True)
+        )
+        values = dict(
+            status=RUNNING,
+            progress=0.0,
+            stage="starting",
+            started_at=utcnow(),
+            attempts=ModelRow.attempts + 1,
+            error=None,
+            stats=None,  # no preview nor files of an earlier, interrupted attempt
+            files=None,
+            runner=self.store.bus.origin,
+        )
         while True:
-            query = (
-                select(ModelRow.id).where(ModelRow.status == QUEUED).order_by(ModelRow.created_at)
-            )
-            with self.store.session() as s:
-                model_id = s.scalars(query.limit(1)).first()
-            if model_id is None:
-                return None
-            values = dict(
-                status=RUNNING,
-                progress=0.0,
-                stage="starting",
-                started_at=utcnow(),
-                attempts=ModelRow.attempts + 1,
-                error=None,
-                stats=None,  # no preview nor files of an earlier, interrupted attempt
-                files=None,
-            )
-            if self.store.update_model(model_id, ModelRow.status == QUEUED, **values):
+            with self.store.session.begin() as s:
+                model_id = s.scalars(query).first()
+                if model_id is None:
+                    return None
+                claim = update(ModelRow).where(ModelRow.id == model_id, ModelRow.status == QUEUED)
+                claimed = s.execute(claim.values(**values)).rowcount == 1
+            self.store.rows.drop(("model", model_id))
+            if claimed:
                 return self.store.get_model(model_id)
 
     def set_pid(self, model_id: str, pid: int | None) -> None:
@@ -103,7 +114,7 @@ class JobState:
 
     def requeue(self, model_id: str, count_attempt: bool) -> bool:
         """Put a running job back in the queue; a clean shutdown does not count as an attempt."""
-        values: dict[str, Any] = dict(status=QUEUED, progress=0.0, stage="", pid=None)
+        values: dict[str, Any] = dict(status=QUEUED, progress=0.0, stage="", pid=None, runner=None)
         if not count_attempt:
             values["attempts"] = ModelRow.attempts - 1
         return self.store.update_model(model_id, ModelRow.status == RUNNING, **values)
@@ -123,4 +134,44 @@ class JobState:
                 failed.append(row.id)
             elif self.requeue(row.id, count_attempt=True):
                 requeued.append(row.id)
+        return requeued, failed
+
+    def reap(self, max_attempts: int = 2) -> tuple[list[str], list[str]]:
+        """Jobs whose server process is gone (several processes on PostgreSQL: its liveness
+        lock is free): queued again, or failed once interrupted twice, as at a restart."""
+        bus = self.store.bus
+        query = select(ModelRow.runner).where(
+            ModelRow.status == RUNNING, ModelRow.runner.is_not(None), ModelRow.runner != bus.origin
+        )
+        with self.store.session() as s:
+            runners = set(s.scalars(query.distinct()))
+        requeued: list[str] = []
+        failed: list[str] = []
+        for runner in runners:
+            if bus.is_alive(runner):
+                continue
+            with self.store.session() as s:
+                query = select(ModelRow).where(
+                    ModelRow.status == RUNNING, ModelRow.runner == runner
+                )
+                rows = list(s.scalars(query))
+            for row in rows:
+                if row.attempts >= max_attempts:
+                    reason = (
+                        f"interrupted twice (its server process stopped during "
+                        f"{row.stage or 'the job'}); submit the same parameters again to retry."
+                    )
+                    if self.fail(row.id, reason):
+                        failed.append(row.id)
+                elif self.store.update_model(
+                    row.id,
+                    ModelRow.status == RUNNING,
+                    ModelRow.runner == runner,
+                    status=QUEUED,
+                    progress=0.0,
+                    stage="",
+                    pid=None,
+                    runner=None,
+                ):
+                    requeued.append(row.id)
         return requeued, failed

@@ -262,6 +262,8 @@ class Room:
         self.model_id, self.session, self.state = model_id, session, state
         self.bounds = bounds  # [[min x, y, z], [max x, y, z]] in mm, or None when unknown
         self.people: dict[str, Participant] = {}
+        #: People in this room on other server processes (``Participant.public()``).
+        self.remote: dict[str, dict[str, Any]] = {}
         self.presenter: str | None = None
         self.view: dict[str, Any] | None = None  # the presenter's latest camera, for late joiners
         self.last_view = 0.0
@@ -288,7 +290,7 @@ class Room:
             "model": self.model_id,
             "session": self.session,
             "you": you.public(),
-            "participants": [p.public() for p in self.people.values()],
+            "participants": [p.public() for p in self.people.values()] + list(self.remote.values()),
             "presenter": self.presenter,
             "view": self.view if self.presenter else None,
             "bounds": self.bounds,
@@ -330,16 +332,71 @@ class Hub:
         self._ended: dict[tuple[str, str], float] = {}  # written from any thread
         self._ended_lock = threading.Lock()
         self._watcher: asyncio.Task[None] | None = None
+        store.bus.subscribe("ended", lambda grant: self.end_here(*grant))
+        store.bus.subscribe("room", self._heard)
+        self._loop: asyncio.AbstractEventLoop | None = None
 
     def end(self, kind: str, value: str) -> None:
         """A grant ended (a session, a user's access, a link, a model, a volume): every
-        connection standing on it is closed within ``WATCH_EVERY`` seconds. Safe to call
-        from any thread (the routes that end grants run in the threadpool)."""
+        connection standing on it is closed within ``WATCH_EVERY`` seconds, in this
+        server process and the others of the same database. Safe to call from any thread
+        (the routes that end grants run in the threadpool)."""
+        self.end_here(kind, value)
+        self.store.bus.publish_soon("ended", [kind, value])
+
+    def end_here(self, kind: str, value: str) -> None:
         with self._ended_lock:
             self._ended[(kind, value)] = time.monotonic()
 
     def start(self) -> None:
-        self._watcher = asyncio.get_running_loop().create_task(self._watch())
+        self._loop = asyncio.get_running_loop()
+        self._watcher = self._loop.create_task(self._watch())
+
+    # -- the same room on other server processes (``storage.bus``) -------------------------
+
+    def broadcast(
+        self,
+        room: Room,
+        message: dict[str, Any],
+        skip: Participant | None = None,
+        event: tuple[int, str, str, str, dict[str, Any]] | None = None,
+    ) -> None:
+        """Send to the room's people here and, through the bus, on the other processes;
+        ``event`` (id, at, kind, author, data), when stored, is folded into their state."""
+        room.broadcast(message, skip)
+        self.store.bus.publish_soon("room", {"m": room.model_id, "msg": message, "event": event})
+
+    def _heard(self, data: dict[str, Any]) -> None:
+        """A room message from another process (the bus's thread): handled on the loop."""
+        if self._loop is not None:
+            self._loop.call_soon_threadsafe(self._relay, data)
+
+    def _relay(self, data: dict[str, Any]) -> None:
+        room = self.rooms.get(data["m"])
+        if room is None:  # nobody here; a room opened later loads the stored state
+            return
+        message = data["msg"]
+        kind = message.get("type")
+        if kind == "hello":  # a room just opened there: say who is here
+            for person in room.people.values():
+                self.store.bus.publish_soon(
+                    "room",
+                    {"m": room.model_id, "msg": {"type": "joined", "participant": person.public()}},
+                )
+            return
+        if data.get("event"):
+            room.state.apply(*data["event"])
+        if kind == "joined":
+            if message["participant"]["id"] in room.remote:
+                return  # already known (an answer to a hello)
+            room.remote[message["participant"]["id"]] = message["participant"]
+        elif kind == "left":
+            room.remote.pop(message["id"], None)
+        elif kind == "presenter":
+            room.presenter, room.view = message["id"], None
+        elif kind == "camera":
+            room.view = {k: message[k] for k in ("position", "target", "up")}
+        room.broadcast(message)
 
     async def stop(self) -> None:
         if self._watcher is not None:
@@ -429,10 +486,11 @@ class Hub:
                 writing = self._writing.setdefault(model_id, asyncio.Lock())
                 room = Room(model_id, session, state, bounds, writing)
                 self.rooms[model_id] = room
+                self.store.bus.publish_soon("room", {"m": model_id, "msg": {"type": "hello"}})
             person = Participant(ws, visitor, room.colour())
             room.people[person.id] = person
         person.send(room.welcome(person))
-        room.broadcast({"type": "joined", "participant": person.public()}, skip=person)
+        self.broadcast(room, {"type": "joined", "participant": person.public()}, skip=person)
         await self.store_event(room, person, "join", {"colour": person.colour})
         return room, person
 
@@ -444,8 +502,8 @@ class Hub:
             del self.rooms[room.model_id]
         if room.presenter == person.id:
             room.presenter = None
-            room.broadcast({"type": "presenter", "id": None, "name": None})
-        room.broadcast({"type": "left", "id": person.id})
+            self.broadcast(room, {"type": "presenter", "id": None, "name": None})
+        self.broadcast(room, {"type": "left", "id": person.id})
         # Shielded: the record of the leave is written even if this task is cancelled.
         record = asyncio.ensure_future(self.store_event(room, person, "leave", {}))
         record.add_done_callback(_log_failure)
@@ -560,7 +618,7 @@ async def on_presenter(hub: Hub, room: Room, person: Participant, message: dict[
     else:
         return
     name = person.visitor.name if on else None
-    room.broadcast({"type": "presenter", "id": room.presenter, "name": name})
+    hub.broadcast(room, {"type": "presenter", "id": room.presenter, "name": name})
     await hub.store_event(room, person, "presenter", {"on": on})
 
 
@@ -569,7 +627,7 @@ async def on_camera(hub: Hub, room: Room, person: Participant, message: dict[str
         raise Invalid("not_presenter", "only the presenter's view is shared; press Present first.")
     view = {k: point(message.get(k), k) for k in ("position", "target", "up")}
     room.view = view
-    room.broadcast({"type": "camera", "from": person.id, **view}, skip=person)
+    hub.broadcast(room, {"type": "camera", "from": person.id, **view}, skip=person)
     now = time.monotonic()
     if now - room.last_view >= VIEW_EVERY:  # the replay gets a view a second, not sixty
         room.last_view = now
@@ -581,7 +639,7 @@ async def on_laser(hub: Hub, room: Room, person: Participant, message: dict[str,
     at = message.get("point")
     at = None if at is None else room.on_model(point(at, "point"), "the laser point")
     frame = {"type": "laser", "from": person.id, "colour": person.colour, "point": at}
-    room.broadcast(frame, skip=person)
+    hub.broadcast(room, frame, skip=person)
 
 
 async def on_pin(hub: Hub, room: Room, person: Participant, message: dict[str, Any]) -> None:
@@ -614,7 +672,8 @@ async def _keep(hub: Hub, room: Room, person: Participant, kind: str, data: dict
     stored_id, at = await hub.store_event(room, person, kind, data)
     room.state.apply(stored_id, at, kind, person.visitor.name, data)
     item = {"id": stored_id, "author": person.visitor.name, "at": at, **data}
-    room.broadcast({"type": kind, "item": item})
+    event = (stored_id, at, kind, person.visitor.name, data)
+    hub.broadcast(room, {"type": kind, "item": item}, event=event)
 
 
 async def on_remove(hub: Hub, room: Room, person: Participant, message: dict[str, Any]) -> None:
@@ -626,7 +685,8 @@ async def on_remove(hub: Hub, room: Room, person: Participant, message: dict[str
         raise Invalid("forbidden", "only its author or the model's owner may remove it.")
     stored_id, at = await hub.store_event(room, person, kind, {"id": target})
     room.state.apply(stored_id, at, kind, person.visitor.name, {"id": target})
-    room.broadcast({"type": kind, "id": target})
+    event = (stored_id, at, kind, person.visitor.name, {"id": target})
+    hub.broadcast(room, {"type": kind, "id": target}, event=event)
 
 
 HANDLERS: dict[str, Handler] = {

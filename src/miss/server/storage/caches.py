@@ -2,9 +2,10 @@
 database or the disk: row snapshots, rendered slices and model files.
 
 Each is safe because of what it holds. Stored volumes and finished model files never
-change; rows go in only when they change through this process alone (a volume, a
-finished model, a login session), and the code that changes them drops them. A TTL
-bounds what a change made by another program on the same database could leave behind.
+change; rows go in only when they change through the server alone (a volume, a finished
+model, a login session), and the code that changes them drops them: here, and, through
+the bus (``storage.bus``, PostgreSQL's NOTIFY), in every other server process of the
+same database. A TTL bounds what a change made by another program could leave behind.
 
 Each has a ``peek``-like read that never waits (``BytesLRU.peek``, ``RowCache.get``,
 ``Store.cached_volume``): a route asks first, answers on the event loop when everything
@@ -74,6 +75,8 @@ class RowCache:
         self._items: OrderedDict[Hashable, tuple[float, Any]] = OrderedDict()
         self._lock = threading.Lock()
         self.generation = 0
+        #: Told the keys dropped (None: all), after the drop: the store publishes them.
+        self.on_change: Callable[[tuple[Hashable, ...] | None], None] = lambda keys: None
 
     def get(self, key: Hashable) -> Any | None:
         with self._lock:
@@ -96,12 +99,21 @@ class RowCache:
                 self._items.popitem(last=False)
 
     def drop(self, *keys: Hashable) -> None:
+        """Drop ``keys`` here and in the other server processes."""
+        self.drop_here(*keys)
+        self.on_change(keys)
+
+    def drop_here(self, *keys: Hashable) -> None:
         with self._lock:
             self.generation += 1
             for key in keys:
                 self._items.pop(key, None)
 
     def clear(self) -> None:
+        self.clear_here()
+        self.on_change(None)
+
+    def clear_here(self) -> None:
         with self._lock:
             self.generation += 1
             self._items.clear()

@@ -21,8 +21,6 @@ from sqlalchemy import (
     UniqueConstraint,
     create_engine,
     event,
-    inspect,
-    text,
 )
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, sessionmaker
 
@@ -104,6 +102,9 @@ class ModelRow(Base):
     pid: Mapped[int | None] = mapped_column(default=None)
     #: The account that last queued the job (the per-account job limit counts these).
     submitted_by: Mapped[str | None] = mapped_column(String(64), default=None)
+    #: The server process running the job (its ``Bus.origin``): when that process is gone
+    #: (PostgreSQL: its liveness lock is free) another one queues the job again.
+    runner: Mapped[str | None] = mapped_column(String(32), default=None)
     created_at: Mapped[datetime] = mapped_column(default=utcnow)
     started_at: Mapped[datetime | None] = mapped_column(default=None)
     finished_at: Mapped[datetime | None] = mapped_column(default=None)
@@ -217,9 +218,9 @@ class SecretRow(Base):
     value: Mapped[str] = mapped_column(String(128))
 
 
-#: Columns added after a table first shipped: (table, column, SQL type). ``create_all``
-#: makes new tables but never alters old ones, so a data folder from an earlier version
-#: gets these by ALTER TABLE.
+#: Columns added after a table first shipped, before MISS kept its schema with Alembic:
+#: (table, column, SQL type). A database from then may lack some; ``schema.upgrade`` adds
+#: them before it stamps the database with the first revision. New columns are revisions.
 ADDED_COLUMNS = (
     ("volumes", "owner_id", "VARCHAR(32)"),
     ("models", "submitted_by", "VARCHAR(64)"),
@@ -227,16 +228,6 @@ ADDED_COLUMNS = (
     ("shares", "message", "VARCHAR(1000) NOT NULL DEFAULT ''"),
     ("users", "pacs", "BOOLEAN NOT NULL DEFAULT FALSE"),
 )
-
-
-def migrate(engine: Engine) -> None:
-    """Add the columns of ``ADDED_COLUMNS`` that an older database lacks."""
-    inspector = inspect(engine)
-    tables = set(inspector.get_table_names())
-    with engine.begin() as conn:
-        for table, column, sql_type in ADDED_COLUMNS:
-            if table in tables and column not in {c["name"] for c in inspector.get_columns(table)}:
-                conn.execute(text(f"ALTER TABLE {table} ADD COLUMN {column} {sql_type}"))
 
 
 #: SQLite connections kept open per process (starlette's threadpool has 40 threads).

@@ -36,20 +36,20 @@ from sqlalchemy.exc import IntegrityError
 
 from miss.errors import is_disk_full
 from miss.server.errors import DiskFull, NotFound
+from miss.server.storage import schema
 from miss.server.storage.appender import Appender
+from miss.server.storage.bus import Bus
 from miss.server.storage.caches import RowCache
 from miss.server.storage.db import (
     DONE,
     FAILED,
     QUEUED,
-    Base,
     IdentityRow,
     ModelRow,
     SecretRow,
     VolumeRow,
     make_engine,
     make_sessionmaker,
-    migrate,
 )
 from miss.types import Volume
 
@@ -105,9 +105,15 @@ class Store:
         self.light_engine = make_engine(database_url, durable=False)
         self.light_session = make_sessionmaker(self.light_engine)
         self.appender = Appender(self.light_session)
-        #: Snapshots of volumes, finished models and login sessions (see ``caches``).
+        #: Snapshots of volumes, finished models and login sessions (see ``caches``);
+        #: what one process drops, the others of the same database drop too (``bus``).
         self.rows = RowCache()
+        self.bus = Bus(self.engine, database_url)
+        self.rows.on_change = self._publish_drop
+        self.bus.subscribe("rows", self._hear_drop, on_gap=self.rows.clear_here)
         self._lock: IO[str] | None = None
+        #: True while this process is the only server on the data folder (``lock``).
+        self.alone = False
 
     # -- layout ---------------------------------------------------------------------------
 
@@ -123,30 +129,51 @@ class Store:
         path.mkdir(parents=True)
         return path
 
+    @property
+    def shared(self) -> bool:
+        """Several server processes may use this data folder: its database is PostgreSQL."""
+        return self.bus.enabled
+
     def lock(self) -> None:
         """Take the data folder for this process; raises ``DataDirInUse`` if another has it.
 
         Starting sweeps ``tmp/`` and re-queues every running job: both are only safe when
-        no other server is uploading into or running jobs from the same folder.
+        no other server is uploading into or running jobs from the same folder. On
+        PostgreSQL several servers share the folder: the first takes it alone (``alone``)
+        for its start, then shares it (``share``); one that starts beside others waits for
+        any start under way and skips the sweeps.
         """
         self.data_dir.mkdir(parents=True, exist_ok=True)
         handle = open(self.data_dir / "server.lock", "w")  # noqa: SIM115 - held until close()
         try:
             fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            self.alone = True
         except BlockingIOError:
-            handle.close()
-            raise DataDirInUse(
-                f"another MISS server is using {self.data_dir}; stop it or choose another --data-dir."
-            ) from None
+            if not self.shared:
+                handle.close()
+                raise DataDirInUse(
+                    f"another MISS server is using {self.data_dir}; stop it or choose another "
+                    "--data-dir (several servers on one data folder need PostgreSQL)."
+                ) from None
+            fcntl.flock(handle, fcntl.LOCK_SH)  # after the start of the one that has it
         self._lock = handle
+
+    def share(self) -> None:
+        """Started: let other servers of the same database start beside this one."""
+        if self.shared and self.alone and self._lock is not None:
+            fcntl.flock(self._lock, fcntl.LOCK_SH)
+            self.alone = False
 
     def init(self) -> None:
         """Lock the folder, create folders and tables, drop leftovers of an interrupted
         upload, job or delete (the server may have been killed at any point)."""
         self.lock()
+        self.bus.hold_liveness()  # before this process claims a job (PostgreSQL)
         for sub in ("volumes", "models", "tmp"):
             (self.data_dir / sub).mkdir(parents=True, exist_ok=True)
         self.init_schema()
+        if not self.alone:
+            return  # the others' uploads and jobs are under way: leave their files be
         _empty(self.data_dir / "tmp")  # its contents only: tmp/ may be a mount point
         with self.session() as s:
             volumes = set(s.scalars(select(VolumeRow.id)))
@@ -189,13 +216,13 @@ class Store:
             ) from None
 
     def init_schema(self) -> None:
-        """Create missing tables and columns; safe beside a running server (``miss user``)."""
+        """Bring the database to the newest schema (``schema.upgrade``: Alembic); safe beside
+        a running server (``miss user``)."""
         if self.database_url.startswith("sqlite:///"):
             Path(self.database_url.removeprefix("sqlite:///")).parent.mkdir(
                 parents=True, exist_ok=True
             )
-        Base.metadata.create_all(self.engine)
-        migrate(self.engine)
+        schema.upgrade(self.engine)
 
     def secret(self, name: str) -> bytes:
         """A server-wide random key, made on first use and kept in the database."""
@@ -212,7 +239,22 @@ class Store:
         assert row is not None
         return bytes.fromhex(row.value)
 
+    def _publish_drop(self, keys: tuple[Any, ...] | None) -> None:
+        if keys is None:
+            self.bus.publish("rows", None)
+            return
+        keys = tuple(keys)
+        for start in range(0, len(keys), 100):  # NOTIFY's payload is under 8000 bytes
+            self.bus.publish("rows", [list(k) for k in keys[start : start + 100]])
+
+    def _hear_drop(self, keys: list[list[str]] | None) -> None:
+        if keys is None:
+            self.rows.clear_here()
+        else:
+            self.rows.drop_here(*(tuple(k) for k in keys))
+
     def close(self) -> None:
+        self.bus.stop()
         self.appender.stop()
         self.engine.dispose()
         self.light_engine.dispose()
