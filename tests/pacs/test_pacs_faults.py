@@ -238,3 +238,31 @@ def test_the_permission_is_granted_and_taken_back(
     assert client.get("/api/pacs", headers=rad).status_code == 404
     time.sleep(0)  # the login goes on: only the permission changed
     assert client.get("/api/auth/me", headers=rad).json()["pacs"] is False
+
+
+def test_an_import_under_way_when_the_server_stopped_fails_with_the_reason(
+    tmp_path: Path,
+) -> None:
+    """A server killed mid-import: at the next start the import says what happened (and
+    the owner imports again); nothing stays 'running' for ever."""
+    from miss.server.pacs import RESTARTED
+    from miss.server.storage.db import PacsImportRow, UserRow
+    from miss.server.storage.store import Store
+
+    data = tmp_path / "data"
+    store = Store(data, Settings(data_dir=data).database_url)
+    store.init()
+    with store.session.begin() as s:
+        s.add(UserRow(id="u1", name="rad", password="x", pacs=True))
+        s.flush()
+        s.add(PacsImportRow(id="i1", owner_id="u1", pacs="P", study="1.2", series="1.3",
+                            status="running"))  # fmt: skip
+    store.close()
+    settings = Settings(data_dir=data, admin_password=ADMIN_PASSWORD, demo=False)
+    with TestClient(create_app(settings)):
+        pass
+    store = Store(data, settings.database_url)
+    with store.session() as s:
+        row = s.get(PacsImportRow, "i1")
+    store.close()
+    assert (row.status, row.error) == ("failed", RESTARTED)

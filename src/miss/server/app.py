@@ -30,7 +30,7 @@ from miss.server.metrics import (
     is_scraper,
     scrape_token,
 )
-from miss.server.pacs import PacsImports
+from miss.server.pacs import PacsImports, fail_interrupted
 from miss.server.ratelimit import ApiLimits, JobLimit, OverLimit, RateLimitMiddleware, too_many
 from miss.server.rooms import Hub
 from miss.server.routes import audit, auth, models, pacs, pages, rooms, shares, volumes
@@ -57,6 +57,8 @@ def _open(settings: Settings, metrics: Metrics | None = None) -> tuple[Store, Jo
     if metrics is not None:
         queue.on_finished = lambda outcome, seconds: metrics.jobs.labels(outcome).observe(seconds)
     queue.start()
+    if store.alone:  # no other server of this data folder is importing
+        fail_interrupted(store)
     store.share()  # started: other servers of the same PostgreSQL database may start too
     return store, queue
 
@@ -107,7 +109,6 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         _say_confinement(confinement)
         app.state.reading = (confinement, settings.parse_limits())
         app.state.pacs_imports = PacsImports(store, settings, lambda: app.state.reading)
-        await run_in_threadpool(app.state.pacs_imports.start)
         app.state.rooms = Hub(store)
         app.state.rooms.start()
         store.bus.start()  # after every subscriber: the job queue, the rooms

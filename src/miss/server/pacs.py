@@ -57,6 +57,18 @@ MAX_SEGMENTATION_BYTES = 1 << 30
 RESTARTED = "the server restarted during the import; import the series again."
 
 
+def fail_interrupted(store: Store) -> None:
+    """Imports that were under way when the server stopped failed: say so. Only a server
+    that starts alone calls it (its files in ``tmp/`` are swept at the same time); one that
+    starts beside others on PostgreSQL leaves their imports be."""
+    with store.session.begin() as s:
+        s.execute(
+            update(PacsImportRow)
+            .where(PacsImportRow.status.in_((QUEUED, RUNNING)))
+            .values(status=FAILED, error=RESTARTED, finished_at=utcnow())
+        )
+
+
 class PacsImports:
     """Imports run on ``settings.pacs_imports`` threads; each is a row in ``pacs_imports``
     that its owner polls (``GET /api/pacs/imports/{id}``)."""
@@ -64,15 +76,6 @@ class PacsImports:
     def __init__(self, store: Store, settings: Settings, reading: Callable[[], Reading]) -> None:
         self.store, self.settings, self.reading = store, settings, reading
         self.pool = ThreadPoolExecutor(settings.pacs_imports, thread_name_prefix="miss-pacs")
-
-    def start(self) -> None:
-        """Imports that were under way when the server stopped failed: say so."""
-        with self.store.session.begin() as s:
-            s.execute(
-                update(PacsImportRow)
-                .where(PacsImportRow.status.in_((QUEUED, RUNNING)))
-                .values(status=FAILED, error=RESTARTED, finished_at=utcnow())
-            )
 
     def stop(self) -> None:
         self.pool.shutdown(wait=False, cancel_futures=True)
