@@ -171,7 +171,11 @@ class PacsImports:
         labels = 0
         if row.segmentation != "none":
             self._set(row.id, stage="looking for segmentations", progress=0.9)
-            labels = self._segmentation(row, server, volume, work)
+            try:
+                labels = self._segmentation(row, server, volume, work)
+            except MissError as exc:  # the images are in: keep them, say what was not
+                error = f"the series was imported, its segmentation was not: {exc}"
+                self._set(row.id, error=error)
         return volume, labels
 
     def _segmentation(
