@@ -514,39 +514,26 @@ def _check_instance(
 
 # ---------------------------------------------------------------- STOW-RS
 
-#: Patient and study attributes a sent model copies from its study: (keyword, tag).
-STUDY_ATTRIBUTES = (
-    ("PatientName", "00100010"),
-    ("PatientID", "00100020"),
-    ("PatientBirthDate", "00100030"),
-    ("PatientSex", "00100040"),
-    ("StudyDate", "00080020"),
-    ("StudyTime", "00080030"),
-    ("AccessionNumber", "00080050"),
-    ("StudyID", "00200010"),
-    ("ReferringPhysicianName", "00080090"),
-    ("StudyDescription", "00081030"),
-)
-
 
 def study_origin(server: PacsServer, study: str, series: str | None) -> Any:
     """Where a model sent from the command line belongs: the study's patient and study
     attributes as the PACS has them, and with ``series`` (its source images) that series'
     frame of reference and images; without it a new frame of reference."""
+    from pydicom.datadict import tag_for_keyword
     from pydicom.uid import generate_uid
 
-    from miss.pacs.stl import Origin
+    from miss.pacs.stl import PATIENT_STUDY, Origin
 
     client = connect(server)
     with calling(server, "looking up the study"):
         found = client.search_for_studies(
             search_filters={"StudyInstanceUID": check_uid(study, "study")},
-            fields=[keyword for keyword, _ in STUDY_ATTRIBUTES],
+            fields=list(PATIENT_STUDY),
         )
     if not found:
         raise BadParameter(f"{server.where} has no study {study}; 'miss pacs search' finds it.")
-    patient = {keyword: _value(found[0], tag, 64) for keyword, tag in STUDY_ATTRIBUTES}
-    patient["PatientName"] = _value(found[0], "00100010", 64)
+    tags = {keyword: f"{tag_for_keyword(keyword):08X}" for keyword in PATIENT_STUDY}
+    patient = {keyword: _value(found[0], tag, 64) for keyword, tag in tags.items()}
     frame, sources = generate_uid(), []
     if series:
         with calling(server, "reading the series' metadata"):

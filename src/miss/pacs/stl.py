@@ -34,17 +34,7 @@ PATIENT_STUDY = (
     "StudyDescription",
 )
 #: Type 2 attributes of the Patient and General Study modules: present, empty if unknown.
-TYPE2 = (
-    "PatientName",
-    "PatientID",
-    "PatientBirthDate",
-    "PatientSex",
-    "StudyDate",
-    "StudyTime",
-    "StudyID",
-    "AccessionNumber",
-    "ReferringPhysicianName",
-)
+TYPE2 = tuple(k for k in PATIENT_STUDY if k not in ("IssuerOfPatientID", "StudyDescription"))
 
 
 @dataclass(frozen=True)
