@@ -158,7 +158,8 @@ class PacsImports:
                 retrieved,
             )  # fmt: skip
         self._set(row.id, stage="reading the images", progress=0.7)
-        described = _series_row(server, row.study, row.series)
+        listed = client.search_series(server, row.study)  # the study's series, asked once
+        described = next((r for r in listed if r["series"] == row.series), {})
         name = " ".join(x for x in (described.get("modality"), described.get("description")) if x)
         upload = Upload(path=work / "pacs-series", filename=name, fields={"name": name or "PACS"})
         origin = {
@@ -172,20 +173,25 @@ class PacsImports:
         if row.segmentation != "none":
             self._set(row.id, stage="looking for segmentations", progress=0.9)
             try:
-                labels = self._segmentation(row, server, volume, work)
+                labels = self._segmentation(row, server, volume, work, listed)
             except MissError as exc:  # the images are in: keep them, say what was not
                 error = f"the series was imported, its segmentation was not: {exc}"
                 self._set(row.id, error=error)
         return volume, labels
 
     def _segmentation(
-        self, row: PacsImportRow, server: PacsServer, volume: VolumeRow, work: Path
+        self,
+        row: PacsImportRow,
+        server: PacsServer,
+        volume: VolumeRow,
+        work: Path,
+        listed: list[dict[str, Any]],
     ) -> int:
         """Lay the study's SEG or RT-STRUCT of this series over the volume; its label
         count (0: none found)."""
         from miss.server import labelmaps
 
-        found = find_segmentation(server, row.study, row.series, row.segmentation, work)
+        found = find_segmentation(server, row.study, row.series, row.segmentation, work, listed)
         if found is None:
             return 0
         scan = self.store.open_volume(volume.id)
@@ -194,18 +200,18 @@ class PacsImports:
         return len(meta["labels"])
 
 
-def _series_row(server: PacsServer, study: str, series: str) -> dict[str, Any]:
-    rows = client.search_series(server, study)
-    return next((r for r in rows if r["series"] == series), {})
-
-
 def find_segmentation(
-    server: PacsServer, study: str, series: str, wanted: str, work: Path
+    server: PacsServer,
+    study: str,
+    series: str,
+    wanted: str,
+    work: Path,
+    rows: list[dict[str, Any]],
 ) -> Path | None:
     """Retrieve the SEG or RT-STRUCT series ``wanted`` (a UID), or with ``auto`` the newest
     one in ``study`` that refers to ``series``, into ``work/unzipped/`` (where the confined
-    reader looks); None when none does."""
-    rows = client.search_series(server, study)
+    reader looks); None when none does. ``rows``: the study's series
+    (:func:`miss.pacs.client.search_series`)."""
     if wanted != "auto":
         rows = [r for r in rows if r["series"] == wanted]
         if not rows or not rows[0]["segmentation"]:
