@@ -72,7 +72,7 @@ PG_TESTS := tests/server/test_api.py tests/server/test_rooms.py tests/server/tes
 	tests/server/test_bad_input.py tests/server/test_schema.py tests/server/test_health.py \
 	tests/server/test_backup.py
 
-test: $(VENV)/.installed web-deps validators vrml-reader chromium pacs-servers postgres
+test: $(VENV)/.bench-installed web-deps validators vrml-reader chromium pacs-servers postgres
 	$(VENV)/bin/ruff check src tests benchmarks
 	$(VENV)/bin/ruff format --check src tests benchmarks
 	$(VENV)/bin/pytest -q
