@@ -121,6 +121,8 @@ def run(
             artifacts[fmt] = export(built.scene, fmt, title=title, metadata=metadata, **options)
             if sink is not None:
                 sink.put(fmt, artifacts[fmt])
+                if fmt == "glb":
+                    seconds |= _levels_of_detail(built.scene, sink, title, metadata)
             if measure:
                 measuring = measuring or pool.submit(built.measured)
         seconds["write"] = time.perf_counter() - start
@@ -183,14 +185,39 @@ def preview(
     return export(built.scene, "glb", title=title, compress=True)
 
 
+def _levels_of_detail(
+    scene: Scene, sink: Sink, title: str | None, metadata: dict[str, str] | None
+) -> dict[str, float]:
+    """A scene over the sink's ``lod_triangles`` goes to ``sink.put_lod`` as a 3D Tiles
+    tileset too (right after the GLB: a viewer draws its coarse root first); returns the
+    seconds it took, none when the scene is within the budget."""
+    budget = getattr(sink, "lod_triangles", None)  # sinks that predate levels of detail
+    if budget is None or scene.n_triangles <= budget:
+        return {}
+    from miss.export.tiles import write_tiles
+
+    start = time.perf_counter()
+    tile_triangles = min(LOD_TILE_MAX, max(LOD_TILE_MIN, budget // 8))
+    sink.put_lod(write_tiles(scene, title=title, metadata=metadata, tile_triangles=tile_triangles))
+    return {"lod": time.perf_counter() - start}
+
+
+#: A tile holds an eighth of the budget's triangles, within these bounds.
+LOD_TILE_MIN, LOD_TILE_MAX = 4096, 65_536
+
+
 class Sink(Protocol):
     """Where a job's files go: ``put`` gets each one once it is encoded (GLB first; a
     ``preview`` before the model when ``wants_preview``), ``deliver`` the finished result
-    (every file put, the error measured)."""
+    (every file put, the error measured). A scene of more than ``lod_triangles`` (None:
+    never) also goes to ``put_lod`` as levels of detail ({name: bytes}, one tileset)."""
 
     wants_preview: bool
+    lod_triangles: int | None
 
     def put(self, fmt: str, data: bytes) -> None: ...
+
+    def put_lod(self, files: Mapping[str, bytes]) -> None: ...
 
     def deliver(self, result: JobResult) -> Any: ...
 
@@ -202,6 +229,10 @@ class Files:
 
     paths: Mapping[str, tuple[Path, ...]]
     wants_preview = False
+    lod_triangles = None
+
+    def put_lod(self, files: Mapping[str, bytes]) -> None:
+        return None
 
     def put(self, fmt: str, data: bytes) -> None:
         for path in self.paths.get(fmt, ()):

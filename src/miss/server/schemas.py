@@ -185,6 +185,12 @@ class ModelOut(BaseModel):
         description="while the job runs: the URL of a coarse GLB of the model, to draw until "
         "the model's own GLB is in ``files``",
     )
+    lod: str | None = Field(
+        None,
+        description="a large model's levels of detail: the URL of its 3D Tiles 1.1 tileset "
+        "(tiles are meshopt-compressed GLBs beside it), for a viewer to draw a coarse level "
+        "first and refine what is in view; null for models within the budget",
+    )
 
 
 def _utc(value: datetime | None) -> datetime | None:
@@ -250,7 +256,15 @@ def model_out(row: ModelRow, volume: VolumeRow | None = None) -> ModelOut:
         finished=_utc(row.finished_at),
         files=files,
         preview=preview_url(row),
+        lod=lod_url(row, f"/api/models/{row.id}"),
     )
+
+
+def lod_url(row: ModelRow, base: str) -> str | None:
+    """A finished model's tileset under ``base`` (its API or share-link path), its ETag in
+    the query; None without levels of detail."""
+    lod = (row.stats or {}).get("lod") if row.status == DONE else None
+    return f"{base}/lod/tileset.json?v={lod['etag']}" if lod else None
 
 
 def preview_url(row: ModelRow) -> str | None:

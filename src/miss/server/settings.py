@@ -30,6 +30,8 @@ Environment variables (all optional):
                           ``MISS_PACS_AUTH_FILE``, ``MISS_PACS_TIMEOUT`` and more PACS as
                           ``MISS_PACS2_URL`` ...: see ``miss.pacs.server``
 ``MISS_PACS_IMPORTS``     PACS series imported at once (2)
+``MISS_LOD_TRIANGLES``    a model of more triangles also gets levels of detail (a 3D Tiles
+                          tileset the viewer refines as it zooms in); 2,000,000; 0: never
 """
 
 from __future__ import annotations
@@ -74,6 +76,7 @@ class Settings:
     #: The PACS MISS may search, import from and send to (``MISS_PACS_URL`` ...).
     pacs: tuple[PacsServer, ...] = ()
     pacs_imports: int = 2
+    lod_triangles: int = 2_000_000
 
     def __post_init__(self) -> None:
         # Resolve once so the worker subprocesses, which get these as arguments, see the
@@ -109,6 +112,8 @@ class Settings:
             )
         if self.pacs_imports < 1:
             raise ValueError(f"MISS_PACS_IMPORTS must be at least 1, got {self.pacs_imports}.")
+        if self.lod_triangles < 0:
+            raise ValueError(f"MISS_LOD_TRIANGLES must be 0 or more, got {self.lod_triangles}.")
         if self.worker_memory_mb is not None and not self.worker_memory_mb >= 0:
             raise ValueError(
                 f"MISS_WORKER_MEMORY_MB must be a size in MB (0 for no cap), "
@@ -192,6 +197,7 @@ _ENV: tuple[tuple[str, str, Any], ...] = (
     ("uploads_per_user", "MISS_UPLOADS_PER_USER", int),
     ("uploads_at_once", "MISS_UPLOADS_AT_ONCE", int),
     ("pacs_imports", "MISS_PACS_IMPORTS", int),
+    ("lod_triangles", "MISS_LOD_TRIANGLES", int),
 )
 
 

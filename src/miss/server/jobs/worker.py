@@ -31,6 +31,7 @@ import hashlib
 import json
 import os
 import resource
+import shutil
 import signal
 import sys
 import time
@@ -43,18 +44,28 @@ from typing import Any
 
 from miss.errors import BadParameter, MissError
 from miss.export import FORMATS, WRITERS
+from miss.export.tiles import etag
 from miss.pipeline import PREVIEW, JobResult, execute
 from miss.server import labelmaps
 from miss.server.jobs.state import JobState
 from miss.server.settings import Settings
 from miss.server.storage.db import VolumeRow
-from miss.server.storage.store import PART, PREVIEW_FILE, Store, is_disk_full, write_atomic
+from miss.server.storage.store import (
+    LOD_DIR,
+    PART,
+    PREVIEW_FILE,
+    Store,
+    is_disk_full,
+    write_atomic,
+)
 from miss.spec import JobSpec, Loaded
 
 #: Seconds between progress writes within one stage: enough for a live bar, light on the DB.
 PROGRESS_INTERVAL = 0.3
 #: Memory a job may use, MB, beyond the worker's code and the volume's mapped voxels.
 MEMORY_ENV = "MISS_WORKER_MEMORY_MB"
+#: Triangles above which a model also gets levels of detail.
+LOD_ENV = "MISS_LOD_TRIANGLES"
 OUT_OF_MEMORY = "out of memory; choose a larger sample rate or fewer slices."
 ZIP = b"PK\x03\x04"
 
@@ -132,7 +143,43 @@ def limit_memory(store: Store, volume_id: str, cap: int) -> None:
 def remove_outputs(folder: Path) -> None:
     """Drop the model files of a failed run: no half set stays, a full disk gets room."""
     for path in (*folder.glob("model.*"), folder / PREVIEW_FILE, *folder.glob(f".*{PART}")):
-        path.unlink(missing_ok=True)
+        if path.is_dir():
+            shutil.rmtree(path, ignore_errors=True)
+        else:
+            path.unlink(missing_ok=True)
+    shutil.rmtree(folder / LOD_DIR, ignore_errors=True)
+
+
+def lod_budget(env: Mapping[str, str]) -> int | None:
+    """Triangles above which a model gets levels of detail (``MISS_LOD_TRIANGLES``,
+    read by :class:`Settings`); None when it is 0 (never)."""
+    try:
+        settings = Settings.from_env({LOD_ENV: env.get(LOD_ENV, "")})
+    except ValueError as exc:
+        raise BadParameter(
+            f"{str(exc).rstrip('.')}; set {LOD_ENV} on the server to a number of triangles "
+            "(0: never) and restart it."
+        ) from None
+    return settings.lod_triangles or None
+
+
+def write_tree_atomic(folder: Path, files: Mapping[str, bytes]) -> None:
+    """Write ``{relative name: bytes}`` into a hidden folder beside ``folder``, then rename
+    it into place (an older one is dropped first): nobody sees half a tileset."""
+    tmp = folder.with_name(f".{folder.name}.{os.getpid()}{PART}")
+    shutil.rmtree(tmp, ignore_errors=True)
+    try:
+        for name, data in files.items():
+            path = tmp / name
+            path.parent.mkdir(parents=True, exist_ok=True)
+            path.write_bytes(data)
+        if folder.exists():
+            old = folder.with_name(f".{folder.name}.old{PART}")
+            os.replace(folder, old)
+            shutil.rmtree(old, ignore_errors=True)
+        os.replace(tmp, folder)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
 
 
 @dataclass(frozen=True, eq=False)
@@ -168,12 +215,15 @@ class DataFolder:
     """A job's files in the server: ``models/<id>/model.<fmt>`` (and ``preview.glb``), each
     written atomically and recorded in the running job's row as soon as it is in place, so
     the viewer draws the preview and then the model while the rest is written; delivers
-    {fmt: {bytes, etag, mime}} in the formats' order."""
+    {fmt: {bytes, etag, mime}} in the formats' order. A model over ``lod_triangles`` also
+    gets its levels of detail in ``models/<id>/lod/`` (``lod`` says what they are)."""
 
     folder: Path
     state: JobState
     model_id: str
     wants_preview: bool = True
+    lod_triangles: int | None = None
+    lod: dict[str, Any] | None = None
     files: dict[str, dict[str, Any]] = field(default_factory=dict)
     #: Seconds from ``started`` (the job's start) until the model's GLB was in place.
     started: float = field(default_factory=time.perf_counter)
@@ -195,17 +245,27 @@ class DataFolder:
         if not self.state.set_files(self.model_id, self.files):
             raise Stop
 
+    def put_lod(self, files: Mapping[str, bytes]) -> None:
+        write_tree_atomic(self.folder / LOD_DIR, files)
+        tiles = sum(1 for name in files if name.endswith(".glb"))
+        self.lod = {"etag": etag(files), "bytes": sum(map(len, files.values())), "tiles": tiles}
+
     def deliver(self, result: JobResult) -> dict[str, Any]:
         return {fmt: self.files[fmt] for fmt in result.artifacts}
 
 
-def summarize(result: JobResult, ready_seconds: float | None = None) -> dict[str, Any]:
+def summarize(
+    result: JobResult, ready_seconds: float | None = None, lod: dict[str, Any] | None = None
+) -> dict[str, Any]:
     """The stats the API shows: triangles, vertices, seconds per stage, bytes, error in mm,
     parts, the bounding box in patient mm (the rooms check pins against it), provenance,
-    and ``ready_seconds``: how long the job took until the model could be drawn."""
+    ``ready_seconds``: how long the job took until the model could be drawn, and ``lod``:
+    the levels of detail's etag, bytes and tiles when it has them."""
     stats = result.stats()
     if ready_seconds is not None:
         stats["ready_seconds"] = ready_seconds
+    if lod is not None:
+        stats["lod"] = lod
     stats["max_error_mm"] = result.report.max_error_mm
     stats["mean_error_mm"] = result.report.mean_error_mm
     if result.scene.n_vertices:
@@ -227,10 +287,13 @@ def run_job(store: Store, model_id: str, parent: int) -> None:
     reporter = Reporter(state, model_id, parent)
     source = StoredVolume(store, row.volume_id)
     spec = JobSpec.from_dict({**row.spec, "formats": FORMATS}, source)
-    folder = DataFolder(store.model_dir(model_id), state, model_id, started=started)
+    folder = DataFolder(
+        store.model_dir(model_id), state, model_id, lod_triangles=lod_budget(os.environ),
+        started=started,
+    )  # fmt: skip
     result, files = execute(spec, folder, reporter, export_options=EXPORT_OPTIONS)
     reporter("store", 1.0)
-    if not state.finish(model_id, summarize(result, folder.ready_seconds), files):
+    if not state.finish(model_id, summarize(result, folder.ready_seconds, folder.lod), files):
         raise Stop
 
 

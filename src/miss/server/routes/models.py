@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from collections.abc import AsyncIterator
 from typing import Annotated, Any
 
@@ -36,7 +37,7 @@ from miss.server.schemas import (
 )
 from miss.server.storage.caches import ByteCaches
 from miss.server.storage.db import DONE, FAILED, RUNNING, ModelRow, VolumeRow
-from miss.server.storage.store import PREVIEW_FILE, Store
+from miss.server.storage.store import LOD_DIR, PREVIEW_FILE, Store
 from miss.spec import JobSpec
 from miss.structures.labelmap import label_counts
 
@@ -285,3 +286,37 @@ def model_file(model: ModelRow, fmt: str, request: Request, store: Store) -> Res
         data = path.read_bytes()
         caches.model_files.put(key, data)
     return Response(data, media_type=mime, headers=headers | attachment(name))
+
+
+#: The files of a tileset (``miss.export.tiles``): nothing else is served from lod/.
+LOD_NAME = re.compile(r"tileset\.json|tiles/r[0-7]{0,12}\.glb")
+
+
+@router.get(
+    "/{model_id}/lod/{name:path}",
+    response_class=FileResponse,
+    responses={304: {"description": "not modified (ETag)"}, 404: {"description": "no such tile"}},
+)
+def lod_file(model: ModelDep, name: str, request: Request, store: StoreDep) -> Response:
+    """A file of a large model's levels of detail: ``tileset.json`` (3D Tiles 1.1) or a
+    tile it names (``tiles/r….glb``, meshopt-compressed glTF); the model's ``lod`` links it."""
+    return lod_response(model, name, request, store)
+
+
+def lod_response(model: ModelRow, name: str, request: Request, store: Store) -> Response:
+    """One tileset file with its ETag (304 when unchanged), for owners and links alike."""
+    lod = (model.stats or {}).get("lod") if model.status == DONE else None
+    if lod is None:
+        raise NotFound(
+            f"model {model.id} has no levels of detail (only models over the server's "
+            "triangle budget get them, once done); load its model.glb."
+        )
+    path = store.model_dir(model.id) / LOD_DIR / name
+    if not LOD_NAME.fullmatch(name) or not path.is_file():
+        raise NotFound(f"model {model.id} has no tile {name!r}; its tileset.json lists them.")
+    etag = f'"{lod["etag"]}-{name.replace("/", "-")}"'
+    headers = {"ETag": etag, "Cache-Control": "private, max-age=86400"}
+    if _etag_matches(request.headers.get("if-none-match"), etag):
+        return Response(status_code=304, headers=headers)
+    mime = "application/json" if name == "tileset.json" else WRITERS["glb"].mime
+    return FileResponse(path, media_type=mime, headers=headers)

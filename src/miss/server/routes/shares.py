@@ -24,9 +24,9 @@ from miss.server import audit, shares
 from miss.server.accounts import User
 from miss.server.deps import StoreDep, UserDep, visible_model, visible_volume
 from miss.server.errors import Forbidden, Gone, MissError, NotFound, status_of
-from miss.server.routes.models import model_file
+from miss.server.routes.models import lod_response, model_file
 from miss.server.routes.pages import WEB
-from miss.server.schemas import JSONRoute, params_of
+from miss.server.schemas import JSONRoute, lod_url, params_of
 from miss.server.storage.db import DONE, ModelRow, ShareRow, VolumeRow
 from miss.server.storage.store import Store
 
@@ -170,6 +170,7 @@ def model_entry(model: ModelRow, volume: VolumeRow, share: ShareRow, token: str)
         "stats": stats,
         "provenance": provenance(model, volume),
         "files": files,
+        "lod": lod_url(model, f"/s/{token}/models/{model.id}"),
         "created": model.created_at.replace(tzinfo=UTC).isoformat(),
     }
 
@@ -209,6 +210,19 @@ def share_file(token: str, model_id: str, fmt: str, request: Request, store: Sto
     """One file of a model the link covers: the GLB always (the viewer draws it), every
     other format only when the link allows downloads."""
     return _share_file(store, request, token, fmt, model_id)
+
+
+@router.get("/s/{token}/models/{model_id}/lod/{name:path}")
+def share_lod_file(
+    token: str, model_id: str, name: str, request: Request, store: StoreDep
+) -> Response:
+    """A file of the levels of detail of a model the link covers (a view-only link too:
+    the viewer draws them)."""
+    share = shares.resolve(store, token)
+    model = shares.granted_model(store, share, model_id)
+    response = lod_response(model, name, request, store)
+    response.headers.update(PRIVATE)
+    return response
 
 
 def _share_file(

@@ -62,6 +62,8 @@ class DataDirInUse(RuntimeError):
 PART = ".part"
 #: A running job's coarse first look at its model, in the model's folder.
 PREVIEW_FILE = "preview.glb"
+#: A large model's levels of detail (a 3D Tiles tileset), in the model's folder.
+LOD_DIR = "lod"
 
 
 def new_id() -> str:
