@@ -7,6 +7,7 @@ chromium, never a browser that Playwright downloads.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import socket
@@ -116,10 +117,19 @@ def _wait_until_up(proc: subprocess.Popen[bytes], url: str, log: Path) -> None:
 @pytest.fixture(scope="session")
 def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
     """``miss serve`` on a free 127.0.0.1 port with an empty temporary data folder."""
+    with serve(tmp_path_factory) as running:
+        yield running
+
+
+@contextlib.contextmanager
+def serve(tmp_path_factory: pytest.TempPathFactory, **settings: str) -> Iterator[Server]:
+    """A ``miss serve`` of its own, logged in, with ``settings`` (``MISS_...`` variables)
+    in its environment: for tests that need other settings than the session's server."""
     data_dir = tmp_path_factory.mktemp("miss-data")
-    log = data_dir.parent / "miss-serve.log"
+    log = data_dir.parent / f"{data_dir.name}-serve.log"
     port = _free_port()
     env = {**os.environ, "MISS_DATA_DIR": str(data_dir), "MISS_ADMIN_PASSWORD": ADMIN_PASSWORD}
+    env |= settings
     cmd = [sys.executable, "-m", "miss.cli", "serve", "--host", "127.0.0.1", "--port", str(port)]
     cmd += ["--data-dir", str(data_dir)]
     with log.open("wb") as out:
@@ -168,6 +178,13 @@ def logged_in() -> Any:
 @pytest.fixture
 def page(browser: Any, server: Server) -> Iterator[Any]:
     """A laptop-sized page (1366x768), logged in, whose script errors fail the test."""
+    with laptop_page(browser, server) as opened:
+        yield opened
+
+
+@contextlib.contextmanager
+def laptop_page(browser: Any, server: Server) -> Iterator[Any]:
+    """The ``page`` fixture's page on any server (see :func:`serve`)."""
     context = browser.new_context(viewport=LAPTOP, accept_downloads=True, base_url=server.url)
     log_in_context(context)
     page = context.new_page()
@@ -178,8 +195,10 @@ def page(browser: Any, server: Server) -> Iterator[Any]:
         lambda msg: errors.append(f"console: {msg.text}") if msg.type == "error" else None,
     )
     page.set_default_timeout(30_000)
-    yield page
-    context.close()
+    try:
+        yield page
+    finally:
+        context.close()
     assert not errors, "the page logged errors:\n" + "\n".join(errors)
 
 

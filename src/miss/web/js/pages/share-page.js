@@ -84,7 +84,7 @@ export async function start() {
 		structures.refresh();
 		consult?.modelLoaded();
 	};
-	const urlOf = ( fmt ) => model.files[ fmt ]?.url || `${base}/models/${model.id}/model.${fmt}`;
+	const urlOf = ( fmt ) => ( fmt === 'lod' ? model.lod : model.files[ fmt ]?.url || `${base}/models/${model.id}/model.${fmt}` );
 	const display = setupDisplay( viewer, urlOf, { canVrml: () => Boolean( model?.files.wrl ), onLoaded } );
 	try {
 		const data = await info();

@@ -109,13 +109,16 @@ export async function start() {
 		structures.refresh();
 		consult?.modelLoaded();
 	};
-	const display = setupDisplay( viewer, ( fmt ) => urls.download( modelId, fmt ), { onLoaded } );
+	let lod = null; // the finished model's levels of detail, when it is large
+	const urlOf = ( fmt ) => ( fmt === 'lod' ? lod : urls.download( modelId, fmt ) );
+	const display = setupDisplay( viewer, urlOf, { onLoaded } );
 	try {
 		let model = await asked;
 		const volume = api.volume( model.volume );
 		volume.then( showVolume ).catch( () => {} );
 		let drawn = false;
 		if ( model.status !== 'done' ) ( { model, drawn } = await follow( viewer, model ) );
+		lod = model.lod;
 		fillStats( model );
 		structures.setStats( model.stats );
 		fillDownloads( model.files );

@@ -71,7 +71,8 @@ export function fillDownloads( files ) {
 
 // Loads the GLB or the VRML file (urlOf(fmt)) into the viewer; resolves once
 // drawn, after calling onLoaded(). drawn: the GLB is on the stage already (drawn
-// while the job was finishing), so GLB mode only says so.
+// while the job was finishing), so GLB mode only says so. A large model's levels of
+// detail (urlOf('lod'), its tileset) stand in for its GLB: coarse first, refined in view.
 export async function show( viewer, mode, urlOf, onLoaded = () => {}, { drawn = false } = {} ) {
 	status.ready = false;
 	status.mode = mode;
@@ -81,16 +82,17 @@ export async function show( viewer, mode, urlOf, onLoaded = () => {}, { drawn = 
 	url.searchParams.set( 'mode', mode );
 	history.replaceState( null, '', url );
 	const file = mode === 'vrml' ? 'wrl' : 'glb';
-	const onStage = drawn && mode === 'glb';
+	const lod = mode === 'glb' ? urlOf( 'lod' ) : null;
+	const onStage = drawn && mode === 'glb' && ! lod;
 	if ( ! onStage ) overlay( `Loading ${file.toUpperCase()}…`, '', { progress: 0 } );
 	try {
-		const triangles = onStage ? status.triangles : await viewer.load( urlOf( file ), mode, ( e ) => {
+		const triangles = onStage ? status.triangles : await viewer.load( lod || urlOf( file ), lod ? 'lod' : mode, ( e ) => {
 			if ( e.lengthComputable ) $( 'overlay-progress' ).value = e.loaded / e.total;
 			$( 'overlay-text' ).textContent = formatBytes( e.loaded );
-		} );
+		}, { keepView: drawn } );
 		if ( status.mode !== mode ) return; // the user switched again meanwhile
 		$( 'overlay' ).hidden = true;
-		$( 'drawn' ).textContent = `${formatCount( triangles )} △ (${mode.toUpperCase()})`;
+		$( 'drawn' ).textContent = `${formatCount( triangles )} △ (${lod ? 'coarsest level, refined in view' : mode.toUpperCase()})`;
 		onLoaded();
 		Object.assign( status, { ready: true, triangles } );
 	} catch ( err ) {

@@ -9,6 +9,8 @@ import { GLTFLoader } from 'three/addons/loaders/GLTFLoader.js';
 import { VRMLLoader } from 'three/addons/loaders/VRMLLoader.js';
 import { MeshoptDecoder } from 'three/addons/libs/meshopt_decoder.module.js';
 import { OrientationGizmo } from './gizmo.js';
+import { TiledModel } from './tiles.js';
+import { status } from '../test-hooks.js';
 
 // Patient LPS millimetres to glTF's Y-up metres: Left -> +X, Superior -> +Y,
 // Anterior (-Y in LPS) -> +Z. Used for the VRML file, which is raw LPS mm,
@@ -66,6 +68,8 @@ export class ModelViewer {
 		this.gizmo = new OrientationGizmo();
 		this.gizmo.setFrame( this.lpsToWorld );
 		this.model = null;
+		// A large model's levels of detail (TiledModel) when it is drawn from them.
+		this.tiles = null;
 		// A scene's named parts ({name, mesh, material, extras}); one entry for a plain surface.
 		this.parts = [];
 		this.selected = null;
@@ -138,7 +142,7 @@ export class ModelViewer {
 	isShown( hit ) {
 		let o = hit.object;
 		for ( ; o; o = o.parent ) if ( ! o.visible ) return false;
-		if ( hit.object.material?.opacity === 0 ) return false;
+		if ( hit.object.material?.opacity === 0 || hit.object.material?.visible === false ) return false;
 		return ! this.clipping || this.clipPlane.distanceToPoint( hit.point ) >= 0;
 	}
 
@@ -183,7 +187,11 @@ export class ModelViewer {
 		r.setViewport( 0, 0, width, height );
 		r.setClearColor( BACKGROUNDS[ this.background ] );
 		r.clear();
+		this.tiles?.update( this.camera, height );
 		r.render( this.scene, this.camera );
+		// Read before the gizmo's own render resets the counts.
+		status.drawnTriangles = r.info.render.triangles;
+		if ( this.tiles ) status.lod = this.tiles.state();
 		this.gizmo.render( r, this.camera );
 	}
 
@@ -211,10 +219,13 @@ export class ModelViewer {
 		this.render();
 	}
 
-	// mode 'glb' or 'vrml'; resolves with the number of triangles drawn. keepView: the
-	// camera stays where it is (a preview replaced by its model), else it frames the model.
+	// mode 'glb', 'vrml' or 'lod' (url: a large model's tileset.json); resolves with the
+	// number of triangles drawn. keepView: the camera stays where it is (a preview replaced
+	// by its model), else it frames the model.
 	async load( url, mode, onProgress, { keepView = false } = {} ) {
-		const object = mode === 'vrml' ? await this.loadVRML( url, onProgress ) : await this.loadGLB( url, onProgress );
+		const tiles = mode === 'lod' ? new TiledModel( url, ( u, root ) => this.loadTile( u, root ), () => this.requestRender() ) : null;
+		const loaders = { vrml: () => this.loadVRML( url, onProgress ), lod: () => tiles.init() };
+		const object = await ( loaders[ mode ] || ( () => this.loadGLB( url, onProgress ) ) )();
 		const meshes = [];
 		object.traverse( ( o ) => {
 			if ( ! o.isMesh ) return;
@@ -231,6 +242,8 @@ export class ModelViewer {
 		for ( const p of this.parts ) p.material.clippingPlanes = this.clipping ? [ this.clipPlane ] : null;
 		this.clear();
 		this.model = object;
+		this.tiles = tiles;
+		tiles?.setFrame( this.lpsToWorld );
 		this.scene.add( object );
 		this.gizmo.setFrame( this.lpsToWorld );
 		if ( keepView ) this.requestRender();
@@ -238,7 +251,8 @@ export class ModelViewer {
 		return countTriangles( object );
 	}
 
-	async loadGLB( url, onProgress ) {
+	// frame: take the LPS->glTF matrix from this file (false for a tile after the root).
+	async loadGLB( url, onProgress, { frame = true } = {} ) {
 		const gltf = await new GLTFLoader().setMeshoptDecoder( MeshoptDecoder ).loadAsync( url, onProgress );
 		const root = gltf.scene;
 		root.updateMatrixWorld( true );
@@ -249,7 +263,7 @@ export class ModelViewer {
 		root.traverse( ( o ) => {
 			if ( o.isMesh && ! mesh ) mesh = o;
 		} );
-		if ( mesh?.parent ) this.lpsToWorld.copy( mesh.parent.matrixWorld );
+		if ( mesh?.parent && frame ) this.lpsToWorld.copy( mesh.parent.matrixWorld );
 		// three sanitises node names ("bone (300 HU)" -> "bone_(300_HU)"); keep the file's own.
 		const nodes = gltf.parser.json.nodes || [];
 		root.traverse( ( o ) => {
@@ -259,6 +273,21 @@ export class ModelViewer {
 			Object.assign( o.userData, nodes[ index ].extras || {} );
 		} );
 		return root;
+	}
+
+	// A tile of a tileset. The root (drawn first) is loaded as any GLB; every other
+	// tile's parts are drawn with the parts' own materials (the root tile's, which the
+	// structures panel changes), so every level looks the same.
+	async loadTile( url, isRoot ) {
+		if ( isRoot ) return this.loadGLB( url );
+		const tile = await this.loadGLB( url, undefined, { frame: false } );
+		tile.traverse( ( o ) => {
+			if ( ! o.isMesh ) return;
+			if ( ! o.geometry.attributes.normal ) o.geometry.computeVertexNormals();
+			const part = this.parts.find( ( p ) => p.name === o.name );
+			if ( part ) o.material = part.material;
+		} );
+		return tile;
 	}
 
 	async loadVRML( url, onProgress ) {
@@ -282,6 +311,8 @@ export class ModelViewer {
 	}
 
 	clear() {
+		this.tiles?.dispose();
+		this.tiles = null;
 		if ( ! this.model ) return;
 		this.scene.remove( this.model );
 		this.model.traverse( ( o ) => {
@@ -296,6 +327,8 @@ export class ModelViewer {
 
 	setPartVisible( index, visible ) {
 		this.parts[ index ].mesh.visible = visible;
+		// Levels of detail: the part's meshes in every tile share its material.
+		if ( this.tiles ) this.parts[ index ].material.visible = visible;
 		this.requestRender();
 	}
 
@@ -329,7 +362,7 @@ export class ModelViewer {
 	pickPart( clientX, clientY ) {
 		const hit = this.pick( clientX, clientY );
 		if ( ! hit ) return null;
-		const i = this.parts.findIndex( ( p ) => p.mesh === hit.object );
+		const i = this.parts.findIndex( ( p ) => p.mesh === hit.object || ( this.tiles && p.material === hit.object.material ) );
 		return i < 0 ? null : i;
 	}
 

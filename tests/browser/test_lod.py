@@ -1,0 +1,84 @@
+"""Levels of detail in the browser: a model over the server's triangle budget is drawn
+from its tileset, coarse first; zooming in refines the tiles in view (more triangles
+drawn), zooming out coarsens again (fewer)."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from browser.conftest import Server, laptop_page, serve
+
+BUDGET = 20_000
+
+
+@pytest.fixture(scope="module")
+def lod_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
+    with serve(tmp_path_factory, MISS_LOD_TRIANGLES=str(BUDGET)) as running:
+        yield running
+
+
+def settled(page: Any) -> int:
+    """Triangles drawn once no tile is loading any more and two frames have passed."""
+    for _ in range(100):
+        page.evaluate(
+            "() => new Promise((r) => requestAnimationFrame(() => requestAnimationFrame(r)))"
+        )
+        if page.evaluate("() => window.__miss.lod.loading") == 0:
+            page.evaluate(
+                "() => new Promise((r) => requestAnimationFrame(() => requestAnimationFrame(r)))"
+            )
+            if page.evaluate("() => window.__miss.lod.loading") == 0:
+                return int(page.evaluate("() => window.__miss.drawnTriangles"))
+        time.sleep(0.1)
+    raise AssertionError(f"tiles still loading: {page.evaluate('() => window.__miss.lod')}")
+
+
+def zoom(page: Any, clicks: int) -> None:
+    """Mouse-wheel clicks over the middle of the canvas (negative: in)."""
+    box = page.locator("#stage canvas").bounding_box()
+    page.mouse.move(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
+    for _ in range(abs(clicks)):
+        page.mouse.wheel(0, 100 if clicks > 0 else -100)
+        page.wait_for_timeout(30)
+
+
+def test_coarse_first_then_refined_when_zoomed_in(
+    browser: Any, lod_server: Server, artifacts: Path
+) -> None:
+    volumes = lod_server.get("/api/volumes")
+    demo = next(v for v in volumes if "phantom" in v["name"].lower())
+    body = {"volume": demo["id"], "level": 300, "decimate": "none"}
+    model = lod_server.wait_model(lod_server.post("/api/models", body)["id"])
+    assert model["status"] == "done", model["error"]
+    assert model["stats"]["triangles"] > BUDGET and model["lod"]
+    with laptop_page(browser, lod_server) as page:
+        start = time.monotonic()
+        page.goto(f"/models/{model['id']}")
+        page.wait_for_function("() => window.__miss.ready && window.__miss.drawnTriangles > 0")
+        first_draw = time.monotonic() - start
+        first = page.evaluate("() => window.__miss.drawnTriangles")
+        root = lod_server.get(model["lod"].split("?")[0])["root"]
+        assert first == root["extras"]["triangles"] < BUDGET  # the coarse root, alone
+        assert first_draw < 10
+        fitted = settled(page)
+        (artifacts / "lod-fitted.png").write_bytes(page.locator("#stage canvas").screenshot())
+        zoom(page, -20)
+        zoomed = settled(page)
+        (artifacts / "lod-zoomed.png").write_bytes(page.locator("#stage canvas").screenshot())
+        assert zoomed > fitted >= first
+        page.click("#fit")
+        back = settled(page)
+        zoom(page, 8)
+        far = settled(page)
+        (artifacts / "lod-far.png").write_bytes(page.locator("#stage canvas").screenshot())
+        assert far <= back < zoomed
+        print(
+            f"first draw {first_draw:.2f} s, {first} triangles; fitted {fitted}, "
+            f"zoomed in {zoomed}, fitted again {back}, far {far}; "
+            f"{model['stats']['lod']['tiles']} tiles, {model['stats']['lod']['bytes']} bytes "
+            f"(GLB {model['files']['glb']['bytes']})"
+        )
