@@ -127,3 +127,35 @@ def test_tiles_keep_parts_and_pass_the_validator(scene: Scene, validate: Validat
             {"root": files["tiles/r.glb"], "root-plain": plain["tiles/r.glb"], "leaf": plain[leaf]}
         )
     )
+
+
+class Recorder:
+    """A sink that notes what it gets, in order."""
+
+    wants_preview = False
+
+    def __init__(self, lod_triangles: int | None) -> None:
+        self.lod_triangles = lod_triangles
+        self.got: list[str] = []
+        self.lod: dict[str, bytes] = {}
+
+    def put(self, fmt: str, data: bytes) -> None:
+        self.got.append(fmt)
+
+    def put_lod(self, files: Any) -> None:
+        self.got.append("lod")
+        self.lod = dict(files)
+
+    def deliver(self, result: Any) -> None:
+        return None
+
+
+def test_the_job_writes_levels_of_detail_right_after_the_glb_when_over_budget() -> None:
+    spec = JobSpec.of(level=300, sample_rate=2, decimate="none", formats=("stl", "glb", "wrl"))
+    over, within = Recorder(5_000), Recorder(10_000_000)
+    result = run(phantom(), spec, sink=over, measure=False)
+    assert result.scene.n_triangles > 5_000
+    assert over.got == ["glb", "lod", "stl", "wrl"] and TILESET in over.lod
+    assert "lod" in result.seconds
+    run(phantom(), spec, sink=within, measure=False)
+    assert within.got == ["glb", "stl", "wrl"]
