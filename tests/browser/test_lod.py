@@ -70,6 +70,15 @@ def test_coarse_first_then_refined_when_zoomed_in(
         zoomed = settled(page)
         (artifacts / "lod-zoomed.png").write_bytes(page.locator("#stage canvas").screenshot())
         assert zoomed > fitted >= first
+        # What is drawn is what is picked, and a part hidden is hidden in every tile.
+        box = page.locator("#stage canvas").bounding_box()
+        page.mouse.click(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
+        page.wait_for_function("() => window.__miss.structures.selected === 0")
+        assert "mL" in page.inner_text("#part-info")
+        page.locator("#structure-list li").nth(0).locator("[data-role=visible]").uncheck()
+        assert settled(page) == 0
+        page.locator("#structure-list li").nth(0).locator("[data-role=visible]").check()
+        assert settled(page) == zoomed
         page.click("#fit")
         back = settled(page)
         zoom(page, 8)

@@ -237,7 +237,10 @@ export class ModelViewer {
 		const scene = meshes.length > 1 || meshes.some( ( o ) => o.userData?.volume_ml != null );
 		this.parts = meshes.map( ( o, i ) => {
 			o.material = scene ? partMaterial( o.material ) : this.material;
-			return { name: o.name || `part ${i + 1}`, mesh: o, material: o.material, extras: { ...o.userData } };
+			const extras = { ...o.userData };
+			// A tile's measures are its own fragment's: the panel takes the model's from its stats.
+			if ( tiles ) for ( const key of [ 'volume_ml', 'area_cm2' ] ) delete extras[ key ];
+			return { name: o.name || `part ${i + 1}`, mesh: o, material: o.material, extras };
 		} );
 		for ( const p of this.parts ) p.material.clippingPlanes = this.clipping ? [ this.clipPlane ] : null;
 		this.clear();
