@@ -7,7 +7,8 @@ the files (to paths on the command line, to the data folder in the server; back 
 PACS next). No web, no globals.
 
 The order is the one a waiting physician needs: a coarse preview first when the sink
-asks for one, then the model's GLB, then the other formats, the error measured meanwhile
+asks for one, then a large model's levels of detail, then the model's GLB, then the
+other formats, the error measured meanwhile
 on a second thread; the job is done once both are.
 """
 
@@ -108,6 +109,8 @@ def run(
     report("surface", 0.0)
     built = build_scene(volume, spec, label_map=label_map, table=table, title=title, measure=False)
     seconds |= built.seconds
+    if sink is not None:  # a viewer draws these rather than a GLB too large to draw
+        seconds |= _levels_of_detail(built.scene, sink, title, metadata)
     start = time.perf_counter()
     artifacts: dict[str, bytes] = {}
     formats = sorted(spec.outputs.formats, key=lambda f: f != "glb")  # what viewers load first
@@ -121,8 +124,6 @@ def run(
             artifacts[fmt] = export(built.scene, fmt, title=title, metadata=metadata, **options)
             if sink is not None:
                 sink.put(fmt, artifacts[fmt])
-                if fmt == "glb":
-                    seconds |= _levels_of_detail(built.scene, sink, title, metadata)
             if measure:
                 measuring = measuring or pool.submit(built.measured)
         seconds["write"] = time.perf_counter() - start
@@ -189,8 +190,8 @@ def _levels_of_detail(
     scene: Scene, sink: Sink, title: str | None, metadata: dict[str, str] | None
 ) -> dict[str, float]:
     """A scene over the sink's ``lod_triangles`` goes to ``sink.put_lod`` as a 3D Tiles
-    tileset too (right after the GLB: a viewer draws its coarse root first); returns the
-    seconds it took, none when the scene is within the budget."""
+    tileset too, before any file (a viewer draws its coarse root at once, never the whole
+    GLB); returns the seconds it took, none when the scene is within the budget."""
     budget = getattr(sink, "lod_triangles", None)  # sinks that predate levels of detail
     if budget is None or scene.n_triangles <= budget:
         return {}

@@ -261,9 +261,9 @@ def model_out(row: ModelRow, volume: VolumeRow | None = None) -> ModelOut:
 
 
 def lod_url(row: ModelRow, base: str) -> str | None:
-    """A finished model's tileset under ``base`` (its API or share-link path), its ETag in
+    """A model's tileset (written before its GLB) under ``base`` (its API or share-link path), its ETag in
     the query; None without levels of detail."""
-    lod = (row.stats or {}).get("lod") if row.status == DONE else None
+    lod = (row.stats or {}).get("lod") if row.status in (DONE, RUNNING) else None
     return f"{base}/lod/tileset.json?v={lod['etag']}" if lod else None
 
 

@@ -82,6 +82,12 @@ class JobState:
             model_id, ModelRow.status == RUNNING, stats={"preview": preview}
         )
 
+    def set_lod(self, model_id: str, lod: dict[str, Any], preview: dict[str, Any] | None) -> bool:
+        """Record a running job's levels of detail (etag, bytes, tiles) beside its preview;
+        False when the job is no longer running."""
+        stats = {"lod": lod} | ({"preview": preview} if preview else {})
+        return self.store.update_model(model_id, ModelRow.status == RUNNING, stats=stats)
+
     def set_files(self, model_id: str, files: dict[str, Any]) -> bool:
         """Record the files a running job has written so far (the GLB first: a viewer draws
         it while the rest are written); False when the job is no longer running."""

@@ -216,7 +216,8 @@ class DataFolder:
     written atomically and recorded in the running job's row as soon as it is in place, so
     the viewer draws the preview and then the model while the rest is written; delivers
     {fmt: {bytes, etag, mime}} in the formats' order. A model over ``lod_triangles`` also
-    gets its levels of detail in ``models/<id>/lod/`` (``lod`` says what they are)."""
+    gets its levels of detail in ``models/<id>/lod/`` first (``lod`` says what they are),
+    recorded at once: the viewer draws them rather than the GLB."""
 
     folder: Path
     state: JobState
@@ -224,6 +225,7 @@ class DataFolder:
     wants_preview: bool = True
     lod_triangles: int | None = None
     lod: dict[str, Any] | None = None
+    preview: dict[str, Any] | None = None
     files: dict[str, dict[str, Any]] = field(default_factory=dict)
     #: Seconds from ``started`` (the job's start) until the model's GLB was in place.
     started: float = field(default_factory=time.perf_counter)
@@ -234,6 +236,7 @@ class DataFolder:
         meta = {"bytes": len(data), "etag": hashlib.sha256(data).hexdigest()[:32]}
         if fmt == PREVIEW:
             write_atomic(self.folder / PREVIEW_FILE, data)
+            self.preview = meta
             if not self.state.set_preview(self.model_id, meta):
                 raise Stop
             return
@@ -249,6 +252,8 @@ class DataFolder:
         write_tree_atomic(self.folder / LOD_DIR, files)
         tiles = sum(1 for name in files if name.endswith(".glb"))
         self.lod = {"etag": etag(files), "bytes": sum(map(len, files.values())), "tiles": tiles}
+        if not self.state.set_lod(self.model_id, self.lod, self.preview):
+            raise Stop
 
     def deliver(self, result: JobResult) -> dict[str, Any]:
         return {fmt: self.files[fmt] for fmt in result.artifacts}

@@ -183,7 +183,15 @@ async def model_events(model: ModelDep, store: StoreDep) -> AsyncIterator[Server
     row, last = model, None
     while True:
         preview = (row.stats or {}).get("preview")
-        state = (row.status, row.stage, round(row.progress, 3), str(preview), str(row.files))
+        lod = (row.stats or {}).get("lod")
+        state = (
+            row.status,
+            row.stage,
+            round(row.progress, 3),
+            str(preview),
+            str(lod),
+            str(row.files),
+        )
         if state != last:
             last = state
             yield ServerSentEvent(data=model_out(row, volume).model_dump(mode="json"))
@@ -305,11 +313,11 @@ def lod_file(model: ModelDep, name: str, request: Request, store: StoreDep) -> R
 
 def lod_response(model: ModelRow, name: str, request: Request, store: Store) -> Response:
     """One tileset file with its ETag (304 when unchanged), for owners and links alike."""
-    lod = (model.stats or {}).get("lod") if model.status == DONE else None
+    lod = (model.stats or {}).get("lod") if model.status in (DONE, RUNNING) else None
     if lod is None:
         raise NotFound(
             f"model {model.id} has no levels of detail (only models over the server's "
-            "triangle budget get them, once done); load its model.glb."
+            "triangle budget get them); load its model.glb."
         )
     path = store.model_dir(model.id) / LOD_DIR / name
     if not LOD_NAME.fullmatch(name) or not path.is_file():

@@ -18,19 +18,21 @@ const $ = ( id ) => document.getElementById( id );
 const modelId = decodeURIComponent( location.pathname.split( '/' ).filter( Boolean ).pop() );
 
 // While the job runs: its progress, then its preview (a coarse GLB) as soon as there is
-// one, then the model's own GLB as soon as it is written, the view kept as the user
-// turned it; resolves with the finished model and whether its GLB is drawn already.
+// one, then the model's own GLB as soon as it is written (a large model's levels of
+// detail instead, written before it), the view kept as the user turned it; resolves
+// with the finished model and whether the model is drawn already.
 async function follow( viewer, model ) {
 	let drawn = null; // 'preview' | 'full': what is drawn or on its way
 	let queue = Promise.resolve();
 	const draw = ( m ) => {
-		const url = m.files?.glb?.url || m.preview;
-		const kind = m.files?.glb ? 'full' : 'preview';
+		const url = m.lod || m.files?.glb?.url || m.preview;
+		const kind = m.lod || m.files?.glb ? 'full' : 'preview';
 		if ( ! url || drawn === 'full' || drawn === kind ) return;
 		drawn = kind;
 		queue = queue.then( async () => {
 			if ( kind === 'preview' ) viewer.setCoarse( true );
-			const triangles = await viewer.load( url, 'glb', undefined, { keepView: status.drawn != null } );
+			const mode = url === m.lod ? 'lod' : 'glb';
+			const triangles = await viewer.load( url, mode, undefined, { keepView: status.drawn != null } );
 			if ( kind === 'full' ) viewer.setCoarse( false ); // before the frame that draws it
 			Object.assign( status, { drawn: kind, triangles } );
 			$( 'overlay' ).hidden = true;

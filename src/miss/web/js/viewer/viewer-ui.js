@@ -83,7 +83,7 @@ export async function show( viewer, mode, urlOf, onLoaded = () => {}, { drawn = 
 	history.replaceState( null, '', url );
 	const file = mode === 'vrml' ? 'wrl' : 'glb';
 	const lod = mode === 'glb' ? urlOf( 'lod' ) : null;
-	const onStage = drawn && mode === 'glb' && ! lod;
+	const onStage = drawn && mode === 'glb'; // the levels of detail, for a large model
 	if ( ! onStage ) overlay( `Loading ${file.toUpperCase()}…`, '', { progress: 0 } );
 	try {
 		const triangles = onStage ? status.triangles : await viewer.load( lod || urlOf( file ), lod ? 'lod' : mode, ( e ) => {

@@ -91,3 +91,24 @@ def test_coarse_first_then_refined_when_zoomed_in(
             f"{model['stats']['lod']['tiles']} tiles, {model['stats']['lod']['bytes']} bytes "
             f"(GLB {model['files']['glb']['bytes']})"
         )
+
+
+def test_a_running_jobs_page_draws_the_levels_of_detail_not_the_glb(
+    browser: Any, lod_server: Server
+) -> None:
+    """Opened while the job runs: the preview, then the tileset (written before the GLB);
+    the model's GLB, too large to draw, is never fetched."""
+    volumes = lod_server.get("/api/volumes")
+    demo = next(v for v in volumes if "phantom" in v["name"].lower())
+    body = {"volume": demo["id"], "level": 250, "decimate": "none"}
+    model = lod_server.post("/api/models", body)
+    with laptop_page(browser, lod_server) as page:
+        fetched: list[str] = []
+        page.on("request", lambda r: fetched.append(r.url))
+        page.goto(f"/models/{model['id']}")
+        page.wait_for_function("() => window.__miss.ready", timeout=120_000)
+        assert lod_server.get(f"/api/models/{model['id']}")["status"] == "done"
+        assert page.evaluate("() => window.__miss.lod.tiles") >= 1
+        assert settled(page) > 0
+    assert any("/lod/tileset.json" in url for url in fetched)
+    assert not any("/model.glb" in url for url in fetched), fetched

@@ -9,9 +9,9 @@ from collections.abc import Iterator
 from typing import Any
 
 import pytest
-from conftest import ADMIN_PASSWORD, log_in, wait_for_model
 from fastapi.testclient import TestClient
 from pg import copy_seed, settings_for
+from server.conftest import ADMIN_PASSWORD, log_in, wait_for_model
 
 from miss.server.app import create_app
 
