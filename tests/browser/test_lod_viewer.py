@@ -70,6 +70,7 @@ def test_coarse_first_then_refined_when_zoomed_in(
         zoomed = settled(page)
         (artifacts / "lod-zoomed.png").write_bytes(page.locator("#stage canvas").screenshot())
         assert zoomed > fitted >= first
+        assert "levels of detail" in page.inner_text("#drawn")
         # What is drawn is what is picked, and a part hidden is hidden in every tile.
         box = page.locator("#stage canvas").bounding_box()
         page.mouse.click(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)

@@ -75,6 +75,7 @@ export class TiledModel {
 
 	load( node ) {
 		if ( node.object || node.pending ) return node.pending;
+		if ( node.retryAt > performance.now() ) return null; // failed lately (e.g. 429): later
 		if ( this.loading >= MAX_LOADS && node !== this.root ) {
 			if ( ! this.waiting.includes( node ) ) this.waiting.push( node );
 			return null;
@@ -85,6 +86,15 @@ export class TiledModel {
 			object.visible = false;
 			node.object = object;
 			this.group.add( object );
+		}, ( err ) => {
+			// The root is the model: its failure is the load's. Another tile is tried again
+			// later, waiting longer each time (the API's rate limit answers 429 in a burst).
+			if ( node === this.root ) throw err;
+			node.failures = ( node.failures || 0 ) + 1;
+			const wait = Math.min( 30_000, 500 * 2 ** node.failures );
+			node.retryAt = performance.now() + wait;
+			setTimeout( () => this.disposed || this.onChange(), wait );
+			console.warn( `tile ${node.uri} not loaded (${err.message || err}); trying again in ${wait / 1000} s` );
 		} ).finally( () => {
 			this.loading --;
 			node.pending = null;

@@ -92,7 +92,9 @@ export async function show( viewer, mode, urlOf, onLoaded = () => {}, { drawn = 
 		}, { keepView: drawn } );
 		if ( status.mode !== mode ) return; // the user switched again meanwhile
 		$( 'overlay' ).hidden = true;
-		$( 'drawn' ).textContent = `${formatCount( triangles )} △ (${lod ? 'coarsest level, refined in view' : mode.toUpperCase()})`;
+		$( 'drawn' ).textContent = `${formatCount( triangles )} △ (${lod ? 'levels of detail' : mode.toUpperCase()})`;
+		// Levels of detail: what each frame draws, as the view refines and coarsens.
+		viewer.onDrawn = lod ? ( n ) => ( $( 'drawn' ).textContent = `${formatCount( n )} △ (levels of detail)` ) : null;
 		onLoaded();
 		Object.assign( status, { ready: true, triangles } );
 	} catch ( err ) {

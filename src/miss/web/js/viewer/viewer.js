@@ -191,7 +191,10 @@ export class ModelViewer {
 		r.render( this.scene, this.camera );
 		// Read before the gizmo's own render resets the counts.
 		status.drawnTriangles = r.info.render.triangles;
-		if ( this.tiles ) status.lod = this.tiles.state();
+		if ( this.tiles ) {
+			status.lod = this.tiles.state();
+			this.onDrawn?.( status.drawnTriangles );
+		}
 		this.gizmo.render( r, this.camera );
 	}
 
