@@ -98,7 +98,7 @@ def write_tiles(
     files: dict[str, bytes] = {}
     for node in walk(root):
         parts = [
-            Part(p.name, Mesh(p.mesh.vertices, faces, normals=n), p.color, p.opacity, p.label)
+            Part(p.name, _compact(p.mesh.vertices, n, faces), p.color, p.opacity, p.label)
             for p, faces, n in zip(scene.parts, node.fragment, normals, strict=True)
             if len(faces)
         ]
@@ -126,6 +126,13 @@ def etag(files: dict[str, bytes]) -> str:
     for name in sorted(files):
         digest.update(name.encode() + b"\0" + hashlib.sha256(files[name]).digest())
     return digest.hexdigest()[:32]
+
+
+def _compact(vertices: np.ndarray, normals: np.ndarray, faces: np.ndarray) -> Mesh:
+    """The vertices (and normals) ``faces`` use, faces renumbered: a tile's writer then
+    works on the tile, not on the whole model's vertex arrays."""
+    used, inverse = np.unique(faces, return_inverse=True)
+    return Mesh(vertices[used], inverse.reshape(-1, 3).astype(np.int32), normals=normals[used])
 
 
 def walk(node: TileNode) -> list[TileNode]:
@@ -214,21 +221,32 @@ def _tileset(root: TileNode, scene: Scene) -> dict[str, Any]:
 def _tile(node: TileNode, scene: Scene) -> dict[str, Any]:
     """One tile: bounding box of all its triangles at full resolution (LPS m), error (m),
     content, triangle count, children."""
-    used = [
-        p.mesh.vertices[p.mesh.faces[m].ravel()]
-        for p, m in zip(scene.parts, node.members, strict=True)
-        if len(m)
-    ]
-    points = np.concatenate(used).astype(np.float64) / 1000
-    lo, hi = points.min(axis=0), points.max(axis=0)
+    children = [_tile(c, scene) for c in node.children]
+    if children:  # the union of the children's boxes: each triangle is read once, in a leaf
+        corners = np.array([_corners(c["boundingVolume"]["box"]) for c in children])
+        lo, hi = corners[:, 0].min(axis=0), corners[:, 1].max(axis=0)
+    else:
+        used = [
+            p.mesh.vertices[p.mesh.faces[m].ravel()]
+            for p, m in zip(scene.parts, node.members, strict=True)
+            if len(m)
+        ]
+        points = np.concatenate(used).astype(np.float64) / 1000
+        lo, hi = points.min(axis=0), points.max(axis=0)
     center, half = (lo + hi) / 2, (hi - lo) / 2
     box = [*center, half[0], 0, 0, 0, half[1], 0, 0, 0, half[2]]
     tile: dict[str, Any] = {
-        "boundingVolume": {"box": [round(float(x), 7) for x in box]},
+        "boundingVolume": {"box": [float(x) for x in box]},
         "geometricError": node.error / 1000,
         "content": {"uri": f"tiles/{node.key}.glb"},
         "extras": {"triangles": sum(len(f) for f in node.fragment)},
     }
-    if node.children:
-        tile["children"] = [_tile(c, scene) for c in node.children]
+    if children:
+        tile["children"] = children
     return tile
+
+
+def _corners(box: list[float]) -> tuple[np.ndarray, np.ndarray]:
+    """An axis-aligned 3D Tiles box's low and high corners."""
+    center, half = np.array(box[:3]), np.array([box[3], box[7], box[11]])
+    return center - half, center + half
