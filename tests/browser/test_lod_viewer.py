@@ -76,6 +76,7 @@ def test_coarse_first_then_refined_when_zoomed_in(
         page.mouse.click(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
         page.wait_for_function("() => window.__miss.structures.selected === 0")
         assert "mL" in page.inner_text("#part-info")
+        assert not page.is_visible("#part-download")  # the page holds no part at full resolution
         page.locator("#structure-list li").nth(0).locator("[data-role=visible]").uncheck()
         assert settled(page) == 0
         page.locator("#structure-list li").nth(0).locator("[data-role=visible]").check()

@@ -98,7 +98,9 @@ export class StructuresPanel {
 		this.viewer.select( index );
 		for ( const li of $( 'structure-list' ).children ) li.classList.toggle( 'selected', Number( li.dataset.index ) === index );
 		const p = index == null ? null : this.viewer.parts[ index ];
-		$( 'part-download' ).hidden = ! p || ! this.canDownload;
+		// A large model drawn from its levels of detail holds no part at full resolution in
+		// the page: its full-resolution files are under Download.
+		$( 'part-download' ).hidden = ! p || ! this.canDownload || Boolean( this.viewer.tiles );
 		const info = $( 'part-info' );
 		if ( ! p ) {
 			info.textContent = 'Click a part to see its name, volume and area.';
