@@ -114,3 +114,38 @@ def test_a_running_jobs_page_draws_the_levels_of_detail_not_the_glb(
         assert settled(page) > 0
     assert any("/lod/tileset.json" in url for url in fetched)
     assert not any("/model.glb" in url for url in fetched), fetched
+
+
+def test_a_links_guest_sees_a_scene_of_parts_from_its_levels_of_detail(
+    browser: Any, lod_server: Server, artifacts: Path
+) -> None:
+    """Two coloured parts over the budget, opened from a share link (no login): drawn from
+    the tileset, both parts listed with their own colours, refined when zoomed in."""
+    volumes = lod_server.get("/api/volumes")
+    demo = next(v for v in volumes if "phantom" in v["name"].lower())
+    parts = [
+        {"level": 300, "name": "bone", "color": "#e0d4b0"},
+        {"level": -500, "name": "skin", "color": "#c08070", "opacity": 0.4},
+    ]
+    body = {"volume": demo["id"], "decimate": "none", "parts": parts}
+    model = lod_server.wait_model(lod_server.post("/api/models", body)["id"])
+    assert model["status"] == "done", model["error"]
+    assert model["lod"]
+    link = lod_server.post("/api/shares", {"model": model["id"]})
+    context = browser.new_context(base_url=lod_server.url, viewport={"width": 1366, "height": 768})
+    try:
+        guest = context.new_page()
+        guest.goto(link["url"])
+        guest.wait_for_function(
+            "() => window.__miss.ready && window.__miss.lod && window.__miss.structures.parts.length === 2"
+        )
+        listed = guest.evaluate("() => window.__miss.structures.parts")
+        assert [p["name"] for p in listed] == ["bone", "skin"]
+        assert [p["color"] for p in listed] == ["#e0d4b0", "#c08070"]
+        assert listed[1]["opacity"] == 0.4
+        fitted = settled(guest)
+        guest.locator("#stage canvas").screenshot(path=artifacts / "lod-guest-parts.png")
+        zoom(guest, -20)
+        assert settled(guest) > fitted
+    finally:
+        context.close()
