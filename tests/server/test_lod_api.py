@@ -86,3 +86,19 @@ def test_a_model_within_the_budget_has_none(client: TestClient, demo_id: str) ->
     assert small["stats"]["triangles"] <= BUDGET
     assert small["lod"] is None and "lod" not in small["stats"]
     assert client.get(f"/api/models/{small['id']}/lod/tileset.json").status_code == 404
+
+
+def test_a_tileset_is_replaced_whole(tmp_path: Any) -> None:
+    """Written into a hidden folder and renamed: an older tileset goes at once, and no
+    half-written folder is left beside it."""
+    from miss.server.jobs.worker import write_tree_atomic
+
+    folder = tmp_path / "lod"
+    write_tree_atomic(folder, {"tileset.json": b"{}", "tiles/r.glb": b"1", "tiles/r0.glb": b"2"})
+    write_tree_atomic(folder, {"tileset.json": b"{ }", "tiles/r.glb": b"3"})
+    assert sorted(p.relative_to(folder).as_posix() for p in folder.rglob("*.*")) == [
+        "tiles/r.glb",
+        "tileset.json",
+    ]
+    assert (folder / "tiles/r.glb").read_bytes() == b"3"
+    assert [p.name for p in tmp_path.iterdir()] == ["lod"]
