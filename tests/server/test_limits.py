@@ -82,6 +82,19 @@ def test_api_rate_limit_per_account_then_per_address(
     assert client.get("/api/volumes", headers=alice).status_code == 429
 
 
+def test_tiles_of_a_large_model_cost_a_share_of_a_request(
+    make_client: Callable[..., TestClient],
+) -> None:
+    """A viewer zooming into a large model fetches dozens of tiles at once (levels of
+    detail): each costs an eighth of a request, so a burst of 20 covers 160 of them."""
+    client = make_client(api_rate=SLOW, api_burst=20)
+    carol = add_user(client, "carol")
+    tile = "/api/models/no-such-model/lod/tiles/r.glb"
+    sent = until_refused(client, tile, carol, most=400)
+    assert 150 <= sent <= 170, sent
+    assert_429(client.get("/api/volumes", headers=carol), "this account")
+
+
 def test_jobs_per_account(
     make_client: Callable[..., TestClient],
     small_nifti: bytes,

@@ -120,6 +120,13 @@ class OverLimit(TooManyRequests):
 LIMITED_PREFIXES = ("/api/", "/s/")
 #: Monitoring must see the server's state, not the limit's.
 UNLIMITED_PATHS = frozenset({"/api/health"})
+#: A tile of a model's levels of detail costs this share of a request: a viewer zooming
+#: into a large model fetches dozens of them at once, each a small cached file.
+TILE_COST = 0.125
+
+
+def request_cost(path: str) -> float:
+    return TILE_COST if "/lod/" in path else 1.0
 
 
 class ApiLimits:
@@ -156,11 +163,11 @@ class ApiLimits:
                 return f"user:{user_id}"
         return f"addr:{address}"
 
-    def check(self, token: str, address: str) -> tuple[str, float] | None:
-        """None when the request may go on (a token taken); else the 429's detail and the
-        seconds to wait (nothing taken)."""
+    def check(self, token: str, address: str, cost: float = 1.0) -> tuple[str, float] | None:
+        """None when the request may go on (``cost`` tokens taken); else the 429's detail
+        and the seconds to wait (nothing taken)."""
         key = self.key(token, address)
-        wait = self.buckets.take_or_wait(key)
+        wait = self.buckets.take_or_wait(key, cost)
         if wait <= 0.0:
             return None
         who = "this account" if key.startswith("user:") else f"the address {address}"
@@ -193,7 +200,8 @@ class RateLimitMiddleware:
             return
         conn = HTTPConnection(scope)
         token, _ = presented_token(conn.headers, conn.cookies)
-        refused = self.limits.check(token, conn.client.host if conn.client else "")
+        address = conn.client.host if conn.client else ""
+        refused = self.limits.check(token, address, request_cost(path))
         if refused is not None:
             await too_many(*refused)(scope, receive, send)
             return
