@@ -43,7 +43,10 @@ class Summary:
             self._digest.update(np.ascontiguousarray(plane.T).data)
             values = imaging.finite_values(plane)
             if values.size:
-                self.lo, self.hi = min(self.lo, float(values.min())), max(self.hi, float(values.max()))
+                self.lo, self.hi = (
+                    min(self.lo, float(values.min())),
+                    max(self.hi, float(values.max())),
+                )
             if k % step == 0:
                 self.sample.append(values.copy())
             if k == self.dims[2] // 2:

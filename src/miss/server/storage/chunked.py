@@ -40,6 +40,7 @@ DTYPES = frozenset(
 #: The compressor, as zarr.json names it; the only one :func:`open_array` accepts.
 BLOSC = {"cname": "zstd", "clevel": 3, "shuffle": "bitshuffle"}
 _MAX_CHUNK_SIDE = 1024
+_BYTES = {"name": "bytes", "configuration": {"endian": "little"}}
 _MAX_META_BYTES = 1 << 20
 #: Suffix of a Zarr folder being written (``Store.init`` removes the leftovers of a crash).
 PART = ".part"
@@ -91,7 +92,9 @@ def write_planes(
         shutil.rmtree(staging, ignore_errors=True)
 
 
-def _fill(array: Any, shape: tuple[int, int, int], dtype: np.dtype, planes: Iterable[np.ndarray]) -> None:
+def _fill(
+    array: Any, shape: tuple[int, int, int], dtype: np.dtype, planes: Iterable[np.ndarray]
+) -> None:
     """Buffer ``CHUNK[2]`` planes (one row of chunks) at a time and write them."""
     depth = array.chunks[2]
     slab = np.zeros((shape[0], shape[1], depth), dtype=dtype, order="F")
@@ -192,7 +195,8 @@ def _metadata_problem(meta: Any) -> str:
     codecs = meta.get("codecs")
     if not isinstance(codecs, list) or len(codecs) != 2:
         return "codecs other than bytes + blosc"
-    if codecs[0] != {"name": "bytes", "configuration": {"endian": "little"}}:
+    one_byte = np.dtype(meta["data_type"]).itemsize == 1  # zarr says no endian for those
+    if codecs[0] not in (_BYTES, *([{"name": "bytes"}] if one_byte else [])):
         return f"first codec {codecs[0]} is not little-endian bytes"
     blosc = codecs[1].get("configuration", {}) if isinstance(codecs[1], dict) else {}
     if codecs[1].get("name") != "blosc" or blosc.get("cname") != "zstd":
