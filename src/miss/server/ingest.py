@@ -171,11 +171,68 @@ def ingest(
         identity = {**identity, "upload_filename": upload.filename}
     if origin:
         identity = {**identity, "origin": origin}
-    name = display_name(upload, clean.volume, identity_values(clean.identity.get("patient", {})))
+    patient = identity_values(clean.identity.get("patient", {}))
+    name = display_name(upload.fields.get("name", ""), upload.filename, clean.volume, patient)
     staged, info = stage(store, clean.volume, clean.report)
     return store.add_volume(
         staged, name=name, slug=slugify(name), info=info, owner_id=owner_id, identity=identity
     )
+
+
+#: What storing a volume gives: (staged folder, de-identified volume, identity, info).
+Stored = tuple[Path, Volume, dict[str, Any], dict[str, Any]]
+
+
+def ingest_path(store: Store, path: Path, name: str = "") -> VolumeRow:
+    """Store the volume at ``path`` (``miss ingest``) as an upload is stored: the same
+    de-identification, files and row, no owner (the first administrator's at the next
+    start). A plain NIfTI file is read plane by plane (:func:`miss.io.nifti.stream`),
+    so it is never whole in memory; other formats are read whole."""
+    key = store.secret(UID_KEY)
+    with store.disk_full_as_507():
+        staged, volume, identity, info = _stream_in(store, path, key) or _read_in(store, path, key)
+    name = display_name(name, path.name, volume, identity_values(identity.get("patient", {})))
+    if identity:
+        identity = {**identity, "upload_filename": path.name}
+    return store.add_volume(staged, name=name, slug=slugify(name), info=info, identity=identity)
+
+
+def _stream_in(store: Store, path: Path, key: bytes) -> Stored | None:
+    """Store a file that can be read plane by plane into a folder under ``tmp/``; None
+    for one that cannot (``_read_in`` reads it whole)."""
+    from miss.io.common import NotStreamable
+    from miss.io.nifti import stream
+
+    streamed = stream(path)
+    if streamed is None:
+        return None
+    folder = store.tmp_dir()
+    try:
+        layout = (streamed.dims, streamed.dtype, streamed.affine)
+        summary = store_voxels(folder, layout, "nifti", streamed.planes)
+        check_storable_range(summary.lo, summary.hi, path.name)
+        lazy, _, _ = chunked.open_array(folder / DATA)
+        volume = Volume(lazy, streamed.affine, meta=streamed.meta(summary.lo, summary.hi))
+        clean = deidentify(volume, key)
+        info = finish(folder, clean.volume, summary, clean.report)
+    except NotStreamable:  # NaN voxels become the minimum, which only a whole read knows
+        shutil.rmtree(folder, ignore_errors=True)
+        return None
+    except BaseException:  # a full disk, a bad slice: no half-written folder stays behind
+        shutil.rmtree(folder, ignore_errors=True)
+        raise
+    return folder, clean.volume, clean.identity, info
+
+
+def _read_in(store: Store, path: Path, key: bytes) -> Stored:
+    """Store a file read whole (any format ``miss.io`` reads) into a folder under ``tmp/``."""
+    from miss.io import load_volume
+
+    volume = load_volume(path)
+    check_storable(volume, path.name)
+    clean = deidentify(volume, key)
+    staged, info = stage(store, clean.volume, clean.report)
+    return staged, clean.volume, clean.identity, info
 
 
 def public_message(message: str, work: Path) -> str:
@@ -196,7 +253,11 @@ def check_storable(volume: Volume, name: str) -> None:
             f"{name}: the voxel geometry is unusable (voxel steps {steps} mm); fix the "
             "voxel spacing and orientation in its header."
         )
-    lo, hi = volume.value_range()
+    check_storable_range(*volume.value_range(), name)
+
+
+def check_storable_range(lo: float, hi: float, name: str) -> None:
+    """:func:`check_storable`'s refusal of values that are not finite or all the same."""
     if not (np.isfinite(lo) and np.isfinite(hi)):
         raise UnreadableVolume(
             f"{name}: the voxel values are not finite ({lo:g}..{hi:g}); re-export the volume."
@@ -232,16 +293,16 @@ def register_demo(store: Store, owner_id: str | None = None) -> None:
     store.add_volume(staged, name=DEMO_NAME, slug=DEMO_SLUG, info=info, owner_id=owner_id)
 
 
-def display_name(upload: Upload, volume: Volume, identity: list[str]) -> str:
+def display_name(name: str, filename: str, volume: Volume, identity: list[str]) -> str:
     """The name to list: the ``name`` field, else the file name without its extensions.
 
     A name that contains any identity value (``SMITH_JOHN.zip``, an accession number) is
     replaced by the modality and series description: shared models must not carry
     identity. ``identity`` is ``miss.deid.identity_values`` of the original header.
     """
-    name = upload.fields.get("name", "").strip()
+    name = name.strip()
     if not name:
-        filename = Path(upload.filename.replace("\\", "/")).name
+        filename = Path(filename.replace("\\", "/")).name
         suffix = volume_suffix(Path(filename)) or (
             ".zip" if filename.lower().endswith(".zip") else ""
         )
