@@ -184,8 +184,8 @@ def test_streamed_nifti_is_stored_as_a_whole_read_stores_it(tmp_path: Path) -> N
     same voxels, meta.json (CT detected from the streamed range), histogram, thumbnail."""
     import nibabel as nib
 
-    from miss.io import load_volume
     from miss.deid import deidentify
+    from miss.io import load_volume
     from miss.server.ingest import UID_KEY, ingest_path, stage
     from miss.server.storage.store import Store
 
