@@ -212,3 +212,36 @@ def test_streamed_nifti_is_stored_as_a_whole_read_stores_it(tmp_path: Path) -> N
     finally:
         store.close()
         shutil.rmtree(tmp_path / "data", ignore_errors=True)
+
+
+def test_upload_whose_voxels_fill_the_disk_gets_507_and_leaves_nothing(
+    make_client, small_nifti: bytes, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The disk fills while the server writes the voxels (zarr's file writes say ENOSPC):
+    507 with a JSON detail, no volume listed, no folder under volumes/ or tmp/."""
+    import errno
+
+    import zarr.storage._local as local
+
+    client = make_client()
+    written = []
+    put = local._put
+
+    def fill_up(*args, **kwargs):
+        if len(written) >= 2:  # a few chunks made it: the volume is half-written then
+            raise OSError(errno.ENOSPC, "No space left on device")
+        written.append(args)
+        return put(*args, **kwargs)
+
+    monkeypatch.setattr(local, "_put", fill_up)
+    r = client.post("/api/volumes", files={"file": ("ball.nii.gz", small_nifti)})
+    assert r.status_code == 507, r.text
+    assert r.json()["detail"].startswith("disk full:"), r.text
+    assert written, "the upload never reached the voxel writes"
+    monkeypatch.undo()
+    assert client.get("/api/volumes").json() == []
+    data = Path(client.app.state.settings.data_dir)
+    assert list((data / "volumes").iterdir()) == []
+    assert list((data / "tmp").rglob("*")) == []
+    r = client.post("/api/volumes", files={"file": ("ball.nii.gz", small_nifti)})
+    assert r.status_code == 201, r.text  # room again: stored

@@ -48,7 +48,8 @@ class Summary:
                     max(self.hi, float(values.max())),
                 )
             if k % step == 0:
-                self.sample.append(values.copy())
+                # ravel copies a Fortran (X, Y) plane; a view would pin the caller's buffer
+                self.sample.append(values if values.base is None else values.copy())
             if k == self.dims[2] // 2:
                 self.middle = np.array(plane)
             self.planes += 1
@@ -63,7 +64,7 @@ class Summary:
 
     def histogram(self) -> dict[str, Any]:
         """``imaging.histogram`` of the volume, from the planes it samples."""
-        return imaging.histogram_of(np.concatenate(self.sample))
+        return imaging.histogram_of(self.sample)
 
     def thumbnail(self, window: dict[str, float]) -> bytes:
         """``imaging.thumbnail`` of the volume, from its middle axial plane."""

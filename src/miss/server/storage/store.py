@@ -332,20 +332,21 @@ class Store:
         _remove_tree(self.volume_dir(volume_id), self.data_dir)
         return model_ids
 
-    def open_volume(self, volume_id: str) -> Volume:
+    def open_volume(self, volume_id: str, lazy: bool = False) -> Volume:
         """The stored volume (no DICOM parsing): its voxels read whole and read-only up to
-        ``in_memory_max`` bytes, else a lazy ``zarr.Array`` that reads the chunks asked for."""
+        ``in_memory_max`` bytes, else (or when ``lazy``: a slice, a region) a lazy
+        ``zarr.Array`` that reads only the chunks asked for."""
         folder = self.volume_dir(volume_id)
         meta = json.loads((folder / "meta.json").read_text())
-        data = self.voxels(folder / DATA, folder / OLD_DATA)
+        data = self.voxels(folder / DATA, folder / OLD_DATA, lazy)
         return Volume(data=data, affine=np.array(meta["affine"]), meta=meta, patient={})
 
-    def voxels(self, path: Path, old: Path) -> Any:
-        """The array at ``path`` (``chunked``), whole when small enough; ``old``, a .npy
-        memory-mapped, while another server has not migrated it yet (PostgreSQL)."""
+    def voxels(self, path: Path, old: Path, lazy: bool = False) -> Any:
+        """The array at ``path`` (``chunked``), whole when small enough and not ``lazy``;
+        ``old``, a .npy memory-mapped, while another server has not migrated it yet."""
         if not path.exists() and old.exists():
             return np.load(old, mmap_mode="r")
-        return chunked.read(path, self.in_memory_max)
+        return chunked.read(path, -1 if lazy else self.in_memory_max)
 
     def read_json(self, volume_id: str, name: str) -> Any:
         return json.loads((self.volume_dir(volume_id) / name).read_text())
