@@ -245,3 +245,25 @@ def test_upload_whose_voxels_fill_the_disk_gets_507_and_leaves_nothing(
     assert list((data / "tmp").rglob("*")) == []
     r = client.post("/api/volumes", files={"file": ("ball.nii.gz", small_nifti)})
     assert r.status_code == 201, r.text  # room again: stored
+
+
+def test_a_volume_over_the_in_memory_size_is_read_lazily_and_still_meshed(
+    make_client, small_nifti: bytes, monkeypatch: pytest.MonkeyPatch, wait_done
+) -> None:
+    """MISS_IN_MEMORY_MAX_MB=0: every volume is a lazy zarr.Array; jobs (their worker
+    reads the setting too) and slices work from the chunks."""
+    from miss.server.storage.store import Store
+
+    monkeypatch.setenv("MISS_IN_MEMORY_MAX_MB", "0")
+    client = make_client(in_memory_max_mb=0)
+    store: Store = client.app.state.store
+    volume = client.post("/api/volumes", files={"file": ("ball.nii.gz", small_nifti)}).json()
+    assert not isinstance(store.open_volume(volume["id"]).data, np.ndarray)
+    body = {"volume": volume["id"], "level": 0, "decimate": "none"}
+    r = client.post("/api/models", json=body)
+    assert r.status_code == 202, r.text
+    model = wait_done(client, r.json()["id"])
+    assert model["status"] == "done", model
+    assert model["stats"]["triangles"] > 100
+    r = client.get(f"/api/volumes/{volume['id']}/slices/axial/12.png")
+    assert r.status_code == 200

@@ -8,6 +8,7 @@ Layout of the data folder::
                               array with the affine and provenance as attributes
                               (``chunked``); ``data.npy`` before, migrated at start
     volumes/<id>/meta.json    affine, spacing, range, modality, series, presets (no patient data)
+    volumes/<id>/labels.zarr, labels.json   a label map laid over it (``labelmaps``)
     volumes/<id>/histogram.json, thumbnail.png
     models/<id>/model.<fmt>   one file per output format, written by the job's worker
     models/<id>/worker.log    the worker's stderr, for the rare crash
