@@ -62,13 +62,16 @@ def tampered(meta: dict, change: str) -> dict:
         meta["shape"] = [*meta["shape"], 2]
     elif change == "no affine":
         del meta["attributes"]["affine"]
+    elif change == "x, y, z axes":
+        meta["dimension_names"] = ["x", "y", "z"]
     elif change == "sharding":
         meta["codecs"].insert(0, {"name": "sharding_indexed", "configuration": {}})
     return meta
 
 
 @pytest.mark.parametrize(
-    "change", ["gzip codec", "big-endian", "object dtype", "4-D", "no affine", "sharding"]
+    "change",
+    ["gzip codec", "big-endian", "object dtype", "4-D", "no affine", "x, y, z axes", "sharding"],
 )
 def test_open_refuses_metadata_miss_does_not_write(tmp_path: Path, change: str) -> None:
     path = tmp_path / "data.zarr"
