@@ -47,6 +47,10 @@ def test_round_trip_voxels_and_affine(tmp_path: Path, dtype: str, shape: tuple) 
     assert not whole.flags.writeable and np.array_equal(whole, data)
     lazy = chunked.read(path, in_memory_max=data.nbytes - 1)
     assert not isinstance(lazy, np.ndarray) and np.array_equal(lazy[:, 1, :], data[:, 1, :])
+    assert np.array_equal(lazy[3, ..., ::2], data[3, ..., ::2])
+    assert np.array_equal(lazy[1:-2:3, 1], data[1:-2:3, 1])
+    assert (lazy.min(), lazy.max()) == (data.min(), data.max())
+    assert np.array_equal(np.asarray(lazy), data)
     assert chunked.nbytes(path) == data.nbytes
     assert [p.name for p in tmp_path.iterdir()] == ["data.zarr"]  # no staging folder left
 

@@ -28,7 +28,7 @@ import math
 import os
 import secrets
 import shutil
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -127,9 +127,9 @@ def write_array(path: Path, data: np.ndarray, attributes: dict[str, Any]) -> Non
 
 class Voxels:
     """A stored volume's (X, Y, Z) voxels, read lazily: numpy basic indexing (integers,
-    slices with steps) reads and decompresses only the chunks the selection crosses and
-    returns a numpy array; ``np.asarray`` reads everything. ``stored`` is the
-    ``zarr.Array`` itself, (Z, Y, X)."""
+    slices with steps of 1 or more) reads and decompresses only the chunks the selection
+    crosses and returns a numpy array; ``np.asarray`` reads everything. ``stored`` is
+    the ``zarr.Array`` itself, (Z, Y, X)."""
 
     ndim = 3
 
@@ -158,6 +158,20 @@ class Voxels:
 
     def __getitem__(self, key: Any) -> np.ndarray:
         return np.asarray(self.stored[_xyz(key)[::-1]]).T
+
+    def min(self) -> Any:
+        """The smallest voxel, read one layer of chunks at a time."""
+        return min(layer.min() for layer in self.layers())
+
+    def max(self) -> Any:
+        """The largest voxel, read one layer of chunks at a time."""
+        return max(layer.max() for layer in self.layers())
+
+    def layers(self) -> Iterator[np.ndarray]:
+        """The voxels as (X, Y, n) slabs, one layer of chunks (n slices) each, z in order."""
+        depth = self.chunks[2]
+        for start in range(0, self.shape[2], depth):
+            yield self[:, :, start : start + depth]
 
     def __array__(self, dtype: Any = None, copy: Any = None) -> np.ndarray:
         data = self[...]
@@ -206,8 +220,8 @@ def same_voxels(path: Path, data: np.ndarray) -> bool:
         return False
     depth = voxels.chunks[2]
     return all(
-        np.array_equal(voxels[:, :, k : k + depth], data[:, :, k : k + depth], equal_nan=True)
-        for k in range(0, voxels.shape[2], depth)
+        np.array_equal(layer, data[:, :, k * depth : (k + 1) * depth], equal_nan=True)
+        for k, layer in enumerate(voxels.layers())
     )
 
 
