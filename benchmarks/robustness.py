@@ -293,7 +293,7 @@ def attack_targets(server: Served, work: Path) -> dict[str, Path]:
     other += np.random.default_rng(2).bytes(SIDE**3)
     r = server.http.post("/api/volumes", files={"file": ("other.mha", other)})
     r.raise_for_status()
-    data = server.data_dir / "volumes" / r.json()["id"] / "data.zarr" / "zarr.json"
+    data = server.data_dir / "volumes" / r.json()["id"] / "data.zarr" / "c" / "0" / "0" / "0"
     return {"secret": secret, "database": server.data_dir / "miss.sqlite3", "volume": data}
 
 

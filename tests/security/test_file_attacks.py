@@ -86,7 +86,7 @@ def distinctive(path: Path) -> bytes:
 def targets(server: Server, secret: Path) -> dict[str, Path]:
     volumes = server.http.get("/api/volumes").json()
     demo_id = next(v["id"] for v in volumes if v["name"].startswith("Demo head phantom"))
-    demo = server.data_dir / "volumes" / demo_id / "data.zarr" / "zarr.json"
+    demo = server.data_dir / "volumes" / demo_id / "data.zarr" / "c" / "0" / "0" / "0"
     return {
         "file": secret,
         "database": server.data_dir / "miss.sqlite3",
