@@ -56,6 +56,7 @@ from load import PASSWORD, log_in, start_server, submit, wait_done
 
 import miss
 from miss.errors import MissError
+from miss.server.storage import chunked
 
 TESTS = Path(__file__).resolve().parents[1] / "tests"
 sys.path.insert(0, str(TESTS))
@@ -292,7 +293,7 @@ def attack_targets(server: Served, work: Path) -> dict[str, Path]:
     other += np.random.default_rng(2).bytes(SIDE**3)
     r = server.http.post("/api/volumes", files={"file": ("other.mha", other)})
     r.raise_for_status()
-    data = server.data_dir / "volumes" / r.json()["id"] / "data.npy"
+    data = server.data_dir / "volumes" / r.json()["id"] / "data.zarr" / "c" / "0" / "0" / "0"
     return {"secret": secret, "database": server.data_dir / "miss.sqlite3", "volume": data}
 
 
@@ -325,8 +326,8 @@ def attack_row(server: Served, work: Path) -> Row:
         row.tried += 1
         r = server.http.post("/api/volumes", files={"file": (case.filename, case.content)})
         if answer(row, r, case.name):
-            stored = server.data_dir / "volumes" / r.json()["id"] / "data.npy"
-            voxels = np.load(stored, mmap_mode="r").tobytes(order="F")  # not MISS's header
+            stored = server.data_dir / "volumes" / r.json()["id"] / "data.zarr"
+            voxels = np.asarray(chunked.open_array(stored)[0]).tobytes(order="F")
             found = outside_bytes(voxels, wanted[case.target])
             row.outside_bytes += found
             if found:

@@ -223,13 +223,15 @@ class Region:
     def apply(self, volume: Volume) -> Volume:
         """The region at the sample rate, positions still in patient mm (the affine is
         shifted and scaled). The whole volume at rate 1 is returned as it is (no copy);
-        striding a label map is nearest-neighbour subsampling."""
+        striding a label map is nearest-neighbour subsampling. A lazy (chunked) volume's
+        region is read here, and only the chunks it crosses."""
         import numpy as np
 
         from miss.types import Volume
 
         box = self.box(volume.dims)
-        if box == [(0, d - 1) for d in volume.dims] and self.steps == (1, 1, 1):
+        whole = box == [(0, d - 1) for d in volume.dims] and self.steps == (1, 1, 1)
+        if whole and isinstance(volume.data, np.ndarray):
             return volume
         picked = tuple(slice(lo, hi + 1, s) for (lo, hi), s in zip(box, self.steps, strict=True))
         shift = np.eye(4)

@@ -14,6 +14,8 @@ import numpy as np
 import pytest
 from realserver import Server, serving
 
+from miss.server.storage import chunked
+
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from corpus.attacks import Attack, attacks, distinctive  # noqa: E402
 
@@ -26,8 +28,8 @@ def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
 
 
 def voxel_bytes(folder: Path) -> bytes:
-    """A stored volume's voxels as bytes (not the .npy header MISS writes around them)."""
-    return np.load(folder / "data.npy", mmap_mode="r").tobytes(order="F")
+    """A stored volume's voxels as bytes, Fortran order (as the volume's source hash)."""
+    return np.asarray(chunked.open_array(folder / "data.zarr")[0][:]).tobytes(order="F")
 
 
 def test_no_attack_reads_outside_its_upload(server: Server, tmp_path: Path) -> None:

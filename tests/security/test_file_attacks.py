@@ -25,6 +25,7 @@ from realserver import ADMIN_PASSWORD, Server, serving
 
 from miss.errors import UnreadableVolume, UnsupportedFormat
 from miss.io import confined
+from miss.server.storage import chunked
 
 MB = 1 << 20
 #: The tests of the confinement itself need a kernel with Landlock (the server without it
@@ -85,7 +86,7 @@ def distinctive(path: Path) -> bytes:
 def targets(server: Server, secret: Path) -> dict[str, Path]:
     volumes = server.http.get("/api/volumes").json()
     demo_id = next(v["id"] for v in volumes if v["name"].startswith("Demo head phantom"))
-    demo = server.data_dir / "volumes" / demo_id / "data.npy"
+    demo = server.data_dir / "volumes" / demo_id / "data.zarr" / "c" / "0" / "0" / "0"
     return {
         "file": secret,
         "database": server.data_dir / "miss.sqlite3",
@@ -106,8 +107,8 @@ FORMS = {
 
 
 def voxel_bytes(folder: Path) -> bytes:
-    """A stored volume's voxels as bytes (not the .npy header MISS writes around them)."""
-    return np.load(folder / "data.npy", mmap_mode="r").tobytes(order="F")
+    """A stored volume's voxels as bytes, Fortran order (as the volume's source hash)."""
+    return np.asarray(chunked.open_array(folder / "data.zarr")[0][:]).tobytes(order="F")
 
 
 @pytest.mark.parametrize("form", list(FORMS))

@@ -22,6 +22,7 @@ from PIL import Image
 
 from miss.server.app import create_app
 from miss.server.routes.pages import THREE, WEB
+from miss.server.storage import chunked
 
 DEMO = "Demo head phantom (synthetic CT)"
 FAST = {"level": 300, "sample_rate": 4, "decimate": "none"}
@@ -82,14 +83,15 @@ def test_upload_zipped_dicom_series(client: TestClient, dicom_zip: Path) -> None
     data = Path(client.app.state.settings.data_dir)
     stored = data / "volumes" / body["id"]
     assert sorted(p.name for p in stored.iterdir()) == [
-        "data.npy",
+        "data.zarr",
         "histogram.json",
         "meta.json",
         "thumbnail.png",
     ]
-    voxels = np.load(stored / "data.npy", mmap_mode="r")
+    voxels, affine, _ = chunked.open_array(stored / "data.zarr")
     assert list(voxels.shape) == body["dims"]
     meta = json.loads((stored / "meta.json").read_text())
+    assert affine.tolist() == meta["affine"]
     assert "patient" not in meta and len(meta["affine"]) == 4
     assert leftovers(data) == []
     # Physical aspect: 512 x 0.49 mm across, ~38 x 3.9 mm down on the sagittal view.
@@ -121,7 +123,7 @@ def test_list_get_delete(client: TestClient, demo_id: str, datasets: Path) -> No
     model = client.post(
         "/api/models", json={"volume": new, "level": 100, "sample_rate": 4, "decimate": "none"}
     )
-    assert model.status_code == 202
+    assert model.status_code == 202, model.text
     assert client.delete(f"/api/volumes/{new}").status_code == 204
     assert client.get(f"/api/volumes/{new}").status_code == 404
     assert client.get(f"/api/models/{model.json()['id']}").status_code == 404

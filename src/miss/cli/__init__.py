@@ -1,4 +1,4 @@
-"""The ``miss`` command line: info, convert, demo, serve, user, audit, backup, restore.
+"""The ``miss`` command line: info, convert, ingest, demo, serve, user, audit, backup, restore.
 
 Bad input ends with one line on stderr naming the problem and the fix, exit code 2.
 ``convert``'s job options are generated from the job's declaration (:mod:`miss.spec`).
@@ -11,7 +11,7 @@ import sys
 from collections.abc import Callable, Sequence
 from typing import NoReturn
 
-from miss.cli import admin, convert, demo, info, pacs
+from miss.cli import admin, convert, demo, info, ingest, pacs
 
 EXIT_BAD_INPUT = 2
 
@@ -28,6 +28,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
     info.add_parser(sub)
     convert.add_parser(sub)
+    ingest.add_parser(sub)
     demo.add_parser(sub)
     admin.add_serve_parser(sub)
     admin.add_parsers(sub)
@@ -38,6 +39,7 @@ def build_parser() -> argparse.ArgumentParser:
 COMMANDS: dict[str, Callable[[argparse.Namespace], int]] = {
     "info": info.cmd_info,
     "convert": convert.cmd_convert,
+    "ingest": ingest.cmd_ingest,
     "demo": demo.cmd_demo,
     "serve": admin.cmd_serve,
     "user": admin.cmd_user,

@@ -10,8 +10,9 @@ from __future__ import annotations
 
 import math
 import warnings
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -37,6 +38,37 @@ GEOMETRY_FIELDS = {
     "nrrd": "space directions, spacings and space origin",
     "metaimage": "ElementSpacing, TransformMatrix and Offset",
 }
+
+
+class NotStreamable(Exception):
+    """A file read plane by plane turned out to need the whole volume (NaN voxels are
+    replaced by the volume's minimum): read it whole instead."""
+
+
+@dataclass(frozen=True)
+class Streamed:
+    """A volume read plane by plane (for files too big to hold whole): its layout and its
+    (X, Y) planes, z in order, made as :func:`make_volume` makes a whole one (native byte
+    order, finite values). ``meta(lo, hi)`` is its metadata once the planes have passed
+    and its value range is known (NIfTI tells CT by it)."""
+
+    dims: tuple[int, int, int]
+    dtype: np.dtype
+    affine: np.ndarray  # (4, 4), voxel index to LPS mm, checked
+    planes: Iterator[np.ndarray]
+    meta: Callable[[float, float], dict[str, Any]]
+
+
+def streamed_meta(source_format: str, notes: Sequence[str], **meta: Any) -> dict[str, Any]:
+    """The metadata :func:`make_volume` gives (``**meta`` over the defaults)."""
+    full = default_meta(source_format) | meta
+    full["notes"] = list(notes)
+    return full
+
+
+def checked_affine(path: Path, affine: np.ndarray, source_format: str) -> np.ndarray:
+    """``affine`` as float64 (4, 4), refused as :func:`make_volume` refuses it."""
+    return _checked_affine(path, affine, source_format)
 
 
 def make_volume(

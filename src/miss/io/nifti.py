@@ -17,19 +17,25 @@ import logging
 import math
 from collections.abc import Iterator
 from contextlib import contextmanager
+from functools import partial
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from miss.errors import UnreadableVolume
 from miss.io.common import (
     RAS_TO_LPS,
+    NotStreamable,
+    Streamed,
+    checked_affine,
+    describe,
     finite_values,
     integer_dtype,
     make_volume,
     no_series,
     recorded_warnings,
+    streamed_meta,
 )
 from miss.io.nifti_header import (
     TRUNCATION_ERRORS,
@@ -77,6 +83,67 @@ def read(path: Path, series: str | None) -> Volume:
         series_description=description,
         **({"modality": "CT", "units": "HU"} if ct else {}),
     )
+
+
+def stream(path: Path) -> Streamed | None:
+    """The volume as (X, Y) planes, z in order, read (and inflated) as they are asked
+    for: a plain NIfTI-1 file (see the module docstring); None for any other, which
+    :func:`read` reads whole. The planes raise ``NotStreamable`` at a non-finite value."""
+    if not path.is_file() or not sniff(path, b""):
+        return None
+    declared = check_header(path)
+    if not declared.plain or min(declared.shape) < 2:
+        return None
+    with np.errstate(all="ignore"):
+        affine = checked_affine(path, RAS_TO_LPS @ declared.sform(), "nifti")
+    dims = tuple(int(n) for n in declared.shape)
+    return Streamed(
+        dims,  # type: ignore[arg-type]
+        declared.dtype,
+        affine,
+        _plain_planes(path, declared),
+        partial(_streamed_meta, declared.description(), dims),
+    )
+
+
+def _streamed_meta(
+    description: str, dims: tuple[int, int, int], lo: float, hi: float
+) -> dict[str, Any]:
+    """What :func:`read` gives as ``meta`` of a plain file whose values span lo..hi."""
+    ct = _ct_reason(lo, hi, description)
+    notes = ["values read as CT Hounsfield units (" + ct + ")"] if ct else []
+    meta = streamed_meta(
+        "nifti",
+        notes,
+        series_description=description,
+        **({"modality": "CT", "units": "HU"} if ct else {}),
+    )
+    meta["series"] = [describe(meta, dims)]
+    return meta
+
+
+def _plain_planes(path: Path, declared: Declared) -> Iterator[np.ndarray]:
+    """The (X, Y) planes of a plain file, z in order, native byte order; one plane's
+    bytes in memory at a time (gzip inflates as it goes)."""
+    x, y, z = declared.shape
+    stored = declared.dtype.newbyteorder(declared.endian)
+    size = x * y * stored.itemsize
+    try:
+        with open_stream(path) as stream:
+            stream.seek(int(declared.vox_offset))
+            for k in range(z):
+                buffer = bytearray(size)
+                view, got = memoryview(buffer), 0
+                while got < size and (n := stream.readinto(view[got:])):
+                    got += n
+                if got < size:
+                    raise truncated(path, f"slice {k + 1} of {z} has {got} of {size} bytes")
+                plane = np.frombuffer(buffer, dtype=stored).reshape((x, y), order="F")
+                if plane.dtype.kind == "f" and not np.isfinite(plane).all():
+                    raise NotStreamable(f"{path.name}: slice {k + 1} holds NaN or infinity")
+                yield plane.astype(declared.dtype, copy=False)
+    except (*TRUNCATION_ERRORS, OSError) as exc:
+        raise truncated(path, _first_line(exc)) from exc
 
 
 def _plain_voxels(path: Path, declared: Declared) -> np.ndarray:
@@ -173,10 +240,14 @@ def _looks_like_ct(data: np.ndarray, description: str) -> str:
     NIfTI has no modality field, but bone and skin presets need to know HU: trust a
     description that says so, else air at about -1000 (or a -2048/-3024 pad) with tissue above 0 is CT.
     """
+    return _ct_reason(float(np.min(data)), float(np.max(data)), description)
+
+
+def _ct_reason(lo: float, hi: float, description: str) -> str:
+    """:func:`_looks_like_ct` of a volume whose values span lo..hi."""
     words = description.upper().split()
     if "HU" in words or "CT" in words:
         return f"the header description says {description!r}"
-    lo, hi = float(np.min(data)), float(np.max(data))
     if -3100.0 <= lo <= -900.0 and hi > 100.0:  # some scanners pad outside the FOV at -2048/-3024
         return f"air at {lo:g}, as CT stores it"
     return ""

@@ -46,7 +46,7 @@ log = logging.getLogger("miss.server")
 def _open(settings: Settings, metrics: Metrics | None = None) -> tuple[Store, JobQueue]:
     """Prepare the data folder and database, make the first administrator, register the
     demo, start the job threads."""
-    store = Store(settings.data_dir, settings.database_url)
+    store = Store(settings.data_dir, settings.database_url, settings.in_memory_max_bytes)
     store.init()
     if settings.demo and store.count_volumes() == 0:
         log.info("first start: registering the demo phantom")

@@ -10,6 +10,7 @@ millimetres so a 0.5 x 0.5 x 4 mm stack does not look squashed.
 from __future__ import annotations
 
 import io
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -102,29 +103,58 @@ def render(
 
 def thumbnail(data: np.ndarray, affine: np.ndarray, window: dict[str, float]) -> bytes:
     """The middle axial slice, small, under the default window."""
-    view = views(affine, data.shape)["axial"]
-    plane = slice_plane(data, view, data.shape[2] // 2)
+    return thumbnail_of(data[:, :, data.shape[2] // 2], affine, data.shape, window)
+
+
+def thumbnail_of(
+    middle: np.ndarray,
+    affine: np.ndarray,
+    dims: tuple[int, int, int],
+    window: dict[str, float],
+) -> bytes:
+    """:func:`thumbnail` from the middle axial plane, (X, Y), alone (ingestion streams)."""
+    view = views(affine, dims)["axial"]
+    plane = slice_plane(middle[:, :, None], view, 0)
     return render(
         plane, display_size(view, plane.shape, THUMB_SIDE), window["window"], window["level"]
     )
 
 
-def _sample(data: np.ndarray, max_voxels: int = 1 << 25) -> np.ndarray:
+#: Histograms count at most this many voxels: every n-th slice of larger volumes.
+SAMPLE_VOXELS = 1 << 25
+
+
+def sample_step(dims: tuple[int, int, int]) -> int:
+    """Which slices a histogram counts: every n-th one, so at most ``SAMPLE_VOXELS``."""
+    return max(1, int(np.ceil(int(np.prod(dims)) / SAMPLE_VOXELS)))
+
+
+def _sample(data: np.ndarray) -> np.ndarray:
     """Every n-th slice of very large volumes: histograms need counts, not every voxel."""
-    step = max(1, int(np.ceil(data.size / max_voxels)))
-    block = np.asarray(data[:, :, ::step])
+    return finite_values(np.asarray(data[:, :, :: sample_step(data.shape)]))
+
+
+def finite_values(block: np.ndarray) -> np.ndarray:
+    """The finite values of ``block``, flat."""
     return block[np.isfinite(block)] if block.dtype.kind == "f" else block.ravel()
 
 
 def histogram(data: np.ndarray, bins: int = 256) -> dict[str, Any]:
     """Counts per value bin over the volume's range; integer data gets whole-number bins."""
-    values = _sample(data)
-    lo, hi = float(values.min()), float(values.max())
-    if values.dtype.kind in "iu" and hi - lo + 1 <= bins:
+    return histogram_of([_sample(data)], bins)
+
+
+def histogram_of(parts: Sequence[np.ndarray], bins: int = 256) -> dict[str, Any]:
+    """:func:`histogram` of values sampled already (flat, finite arrays of one dtype),
+    counted part by part: no joined copy of a sample of up to ``SAMPLE_VOXELS``."""
+    parts = [p for p in parts if p.size]
+    lo, hi = min(float(p.min()) for p in parts), max(float(p.max()) for p in parts)
+    if parts[0].dtype.kind in "iu" and hi - lo + 1 <= bins:
         edges = np.arange(lo, hi + 2, dtype=np.float64) - 0.5
     else:
         edges = np.linspace(lo, hi if hi > lo else lo + 1.0, bins + 1)
-    counts, edges = np.histogram(values, bins=edges)
+    # Each value falls in the same bin counted alone or with the others: sums are exact.
+    counts = sum(np.histogram(p, bins=edges)[0] for p in parts)
     return {"edges": edges.tolist(), "counts": counts.tolist(), "range": [lo, hi]}
 
 

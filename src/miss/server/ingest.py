@@ -1,9 +1,11 @@
 """Turning an upload (or the demo phantom) into a stored volume, read exactly once.
 
-The scan is parsed here and never again: the voxels go to ``data.npy`` (real units,
-(X, Y, Z), Fortran order) that jobs and slice images memory-map, and everything the
-pages need (affine, spacing, range, histogram, presets, thumbnail) is computed while
-the array is in memory. Patient identity is taken off here, at the door (``miss.deid``):
+The scan is parsed here and never again: the voxels go to ``data.zarr`` (real units,
+(X, Y, Z), chunked and compressed: :mod:`miss.server.storage.chunked`) that jobs and
+slice images read, plane by plane, and everything the pages need (affine, spacing,
+range, histogram, presets, thumbnail) is gathered from the planes on their way
+(:mod:`miss.server.summary`), so a volume streamed from its file (``miss ingest``) is
+never whole in memory. Patient identity is taken off here, at the door (``miss.deid``):
 what is stored for sharing carries none, and the original identity goes to the owner's
 record in its own table.
 """
@@ -14,6 +16,7 @@ import hashlib
 import json
 import re
 import shutil
+from collections.abc import Iterable
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -26,8 +29,10 @@ from miss.io.archive import volume_suffix
 from miss.io.confined import Confinement, Limits, parse_upload
 from miss.server import imaging
 from miss.server.errors import UploadTooLarge
+from miss.server.storage import chunked
 from miss.server.storage.db import VolumeRow
-from miss.server.storage.store import Store, write_atomic
+from miss.server.storage.store import DATA, Store, write_atomic
+from miss.server.summary import Summary
 from miss.server.uploads import Upload
 from miss.types import Volume
 
@@ -59,22 +64,22 @@ def source_hash(data: np.ndarray, affine: np.ndarray) -> str:
     return digest.hexdigest()
 
 
-def describe(volume: Volume, hist: dict[str, Any]) -> dict[str, Any]:
-    """What the API and the workers need to know about a volume, without patient fields."""
-    lo, hi = volume.value_range()
+def describe(volume: Volume, hist: dict[str, Any], summary: Summary) -> dict[str, Any]:
+    """What the API and the workers need to know about a volume, without patient fields;
+    ``summary`` holds the figures of its voxels (gathered as they were stored)."""
     info: dict[str, Any] = {
         "dims": list(volume.dims),
         "spacing": list(volume.spacing),
         "affine": volume.affine.tolist(),
-        "range": [lo, hi],
-        "dtype": str(volume.data.dtype),
-        "nbytes": int(volume.data.nbytes),
+        "range": [summary.lo, summary.hi],
+        "dtype": str(summary.dtype),
+        "nbytes": int(np.prod(summary.dims)) * summary.dtype.itemsize,
         **{key: volume.meta.get(key, "") for key in _META_KEYS},
         "window": imaging.default_window(hist),
         "presets": imaging.presets(hist, str(volume.meta.get("units", ""))),
         "views": imaging.views(volume.affine, volume.dims),
         "burned_in_annotation": bool(volume.meta.get("burned_in_annotation", False)),
-        "source_sha256": source_hash(volume.data, volume.affine),
+        "source_sha256": summary.source_sha256,
     }
     info["series"] = [_jsonable(s) for s in info["series"] or []]
     return _jsonable(info)
@@ -93,18 +98,46 @@ def stage(
     """Write a volume's files into a fresh folder under ``tmp/``; returns (folder, info)."""
     folder = store.tmp_dir()
     try:
-        hist = imaging.histogram(volume.data)
-        info = describe(volume, hist) | {"deidentification": deid or {}}
-        np.save(folder / "data.npy", np.asfortranarray(volume.data), allow_pickle=False)
-        write_atomic(folder / "meta.json", json.dumps(info).encode())
-        write_atomic(folder / "histogram.json", json.dumps(hist).encode())
-        write_atomic(
-            folder / "thumbnail.png", imaging.thumbnail(volume.data, volume.affine, info["window"])
-        )
+        planes = (volume.data[:, :, k] for k in range(volume.dims[2]))
+        layout = (volume.dims, volume.data.dtype, volume.affine)
+        summary = store_voxels(folder, layout, volume.meta.get("source_format", ""), planes)
+        info = finish(folder, volume, summary, deid)
     except BaseException:  # a full disk, a bad volume: no half-written folder stays behind
         shutil.rmtree(folder, ignore_errors=True)
         raise
     return folder, info
+
+
+def store_voxels(
+    folder: Path,
+    layout: tuple[tuple[int, int, int], np.dtype, np.ndarray],
+    source_format: str,
+    planes: Iterable[np.ndarray],
+) -> Summary:
+    """Write the (X, Y) planes, z in order, of a volume of ``layout`` (dims, dtype,
+    affine) as ``folder/data.zarr``; returns their :class:`Summary`."""
+    dims, dtype, affine = layout
+    summary = Summary(dims, np.dtype(dtype), np.asarray(affine, dtype=float))
+
+    def attributes() -> dict[str, Any]:  # once every plane has passed: the hash is whole
+        provenance = {"source_sha256": summary.source_sha256, "source_format": source_format}
+        return {"affine": summary.affine, "provenance": provenance}
+
+    chunked.write_planes(folder / DATA, dims, summary.dtype, summary.watch(planes), attributes)
+    return summary
+
+
+def finish(
+    folder: Path, volume: Volume, summary: Summary, deid: dict[str, Any] | None = None
+) -> dict[str, Any]:
+    """Write meta.json, histogram.json and thumbnail.png of the voxels ``summary``
+    describes beside them; returns the volume's info (meta.json)."""
+    hist = summary.histogram()
+    info = describe(volume, hist, summary) | {"deidentification": deid or {}}
+    write_atomic(folder / "meta.json", json.dumps(info).encode())
+    write_atomic(folder / "histogram.json", json.dumps(hist).encode())
+    write_atomic(folder / "thumbnail.png", summary.thumbnail(info["window"]))
+    return info
 
 
 def ingest(
@@ -138,11 +171,68 @@ def ingest(
         identity = {**identity, "upload_filename": upload.filename}
     if origin:
         identity = {**identity, "origin": origin}
-    name = display_name(upload, clean.volume, identity_values(clean.identity.get("patient", {})))
+    patient = identity_values(clean.identity.get("patient", {}))
+    name = display_name(upload.fields.get("name", ""), upload.filename, clean.volume, patient)
     staged, info = stage(store, clean.volume, clean.report)
     return store.add_volume(
         staged, name=name, slug=slugify(name), info=info, owner_id=owner_id, identity=identity
     )
+
+
+#: What storing a volume gives: (staged folder, de-identified volume, identity, info).
+Stored = tuple[Path, Volume, dict[str, Any], dict[str, Any]]
+
+
+def ingest_path(store: Store, path: Path, name: str = "") -> VolumeRow:
+    """Store the volume at ``path`` (``miss ingest``) as an upload is stored: the same
+    de-identification, files and row, no owner (the first administrator's at the next
+    start). A plain NIfTI file is read plane by plane (:func:`miss.io.nifti.stream`),
+    so it is never whole in memory; other formats are read whole."""
+    key = store.secret(UID_KEY)
+    with store.disk_full_as_507():
+        staged, volume, identity, info = _stream_in(store, path, key) or _read_in(store, path, key)
+    name = display_name(name, path.name, volume, identity_values(identity.get("patient", {})))
+    if identity:
+        identity = {**identity, "upload_filename": path.name}
+    return store.add_volume(staged, name=name, slug=slugify(name), info=info, identity=identity)
+
+
+def _stream_in(store: Store, path: Path, key: bytes) -> Stored | None:
+    """Store a file that can be read plane by plane into a folder under ``tmp/``; None
+    for one that cannot (``_read_in`` reads it whole)."""
+    from miss.io.common import NotStreamable
+    from miss.io.nifti import stream
+
+    streamed = stream(path)
+    if streamed is None:
+        return None
+    folder = store.tmp_dir()
+    try:
+        layout = (streamed.dims, streamed.dtype, streamed.affine)
+        summary = store_voxels(folder, layout, "nifti", streamed.planes)
+        check_storable_range(summary.lo, summary.hi, path.name)
+        lazy, _, _ = chunked.open_array(folder / DATA)
+        volume = Volume(lazy, streamed.affine, meta=streamed.meta(summary.lo, summary.hi))
+        clean = deidentify(volume, key)
+        info = finish(folder, clean.volume, summary, clean.report)
+    except NotStreamable:  # NaN voxels become the minimum, which only a whole read knows
+        shutil.rmtree(folder, ignore_errors=True)
+        return None
+    except BaseException:  # a full disk, a bad slice: no half-written folder stays behind
+        shutil.rmtree(folder, ignore_errors=True)
+        raise
+    return folder, clean.volume, clean.identity, info
+
+
+def _read_in(store: Store, path: Path, key: bytes) -> Stored:
+    """Store a file read whole (any format ``miss.io`` reads) into a folder under ``tmp/``."""
+    from miss.io import load_volume
+
+    volume = load_volume(path)
+    check_storable(volume, path.name)
+    clean = deidentify(volume, key)
+    staged, info = stage(store, clean.volume, clean.report)
+    return staged, clean.volume, clean.identity, info
 
 
 def public_message(message: str, work: Path) -> str:
@@ -163,7 +253,11 @@ def check_storable(volume: Volume, name: str) -> None:
             f"{name}: the voxel geometry is unusable (voxel steps {steps} mm); fix the "
             "voxel spacing and orientation in its header."
         )
-    lo, hi = volume.value_range()
+    check_storable_range(*volume.value_range(), name)
+
+
+def check_storable_range(lo: float, hi: float, name: str) -> None:
+    """:func:`check_storable`'s refusal of values that are not finite or all the same."""
     if not (np.isfinite(lo) and np.isfinite(hi)):
         raise UnreadableVolume(
             f"{name}: the voxel values are not finite ({lo:g}..{hi:g}); re-export the volume."
@@ -199,16 +293,16 @@ def register_demo(store: Store, owner_id: str | None = None) -> None:
     store.add_volume(staged, name=DEMO_NAME, slug=DEMO_SLUG, info=info, owner_id=owner_id)
 
 
-def display_name(upload: Upload, volume: Volume, identity: list[str]) -> str:
+def display_name(name: str, filename: str, volume: Volume, identity: list[str]) -> str:
     """The name to list: the ``name`` field, else the file name without its extensions.
 
     A name that contains any identity value (``SMITH_JOHN.zip``, an accession number) is
     replaced by the modality and series description: shared models must not carry
     identity. ``identity`` is ``miss.deid.identity_values`` of the original header.
     """
-    name = upload.fields.get("name", "").strip()
+    name = name.strip()
     if not name:
-        filename = Path(upload.filename.replace("\\", "/")).name
+        filename = Path(filename.replace("\\", "/")).name
         suffix = volume_suffix(Path(filename)) or (
             ".zip" if filename.lower().endswith(".zip") else ""
         )

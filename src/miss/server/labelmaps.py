@@ -1,7 +1,7 @@
 """A label map laid over a stored volume (e.g. TotalSegmentator output).
 
-Stored beside the volume as ``volumes/<id>/labels.npy`` (the map's own voxels, (X, Y, Z)
-Fortran order) and ``labels.json`` (its affine, the labels with voxel counts, names and
+Stored beside the volume as ``volumes/<id>/labels.zarr`` (the map's own voxels, (X, Y, Z),
+chunked: :mod:`miss.server.storage.chunked`) and ``labels.json`` (its affine, the labels with voxel counts, names and
 colours, and a hash that enters the cache key of jobs built on it). The pipeline resamples
 it onto the volume's grid in patient mm when a job asks for ``labels``.
 """
@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
+import shutil
 from pathlib import Path
 from typing import Any
 
@@ -19,12 +19,15 @@ import numpy as np
 from miss.errors import BadParameter, MissError
 from miss.io.confined import Confinement, Limits, parse_upload
 from miss.server.ingest import source_hash
-from miss.server.storage.store import Store, new_id, write_atomic
+from miss.server.storage import chunked
+from miss.server.storage.store import Store, write_atomic
 from miss.structures.labelmap import align_labels, label_counts
 from miss.structures.labels import LabelInfo, LabelTable, describe
 from miss.types import Volume
 
-DATA, INFO = "labels.npy", "labels.json"
+DATA, INFO = "labels.zarr", "labels.json"
+#: Where an older MISS kept the voxels (``Store.init`` migrates them).
+OLD_DATA = "labels.npy"
 
 
 def read_labelmap(
@@ -126,15 +129,14 @@ def _table(rows: list[dict[str, Any]]) -> LabelTable:
 
 
 def save(store: Store, volume_id: str, labels: Volume, meta: dict[str, Any]) -> None:
-    """Write both files; ``labels.json`` last, so it only names a complete ``labels.npy``."""
+    """Write both; ``labels.json`` last, so it only names a complete ``labels.zarr``."""
     folder = store.volume_dir(volume_id)
-    tmp = folder / f".{DATA}.{new_id()}.part"
-    try:
-        with open(tmp, "wb") as f:
-            np.save(f, np.asfortranarray(labels.data), allow_pickle=False)
-        os.replace(tmp, folder / DATA)
-    finally:
-        tmp.unlink(missing_ok=True)
+    (folder / INFO).unlink(missing_ok=True)  # the old map is gone before its voxels change
+    shutil.rmtree(folder / DATA, ignore_errors=True)
+    provenance = {"source_sha256": meta["sha256"], "table": meta.get("table", "")}
+    chunked.write_array(
+        folder / DATA, labels.data, {"affine": labels.affine, "provenance": provenance}
+    )
     write_atomic(folder / INFO, json.dumps(meta).encode())
 
 
@@ -152,16 +154,18 @@ def remove(store: Store, volume_id: str) -> bool:
     folder = store.volume_dir(volume_id)
     existed = (folder / INFO).exists()
     (folder / INFO).unlink(missing_ok=True)  # first: the map is gone as soon as this is
-    (folder / DATA).unlink(missing_ok=True)
+    shutil.rmtree(folder / DATA, ignore_errors=True)
+    (folder / OLD_DATA).unlink(missing_ok=True)
     return existed
 
 
 def load(store: Store, volume_id: str) -> tuple[Volume, LabelTable] | None:
-    """The stored map (memory-mapped) and its table, for a job; None when there is none."""
+    """The stored map (``Store.voxels``) and its table, for a job; None when there is none."""
     meta = info(store, volume_id)
     if meta is None:
         return None
-    data = np.load(store.volume_dir(volume_id) / DATA, mmap_mode="r")
+    folder = store.volume_dir(volume_id)
+    data = store.voxels(folder / DATA, folder / OLD_DATA)
     table = {
         e["label"]: LabelInfo(e["name"], tuple(e["color"]) if e.get("color") else None)
         for e in meta["labels"]

@@ -23,6 +23,9 @@ Environment variables (all optional):
 ``MISS_WORKER_MEMORY_MB`` memory one job's worker may use beyond its code and the volume,
                           MB (physical memory; 0: no cap; see ``miss.server.jobs.worker``); the
                           confined child that reads an upload gets the same cap
+``MISS_IN_MEMORY_MAX_MB`` volumes up to this size (decompressed) are read whole into memory
+                          for a job or a slice; larger ones are read chunk by chunk as
+                          needed, MB (1024)
 ``MISS_PARSE_SECONDS``    longest an upload's confined reader may run, seconds (600)
 ``MISS_UPLOADS_PER_USER`` uploads one account may send at once (2); more get 429
 ``MISS_UPLOADS_AT_ONCE``  uploads the server receives at once from everyone (4)
@@ -70,6 +73,7 @@ class Settings:
     api_burst: float = 200.0
     min_free_mb: float = 256.0
     worker_memory_mb: float | None = None
+    in_memory_max_mb: float = 1024.0
     parse_seconds: float = 600.0
     uploads_per_user: int = 2
     uploads_at_once: int = 4
@@ -100,6 +104,10 @@ class Settings:
             raise ValueError(
                 f"MISS_API_RATE must be positive and MISS_API_BURST at least 1, "
                 f"got {self.api_rate} and {self.api_burst}."
+            )
+        if self.in_memory_max_mb < 0:
+            raise ValueError(
+                f"MISS_IN_MEMORY_MAX_MB must be 0 or more, got {self.in_memory_max_mb}."
             )
         if self.min_free_mb < 0:
             raise ValueError(f"MISS_MIN_FREE_MB must be 0 or more, got {self.min_free_mb}.")
@@ -145,6 +153,10 @@ class Settings:
     @property
     def max_unzipped_bytes(self) -> int:
         return int(self.max_unzipped_mb * MB)
+
+    @property
+    def in_memory_max_bytes(self) -> int:
+        return int(self.in_memory_max_mb * MB)
 
     @property
     def min_free_bytes(self) -> int:
@@ -193,6 +205,7 @@ _ENV: tuple[tuple[str, str, Any], ...] = (
     ("api_burst", "MISS_API_BURST", float),
     ("min_free_mb", "MISS_MIN_FREE_MB", float),
     ("worker_memory_mb", "MISS_WORKER_MEMORY_MB", float),
+    ("in_memory_max_mb", "MISS_IN_MEMORY_MAX_MB", float),
     ("parse_seconds", "MISS_PARSE_SECONDS", float),
     ("uploads_per_user", "MISS_UPLOADS_PER_USER", int),
     ("uploads_at_once", "MISS_UPLOADS_AT_ONCE", int),

@@ -49,6 +49,7 @@ from miss.pipeline import PREVIEW, JobResult, execute
 from miss.server import labelmaps
 from miss.server.jobs.state import JobState
 from miss.server.settings import Settings
+from miss.server.storage import chunked
 from miss.server.storage.db import VolumeRow
 from miss.server.storage.store import (
     LOD_DIR,
@@ -66,6 +67,7 @@ PROGRESS_INTERVAL = 0.3
 MEMORY_ENV = "MISS_WORKER_MEMORY_MB"
 #: Triangles above which a model also gets levels of detail.
 LOD_ENV = "MISS_LOD_TRIANGLES"
+IN_MEMORY_ENV = "MISS_IN_MEMORY_MAX_MB"
 OUT_OF_MEMORY = "out of memory; choose a larger sample rate or fewer slices."
 ZIP = b"PK\x03\x04"
 
@@ -125,13 +127,33 @@ def mapped_bytes() -> int | None:
     return int(line.split()[1]) * 1024 if line else None
 
 
+def in_memory_max(env: Mapping[str, str]) -> int:
+    """``MISS_IN_MEMORY_MAX_MB`` in ``env`` as bytes (``Store.in_memory_max``)."""
+    try:
+        settings = Settings.from_env({IN_MEMORY_ENV: env.get(IN_MEMORY_ENV, "")})
+    except ValueError as exc:
+        raise BadParameter(
+            f"{str(exc).rstrip('.')}; set {IN_MEMORY_ENV} on the server to a number of MB "
+            "and restart it."
+        ) from None
+    return settings.in_memory_max_bytes
+
+
+def voxel_bytes(folder: Path) -> int:
+    """What the voxels of a volume's folder (volume and label map) take decompressed: the
+    job holds them whole (``Store.open_volume``), or its region of a lazy one, at most as
+    much; .npy files not migrated yet are memory-mapped, their size in the address space."""
+    zarrs = sum(chunked.nbytes(p) for p in folder.glob("*.zarr"))
+    return zarrs + sum(p.stat().st_size for p in folder.glob("*.npy"))
+
+
 def limit_memory(store: Store, volume_id: str, cap: int) -> None:
-    """Cap the address space: mapped now + the volume's .npy files (memory-mapped by the
-    job) + ``cap``; 0 leaves it alone."""
+    """Cap the address space: mapped now + the volume's voxels (``voxel_bytes``) +
+    ``cap``; 0 leaves it alone."""
     now = mapped_bytes()
     if cap <= 0 or now is None:
         return
-    files = sum(p.stat().st_size for p in store.volume_dir(volume_id).glob("*.npy"))
+    files = voxel_bytes(store.volume_dir(volume_id))
     soft, hard = resource.getrlimit(resource.RLIMIT_AS)
     limit = now + files + cap
     if hard != resource.RLIM_INFINITY:
@@ -325,7 +347,7 @@ def main(argv: list[str]) -> int:
     model_id, data_dir, db_url, parent = argv[0], Path(argv[1]), argv[2], int(argv[3])
     if db_url == "-":  # from the server: on stdin, out of sight of ps
         db_url = sys.stdin.readline().strip()
-    store = Store(data_dir, db_url)
+    store = Store(data_dir, db_url, in_memory_max(os.environ))
     try:
         if model_id == "-":
             start = time.monotonic()

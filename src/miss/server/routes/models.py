@@ -62,7 +62,7 @@ def check_against_volume(spec: JobSpec, volume: VolumeRow, store: Store) -> None
             )
     box = spec.region.box(info["dims"])  # slices beyond the stack, too few voxels
     picked = tuple(slice(a, b + 1, s) for (a, b), s in zip(box, spec.region.steps, strict=True))
-    block = store.open_volume(volume.id).data[picked]
+    block = store.open_volume(volume.id, lazy=True).data[picked]  # reads the region only
     bmin, bmax = float(block.min()), float(block.max())
     first, last = box[2][0] + 1, box[2][1] + 1
     for level in spec.structures.levels_used:

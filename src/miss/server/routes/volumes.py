@@ -273,7 +273,8 @@ async def slice_png(
     level = default["level"] if level is None else level
 
     def make() -> bytes:
-        plane = imaging.slice_plane(store.open_volume(volume.id).data, view, index)
+        # lazy: only the chunks the plane crosses are read and decompressed
+        plane = imaging.slice_plane(store.open_volume(volume.id, lazy=True).data, view, index)
         size_px = imaging.display_size(view, plane.shape, size)
         return imaging.render(plane, size_px, window, level, threshold)
 

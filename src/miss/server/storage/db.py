@@ -65,7 +65,7 @@ class SessionRow(Base):
 
 
 class VolumeRow(Base):
-    """An uploaded (or demo) volume; its voxels are in ``volumes/<id>/data.npy``."""
+    """An uploaded (or demo) volume; its voxels are in ``volumes/<id>/data.zarr``."""
 
     __tablename__ = "volumes"
 

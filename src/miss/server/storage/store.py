@@ -4,8 +4,11 @@ Layout of the data folder::
 
     miss.sqlite3              the database (unless MISS_DATABASE_URL points elsewhere); the
                               only place a patient's original identity is kept (its own table)
-    volumes/<id>/data.npy     voxels, real units (HU for CT), (X, Y, Z) Fortran order
+    volumes/<id>/data.zarr    voxels, real units (HU for CT), (X, Y, Z), a chunked Zarr
+                              array with the affine and provenance as attributes
+                              (``chunked``); ``data.npy`` before, migrated at start
     volumes/<id>/meta.json    affine, spacing, range, modality, series, presets (no patient data)
+    volumes/<id>/labels.zarr, labels.json   a label map laid over it (``labelmaps``)
     volumes/<id>/histogram.json, thumbnail.png
     models/<id>/model.<fmt>   one file per output format, written by the job's worker
     models/<id>/worker.log    the worker's stderr, for the rare crash
@@ -36,10 +39,11 @@ from sqlalchemy.exc import IntegrityError
 
 from miss.errors import is_disk_full
 from miss.server.errors import DiskFull, NotFound
-from miss.server.storage import schema
+from miss.server.storage import chunked, schema
 from miss.server.storage.appender import Appender
 from miss.server.storage.bus import Bus
 from miss.server.storage.caches import RowCache
+from miss.server.storage.chunked import fsync_dir, sync_tree
 from miss.server.storage.db import (
     DONE,
     FAILED,
@@ -64,19 +68,14 @@ PART = ".part"
 PREVIEW_FILE = "preview.glb"
 #: A large model's levels of detail (a 3D Tiles tileset), in the model's folder.
 LOD_DIR = "lod"
+#: A volume's voxels in its folder, and where they were before Zarr (``migrate``).
+DATA, OLD_DATA = "data.zarr", "data.npy"
+#: Volumes up to this many bytes are read whole by ``open_volume`` (``MISS_IN_MEMORY_MAX_MB``).
+IN_MEMORY_MAX = 1 << 30
 
 
 def new_id() -> str:
     return secrets.token_hex(8)
-
-
-def fsync_dir(path: Path) -> None:
-    """Make a rename or a new entry in the folder ``path`` survive a crash of the machine."""
-    fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
 
 
 def write_atomic(path: Path, data: bytes) -> None:
@@ -97,8 +96,11 @@ def write_atomic(path: Path, data: bytes) -> None:
 class Store:
     """Database rows and data-folder files of volumes and models."""
 
-    def __init__(self, data_dir: Path, database_url: str) -> None:
+    def __init__(
+        self, data_dir: Path, database_url: str, in_memory_max: int = IN_MEMORY_MAX
+    ) -> None:
         self.data_dir = Path(data_dir)
+        self.in_memory_max = in_memory_max
         self.database_url = database_url
         self.engine = make_engine(database_url)
         self.session = make_sessionmaker(self.engine)
@@ -184,8 +186,9 @@ class Store:
         _remove_unknown(self.data_dir / "volumes", volumes)
         _remove_unknown(self.data_dir / "models", models)
         for folder in (self.data_dir / "volumes", self.data_dir / "models"):
-            for part in folder.glob(f"*/.*{PART}"):  # write_atomic cut short
-                part.unlink(missing_ok=True)
+            for part in folder.glob(f"*/.*{PART}"):  # write_atomic, write_planes cut short
+                _remove_path(part)
+        migrate(self.data_dir / "volumes")
 
     def free_bytes(self) -> int:
         """Free space on the data folder's disk for this (unprivileged) process, bytes."""
@@ -305,7 +308,7 @@ class Store:
         original patient identity, if kept, goes to its own owner-only row."""
         row = VolumeRow(id=new_id(), name=name, slug=slug, info=info, owner_id=owner_id)
         final = self.volume_dir(row.id)
-        _sync_tree(staged)  # the files on disk before the row that says they are there
+        sync_tree(staged)  # the files on disk before the row that says they are there
         os.replace(staged, final)
         fsync_dir(final.parent)
         try:
@@ -332,12 +335,21 @@ class Store:
         _remove_tree(self.volume_dir(volume_id), self.data_dir)
         return model_ids
 
-    def open_volume(self, volume_id: str) -> Volume:
-        """The stored volume, voxels memory-mapped read-only (no copy, no DICOM parsing)."""
+    def open_volume(self, volume_id: str, lazy: bool = False) -> Volume:
+        """The stored volume (no DICOM parsing): its voxels read whole and read-only up to
+        ``in_memory_max`` bytes, else (or when ``lazy``: a slice, a region) a lazy
+        ``zarr.Array`` that reads only the chunks asked for."""
         folder = self.volume_dir(volume_id)
         meta = json.loads((folder / "meta.json").read_text())
-        data = np.load(folder / "data.npy", mmap_mode="r")
+        data = self.voxels(folder / DATA, folder / OLD_DATA, lazy)
         return Volume(data=data, affine=np.array(meta["affine"]), meta=meta, patient={})
+
+    def voxels(self, path: Path, old: Path, lazy: bool = False) -> Any:
+        """The array at ``path`` (``chunked``), whole when small enough and not ``lazy``;
+        ``old``, a .npy memory-mapped, while another server has not migrated it yet."""
+        if not path.exists() and old.exists():
+            return np.load(old, mmap_mode="r")
+        return chunked.read(path, -1 if lazy else self.in_memory_max)
 
     def read_json(self, volume_id: str, name: str) -> Any:
         return json.loads((self.volume_dir(volume_id) / name).read_text())
@@ -475,12 +487,27 @@ def _remove_path(path: Path) -> None:
         path.unlink(missing_ok=True)
 
 
-def _sync_tree(folder: Path) -> None:
-    """fsync every file under ``folder`` and the folders themselves."""
-    for path in sorted(folder.rglob("*"), reverse=True):  # files before their folders
-        if path.is_file():
-            with open(path, "rb") as f:
-                os.fsync(f.fileno())
-        elif path.is_dir():
-            fsync_dir(path)
-    fsync_dir(folder)
+def migrate(volumes: Path) -> None:
+    """Store the ``.npy`` voxels of an older MISS as Zarr (``chunked``): each written
+    beside its .npy, read back and compared, and only then the .npy removed. A crash
+    anywhere leaves the .npy, and the next start does it again."""
+    for old in sorted(volumes.glob("*/*.npy")):
+        new = old.with_suffix(".zarr")
+        data = np.load(old, mmap_mode="r")
+        # labels.npy has its affine in labels.json; without one it was never finished
+        described = old.parent / ("meta.json" if old.name == OLD_DATA else "labels.json")
+        if not described.exists():
+            old.unlink()
+            continue
+        affine = json.loads(described.read_text())["affine"]
+        _remove_path(new)  # a migration cut short after the rename: done again
+        chunked.write_array(new, data, {"affine": affine, "provenance": {"migrated": old.name}})
+        if not chunked.same_voxels(new, data):
+            _remove_path(new)
+            raise RuntimeError(
+                f"{new}: the Zarr copy of {old.name} differs from it; {old.name} is kept. "
+                "Check the disk (dmesg), then start the server again."
+            )
+        del data
+        old.unlink()
+        fsync_dir(old.parent)

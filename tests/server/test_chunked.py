@@ -1,0 +1,276 @@
+"""Volumes stored as chunked Zarr (``miss.server.storage.chunked``): round trips, the
+metadata check, a full disk, and the figures gathered plane by plane against the old
+whole-array ones."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from miss.errors import DiskFull, UnreadableVolume
+from miss.server import imaging
+from miss.server.storage import chunked
+from miss.server.summary import Summary
+
+AFFINE = np.array([[-0.8, 0, 0, 100.5], [0, -0.7, 0.1, -20], [0, 0, 2.5, 33], [0, 0, 0, 1]])
+
+
+def old_source_hash(data: np.ndarray, affine: np.ndarray) -> str:
+    """``source_sha256`` as MISS computed it before Zarr: of the whole array at once."""
+    digest = hashlib.sha256(np.ascontiguousarray(np.asfortranarray(data).T).data)
+    digest.update(np.ascontiguousarray(affine, dtype="<f8").data)
+    return digest.hexdigest()
+
+
+@pytest.mark.parametrize(
+    ("dtype", "shape"),
+    [("int16", (130, 70, 150)), ("uint8", (5, 64, 65)), ("float32", (64, 2, 3))],
+)
+def test_round_trip_voxels_and_affine(tmp_path: Path, dtype: str, shape: tuple) -> None:
+    rng = np.random.default_rng(1)
+    data = np.asfortranarray(rng.integers(0, 200, shape).astype(dtype))
+    path = tmp_path / "data.zarr"
+    chunked.write_array(path, data, {"affine": AFFINE, "provenance": {"source_sha256": "x"}})
+    array, affine, attributes = chunked.open_array(path)
+    assert np.array_equal(array[:], data) and array.dtype == data.dtype
+    assert np.array_equal(affine, AFFINE)
+    assert attributes["provenance"] == {"source_sha256": "x"}
+    whole = chunked.read(path, in_memory_max=data.nbytes)
+    assert isinstance(whole, np.ndarray) and whole.flags.f_contiguous
+    assert not whole.flags.writeable and np.array_equal(whole, data)
+    lazy = chunked.read(path, in_memory_max=data.nbytes - 1)
+    assert not isinstance(lazy, np.ndarray) and np.array_equal(lazy[:, 1, :], data[:, 1, :])
+    assert np.array_equal(lazy[3, ..., ::2], data[3, ..., ::2])
+    assert np.array_equal(lazy[1:-2:3, 1], data[1:-2:3, 1])
+    assert (lazy.min(), lazy.max()) == (data.min(), data.max())
+    assert np.array_equal(np.asarray(lazy), data)
+    assert chunked.nbytes(path) == data.nbytes
+    assert [p.name for p in tmp_path.iterdir()] == ["data.zarr"]  # no staging folder left
+
+
+def tampered(meta: dict, change: str) -> dict:
+    if change == "gzip codec":
+        meta["codecs"][1] = {"name": "gzip", "configuration": {"level": 5}}
+    elif change == "big-endian":
+        meta["codecs"][0]["configuration"]["endian"] = "big"
+    elif change == "object dtype":
+        meta["data_type"] = "string"
+    elif change == "4-D":
+        meta["shape"] = [*meta["shape"], 2]
+    elif change == "no affine":
+        del meta["attributes"]["affine"]
+    elif change == "x, y, z axes":
+        meta["dimension_names"] = ["x", "y", "z"]
+    elif change == "sharding":
+        meta["codecs"].insert(0, {"name": "sharding_indexed", "configuration": {}})
+    return meta
+
+
+@pytest.mark.parametrize(
+    "change",
+    ["gzip codec", "big-endian", "object dtype", "4-D", "no affine", "x, y, z axes", "sharding"],
+)
+def test_open_refuses_metadata_miss_does_not_write(tmp_path: Path, change: str) -> None:
+    path = tmp_path / "data.zarr"
+    chunked.write_array(path, np.zeros((4, 4, 4), np.int16, order="F"), {"affine": AFFINE})
+    meta = json.loads((path / "zarr.json").read_text())
+    (path / "zarr.json").write_text(json.dumps(tampered(meta, change)))
+    with pytest.raises(UnreadableVolume, match="restore the data folder from a MISS backup"):
+        chunked.open_array(path)
+
+
+def test_planes_that_do_not_fit_are_refused_and_leave_nothing(tmp_path: Path) -> None:
+    planes = [np.zeros((4, 5), np.int16)] * 3
+    with pytest.raises(ValueError, match="got 3 planes for a volume of 4 slices"):
+        chunked.write_planes(tmp_path / "a.zarr", (4, 5, 4), "int16", planes, {"affine": AFFINE})
+    with pytest.raises(ValueError, match="does not fit"):
+        chunked.write_planes(tmp_path / "b.zarr", (5, 4, 3), "int16", planes, {"affine": AFFINE})
+    assert list(tmp_path.iterdir()) == []
+
+
+FILL_TMPFS = """
+import json, os, sys
+import numpy as np
+from pathlib import Path
+from miss.errors import DiskFull
+from miss.server.storage import chunked
+where = Path(sys.argv[1])
+noise = np.random.default_rng(0).integers(-30000, 30000, (256, 256, 128)).astype(np.int16)
+try:
+    chunked.write_array(where / "data.zarr", np.asfortranarray(noise), {"affine": np.eye(4)})
+    said = "written"
+except DiskFull as exc:
+    said = str(exc)
+print(json.dumps({"said": said, "left": sorted(p.name for p in where.iterdir())}))
+"""
+
+
+def test_disk_full_on_a_real_small_disk_raises_disk_full_and_leaves_nothing(
+    tmp_path: Path,
+) -> None:
+    """16 MB of noise (incompressible) into an 8 MB tmpfs: ENOSPC mid-write."""
+    script = 'mount -t tmpfs -o size=8m miss-test "$0" && exec "$@"'
+    wrap = ["unshare", "--mount", "sh", "-c", script, str(tmp_path)]
+    probe = subprocess.run([*wrap, "true"], capture_output=True, text=True, timeout=30)
+    if probe.returncode != 0:
+        pytest.skip(f"needs a tmpfs in a mount namespace (root): {probe.stderr.strip()}")
+    run = subprocess.run(
+        [*wrap, sys.executable, "-c", FILL_TMPFS, str(tmp_path)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert run.returncode == 0, run.stderr
+    out = json.loads(run.stdout)
+    assert out["said"].startswith("disk full:"), out
+    assert out["left"] == [], out
+
+
+def test_disk_full_error_maps_enospc_only(tmp_path: Path, monkeypatch) -> None:
+    import errno
+
+    import zarr.storage._local as local
+
+    def full(*args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(local, "_put", full)
+    with pytest.raises(DiskFull, match="nothing of them was kept"):
+        chunked.write_array(tmp_path / "d.zarr", np.ones((3, 3, 3), np.uint8), {"affine": AFFINE})
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_summary_matches_the_whole_array_figures() -> None:
+    """Hash, range, histogram and thumbnail gathered plane by plane equal the old
+    whole-array computations (a volume big enough for the histogram to sample slices)."""
+    rng = np.random.default_rng(3)
+    data = np.asfortranarray(rng.normal(0, 300, (300, 290, 420)).astype(np.float32))
+    summary = Summary(data.shape, data.dtype, AFFINE)
+    for _ in summary.watch(data[:, :, k] for k in range(data.shape[2])):
+        pass
+    assert imaging.sample_step(data.shape) > 1
+    assert summary.source_sha256 == old_source_hash(data, AFFINE)
+    assert (summary.lo, summary.hi) == (float(data.min()), float(data.max()))
+    assert summary.histogram() == imaging.histogram(data)
+    window = imaging.default_window(summary.histogram())
+    assert summary.thumbnail(window) == imaging.thumbnail(data, AFFINE, window)
+
+
+def test_source_hash_of_a_real_scan_is_unchanged(datasets: Path, tmp_path: Path) -> None:
+    """The stored source_sha256 of a real DICOM series and a real NIfTI (streamed) is the
+    one the whole-array hash gives."""
+    from miss.io import load_volume
+    from miss.server.ingest import ingest_path
+    from miss.server.storage.store import Store
+
+    store = Store(tmp_path / "data", f"sqlite:///{tmp_path / 'data' / 'miss.sqlite3'}")
+    store.init()
+    try:
+        for path in (
+            datasets / "ct_head_dicom_ge_gantrytilt",
+            datasets / "nifti" / "CT_pitch.nii.gz",
+        ):
+            whole = load_volume(path)
+            row = ingest_path(store, path)
+            assert row.info["source_sha256"] == old_source_hash(whole.data, whole.affine)
+            stored = store.open_volume(row.id)
+            assert np.array_equal(stored.data, whole.data)
+    finally:
+        store.close()
+
+
+def test_streamed_nifti_is_stored_as_a_whole_read_stores_it(tmp_path: Path) -> None:
+    """A big-endian CT-like NIfTI, read plane by plane, gives the files an upload gives:
+    same voxels, meta.json (CT detected from the streamed range), histogram, thumbnail."""
+    import nibabel as nib
+
+    from miss.deid import deidentify
+    from miss.io import load_volume
+    from miss.server.ingest import UID_KEY, ingest_path, stage
+    from miss.server.storage.store import Store
+
+    i, j, k = np.indices((60, 50, 70))
+    ct = np.where((i - 30) ** 2 + (j - 25) ** 2 + (k - 35) ** 2 < 400, 1200, -1000)
+    image = nib.Nifti1Image(ct.astype(">i2"), np.diag([0.9, 0.8, 2.0, 1.0]))
+    image.header.set_sform(image.affine, code=1)
+    path = tmp_path / "ball.nii.gz"
+    nib.save(image, path)
+    store = Store(tmp_path / "data", f"sqlite:///{tmp_path / 'data' / 'miss.sqlite3'}")
+    store.init()
+    try:
+        from miss.io.nifti import stream
+
+        assert stream(path) is not None, "the test file should be a plain (streamable) NIfTI"
+        row = ingest_path(store, path)
+        clean = deidentify(load_volume(path), store.secret(UID_KEY))  # as an upload is
+        staged, info = stage(store, clean.volume, clean.report)
+        streamed = store.volume_dir(row.id)
+        for name in ("histogram.json", "thumbnail.png"):
+            assert (streamed / name).read_bytes() == (staged / name).read_bytes(), name
+        assert row.info == info and info["modality"] == "CT"
+        assert np.array_equal(store.open_volume(row.id).data, ct)
+    finally:
+        store.close()
+        shutil.rmtree(tmp_path / "data", ignore_errors=True)
+
+
+def test_upload_whose_voxels_fill_the_disk_gets_507_and_leaves_nothing(
+    make_client, small_nifti: bytes, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The disk fills while the server writes the voxels (zarr's file writes say ENOSPC):
+    507 with a JSON detail, no volume listed, no folder under volumes/ or tmp/."""
+    import errno
+
+    import zarr.storage._local as local
+
+    client = make_client()
+    written = []
+    put = local._put
+
+    def fill_up(*args, **kwargs):
+        if len(written) >= 2:  # a few chunks made it: the volume is half-written then
+            raise OSError(errno.ENOSPC, "No space left on device")
+        written.append(args)
+        return put(*args, **kwargs)
+
+    monkeypatch.setattr(local, "_put", fill_up)
+    r = client.post("/api/volumes", files={"file": ("ball.nii.gz", small_nifti)})
+    assert r.status_code == 507, r.text
+    assert r.json()["detail"].startswith("disk full:"), r.text
+    assert written, "the upload never reached the voxel writes"
+    monkeypatch.undo()
+    assert client.get("/api/volumes").json() == []
+    data = Path(client.app.state.settings.data_dir)
+    assert list((data / "volumes").iterdir()) == []
+    assert list((data / "tmp").rglob("*")) == []
+    r = client.post("/api/volumes", files={"file": ("ball.nii.gz", small_nifti)})
+    assert r.status_code == 201, r.text  # room again: stored
+
+
+def test_a_volume_over_the_in_memory_size_is_read_lazily_and_still_meshed(
+    make_client, small_nifti: bytes, monkeypatch: pytest.MonkeyPatch, wait_done
+) -> None:
+    """MISS_IN_MEMORY_MAX_MB=0: every volume is a lazy zarr.Array; jobs (their worker
+    reads the setting too) and slices work from the chunks."""
+    from miss.server.storage.store import Store
+
+    monkeypatch.setenv("MISS_IN_MEMORY_MAX_MB", "0")
+    client = make_client(in_memory_max_mb=0)
+    store: Store = client.app.state.store
+    volume = client.post("/api/volumes", files={"file": ("ball.nii.gz", small_nifti)}).json()
+    assert not isinstance(store.open_volume(volume["id"]).data, np.ndarray)
+    body = {"volume": volume["id"], "level": 0, "decimate": "none"}
+    r = client.post("/api/models", json=body)
+    assert r.status_code == 202, r.text
+    model = wait_done(client, r.json()["id"])
+    assert model["status"] == "done", model
+    assert model["stats"]["triangles"] > 100
+    r = client.get(f"/api/volumes/{volume['id']}/slices/axial/12.png")
+    assert r.status_code == 200
