@@ -103,3 +103,87 @@ def test_ingest_errors_are_one_line_and_leave_nothing(tmp_path: Path) -> None:
         assert got["err"].startswith("miss: ") and got["err"].count("\n") == 1, got["err"]
     assert not list((data / "volumes").glob("*"))
     assert not list((data / "tmp").glob("*"))
+
+
+#: A long synthetic DICOM series: 512 x 512 x 1600 int16, 839 MB of voxels.
+DICOM_SLICES = 1600
+
+
+def write_series(folder: Path, slices: int) -> None:
+    """One CT series, a slice per file, ``plane(k)`` at z = 0.5 k mm (written one by one)."""
+    from pydicom.dataset import Dataset, FileMetaDataset
+    from pydicom.uid import CTImageStorage, ExplicitVRLittleEndian, generate_uid
+
+    folder.mkdir()
+    study, series = generate_uid(), generate_uid()
+    for k in range(slices):
+        meta = FileMetaDataset()
+        meta.MediaStorageSOPClassUID, meta.MediaStorageSOPInstanceUID = (
+            CTImageStorage,
+            generate_uid(),
+        )
+        meta.TransferSyntaxUID = ExplicitVRLittleEndian
+        ds = Dataset()
+        ds.file_meta = meta
+        ds.SOPClassUID, ds.SOPInstanceUID = CTImageStorage, meta.MediaStorageSOPInstanceUID
+        ds.StudyInstanceUID, ds.SeriesInstanceUID, ds.Modality = study, series, "CT"
+        ds.PatientName, ds.PatientID = "Doe^Jane", "PID-1234"
+        ds.ImagePositionPatient, ds.ImageOrientationPatient = [0, 0, 0.5 * k], [1, 0, 0, 0, 1, 0]
+        ds.PixelSpacing, ds.InstanceNumber = [0.7, 0.7], k + 1
+        ds.Rows, ds.Columns, ds.SamplesPerPixel = SHAPE[1], SHAPE[0], 1
+        ds.PhotometricInterpretation, ds.BitsAllocated, ds.BitsStored = "MONOCHROME2", 16, 16
+        ds.HighBit, ds.PixelRepresentation = 15, 1
+        ds.RescaleSlope, ds.RescaleIntercept = 1, 0
+        ds.PixelData = np.ascontiguousarray(plane(k).T).tobytes()  # rows (y) of columns (x)
+        ds.save_as(folder / f"{k:05d}.dcm", enforce_file_format=True)
+
+
+def test_ingest_of_a_long_dicom_series_stays_far_under_its_size(tmp_path: Path) -> None:
+    """A folder of slices is decoded one slice at a time (twice: the value range picks the
+    dtype first), never stacked whole; the patient goes to the owner-only record."""
+    series = tmp_path / "series"
+    write_series(series, DICOM_SLICES)
+    data = tmp_path / "data"
+    got = ingest(str(series), "--data-dir", str(data))
+    assert got["rc"] == 0, got["err"]
+    volume_id = got["out"].strip()
+    size = SHAPE[0] * SHAPE[1] * DICOM_SLICES * 2
+    peak = got["peak_kb"] * 1024
+    print(f"peak RSS {peak / 2**20:.0f} MB for {size / 2**20:.0f} MB of voxels")
+    assert peak < size / 2, f"peak RSS {peak / 2**20:.0f} MB, voxels {size / 2**20:.0f} MB"
+    folder = data / "volumes" / volume_id
+    stored = chunked.open_array(folder / "data.zarr")[0]
+    assert stored.shape == (*SHAPE[:2], DICOM_SLICES) and stored.dtype == np.int16
+    for k in (0, 601, DICOM_SLICES - 1):
+        assert np.array_equal(stored[:, :, k], plane(k)), k
+    meta = json.loads((folder / "meta.json").read_text())
+    assert meta["modality"] == "CT" and meta["units"] == "HU"
+    assert "Doe" not in (folder / "meta.json").read_text()
+
+
+@pytest.mark.parametrize("name", ["mr_head_dicom_vsseg001_t1", "ct_abdomen_totalseg/dicom"])
+def test_a_streamed_series_is_the_series_read_whole(name: str) -> None:
+    """Plane by plane or whole: the same voxels, dtype, affine, metadata and patient."""
+    from miss.io import dicom
+
+    folder = Path(__file__).resolve().parents[2].parent / "shared" / "datasets" / name
+    if not folder.is_dir():
+        pytest.skip(f"{folder} is absent: the real scans live in ../shared/datasets")
+    whole = dicom.read(folder, None)
+    streamed = dicom.stream(folder)
+    assert streamed is not None
+    planes = np.stack(list(streamed.planes), axis=2)
+    assert planes.dtype == whole.data.dtype and np.array_equal(planes, whole.data)
+    assert np.array_equal(streamed.affine, whole.affine)
+    assert streamed.meta(0.0, 0.0) == whole.meta and streamed.patient == whole.patient
+
+
+def test_a_series_with_uneven_gaps_is_read_whole() -> None:
+    """Resampling onto a regular grid needs neighbouring slices: no stream, a whole read."""
+    from miss.io import dicom
+
+    folder = Path(__file__).resolve().parents[2].parent / "shared" / "datasets"
+    folder /= "ct_head_dicom_ge_gantrytilt"
+    if not folder.is_dir():
+        pytest.skip(f"{folder} is absent: the real scans live in ../shared/datasets")
+    assert dicom.stream(folder) is None

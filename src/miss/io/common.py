@@ -12,7 +12,7 @@ import math
 import warnings
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -57,6 +57,8 @@ class Streamed:
     affine: np.ndarray  # (4, 4), voxel index to LPS mm, checked
     planes: Iterator[np.ndarray]
     meta: Callable[[float, float], dict[str, Any]]
+    source_format: str
+    patient: dict[str, Any] = field(default_factory=dict)  # identifying fields (DICOM)
 
 
 def streamed_meta(source_format: str, notes: Sequence[str], **meta: Any) -> dict[str, Any]:

@@ -15,7 +15,13 @@ from typing import TYPE_CHECKING, Any
 
 from miss.deid import IDENTIFYING
 from miss.errors import BadParameter, MissError, UnreadableVolume, UnsupportedFormat
-from miss.io.common import make_volume, recorded_warnings
+from miss.io.common import (
+    Streamed,
+    checked_affine,
+    make_volume,
+    recorded_warnings,
+    streamed_meta,
+)
 
 if TYPE_CHECKING:
     from pydicom.dataset import Dataset
@@ -77,6 +83,57 @@ def read(path: Path, series: str | None) -> Volume:
         modality=str(first.get("Modality", "")),
         units="HU" if first.get("Modality") == "CT" else "",
         rescale=stack.rescale,
+        series_description=str(first.get("SeriesDescription", "")),
+        series_uid=uid,
+        study_uid=str(first.get("StudyInstanceUID", "")),
+        frame_of_reference=str(first.get("FrameOfReferenceUID", "")),
+        series=[_describe(u, h) for u, h in groups.items()],
+        burned_in_annotation=any(_burned_in(h.ds) for h in groups[uid]),
+        private_tags=sum(1 for element in first if element.tag.is_private),
+    )
+
+
+def stream(path: Path, series: str | None = None) -> Streamed | None:
+    """A folder's series as (X, Y) planes decoded one slice at a time (``miss ingest`` of
+    a long series); None for anything :func:`read` must read whole: a zip, a single file,
+    a series with uneven gaps. The same voxels, affine, metadata and patient as ``read``."""
+    from miss.io import dicom_stack
+    from miss.io.dicom_files import open_source
+
+    if not path.is_dir():
+        return None
+    with open_source(path) as entries:
+        groups, notes = _grouped_headers(path, entries)
+    uid = _choose(path, groups, series)
+    _refuse_multiframe(groups[uid])
+    stack = dicom_stack.stream_stack(path, [(h.entry, h.ds) for h in groups[uid]])
+    if stack is None:
+        return None
+    meta = _meta(path, groups, uid, stack.dims, stack.rescale, notes + stack.notes)
+    first = groups[uid][0].ds
+    patient = {tag: _text(first.get(tag, "") or "") for tag in PATIENT_TAGS}
+    checked = checked_affine(path, stack.affine, "dicom")
+    return Streamed(
+        stack.dims, stack.dtype, checked, stack.planes, lambda lo, hi: meta, "dicom", patient
+    )
+
+
+def _meta(
+    path: Path,
+    groups: dict[str, list[Header]],
+    uid: str,
+    dims: tuple[int, int, int],
+    rescale: tuple[float, float],
+    notes: list[str],
+) -> dict[str, Any]:
+    """What ``read`` gives as a streamed series' ``meta``."""
+    first = groups[uid][0].ds
+    return streamed_meta(
+        "dicom",
+        notes,
+        modality=str(first.get("Modality", "")),
+        units="HU" if first.get("Modality") == "CT" else "",
+        rescale=rescale,
         series_description=str(first.get("SeriesDescription", "")),
         series_uid=uid,
         study_uid=str(first.get("StudyInstanceUID", "")),

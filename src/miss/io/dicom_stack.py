@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import re
 from collections import Counter
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -39,16 +40,19 @@ class Stack:
     notes: list[str]
 
 
-def assemble(path: Path, files: list[tuple[Entry, Dataset]]) -> Stack:
-    """Order, de-duplicate, decode, rescale and (if gaps are uneven) resample a series.
+@dataclass(frozen=True)
+class _Plan:
+    """What stacking a series needs before any pixel is decoded."""
 
-    Parameters
-    ----------
-    path : Path
-        What the user passed (for messages).
-    files : list of (Entry, header Dataset)
-        The series' files, headers read without pixels, in any order.
-    """
+    entries: list[Entry]  # the kept slices, ordered along the normal
+    positions: np.ndarray  # their positions along it, mm
+    grid: slices.Grid
+    affine: np.ndarray
+    notes: list[str]
+
+
+def _plan(path: Path, files: list[tuple[Entry, Dataset]]) -> _Plan:
+    """Order and de-duplicate the slices, check the size, plan the grid and the affine."""
     notes: list[str] = []
     files = _placed(path, _consistent(files, notes), notes)
     normal = slices.slice_normal(_orientation(files[0][1]))
@@ -72,12 +76,64 @@ def assemble(path: Path, files: list[tuple[Entry, Dataset]]) -> Stack:
         raise UnreadableVolume(
             f"{path.name}: {exc}; export the series again, or pass only the slices of one stack."
         ) from exc
-    pixels, scales = _decode(path, [files[i][0] for i in keep], notes)
-    zyx, rescale = rescaled_stack(pixels, scales, notes)
-    if grid.resampled:
-        zyx = slices.resample(zyx, positions, grid.positions)
     affine = _affine(first, origins[keep[0]], grid.step, normal, notes)
-    return Stack(zyx_to_xyz(zyx), affine, rescale, notes + grid.notes)
+    return _Plan([files[i][0] for i in keep], positions, grid, affine, notes)
+
+
+def assemble(path: Path, files: list[tuple[Entry, Dataset]]) -> Stack:
+    """Order, de-duplicate, decode, rescale and (if gaps are uneven) resample a series.
+
+    Parameters
+    ----------
+    path : Path
+        What the user passed (for messages).
+    files : list of (Entry, header Dataset)
+        The series' files, headers read without pixels, in any order.
+    """
+    plan = _plan(path, files)
+    notes = list(plan.notes)
+    pixels, scales = _decode(path, plan.entries, notes)
+    zyx, rescale = rescaled_stack(pixels, scales, notes)
+    if plan.grid.resampled:
+        zyx = slices.resample(zyx, plan.positions, plan.grid.positions)
+    return Stack(zyx_to_xyz(zyx), plan.affine, rescale, notes + plan.grid.notes)
+
+
+@dataclass(frozen=True)
+class StreamedStack:
+    """A series read slice by slice: its layout and its (X, Y) planes, z in order, each
+    rescaled as :func:`assemble` rescales it (the same dtype and values)."""
+
+    dims: tuple[int, int, int]
+    dtype: np.dtype
+    affine: np.ndarray
+    rescale: tuple[float, float]
+    notes: list[str]
+    planes: Iterator[np.ndarray]
+
+
+def stream_stack(path: Path, files: list[tuple[Entry, Dataset]]) -> StreamedStack | None:
+    """The series as planes decoded one at a time (twice: once for the value range that
+    picks the dtype, once to hand on), never the whole stack in memory; None for a series
+    with uneven gaps (resampling needs its neighbours: :func:`assemble` reads it whole)."""
+    plan = _plan(path, files)
+    if plan.grid.resampled:
+        return None
+    notes = list(plan.notes)
+    raw, scales, integer = None, [], True
+    for array, scale in _decoded(path, plan.entries, notes):
+        scales.append(scale)
+        integer = integer and array.dtype.kind in "iub"
+        if integer:
+            lo, hi = int(array.min()), int(array.max())
+            raw = (lo, hi) if raw is None else (min(raw[0], lo), max(raw[1], hi))
+        rows, columns = array.shape
+    dtype, uniform = _stack_dtype(scales, raw or (0, 0), integer)
+    if not uniform:
+        notes.append(RESCALED_APART)
+    planes = (_rescaled(array, scale, dtype).T for array, scale in _decoded(path, plan.entries, []))
+    dims = (columns, rows, len(plan.entries))
+    return StreamedStack(dims, dtype, plan.affine, scales[0], notes + plan.grid.notes, planes)
 
 
 def _position(ds: Dataset) -> np.ndarray:
@@ -174,6 +230,16 @@ def _decode(
 ) -> tuple[list[np.ndarray], list[tuple[float, float]]]:
     """Pixel arrays (rows, columns) and (slope, intercept) per slice, in the given order."""
     pixels, scales = [], []
+    for array, scale in _decoded(path, entries, notes):
+        pixels.append(array)
+        scales.append(scale)
+    return pixels, scales
+
+
+def _decoded(
+    path: Path, entries: list[Entry], notes: list[str]
+) -> Iterator[tuple[np.ndarray, tuple[float, float]]]:
+    """Each slice's pixel array (rows, columns) and (slope, intercept), one at a time."""
     with recorded_warnings("pydicom") as caught:
         for entry in entries:
             try:
@@ -189,10 +255,8 @@ def _decode(
                     "single-channel (greyscale) slices can be stacked: export the series as "
                     "MONOCHROME2, one frame per file."
                 )
-            pixels.append(array)
-            scales.append(_rescale(path, entry, ds))
+            yield array, _rescale(path, entry, ds)
     notes.extend(caught)
-    return pixels, scales
 
 
 def _rescale(path: Path, entry: Entry, ds: Dataset) -> tuple[float, float]:
@@ -231,6 +295,10 @@ def _undecodable(path: Path, entry: Entry, exc: Exception) -> UnreadableVolume:
     )
 
 
+#: The note a series whose slices rescale differently gets.
+RESCALED_APART = "rescale slope/intercept differ between slices; each slice rescaled on its own"
+
+
 def rescaled_stack(
     pixels: list[np.ndarray], scales: list[tuple[float, float]], notes: list[str]
 ) -> tuple[np.ndarray, tuple[float, float]]:
@@ -244,31 +312,47 @@ def rescaled_stack(
     stack : (Z, Y, X) array in real units (HU for CT)
     rescale : (slope, intercept) of the first slice
     """
+    integer = all(p.dtype.kind in "iub" for p in pixels)
+    raw = (
+        (min(int(p.min()) for p in pixels), max(int(p.max()) for p in pixels))
+        if integer
+        else (0, 0)
+    )
+    dtype, uniform = _stack_dtype(scales, raw, integer)
+    stack = np.zeros((len(pixels),) + pixels[0].shape, dtype=dtype)
+    for k, (array, scale) in enumerate(zip(pixels, scales, strict=True)):
+        stack[k] = _rescaled(array, scale, dtype)
+    if not uniform:
+        notes.append(RESCALED_APART)
+    return stack, scales[0]
+
+
+def _stack_dtype(
+    scales: list[tuple[float, float]], raw: tuple[int, int], integer: bool
+) -> tuple[np.dtype, bool]:
+    """The stack's dtype (and whether every slice rescales alike) from the slices'
+    (slope, intercept), their raw value range and whether all their pixels are integers."""
     slope, intercept = scales[0]
     uniform = all(s == scales[0] for s in scales)
     # Exact integers only where int64 cannot overflow: integer pixels, modest slope.
     integral = (
         uniform
+        and integer
         and slope.is_integer()
         and intercept.is_integer()
         and abs(slope) <= 2**16
         and abs(intercept) <= 2**31
-        and all(p.dtype.kind in "iub" for p in pixels)
     )
-    if integral:
-        raw = (min(int(p.min()) for p in pixels), max(int(p.max()) for p in pixels))
-        dtype = integer_dtype(raw, slope, intercept)
-    else:
-        dtype = np.dtype(np.float32)
-    stack = np.zeros((len(pixels),) + pixels[0].shape, dtype=dtype)
-    for k, (array, (s, b)) in enumerate(zip(pixels, scales, strict=True)):
-        # int64 keeps slope * raw + intercept exact before the narrowing store.
-        stack[k] = array.astype(np.int64) * int(s) + int(b) if integral else array * s + b
-    if not uniform:
-        notes.append(
-            "rescale slope/intercept differ between slices; each slice rescaled on its own"
-        )
-    return stack, (slope, intercept)
+    dtype = integer_dtype(raw, slope, intercept) if integral else np.dtype(np.float32)
+    return dtype, uniform
+
+
+def _rescaled(array: np.ndarray, scale: tuple[float, float], dtype: np.dtype) -> np.ndarray:
+    """One slice in real units, as ``dtype``."""
+    s, b = scale
+    if dtype.kind in "iu":  # int64 keeps slope * raw + intercept exact before narrowing
+        return (array.astype(np.int64) * int(s) + int(b)).astype(dtype)
+    return (array * s + b).astype(dtype)
 
 
 def _pixel_spacing(ds: Dataset) -> tuple[float, float] | None:

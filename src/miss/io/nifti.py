@@ -103,6 +103,7 @@ def stream(path: Path) -> Streamed | None:
         affine,
         _plain_planes(path, declared),
         partial(_streamed_meta, declared.description(), dims),
+        "nifti",
     )
 
 

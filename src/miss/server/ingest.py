@@ -186,8 +186,9 @@ Stored = tuple[Path, Volume, dict[str, Any], dict[str, Any]]
 def ingest_path(store: Store, path: Path, name: str = "") -> VolumeRow:
     """Store the volume at ``path`` (``miss ingest``) as an upload is stored: the same
     de-identification, files and row, no owner (the first administrator's at the next
-    start). A plain NIfTI file is read plane by plane (:func:`miss.io.nifti.stream`),
-    so it is never whole in memory; other formats are read whole."""
+    start). A plain NIfTI file and a folder of DICOM slices are read plane by plane
+    (:func:`miss.io.nifti.stream`, :func:`miss.io.dicom.stream`), so they are never whole
+    in memory; other formats are read whole."""
     key = store.secret(UID_KEY)
     with store.disk_full_as_507():
         staged, volume, identity, info = _stream_in(store, path, key) or _read_in(store, path, key)
@@ -200,19 +201,20 @@ def ingest_path(store: Store, path: Path, name: str = "") -> VolumeRow:
 def _stream_in(store: Store, path: Path, key: bytes) -> Stored | None:
     """Store a file that can be read plane by plane into a folder under ``tmp/``; None
     for one that cannot (``_read_in`` reads it whole)."""
+    from miss.io import dicom, nifti
     from miss.io.common import NotStreamable
-    from miss.io.nifti import stream
 
-    streamed = stream(path)
+    streamed = nifti.stream(path) or (dicom.stream(path) if path.is_dir() else None)
     if streamed is None:
         return None
     folder = store.tmp_dir()
     try:
         layout = (streamed.dims, streamed.dtype, streamed.affine)
-        summary = store_voxels(folder, layout, "nifti", streamed.planes)
+        summary = store_voxels(folder, layout, streamed.source_format, streamed.planes)
         check_storable_range(summary.lo, summary.hi, path.name)
         lazy, _, _ = chunked.open_array(folder / DATA)
-        volume = Volume(lazy, streamed.affine, meta=streamed.meta(summary.lo, summary.hi))
+        meta = streamed.meta(summary.lo, summary.hi)
+        volume = Volume(lazy, streamed.affine, meta=meta, patient=streamed.patient)
         clean = deidentify(volume, key)
         info = finish(folder, clean.volume, summary, clean.report)
     except NotStreamable:  # NaN voxels become the minimum, which only a whole read knows
