@@ -1,0 +1,134 @@
+"""Where block tasks run: threads in this process, a local Dask cluster, or a remote one.
+
+- ``MISS_DASK_SCHEDULER=tcp://host:8786`` (or ``--scheduler``) sends every block to that
+  cluster; its workers must reach the data by the same path (a ``zarr.Array`` travels as a
+  reference to its folder; an in-memory array is scattered to the workers once).
+- Otherwise volumes of at least :data:`CLUSTER_VOXELS` voxels start a ``LocalCluster``
+  (one single-threaded worker process per core); smaller ones run on a thread pool, where
+  the cluster's start (about 2 s here) costs more than it saves.
+
+Results are handed to the caller as they arrive, so it can weld them and drop each one.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import ThreadPoolExecutor, as_completed
+from contextlib import contextmanager
+from typing import Any
+
+from miss.errors import MissError
+
+#: Volumes with at least this many voxels (after sampling) run on a local Dask cluster when
+#: no scheduler is given; smaller ones on threads. Measured (benchmarks/scale.py): a
+#: LocalCluster takes ~2 s to start and ships each block's mesh between processes; threads
+#: win below ~100 M voxels (CThead, 7.4 M voxels: threads 1.0 s, cluster 3.6 s).
+CLUSTER_VOXELS = 100_000_000
+
+SCHEDULER_ENV = "MISS_DASK_SCHEDULER"
+
+
+class SchedulerUnreachable(MissError, ConnectionError):
+    """The Dask scheduler named by ``--scheduler`` or ``MISS_DASK_SCHEDULER`` did not answer."""
+
+
+class BlockTaskFailed(MissError, RuntimeError):
+    """A block task failed on the cluster (a worker died too often, or the task raised)."""
+
+
+def scheduler_address(given: str | None = None) -> str | None:
+    """The scheduler to use: ``given``, else ``MISS_DASK_SCHEDULER``, else None (local)."""
+    return given or os.environ.get(SCHEDULER_ENV) or None
+
+
+def run_blocks(
+    task: Callable[..., Any],
+    shared: Any,
+    items: Sequence[Any],
+    *,
+    scheduler: str | None = None,
+    cluster: bool = False,
+    progress: Callable[[int, int], None] | None = None,
+) -> Iterator[Any]:
+    """Yield ``task(shared, item)`` for every item, in the order they finish.
+
+    ``scheduler`` is a Dask address (``tcp://host:8786``); without one, ``cluster`` starts
+    a LocalCluster sized to the machine, else a thread pool runs the tasks.
+    ``progress(done, total)`` is called after each result.
+    """
+    total = len(items)
+    if scheduler is None and not cluster:
+        runs = _on_threads(task, shared, items)
+    else:
+        runs = _on_dask(task, shared, items, scheduler)
+    for done, result in enumerate(runs, start=1):
+        if progress is not None:
+            progress(done, total)
+        yield result
+
+
+def _on_threads(task: Callable[..., Any], shared: Any, items: Sequence[Any]) -> Iterator[Any]:
+    workers = min(len(items), os.cpu_count() or 1) or 1
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        futures = [pool.submit(task, shared, item) for item in items]
+        for future in as_completed(futures):
+            yield future.result()
+
+
+def _on_dask(
+    task: Callable[..., Any], shared: Any, items: Sequence[Any], scheduler: str | None
+) -> Iterator[Any]:
+    from distributed import as_completed as dask_completed
+
+    with _client(scheduler) as client:
+        ref = client.scatter(shared, broadcast=True) if _in_memory(shared) else shared
+        futures = [
+            client.submit(task, ref, item, pure=False, retries=2, key=f"miss-block-{i}")
+            for i, item in enumerate(items)
+        ]
+        for future in dask_completed(futures):
+            try:
+                yield future.result()
+            except Exception as exc:  # KilledWorker, a task's own error
+                raise BlockTaskFailed(
+                    f"a block task failed on the Dask cluster ({type(exc).__name__}: {exc}); "
+                    "check the workers' logs and that they can read the data folder."
+                ) from exc
+            finally:
+                future.release()
+
+
+def _in_memory(shared: Any) -> bool:
+    import numpy as np
+
+    return isinstance(getattr(shared, "data", None), np.ndarray)
+
+
+@contextmanager
+def _client(scheduler: str | None) -> Iterator[Any]:
+    """A Client to ``scheduler``, or to a LocalCluster started (and stopped) here."""
+    from distributed import Client, LocalCluster
+
+    if scheduler is None:
+        with (
+            LocalCluster(
+                n_workers=os.cpu_count() or 1,
+                threads_per_worker=1,
+                processes=True,
+                dashboard_address=None,
+            ) as local,
+            Client(local) as client,
+        ):
+            yield client
+        return
+    try:
+        client = Client(scheduler, timeout="10s")
+    except (OSError, TimeoutError, ValueError) as exc:
+        raise SchedulerUnreachable(
+            f"cannot reach the Dask scheduler at {scheduler} ({exc}); start it there "
+            f"(`dask scheduler`), fix the address, or unset {SCHEDULER_ENV} / drop --scheduler "
+            "to run on this machine."
+        ) from exc
+    with client:
+        yield client
