@@ -115,6 +115,8 @@ def surface_block(grid: Grid, box: Box, level: float, normals: bool) -> BlockMes
         for (a, b), n in zip(box, grid.padded, strict=True)
     )
     points = read_points(grid, read)
+    if not points.min() < level <= points.max():  # all inside or all outside: no triangle
+        return _empty_block(normals)
     origin = np.array([r[0] for r in read], dtype=np.int64)
     local, faces, vectors = _contour_with_indices(points, level, normals)
     if len(faces) == 0:
@@ -195,12 +197,14 @@ def _exact_positions(
     """(edge axis (N,) int8, edge start (N, 3) int64, position (N, 3) float64) of each
     vertex, the position ``start + t`` with t from the edge's two voxel values.
 
-    A vertex exactly on a voxel (t = 0 or 1, only on float data equal to the level) keeps
-    that voxel as its position; its edge axis is taken as 0.
+    A vertex that VTK's float64 indices put exactly on a voxel (float data within ~1e-13
+    of the level: t rounds to 0 or 1) keeps that voxel as its position and gets axis 3;
+    two such vertices at one voxel on a block face are welded into one (a difference from
+    the single pass only there).
     """
     frac = local - np.floor(local)
     off_grid = frac != 0.0
-    axis = np.argmax(off_grid, axis=1).astype(np.int8)
+    axis = np.where(off_grid.any(axis=1), np.argmax(off_grid, axis=1), 3).astype(np.int8)
     base = np.floor(local).astype(np.int64)
     verts = base.astype(np.float64)
     moving = np.flatnonzero(off_grid.any(axis=1))
@@ -224,10 +228,11 @@ def _on_block_faces(base: np.ndarray, axis: np.ndarray, box: Box) -> np.ndarray:
 
 
 def _edge_keys(base: np.ndarray, axis: np.ndarray, padded: tuple[int, int, int]) -> np.ndarray:
-    """One integer per grid edge: (linear index of its start point) * 3 + axis."""
+    """One integer per grid edge: (linear index of its start point) * 4 + axis (3 for a
+    vertex on the voxel itself)."""
     nx, ny, _ = padded
     linear = (base[:, 2] * ny + base[:, 1]) * nx + base[:, 0]
-    return linear * 3 + axis.astype(np.int64)
+    return linear * 4 + axis.astype(np.int64)
 
 
 class Welder:

@@ -32,6 +32,9 @@ from miss.types import Mesh, Volume
 #: plus VTK's working arrays per task, well under a worker's memory.
 AUTO_BLOCK = 128
 
+#: Block edge of the min/max pass (a read and two reductions per task).
+RANGE_BLOCK = 256
+
 BlockShape = int | Sequence[int] | None
 Progress = Callable[[str, float], None]
 
@@ -88,7 +91,8 @@ def blockwise_surface(
     big = cluster if cluster is not None else int(np.prod(shape)) >= CLUSTER_VOXELS
     run = partial(run_blocks, scheduler=address, cluster=big)
     report = progress or (lambda stage, fraction: None)
-    lo, hi = _range(grid, blocks, run, report)
+    # the range does not depend on the blocks: big ones, few tasks
+    lo, hi = _range(grid, cell_blocks(grid.padded, (RANGE_BLOCK,) * 3), run, report)
     if not lo < level < hi:
         raise EmptySurface(
             f"no surface at level {level:g}: the chosen region holds values {lo:g}..{hi:g}; "
