@@ -9,7 +9,9 @@ mesh is mapped to LPS millimetres as it arrives and welded at the end.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from functools import partial
+from typing import Any
 
 import numpy as np
 
@@ -25,6 +27,7 @@ from miss.surface import (
     _points_to_patient,
     _region,
     _sample_steps,
+    extract_surface,
 )
 from miss.types import Mesh, Volume
 
@@ -149,3 +152,48 @@ def _add_mapped(
     if normals and len(vectors):
         vectors = _normals_to_patient(vectors, affine[:3, :3], steps)
     welder.add(part, verts, vectors)  # type: ignore[arg-type]
+
+
+@dataclass(frozen=True)
+class BlockRun:
+    """How a job's surfaces run block by block: ``block`` edge in cells (None: auto),
+    ``scheduler`` a Dask address (None: ``MISS_DASK_SCHEDULER``, else this machine), and
+    the job's ``progress`` (it counts blocks)."""
+
+    block: BlockShape = None
+    scheduler: str | None = None
+    progress: Progress | None = None
+
+
+def surface_of(
+    volume: Volume, level: float, *, normals: bool, blocks: BlockRun | None = None
+) -> Mesh:
+    """The job's surface stage: block by block when ``blocks`` is given or the volume's
+    data is not in memory (a ``zarr.Array``), else :func:`~miss.surface.extract_surface`."""
+    if blocks is None and isinstance(volume.data, np.ndarray):
+        return extract_surface(volume, level, normals=normals)
+    run = blocks or BlockRun()
+    return blockwise_surface(
+        volume, level, normals=normals, block=run.block, scheduler=run.scheduler,
+        progress=run.progress,
+    )  # fmt: skip
+
+
+class StridedView:
+    """A lazy box of a 3-D array at a sample step: slicing it (unit steps) reads only that
+    part of ``data``. What :meth:`miss.spec.Region.apply` returns for data on disk."""
+
+    def __init__(self, data: Any, box: Sequence[tuple[int, int]], steps: Sequence[int]):
+        self.data, self.box, self.steps = data, tuple(box), tuple(steps)
+        self.shape = tuple(
+            len(range(lo, hi + 1, st)) for (lo, hi), st in zip(self.box, self.steps, strict=True)
+        )
+        self.dtype = np.dtype(data.dtype)
+        self.ndim = 3
+
+    def __getitem__(self, key: tuple[slice, ...]) -> np.ndarray:
+        picked = []
+        for sl, (lo, _), st, n in zip(key, self.box, self.steps, self.shape, strict=True):
+            a, b, step = sl.indices(n)
+            picked.append(slice(lo + a * st, lo + (b - 1) * st + 1, st * step))
+        return np.asarray(self.data[tuple(picked)])

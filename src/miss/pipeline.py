@@ -24,6 +24,9 @@ from functools import cached_property
 from pathlib import Path
 from typing import Any, Protocol
 
+import numpy as np
+
+from miss.blockwise import BlockRun
 from miss.decimate import DecimationReport
 from miss.errors import BadParameter, EmptySurface
 from miss.export import export
@@ -84,6 +87,7 @@ def run(
     export_options: ExportOptions | None = None,
     sink: Sink | None = None,
     measure: bool = True,
+    blocks: BlockRun | None = None,
 ) -> JobResult:
     """Build the scene ``spec`` asks of ``volume`` (and ``label_map``), encode it in every
     format of ``spec.outputs`` and measure its error meanwhile; ``progress(stage, 0..1)``
@@ -94,7 +98,9 @@ def run(
     sink that asks for a preview gets a coarse GLB (``put("preview", ...)``) before the
     model is built. ``export_options`` maps a format to its writer's options, e.g.
     ``{"glb": {"compress": True}}`` (the server sends meshopt-compressed glTF).
-    ``measure=False`` leaves the error unmeasured (None in the report).
+    ``measure=False`` leaves the error unmeasured (None in the report). ``blocks`` runs
+    the threshold surfaces block by block (on Dask when it names a scheduler); volumes
+    on disk (Zarr) always are, and their progress counts blocks.
     """
     report = progress or _no_progress
     seconds: dict[str, float] = {}
@@ -106,7 +112,12 @@ def run(
             sink.put(PREVIEW, data)
             seconds["preview"] = time.perf_counter() - start
     report("surface", 0.0)
-    built = build_scene(volume, spec, label_map=label_map, table=table, title=title, measure=False)
+    if blocks is not None or not isinstance(volume.data, np.ndarray):
+        blocks = replace(blocks or BlockRun(), progress=report)
+    built = build_scene(
+        volume, spec, label_map=label_map, table=table, title=title, measure=False,
+        blocks=blocks,
+    )  # fmt: skip
     seconds |= built.seconds
     start = time.perf_counter()
     artifacts: dict[str, bytes] = {}
@@ -245,6 +256,7 @@ def execute(
     *,
     export_options: ExportOptions | None = None,
     measure: bool = True,
+    blocks: BlockRun | None = None,
 ) -> tuple[JobResult, Any]:
     """Load ``spec.source``, run the job, deliver the files: (result, what the sink said).
 
@@ -261,6 +273,7 @@ def execute(
         loaded.volume, spec, progress, title=loaded.title,
         metadata=provenance(spec, loaded.provenance), label_map=loaded.label_map,
         table=loaded.table, export_options=export_options, sink=sink, measure=measure,
+        blocks=blocks,
     )  # fmt: skip
     delivered = sink.deliver(result)
     result.seconds = {"read": read, **result.seconds, "total": time.perf_counter() - start}

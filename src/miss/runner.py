@@ -123,7 +123,7 @@ def _client(scheduler: str | None) -> Iterator[Any]:
             yield client
         return
     try:
-        client = Client(scheduler, timeout="10s")
+        client = Client(scheduler, timeout="5s")
     except (OSError, TimeoutError, ValueError) as exc:
         raise SchedulerUnreachable(
             f"cannot reach the Dask scheduler at {scheduler} ({exc}); start it there "
