@@ -44,7 +44,7 @@ def assert_same_surface(got: Mesh, want: Mesh, tol_mm: float) -> None:
     assert got_ml == pytest.approx(want_ml, abs=1e-6 if tol_mm == 0 else 1e-4)
 
 
-def _zarr_copy(volume: Volume, folder: Path, chunks: tuple[int, int, int]) -> Volume:
+def zarr_copy(volume: Volume, folder: Path, chunks: tuple[int, int, int]) -> Volume:
     import zarr
 
     array = zarr.create_array(
@@ -86,7 +86,7 @@ def test_cthead_blockwise_equals_single_pass(cthead, cthead_reference, block) ->
 
 
 def test_cthead_from_zarr_chunks_equals_numpy(cthead, cthead_reference, tmp_path) -> None:
-    lazy = _zarr_copy(cthead, tmp_path, (64, 64, 32))
+    lazy = zarr_copy(cthead, tmp_path, (64, 64, 32))
     mesh = blockwise_surface(lazy, 1500.0, normals=False, block=(50, 37, 29))
     assert_same_surface(mesh, cthead_reference[1], 0.0)
 
@@ -102,7 +102,7 @@ def test_mr_head_blocks_of_seven_from_zarr(mr_head, tmp_path) -> None:
     """Blocks of 7 over a quarter of the head (the whole one takes a minute here)."""
     roi = (100, 355, 60, 315, 20, 99)
     single = extract_surface(mr_head, 300.0, roi=roi, normals=False)
-    lazy = _zarr_copy(mr_head, tmp_path, (32, 32, 16))  # small chunks for small blocks
+    lazy = zarr_copy(mr_head, tmp_path, (32, 32, 16))  # small chunks for small blocks
     mesh = blockwise_surface(lazy, 300.0, roi=roi, normals=False, block=7)
     assert_same_surface(mesh, single, FLOAT32_ROUNDING_MM)
 
