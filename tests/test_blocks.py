@@ -10,7 +10,7 @@ import pytest
 from scipy.spatial import cKDTree
 
 from miss import BadParameter, EmptySurface, Volume, extract_surface
-from miss.blocks import cell_blocks
+from miss.blocks import Grid, voxel_boxes
 from miss.blockwise import RANGE_BLOCK, blockwise_surface
 from miss.geometry import boundary_edge_count, enclosed_volume
 from miss.types import Mesh
@@ -142,7 +142,9 @@ def test_progress_counts_blocks(cthead) -> None:
         cthead, 1500.0, normals=False, block=100, progress=lambda s, f: seen.append((s, f))
     )
     blocks = 3 * 3 * 2  # 257 x 257 x 114 padded cells in blocks of 100
-    ranges = len(cell_blocks((258, 258, 115), (RANGE_BLOCK,) * 3))
+    ranges = len(
+        voxel_boxes(Grid(cthead.data, (0, 0, 0), (1, 1, 1), (256, 256, 113), 0, "<i2"), RANGE_BLOCK)
+    )
     assert len(seen) == ranges + blocks  # the range pass, then the surfaces
     assert {s for s, _ in seen} == {"surface"}
     assert seen[-1][1] == pytest.approx(1.0)

@@ -90,15 +90,31 @@ def read_points(grid: Grid, box: Box) -> np.ndarray:
     return out
 
 
+def voxel_boxes(grid: Grid, edge: int) -> list[Box]:
+    """Boxes of region voxels (inclusive, no overlap) for the min/max pass: ``edge``
+    voxels, or whole chunks of ``grid.data`` (its ``chunks``, at unit steps) that many
+    voxels wide, so that no chunk is decompressed twice."""
+    chunks = getattr(grid.data, "chunks", None)
+    ranges = []
+    for k, (n, st, s0) in enumerate(zip(grid.shape, grid.step, grid.start, strict=True)):
+        size = edge
+        if chunks is not None and st == 1:
+            size = max(1, edge // chunks[k]) * chunks[k]
+            first = (s0 // chunks[k] + 1) * chunks[k] - s0  # the first chunk boundary
+            cuts = [0, *range(first % size or size, n, size), n]
+        else:
+            cuts = [*range(0, n, size), n]
+        ranges.append([(a, b - 1) for a, b in itertools.pairwise(sorted(set(cuts))) if b > a])
+    return [tuple(box) for box in itertools.product(*ranges)]
+
+
 def block_range(grid: Grid, box: Box) -> tuple[float, float]:
-    """Minimum and maximum of the region's voxels in ``box`` (the pad left out)."""
-    src = []
-    for (a, b), n, st, s0 in zip(box, grid.shape, grid.step, grid.start, strict=True):
-        lo, hi = max(a, 1), min(b, n)
-        if lo > hi:
-            return np.inf, -np.inf
-        src.append(slice(s0 + (lo - 1) * st, s0 + (hi - 1) * st + 1, st))
-    part = np.asarray(grid.data[tuple(src)])
+    """Minimum and maximum of the region's voxels in ``box`` (region voxel indices)."""
+    src = tuple(
+        slice(s0 + a * st, s0 + b * st + 1, st)
+        for (a, b), st, s0 in zip(box, grid.step, grid.start, strict=True)
+    )
+    part = np.asarray(grid.data[src])
     return float(part.min()), float(part.max())
 
 
@@ -159,16 +175,17 @@ def _contour_with_indices(
     """
     _use_both_cores()
     image = image_data(points)
+    keep = []
     for k, name in enumerate("ijk"):
         shape = [1, 1, 1]
         shape[k] = points.shape[k]
-        index = np.broadcast_to(
-            np.arange(points.shape[k], dtype=np.float64).reshape(shape), points.shape
-        )
-        flat = np.asfortranarray(index).ravel(order="F")
-        array = numpy_support.numpy_to_vtk(flat, deep=True)
+        index = np.empty(points.shape, dtype=np.float64, order="F")
+        index[...] = np.arange(points.shape[k], dtype=np.float64).reshape(shape)
+        flat = index.ravel(order="F")  # a view: F-ordered
+        array = numpy_support.numpy_to_vtk(flat, deep=False)
         array.SetName(name)
         image.GetPointData().AddArray(array)
+        keep.append(flat)  # numpy_to_vtk(deep=False) does not own the memory
     fe = vtkFlyingEdges3D()
     fe.SetInputData(image)
     fe.SetValue(0, float(level))
@@ -177,6 +194,7 @@ def _contour_with_indices(
     fe.ComputeScalarsOff()
     fe.InterpolateAttributesOn()
     fe.Update()
+    del keep  # VTK's output holds copies
     out = fe.GetOutput()
     if out.GetNumberOfPoints() == 0:
         return np.zeros((0, 3)), np.zeros((0, 3), np.int32), np.zeros((0, 0), np.float32)

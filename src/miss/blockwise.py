@@ -15,7 +15,15 @@ from typing import Any
 
 import numpy as np
 
-from miss.blocks import Box, Grid, Welder, block_range, cell_blocks, surface_block
+from miss.blocks import (
+    Box,
+    Grid,
+    Welder,
+    block_range,
+    cell_blocks,
+    surface_block,
+    voxel_boxes,
+)
 from miss.errors import BadParameter, EmptySurface
 from miss.runner import CLUSTER_VOXELS, run_blocks, scheduler_address
 from miss.surface import (
@@ -95,7 +103,7 @@ def blockwise_surface(
     run = partial(run_blocks, scheduler=address, cluster=big)
     report = progress or (lambda stage, fraction: None)
     # the range does not depend on the blocks: big ones, few tasks
-    lo, hi = _range(grid, cell_blocks(grid.padded, (RANGE_BLOCK,) * 3), run, report)
+    lo, hi = _range(grid, voxel_boxes(grid, RANGE_BLOCK), run, report)
     if not lo < level < hi:
         raise EmptySurface(
             f"no surface at level {level:g}: the chosen region holds values {lo:g}..{hi:g}; "

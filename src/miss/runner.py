@@ -5,7 +5,7 @@
   reference to its folder; an in-memory array is scattered to the workers once).
 - Otherwise volumes of at least :data:`CLUSTER_VOXELS` voxels start a ``LocalCluster``
   (one single-threaded worker process per core); smaller ones run on a thread pool, where
-  the cluster's start (about 2 s here) costs more than it saves.
+  the cluster's start (about 3 s here) and the meshes' trips cost more than it saves.
 
 Results are handed to the caller as they arrive, so it can weld them and drop each one.
 """
@@ -21,10 +21,14 @@ from typing import Any
 from miss.errors import MissError
 
 #: Volumes with at least this many voxels (after sampling) run on a local Dask cluster when
-#: no scheduler is given; smaller ones on threads. Measured (benchmarks/scale.py): a
-#: LocalCluster takes ~2 s to start and ships each block's mesh between processes; threads
-#: win below ~100 M voxels (CThead, 7.4 M voxels: threads 1.0 s, cluster 3.6 s).
-CLUSTER_VOXELS = 100_000_000
+#: no scheduler is given; smaller ones on threads. Measured here (2 cores,
+#: benchmarks/results/scale_crossover.md and scale.md): threads won at every size tried,
+#: 7 M voxels 0.4 s against 9.1 s, 118 M 3.7 s against 8.2 s, 157 M 6.3 s against 8.2 s
+#: (the cluster's start, ~3 s, and shipping each block's mesh between processes cost more
+#: than a second process gains when VTK already runs a block on both cores). No crossover
+#: was seen, so the cluster is left to the volumes beyond what was measured (1 G voxels:
+#: the issue's 1024 x 1024 x 1200 and up); re-measure on a machine with more cores.
+CLUSTER_VOXELS = 1_000_000_000
 
 SCHEDULER_ENV = "MISS_DASK_SCHEDULER"
 
