@@ -9,13 +9,14 @@ mesh is mapped to LPS millimetres as it arrives and welded at the end.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import partial
 from typing import Any
 
 import numpy as np
 
 from miss.blocks import (
+    BlockMesh,
     Box,
     Grid,
     Welder,
@@ -114,10 +115,14 @@ def blockwise_surface(
     grid = Grid(grid.data, grid.start, grid.step, grid.shape, pad, np.dtype(pad_dtype).str)
     offset = np.array([b[0] for b in box], dtype=np.float64)
     welder = Welder()
-    task = partial(_surface_task, level=contour, normals=normals)
+    # each task maps its own vertices to mm: float32 travels back, and the work is spread
+    task = partial(
+        _surface_task, level=contour, normals=normals, affine=volume.affine, steps=steps,
+        offset=offset,
+    )  # fmt: skip
     done = partial(_counted, report, 0.1, 0.9)
     for part in run(task, grid, blocks, progress=done):
-        _add_mapped(welder, part, volume.affine, steps, offset, normals)
+        welder.add(part, part.vertices, part.normals)
     verts, faces, index_normals = welder.result()
     if len(faces) == 0:
         raise EmptySurface(
@@ -128,8 +133,22 @@ def blockwise_surface(
     return Mesh(vertices=verts, faces=faces, normals=index_normals if normals else None)
 
 
-def _surface_task(grid: Grid, box: Box, level: float, normals: bool):  # noqa: ANN202
-    return surface_block(grid, box, level, normals)
+def _surface_task(
+    grid: Grid,
+    box: Box,
+    level: float,
+    normals: bool,
+    affine: np.ndarray,
+    steps: tuple[int, int, int],
+    offset: np.ndarray,
+) -> BlockMesh:
+    """One block's surface with its vertices (float32) and normals in LPS mm."""
+    part = surface_block(grid, box, level, normals)
+    verts = _points_to_patient(part.vertices - 1.0, affine, steps, offset)  # pad: -1
+    vectors = part.normals
+    if normals and len(vectors):
+        vectors = _normals_to_patient(vectors, affine[:3, :3], steps)
+    return replace(part, vertices=verts, normals=vectors)
 
 
 def _counted(report: Progress, start: float, width: float, done: int, total: int) -> None:
@@ -144,22 +163,6 @@ def _range(
     for b_lo, b_hi in run(block_range, grid, blocks, progress=partial(_counted, report, 0.0, 0.1)):  # type: ignore[attr-defined]
         lo, hi = min(lo, b_lo), max(hi, b_hi)
     return lo, hi
-
-
-def _add_mapped(
-    welder: Welder,
-    part: object,
-    affine: np.ndarray,
-    steps: tuple[int, int, int],
-    offset: np.ndarray,
-    normals: bool,
-) -> None:
-    """Map one block's padded-index vertices (and normals) to LPS mm and hand it over."""
-    verts = _points_to_patient(part.vertices - 1.0, affine, steps, offset)  # type: ignore[attr-defined]
-    vectors = part.normals  # type: ignore[attr-defined]
-    if normals and len(vectors):
-        vectors = _normals_to_patient(vectors, affine[:3, :3], steps)
-    welder.add(part, verts, vectors)  # type: ignore[arg-type]
 
 
 @dataclass(frozen=True)
