@@ -25,6 +25,9 @@ from functools import cached_property
 from pathlib import Path
 from typing import Any, Protocol
 
+import numpy as np
+
+from miss.blockwise import BlockRun
 from miss.decimate import DecimationReport
 from miss.errors import BadParameter, EmptySurface
 from miss.export import export
@@ -85,6 +88,7 @@ def run(
     export_options: ExportOptions | None = None,
     sink: Sink | None = None,
     measure: bool = True,
+    blocks: BlockRun | None = None,
 ) -> JobResult:
     """Build the scene ``spec`` asks of ``volume`` (and ``label_map``), encode it in every
     format of ``spec.outputs`` and measure its error meanwhile; ``progress(stage, 0..1)``
@@ -95,7 +99,9 @@ def run(
     sink that asks for a preview gets a coarse GLB (``put("preview", ...)``) before the
     model is built. ``export_options`` maps a format to its writer's options, e.g.
     ``{"glb": {"compress": True}}`` (the server sends meshopt-compressed glTF).
-    ``measure=False`` leaves the error unmeasured (None in the report).
+    ``measure=False`` leaves the error unmeasured (None in the report). ``blocks`` runs
+    the threshold surfaces block by block (on Dask when it names a scheduler); volumes
+    on disk (Zarr) always are, and their progress counts blocks.
     """
     report = progress or _no_progress
     seconds: dict[str, float] = {}
@@ -107,7 +113,12 @@ def run(
             sink.put(PREVIEW, data)
             seconds["preview"] = time.perf_counter() - start
     report("surface", 0.0)
-    built = build_scene(volume, spec, label_map=label_map, table=table, title=title, measure=False)
+    if blocks is not None or not isinstance(volume.data, np.ndarray):
+        blocks = replace(blocks or BlockRun(), progress=report)
+    built = build_scene(
+        volume, spec, label_map=label_map, table=table, title=title, measure=False,
+        blocks=blocks,
+    )  # fmt: skip
     seconds |= built.seconds
     if sink is not None:  # a viewer draws these rather than a GLB too large to draw
         seconds |= _levels_of_detail(built.scene, sink, title, metadata)
@@ -277,6 +288,7 @@ def execute(
     *,
     export_options: ExportOptions | None = None,
     measure: bool = True,
+    blocks: BlockRun | None = None,
 ) -> tuple[JobResult, Any]:
     """Load ``spec.source``, run the job, deliver the files: (result, what the sink said).
 
@@ -293,6 +305,7 @@ def execute(
         loaded.volume, spec, progress, title=loaded.title,
         metadata=provenance(spec, loaded.provenance), label_map=loaded.label_map,
         table=loaded.table, export_options=export_options, sink=sink, measure=measure,
+        blocks=blocks,
     )  # fmt: skip
     delivered = sink.deliver(result)
     result.seconds = {"read": read, **result.seconds, "total": time.perf_counter() - start}

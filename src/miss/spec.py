@@ -237,7 +237,12 @@ class Region:
         shift = np.eye(4)
         shift[:3, :3] = np.diag(np.asarray(self.steps, dtype=np.float64))
         shift[:3, 3] = [lo for lo, _ in box]
-        data = np.asfortranarray(volume.data[picked])
+        if isinstance(volume.data, np.ndarray):
+            data = np.asfortranarray(volume.data[picked])
+        else:  # on disk (zarr): a lazy view, read block by block by the surface stage
+            from miss.blockwise import StridedView
+
+            data = StridedView(volume.data, box, self.steps)
         return Volume(data, volume.affine @ shift, volume.meta, volume.patient)
 
 

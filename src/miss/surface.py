@@ -121,8 +121,8 @@ def _slab(block: np.ndarray, first: int, last: int, pad: tuple[np.dtype, float])
 
 
 def _contour_level(dtype: np.dtype, level: float) -> float:
-    """The value flying edges contours: ``level``, or a quarter below a whole-number level on
-    integer data.
+    """The value flying edges contours: ``level``, a quarter below a whole-number level on
+    integer data, or half a float32 step below a level float32 data can hold.
 
     Flying edges counts a voxel at or above the value as inside, and no integer lies between
     level - 1/4 and level, so inside and outside stay exactly as asked. What changes is that
@@ -133,6 +133,11 @@ def _contour_level(dtype: np.dtype, level: float) -> float:
     """
     if np.issubdtype(dtype, np.integer) and float(level).is_integer():
         return float(level) - 0.25
+    if dtype in (np.float16, np.float32) and float(np.asarray(level, dtype)) == level:
+        # float32 data may hold the level itself: contour halfway (in float64) to the next
+        # float32 below, where no voxel value can lie, so no vertex sits on a voxel either
+        below = np.nextafter(np.asarray(level, dtype), np.asarray(-np.inf, dtype))
+        return (float(below) + float(level)) / 2
     return float(level)
 
 

@@ -26,7 +26,44 @@ def add_parser(sub: Any) -> None:
         "with --schedule paper (about a second more: it loads numba); the default "
         "schedule, guaranteed, always measures: a bound is held only if it is checked",
     )  # fmt: skip
+    run = conv.add_argument_group("run", "where the surfaces are computed (not part of the job)")
+    run.add_argument(
+        "--chunks", type=_chunks, default=None, metavar="N|X,Y,Z|auto",
+        help="compute the surfaces block by block, N voxels a block edge (auto: 128); "
+        "volumes on disk (Zarr) always are",
+    )  # fmt: skip
+    run.add_argument(
+        "--scheduler", default=None, metavar="ADDRESS",
+        help="run the blocks on this Dask cluster, e.g. tcp://host:8786 (default: "
+        "$MISS_DASK_SCHEDULER; else this machine); its workers must reach the files by path",
+    )  # fmt: skip
     add_job_options(conv)
+
+
+def _chunks(text: str) -> str | int | tuple[int, ...]:
+    """``auto``, ``N`` or ``X,Y,Z`` (blockwise checks the numbers)."""
+    if text.strip().lower() == "auto":
+        return "auto"
+    try:
+        values = tuple(int(p) for p in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected auto, N or X,Y,Z voxels, got {text!r}"
+        ) from None
+    return values[0] if len(values) == 1 else values
+
+
+def _blocks(args: argparse.Namespace) -> Any:
+    """The BlockRun the options ask for, or None (the job decides from its volume)."""
+    import os
+
+    from miss.blockwise import BlockRun
+    from miss.runner import SCHEDULER_ENV
+
+    if args.chunks is None and args.scheduler is None and not os.environ.get(SCHEDULER_ENV):
+        return None
+    block = None if args.chunks in (None, "auto") else args.chunks
+    return BlockRun(block=block, scheduler=args.scheduler)
 
 
 class _Bar:
@@ -75,7 +112,9 @@ def cmd_convert(args: argparse.Namespace) -> int:
     ):
         form["labels"] = "all"  # a label map's labels; a scan is refused, naming --level
     spec = JobSpec.from_dict({**form, "formats": list(paths)}, source_of(args))
-    result, written = execute(spec, Files(paths), _Bar(), measure=args.measure)
+    result, written = execute(
+        spec, Files(paths), _Bar(), measure=args.measure, blocks=_blocks(args)
+    )
     summary = {
         **result.stats(),
         "seconds": {k: round(v, 4) for k, v in result.seconds.items()},

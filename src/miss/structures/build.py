@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from miss.blockwise import BlockRun, surface_of
 from miss.decimate import SAMPLES, DecimationReport, decimate, measured
 from miss.errors import BadParameter, EmptySurface
 from miss.scene import DEFAULT_SCENE_TITLE, Part, Scene
@@ -159,9 +160,11 @@ def build_scene(
     table: TableSpec = None,
     title: str | None = None,
     measure: bool = True,
+    blocks: BlockRun | None = None,
 ) -> SceneBuild:
     """The scene ``spec`` asks for, with the per-part reports and timings: every
-    threshold part of the region, then the label parts (built together)."""
+    threshold part of the region, then the label parts (built together). ``blocks``
+    runs the threshold surfaces block by block (:mod:`miss.blockwise`)."""
     start = time.perf_counter()
     items = spec.structures.items
     label_items = [p for p in items if p.labels is not None]
@@ -177,7 +180,7 @@ def build_scene(
             style = level_style(
                 item.level, ranked.index(item.level), len(ranked), volume.meta.get("units", "")
             )
-            built += _level_parts(region, item, style, spec.decimation, measure, notes)
+            built += _level_parts(region, item, style, spec.decimation, measure, notes, blocks)
     if labels_volume is not None:
         labels_region = spec.region.apply(labels_volume)
         built += _label_parts(
@@ -218,6 +221,7 @@ def _level_parts(
     decimation: Decimation,
     measure: bool,
     notes: list[str],
+    blocks: BlockRun | None = None,
 ) -> list[Built]:
     """One iso-level: the whole surface, its largest piece, or one part per piece.
     The part's own name, colour and opacity win over the level's style."""
@@ -227,7 +231,8 @@ def _level_parts(
     opacity = style[2] if item.opacity is None else item.opacity
     if item.components == "all" and item.min_size_mm3 == 0:
         # A decimated mesh gets new normals from its faces: gradients only for "none".
-        meshes = [extract_surface(volume, item.level, normals=decimation.method == "none")]
+        normals = decimation.method == "none"
+        meshes = [surface_of(volume, item.level, normals=normals, blocks=blocks)]
     else:
         meshes = _component_meshes(volume, item, notes, name)
     out = []

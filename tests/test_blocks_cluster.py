@@ -1,0 +1,164 @@
+"""Blockwise surfaces on a real Dask cluster: a ``dask scheduler`` and two ``dask worker``
+processes on loopback, the tasks seen on both workers, a worker killed mid-job, an
+address nobody answers."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from test_blocks import assert_same_surface, zarr_copy
+
+from miss import Volume
+from miss.blockwise import blockwise_surface
+from miss.runner import SchedulerUnreachable
+
+DASK = Path(sys.executable).with_name("dask")
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class Cluster:
+    """A scheduler and two workers (no nanny: a killed worker stays dead)."""
+
+    def __init__(self, folder: Path) -> None:
+        self.address = f"tcp://127.0.0.1:{_free_port()}"
+        port = self.address.rsplit(":", 1)[1]
+        self.procs: list[subprocess.Popen[bytes]] = []
+        self.logs = folder
+        self._start("scheduler", ["scheduler", "--host", "127.0.0.1", "--port", port,
+                                  "--no-dashboard"])  # fmt: skip
+        self.workers = [
+            self._start(
+                f"worker{i}",
+                [
+                    "worker",
+                    self.address,
+                    "--nthreads",
+                    "1",
+                    "--no-nanny",
+                    "--no-dashboard",
+                    "--name",
+                    f"w{i}",
+                    "--local-directory",
+                    str(folder / f"w{i}"),
+                ],
+            )  # fmt: skip
+            for i in range(2)
+        ]
+
+    def _start(self, name: str, args: list[str]) -> subprocess.Popen[bytes]:
+        log = (self.logs / f"{name}.log").open("wb")
+        proc = subprocess.Popen([str(DASK), *args], stdout=log, stderr=log, cwd=self.logs)
+        self.procs.append(proc)
+        return proc
+
+    def wait(self) -> dict[str, int]:
+        """Worker address -> pid, once both workers have joined."""
+        from distributed import Client
+
+        with Client(self.address, timeout="30s") as client:
+            client.wait_for_workers(2, timeout=60)
+            return client.run(os.getpid)
+
+    def stop(self) -> None:
+        for proc in reversed(self.procs):
+            if proc.poll() is None:
+                proc.terminate()
+        for proc in self.procs:
+            try:
+                proc.wait(timeout=5)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+
+
+@pytest.fixture
+def cluster(tmp_path: Path) -> Iterator[tuple[Cluster, dict[str, int]]]:
+    if not DASK.exists():
+        pytest.skip(f"no dask command beside {sys.executable} (install distributed)")
+    folder = tmp_path / "cluster"
+    folder.mkdir()
+    running = Cluster(folder)
+    try:
+        yield running, running.wait()
+    finally:
+        running.stop()
+
+
+@pytest.fixture(scope="module")
+def cthead(datasets: Path) -> Volume:
+    from miss.io import load_volume
+
+    return load_volume(datasets / "ct_head_stanford_cthead" / "CThead.nhdr")
+
+
+def test_tasks_run_on_both_workers_and_equal_the_local_run(cluster, cthead, tmp_path) -> None:
+    from distributed import Client, get_task_stream
+
+    running, workers = cluster
+    lazy = zarr_copy(cthead, tmp_path, (64, 64, 32))
+    local = blockwise_surface(lazy, 1500.0, normals=False, block=48, cluster=False)
+    with Client(running.address) as client, get_task_stream(client) as stream:
+        remote = blockwise_surface(lazy, 1500.0, normals=False, block=48, scheduler=running.address)
+    ran = {t["worker"] for t in stream.data if str(t["key"]).startswith("miss-block")}
+    assert ran == set(workers)
+    assert_same_surface(remote, local, 0.0)
+
+
+def test_a_worker_killed_mid_job_leaves_the_job_to_the_other(cluster, cthead, tmp_path) -> None:
+    running, workers = cluster
+    lazy = zarr_copy(cthead, tmp_path, (32, 32, 16))
+    local = blockwise_surface(lazy, 1500.0, normals=False, block=24, cluster=False)
+    victim = next(iter(workers.values()))
+    killed = threading.Event()
+
+    def progress(stage: str, fraction: float) -> None:
+        if fraction > 0.3 and not killed.is_set():
+            os.kill(victim, signal.SIGKILL)
+            killed.set()
+
+    remote = blockwise_surface(
+        lazy, 1500.0, normals=False, block=24, scheduler=running.address, progress=progress
+    )
+    assert killed.is_set()
+    assert_same_surface(remote, local, 0.0)
+
+
+def test_local_cluster_equals_threads(cthead) -> None:
+    threads = blockwise_surface(cthead, 1500.0, normals=False, block=64, cluster=False)
+    cluster = blockwise_surface(cthead, 1500.0, normals=False, block=64, cluster=True)
+    assert_same_surface(cluster, threads, 0.0)
+
+
+def test_unreachable_scheduler_names_the_address(cthead) -> None:
+    address = f"tcp://127.0.0.1:{_free_port()}"
+    start = time.perf_counter()
+    with pytest.raises(SchedulerUnreachable, match=f"at {address}.*MISS_DASK_SCHEDULER"):
+        blockwise_surface(cthead, 1500.0, block=64, scheduler=address)
+    assert time.perf_counter() - start < 30
+
+
+def test_cli_unreachable_scheduler_one_line_exit_2(datasets, tmp_path) -> None:
+    address = f"tcp://127.0.0.1:{_free_port()}"
+    head = datasets / "ct_head_stanford_cthead" / "CThead.nhdr"
+    proc = subprocess.run(
+        [sys.executable, "-m", "miss.cli", "convert", str(head), "--level", "1500",
+         "-o", str(tmp_path / "bone.stl"), "--scheduler", address],
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert proc.returncode == 2
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and address in lines[0] and "dask scheduler" in lines[0]
