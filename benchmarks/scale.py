@@ -6,8 +6,8 @@ MISS's blockwise surface on a local Dask cluster of 1 and 2 workers.
     .venv/bin/python benchmarks/scale.py --crossover               # threads vs cluster
 
 The volume is the CThead (``$MISS_CTHEAD``, else ../shared/datasets beside the repo)
-resampled (linear, int16) to ``--size`` and written as Zarr (chunks 128³) in a temporary
-folder. Every variant runs in its own process, watched from outside (psutil, every 20 ms):
+resampled (linear, int16) to ``--size`` and stored as MISS stores a volume (Zarr, chunks
+of 64³) in a temporary folder. Every variant runs in its own process, watched from outside (psutil, every 20 ms):
 the peak resident memory of each process of its tree (the job's own, each worker's, each
 nanny's) and of the tree together. The interpreter's baseline is a process that imports
 the same modules and stops. VTK runs on one thread everywhere
@@ -27,6 +27,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -48,60 +49,53 @@ def _cthead() -> Path:
     raise SystemExit("CThead not found: set MISS_CTHEAD to CThead.nhdr")
 
 
-def _axis(data: np.ndarray, axis: int, count: int, out: Any = None) -> np.ndarray:
-    """Linear resampling along ``axis`` to ``count`` samples (same extent), int16 kept;
-    written plane by plane into ``out`` (a Zarr array) when given."""
+def _axis(data: np.ndarray, axis: int, count: int) -> np.ndarray:
+    """Linear resampling along ``axis`` to ``count`` samples (same extent), int16 kept."""
     old = data.shape[axis]
     pos = np.linspace(0.0, old - 1.0, count)
     low = np.minimum(np.floor(pos).astype(np.int64), old - 2)
-    frac = (pos - low).astype(np.float32)
-    shape = list(data.shape)
-    shape[axis] = count
-    result = np.empty(shape, dtype=data.dtype, order="F") if out is None else None
-    chunk = 128  # the Zarr chunk: whole chunks written
-    for k0 in range(0, count, chunk):
-        ks = np.arange(k0, min(k0 + chunk, count))
-        shape_f = [1, 1, 1]
-        shape_f[axis] = len(ks)
-        a = np.take(data, low[ks], axis).astype(np.float32)
-        b = np.take(data, low[ks] + 1, axis).astype(np.float32)
-        block = np.rint(a + frac[ks].reshape(shape_f) * (b - a)).astype(data.dtype)
-        index: list[Any] = [slice(None)] * 3
-        index[axis] = slice(k0, k0 + len(ks))
-        block = np.asfortranarray(block)
-        if out is None:
-            result[tuple(index)] = block  # type: ignore[index]
-        else:
-            out[tuple(index)] = block
-    return result  # type: ignore[return-value]
+    shape_f = [1, 1, 1]
+    shape_f[axis] = count
+    frac = (pos - low).astype(np.float32).reshape(shape_f)
+    a = np.take(data, low, axis).astype(np.float32)
+    b = np.take(data, low + 1, axis).astype(np.float32)
+    return np.asfortranarray(np.rint(a + frac * (b - a)).astype(data.dtype))
 
 
 def make_volume(size: tuple[int, int, int], folder: Path) -> Path:
-    """CThead resampled to ``size``, int16, as Zarr (chunks 128³) in ``folder``."""
-    import zarr
-
+    """CThead resampled to ``size``, int16, stored as MISS stores a volume (Zarr in
+    chunks of 64³, :func:`miss.server.storage.chunked.write_planes`), plane by plane."""
     from miss.io import load_volume
+    from miss.server.storage import chunked
 
     path = folder / f"cthead_{'x'.join(map(str, size))}.zarr"
     if (path / "zarr.json").is_file():
         return path
     data = load_volume(_cthead()).data
-    data = _axis(_axis(data, 0, size[0]), 1, size[1])
-    out = zarr.create_array(path, shape=size, chunks=(128, 128, 128), dtype=data.dtype)
-    _axis(data, 2, size[2], out)
+    data = _axis(_axis(data, 0, size[0]), 1, size[1])  # (X, Y, 113): small
+    attributes = {"affine": np.eye(4).tolist(), "provenance": {"benchmark": "scale.py"}}
+    chunked.write_planes(path, size, data.dtype, _planes(data, size[2]), attributes)
     return path
+
+
+def _planes(data: np.ndarray, count: int) -> Iterator[np.ndarray]:
+    """The (X, Y) planes of ``data`` linearly resampled to ``count`` along z, one by one."""
+    old = data.shape[2]
+    for z in np.linspace(0.0, old - 1.0, count):
+        k = min(int(z), old - 2)
+        a, b = data[:, :, k].astype(np.float32), data[:, :, k + 1].astype(np.float32)
+        yield np.rint(a + np.float32(z - k) * (b - a)).astype(data.dtype)
 
 
 # ---- the variants, each run as ``scale.py --variant NAME --zarr PATH`` in a child ----
 
 
 def _variant(name: str, zarr_path: str, block: int) -> dict[str, Any]:
-    import zarr
-
     import miss.blockwise  # noqa: F401  (the same imports as the baseline)
+    from miss.server.storage import chunked
     from miss.types import Volume
 
-    array = zarr.open_array(zarr_path, mode="r")
+    array = chunked.open_array(Path(zarr_path))[0]
     if name == "baseline":
         import distributed  # noqa: F401
 
@@ -123,7 +117,7 @@ def _single(array: Any) -> dict[str, Any]:
     from miss.surface import _flying_edges
 
     start = time.perf_counter()
-    data = np.asfortranarray(array[...])
+    data = np.asarray(array)  # (X, Y, Z) Fortran order: the stored (Z, Y, X), transposed
     read = time.perf_counter() - start
     start = time.perf_counter()
     _, faces, _ = _flying_edges(data, LEVEL - 0.25, normals=False)
@@ -289,11 +283,10 @@ def crossover(folder: Path, block: int) -> str:
 
 
 def _crossover_child(zarr_path: str, block: int) -> dict[str, Any]:
-    import zarr
-
+    from miss.server.storage import chunked
     from miss.types import Volume
 
-    volume = Volume(zarr.open_array(zarr_path, mode="r"), np.eye(4))
+    volume = Volume(chunked.open_array(Path(zarr_path))[0], np.eye(4))
     return {"threads": _threads(volume, block, False), "cluster": _threads(volume, block, True)}
 
 

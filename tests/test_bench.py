@@ -320,3 +320,25 @@ def test_bounds_rejects_bad_bounds_and_cases(capsys) -> None:
     assert "--bounds must be numbers" in capsys.readouterr().err
     assert bounds.main(["--cases", "CThead knee"]) == 2
     assert "unknown case" in capsys.readouterr().err
+
+
+def test_scale_volume_is_stored_as_miss_stores_one(tmp_path: Path) -> None:
+    """``benchmarks/scale.py`` measures the format MISS stores (Zarr in 64³ chunks, read
+    through ``Voxels``): its resampled CThead, blockwise on threads, gives the same
+    triangles as the single pass on the same (padded) region."""
+    if not bench.default_cthead().is_file():
+        pytest.skip("CThead is absent: the real scans live in ../shared/datasets")
+    import scale
+
+    from miss.blockwise import blockwise_surface
+    from miss.server.storage import chunked
+
+    path = scale.make_volume((72, 70, 40), tmp_path)
+    voxels, affine, _ = chunked.open_array(path)
+    assert voxels.shape == (72, 70, 40) and voxels.chunks == (64, 64, 40)
+    assert np.array_equal(affine, np.eye(4))
+    whole = Volume(np.asarray(voxels), affine)
+    lazy = Volume(voxels, affine)
+    single = extract_surface(whole, scale.LEVEL, normals=False)
+    blocks = blockwise_surface(lazy, scale.LEVEL, normals=False, block=16, cluster=False)
+    assert blocks.n_triangles == single.n_triangles > 1000

@@ -18,6 +18,9 @@ flying-edges run over the whole padded region (tested against it).
 from __future__ import annotations
 
 import itertools
+import threading
+from collections import OrderedDict
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -86,8 +89,70 @@ def read_points(grid: Grid, box: Box) -> np.ndarray:
             return out
         src.append(slice(s0 + (lo - 1) * st, s0 + (hi - 1) * st + 1, st))
         dst.append(slice(lo - a, hi - a + 1))
-    out[tuple(dst)] = np.asarray(grid.data[tuple(src)])
+    out[tuple(dst)] = read_box(grid.data, tuple(src))
     return out
+
+
+class ChunkCache:
+    """Decompressed chunks of arrays on disk, the most recently used kept up to ``limit``
+    bytes; shared by the threads of a process (each Dask worker has its own).
+
+    Neighbouring blocks share a plane of points, and a block's box rarely ends on a chunk
+    boundary, so without it a chunk on a seam is decompressed once for every block that
+    touches it (up to 8 times, 3.4x the work for blocks of two chunks a side)."""
+
+    def __init__(self, limit: int) -> None:
+        self.limit, self.held = limit, 0
+        self.chunks: OrderedDict[tuple[Any, ...], np.ndarray] = OrderedDict()
+        self.lock = threading.Lock()
+
+    def get(self, key: tuple[Any, ...], load: Callable[[], np.ndarray]) -> np.ndarray:
+        with self.lock:
+            if key in self.chunks:
+                self.chunks.move_to_end(key)
+                return self.chunks[key]
+        chunk = load()  # outside the lock: two threads may read one chunk, never wait
+        with self.lock:
+            if key not in self.chunks:
+                self.chunks[key] = chunk
+                self.held += chunk.nbytes
+            while self.held > self.limit and len(self.chunks) > 1:
+                _, dropped = self.chunks.popitem(last=False)
+                self.held -= dropped.nbytes
+        return chunk
+
+
+#: This process's chunk cache: 256 MB, a layer of 64-voxel chunks of a 1000 x 2000 grid.
+CHUNKS = ChunkCache(256 << 20)
+
+
+def read_box(data: Any, src: tuple[slice, ...]) -> np.ndarray:
+    """``data[src]`` as numpy; an array on disk with ``chunks`` (unit steps) is read a
+    whole chunk at a time through :data:`CHUNKS`."""
+    chunks, name = getattr(data, "chunks", None), _array_name(data)
+    if chunks is None or name is None or any(sl.step not in (None, 1) for sl in src):
+        return np.asarray(data[src])
+    bounds = [(sl.start, sl.stop) for sl in src]
+    out = np.empty([b - a for a, b in bounds], dtype=data.dtype, order="F")
+    spans = [range(a // c, (b - 1) // c + 1) for (a, b), c in zip(bounds, chunks, strict=True)]
+    for index in itertools.product(*spans):
+        lo = [i * c for i, c in zip(index, chunks, strict=True)]
+        box = tuple(slice(a, min(a + c, n)) for a, c, n in zip(lo, chunks, data.shape, strict=True))
+        chunk = CHUNKS.get((name, *index), lambda box=box: np.asarray(data[box]))
+        overlap = [
+            (max(a, c0), min(b, c0 + c)) for (a, b), c0, c in zip(bounds, lo, chunks, strict=True)
+        ]
+        take = tuple(slice(a - c0, b - c0) for (a, b), c0 in zip(overlap, lo, strict=True))
+        put = tuple(slice(a - s0, b - s0) for (a, b), (s0, _) in zip(overlap, bounds, strict=True))
+        out[put] = chunk[take]
+    return out
+
+
+def _array_name(data: Any) -> str | None:
+    """Where an array on disk lives (the same after pickling to a worker), else None."""
+    stored = getattr(data, "stored", data)  # miss.server.storage.chunked.Voxels
+    where = getattr(stored, "store_path", None)
+    return None if where is None else f"{where}:{getattr(data, 'shape', '')}"
 
 
 def voxel_boxes(grid: Grid, edge: int) -> list[Box]:
@@ -114,7 +179,7 @@ def block_range(grid: Grid, box: Box) -> tuple[float, float]:
         slice(s0 + a * st, s0 + b * st + 1, st)
         for (a, b), st, s0 in zip(box, grid.step, grid.start, strict=True)
     )
-    part = np.asarray(grid.data[src])
+    part = read_box(grid.data, src)
     return float(part.min()), float(part.max())
 
 

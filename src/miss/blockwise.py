@@ -97,7 +97,8 @@ def blockwise_surface(
             "Lower the sample rate or widen the slice range."
         )
     dtype = np.dtype(volume.data.dtype)
-    grid = Grid(volume.data, tuple(lo for lo, _ in box), steps, shape, 0.0, dtype.str)  # type: ignore[arg-type]
+    data, start, step = _source(volume.data, [lo for lo, _ in box], steps)
+    grid = Grid(data, start, step, shape, 0.0, dtype.str)  # type: ignore[arg-type]
     blocks = cell_blocks(grid.padded, block_edges(block))
     address = scheduler_address(scheduler)
     big = cluster if cluster is not None else int(np.prod(shape)) >= CLUSTER_VOXELS
@@ -131,6 +132,19 @@ def blockwise_surface(
     if np.linalg.det(volume.affine[:3, :3]) < 0:
         faces = np.ascontiguousarray(faces[:, ::-1])  # a mirroring affine flips the winding
     return Mesh(vertices=verts, faces=faces, normals=index_normals if normals else None)
+
+
+def _source(
+    data: Any, start: Sequence[int], steps: Sequence[int]
+) -> tuple[Any, tuple[int, ...], tuple[int, ...]]:
+    """The array the blocks read, where the region starts in it and its steps: through a
+    :class:`StridedView` to the array on disk itself, so that its chunks are read whole
+    and kept (:data:`miss.blocks.CHUNKS`)."""
+    if isinstance(data, StridedView):
+        inner = [lo + s0 * st for (lo, _), s0, st in zip(data.box, start, data.steps, strict=True)]
+        steps = [a * b for a, b in zip(steps, data.steps, strict=True)]
+        return data.data, tuple(inner), tuple(steps)
+    return data, tuple(start), tuple(steps)
 
 
 def _surface_task(
