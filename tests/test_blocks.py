@@ -137,17 +137,37 @@ def test_bad_level_and_block_size(cthead) -> None:
 
 
 def test_progress_counts_blocks(cthead) -> None:
+    """Integer data: one pass over the blocks (each reports its value range, checked once
+    all are in); float data: the range pass first (its pad lies below the range)."""
     seen: list[tuple[str, float]] = []
     blockwise_surface(
         cthead, 1500.0, normals=False, block=100, progress=lambda s, f: seen.append((s, f))
     )
     blocks = 3 * 3 * 2  # 257 x 257 x 114 padded cells in blocks of 100
-    ranges = len(
-        voxel_boxes(Grid(cthead.data, (0, 0, 0), (1, 1, 1), (256, 256, 113), 0, "<i2"), RANGE_BLOCK)
-    )
-    assert len(seen) == ranges + blocks  # the range pass, then the surfaces
+    assert len(seen) == blocks
     assert {s for s, _ in seen} == {"surface"}
     assert seen[-1][1] == pytest.approx(1.0)
+
+    seen.clear()
+    floats = Volume(np.asfortranarray(cthead.data, dtype=np.float32), cthead.affine)
+    blockwise_surface(
+        floats, 1500.0, normals=False, block=100, progress=lambda s, f: seen.append((s, f))
+    )
+    ranges = len(
+        voxel_boxes(Grid(floats.data, (0, 0, 0), (1, 1, 1), (256, 256, 113), 0, "<f4"), RANGE_BLOCK)
+    )
+    assert len(seen) == ranges + blocks  # the range pass, then the surfaces
+    assert seen[-1][1] == pytest.approx(1.0)
+
+
+def test_a_level_outside_the_values_is_refused_after_one_pass(cthead) -> None:
+    """Integer data's blocks would cap the whole region at a level below every voxel:
+    the ranges they report refuse it as the single pass does."""
+    low = float(cthead.data.min()) - 5
+    with pytest.raises(EmptySurface, match="holds values"):
+        blockwise_surface(cthead, low, normals=False, block=100)
+    with pytest.raises(EmptySurface, match="holds values"):
+        extract_surface(cthead, low, normals=False)
 
 
 def test_a_job_on_zarr_goes_block_by_block(cthead, tmp_path) -> None:

@@ -21,7 +21,7 @@ import itertools
 import threading
 from collections import OrderedDict
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -67,6 +67,8 @@ class BlockMesh:
     normals: np.ndarray
     shared: np.ndarray
     keys: np.ndarray
+    #: the smallest and largest region voxel the block read (its pad aside)
+    span: tuple[float, float] = (np.inf, -np.inf)
 
 
 def cell_blocks(padded: tuple[int, int, int], edge: tuple[int, int, int]) -> list[Box]:
@@ -196,12 +198,13 @@ def surface_block(grid: Grid, box: Box, level: float, normals: bool) -> BlockMes
         for (a, b), n in zip(box, grid.padded, strict=True)
     )
     points = read_points(grid, read)
+    span = _region_span(points, read, grid.shape)
     if not points.min() < level <= points.max():  # all inside or all outside: no triangle
-        return _empty_block(normals)
+        return replace(_empty_block(normals), span=span)
     origin = np.array([r[0] for r in read], dtype=np.int64)
     local, faces, vectors = _contour_with_indices(points, level, normals)
     if len(faces) == 0:
-        return _empty_block(normals)
+        return replace(_empty_block(normals), span=span)
     axis, base, verts = _exact_positions(points, local, level)
     if context:
         lo = np.array([a for a, _ in box], dtype=np.float64) - origin
@@ -217,7 +220,18 @@ def surface_block(grid: Grid, box: Box, level: float, normals: bool) -> BlockMes
     verts += origin
     shared = _on_block_faces(base, axis, box)
     keys = _edge_keys(base[shared], axis[shared], grid.padded)
-    return BlockMesh(verts, faces, vectors, shared, keys)
+    return BlockMesh(verts, faces, vectors, shared, keys, span)
+
+
+def _region_span(points: np.ndarray, read: Box, shape: tuple[int, int, int]) -> tuple[float, float]:
+    """Minimum and maximum of the region voxels among ``points`` (read over ``read``)."""
+    inner = tuple(
+        slice(max(a, 1) - a, min(b, n) - a + 1) for (a, b), n in zip(read, shape, strict=True)
+    )
+    voxels = points[inner]
+    if voxels.size == 0:
+        return np.inf, -np.inf
+    return float(voxels.min()), float(voxels.max())
 
 
 def _empty_block(normals: bool) -> BlockMesh:
@@ -240,17 +254,11 @@ def _contour_with_indices(
     """
     _use_both_cores()
     image = image_data(points)
-    keep = []
-    for k, name in enumerate("ijk"):
-        shape = [1, 1, 1]
-        shape[k] = points.shape[k]
-        index = np.empty(points.shape, dtype=np.float64, order="F")
-        index[...] = np.arange(points.shape[k], dtype=np.float64).reshape(shape)
-        flat = index.ravel(order="F")  # a view: F-ordered
+    keep = _index_arrays(points.shape)  # numpy_to_vtk(deep=False) does not own the memory
+    for name, flat in zip("ijk", keep, strict=True):
         array = numpy_support.numpy_to_vtk(flat, deep=False)
         array.SetName(name)
         image.GetPointData().AddArray(array)
-        keep.append(flat)  # numpy_to_vtk(deep=False) does not own the memory
     fe = vtkFlyingEdges3D()
     fe.SetInputData(image)
     fe.SetValue(0, float(level))
@@ -272,6 +280,40 @@ def _contour_with_indices(
     else:
         vectors = np.zeros((len(local), 0), np.float32)
     return local.astype(np.float64), faces, vectors
+
+
+#: The index arrays of recent block shapes (read-only; most blocks share one shape):
+#: building them took a sixth of a block's time. At most ``_INDEX_BYTES`` kept.
+_INDEX_ARRAYS: OrderedDict[tuple[int, ...], tuple[np.ndarray, ...]] = OrderedDict()
+_INDEX_BYTES = 160 << 20
+_INDEX_LOCK = threading.Lock()
+
+
+def _index_arrays(shape: tuple[int, ...]) -> tuple[np.ndarray, ...]:
+    """Each point's i, j and k as three flat float64 arrays (F order) for a grid of
+    ``shape``, shared by the blocks of that shape."""
+    with _INDEX_LOCK:
+        if shape in _INDEX_ARRAYS:
+            _INDEX_ARRAYS.move_to_end(shape)
+            return _INDEX_ARRAYS[shape]
+    arrays = []
+    for k in range(3):
+        along = [1, 1, 1]
+        along[k] = shape[k]
+        index = np.empty(shape, dtype=np.float64, order="F")
+        index[...] = np.arange(shape[k], dtype=np.float64).reshape(along)
+        flat = index.ravel(order="F")  # a view: F-ordered
+        flat.flags.writeable = False
+        arrays.append(flat)
+    made = tuple(arrays)
+    with _INDEX_LOCK:
+        _INDEX_ARRAYS[shape] = made
+        while (
+            len(_INDEX_ARRAYS) > 1
+            and sum(a.nbytes for v in _INDEX_ARRAYS.values() for a in v) > _INDEX_BYTES
+        ):
+            _INDEX_ARRAYS.popitem(last=False)
+    return made
 
 
 def _exact_positions(

@@ -104,15 +104,17 @@ def blockwise_surface(
     big = cluster if cluster is not None else int(np.prod(shape)) >= CLUSTER_VOXELS
     run = partial(run_blocks, scheduler=address, cluster=big)
     report = progress or (lambda stage, fraction: None)
-    # the range does not depend on the blocks: big ones, few tasks
-    lo, hi = _range(grid, voxel_boxes(grid, RANGE_BLOCK), run, report)
-    if not lo < level < hi:
-        raise EmptySurface(
-            f"no surface at level {level:g}: the chosen region holds values {lo:g}..{hi:g}; "
-            "pick a level inside that range."
-        )
     contour = _contour_level(dtype, level)
-    pad_dtype, pad = _pad_value(dtype, contour, hi - lo)
+    # Integer data pads with its type's minimum: the surface pass needs no value range
+    # first, and each block reports its own (checked once all are in). Float data's pad
+    # lies below the range, which a first pass finds (big blocks, few tasks).
+    in_one_pass = np.issubdtype(dtype, np.integer) and np.iinfo(dtype).min < contour
+    lo, hi, start = np.inf, -np.inf, 0.0
+    if not in_one_pass:
+        lo, hi = _range(grid, voxel_boxes(grid, RANGE_BLOCK), run, report)
+        _check_level(level, lo, hi)
+        start = 0.1
+    pad_dtype, pad = _pad_value(dtype, contour, hi - lo if not in_one_pass else 0.0)
     grid = Grid(grid.data, grid.start, grid.step, grid.shape, pad, np.dtype(pad_dtype).str)
     offset = np.array([b[0] for b in box], dtype=np.float64)
     welder = Welder()
@@ -121,9 +123,11 @@ def blockwise_surface(
         _surface_task, level=contour, normals=normals, affine=volume.affine, steps=steps,
         offset=offset,
     )  # fmt: skip
-    done = partial(_counted, report, 0.1, 0.9)
+    done = partial(_counted, report, start, 1.0 - start)
     for part in run(task, grid, blocks, progress=done):
+        lo, hi = min(lo, part.span[0]), max(hi, part.span[1])
         welder.add(part, part.vertices, part.normals)
+    _check_level(level, lo, hi)
     verts, faces, index_normals = welder.result()
     if len(faces) == 0:
         raise EmptySurface(
@@ -132,6 +136,14 @@ def blockwise_surface(
     if np.linalg.det(volume.affine[:3, :3]) < 0:
         faces = np.ascontiguousarray(faces[:, ::-1])  # a mirroring affine flips the winding
     return Mesh(vertices=verts, faces=faces, normals=index_normals if normals else None)
+
+
+def _check_level(level: float, lo: float, hi: float) -> None:
+    if not lo < level < hi:
+        raise EmptySurface(
+            f"no surface at level {level:g}: the chosen region holds values {lo:g}..{hi:g}; "
+            "pick a level inside that range."
+        )
 
 
 def _source(
