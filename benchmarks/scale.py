@@ -125,14 +125,19 @@ def _single(array: Any) -> dict[str, Any]:
 
 
 def _blocks(volume: Any, workers: int, block: int) -> dict[str, Any]:
+    import dask
     from distributed import LocalCluster
 
     from miss.blockwise import blockwise_surface
+    from miss.runner import NANNY_ENVIRON
 
     start = time.perf_counter()
-    with LocalCluster(
-        n_workers=workers, threads_per_worker=1, dashboard_address=None, processes=True
-    ) as cluster:
+    with (
+        dask.config.set(NANNY_ENVIRON),  # the workers MISS's own local cluster starts
+        LocalCluster(
+            n_workers=workers, threads_per_worker=1, dashboard_address=None, processes=True
+        ) as cluster,
+    ):
         up = time.perf_counter() - start
         start = time.perf_counter()
         mesh = blockwise_surface(
