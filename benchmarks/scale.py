@@ -249,7 +249,8 @@ def _markdown(
         "",
         "The single pass's time is the contour alone; its read (the whole Zarr array into "
         "one F-ordered numpy array) is the next column. Blockwise times include all "
-        "reading (two passes: min/max, then surfaces), the welding and the mapping to mm.",
+        "reading (int16: one pass, each block's value range checked at the end), the "
+        "welding and the mapping to mm.",
         "",
         "| variant | time (s) | + read (s) | vs single + read | job peak - base (MB) "
         "| worker peak - base (MB) | total peak (MB) | triangles |",
