@@ -104,17 +104,21 @@ class Reporter:
             raise Stop
 
 
-def memory_cap(env: Mapping[str, str]) -> int:
-    """Bytes a job may allocate (``MISS_WORKER_MEMORY_MB`` in ``env``, read by
-    :class:`Settings`). Raises ``BadParameter`` for a value that is not a number of MB."""
+def _setting(env: Mapping[str, str], name: str, fix: str) -> Settings:
+    """The settings with only ``name`` read from ``env`` (by :class:`Settings`); a bad
+    value raises ``BadParameter`` saying to set it to ``fix``."""
     try:
-        settings = Settings.from_env({MEMORY_ENV: env.get(MEMORY_ENV, "")})
+        return Settings.from_env({name: env.get(name, "")})
     except ValueError as exc:
         raise BadParameter(
-            f"{str(exc).rstrip('.')}; set {MEMORY_ENV} on the server to a number (0 for no "
-            "cap) and restart it."
+            f"{str(exc).rstrip('.')}; set {name} on the server to {fix} and restart it."
         ) from None
-    return settings.worker_memory_bytes
+
+
+def memory_cap(env: Mapping[str, str]) -> int:
+    """Bytes a job may allocate (``MISS_WORKER_MEMORY_MB`` in ``env``). Raises
+    ``BadParameter`` for a value that is not a number of MB."""
+    return _setting(env, MEMORY_ENV, "a number (0 for no cap)").worker_memory_bytes
 
 
 def mapped_bytes() -> int | None:
@@ -129,14 +133,7 @@ def mapped_bytes() -> int | None:
 
 def in_memory_max(env: Mapping[str, str]) -> int:
     """``MISS_IN_MEMORY_MAX_MB`` in ``env`` as bytes (``Store.in_memory_max``)."""
-    try:
-        settings = Settings.from_env({IN_MEMORY_ENV: env.get(IN_MEMORY_ENV, "")})
-    except ValueError as exc:
-        raise BadParameter(
-            f"{str(exc).rstrip('.')}; set {IN_MEMORY_ENV} on the server to a number of MB "
-            "and restart it."
-        ) from None
-    return settings.in_memory_max_bytes
+    return _setting(env, IN_MEMORY_ENV, "a number of MB").in_memory_max_bytes
 
 
 def voxel_bytes(folder: Path) -> int:
@@ -173,16 +170,9 @@ def remove_outputs(folder: Path) -> None:
 
 
 def lod_budget(env: Mapping[str, str]) -> int | None:
-    """Triangles above which a model gets levels of detail (``MISS_LOD_TRIANGLES``,
-    read by :class:`Settings`); None when it is 0 (never)."""
-    try:
-        settings = Settings.from_env({LOD_ENV: env.get(LOD_ENV, "")})
-    except ValueError as exc:
-        raise BadParameter(
-            f"{str(exc).rstrip('.')}; set {LOD_ENV} on the server to a number of triangles "
-            "(0: never) and restart it."
-        ) from None
-    return settings.lod_triangles or None
+    """Triangles above which a model gets levels of detail (``MISS_LOD_TRIANGLES``);
+    None when it is 0 (never)."""
+    return _setting(env, LOD_ENV, "a number of triangles (0: never)").lod_triangles or None
 
 
 def write_tree_atomic(folder: Path, files: Mapping[str, bytes]) -> None:
