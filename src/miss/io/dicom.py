@@ -72,24 +72,14 @@ def read(path: Path, series: str | None) -> Volume:
         uid = _choose(path, groups, series)
         _refuse_multiframe(groups[uid])
         stack = dicom_stack.assemble(path, [(h.entry, h.ds) for h in groups[uid]])
-    first = groups[uid][0].ds
     return make_volume(
         path,
         stack.data,
         stack.affine,
         "dicom",
         notes=notes + stack.notes,
-        patient={tag: _text(first.get(tag, "") or "") for tag in PATIENT_TAGS},
-        modality=str(first.get("Modality", "")),
-        units="HU" if first.get("Modality") == "CT" else "",
-        rescale=stack.rescale,
-        series_description=str(first.get("SeriesDescription", "")),
-        series_uid=uid,
-        study_uid=str(first.get("StudyInstanceUID", "")),
-        frame_of_reference=str(first.get("FrameOfReferenceUID", "")),
-        series=[_describe(u, h) for u, h in groups.items()],
-        burned_in_annotation=any(_burned_in(h.ds) for h in groups[uid]),
-        private_tags=sum(1 for element in first if element.tag.is_private),
+        patient=_patient(groups[uid][0].ds),
+        **_series_meta(groups, uid, stack.rescale),
     )
 
 
@@ -109,39 +99,36 @@ def stream(path: Path, series: str | None = None) -> Streamed | None:
     stack = dicom_stack.stream_stack(path, [(h.entry, h.ds) for h in groups[uid]])
     if stack is None:
         return None
-    meta = _meta(path, groups, uid, stack.dims, stack.rescale, notes + stack.notes)
-    first = groups[uid][0].ds
-    patient = {tag: _text(first.get(tag, "") or "") for tag in PATIENT_TAGS}
+    meta = streamed_meta("dicom", notes + stack.notes, **_series_meta(groups, uid, stack.rescale))
     checked = checked_affine(path, stack.affine, "dicom")
+    patient = _patient(groups[uid][0].ds)
     return Streamed(
         stack.dims, stack.dtype, checked, stack.planes, lambda lo, hi: meta, "dicom", patient
     )
 
 
-def _meta(
-    path: Path,
-    groups: dict[str, list[Header]],
-    uid: str,
-    dims: tuple[int, int, int],
-    rescale: tuple[float, float],
-    notes: list[str],
+def _patient(first: Dataset) -> dict[str, str]:
+    """The identifying attributes of a series' first slice (``Volume.patient``)."""
+    return {tag: _text(first.get(tag, "") or "") for tag in PATIENT_TAGS}
+
+
+def _series_meta(
+    groups: dict[str, list[Header]], uid: str, rescale: tuple[float, float]
 ) -> dict[str, Any]:
-    """What ``read`` gives as a streamed series' ``meta``."""
+    """The ``meta`` of series ``uid`` beyond the defaults (read whole or streamed alike)."""
     first = groups[uid][0].ds
-    return streamed_meta(
-        "dicom",
-        notes,
-        modality=str(first.get("Modality", "")),
-        units="HU" if first.get("Modality") == "CT" else "",
-        rescale=rescale,
-        series_description=str(first.get("SeriesDescription", "")),
-        series_uid=uid,
-        study_uid=str(first.get("StudyInstanceUID", "")),
-        frame_of_reference=str(first.get("FrameOfReferenceUID", "")),
-        series=[_describe(u, h) for u, h in groups.items()],
-        burned_in_annotation=any(_burned_in(h.ds) for h in groups[uid]),
-        private_tags=sum(1 for element in first if element.tag.is_private),
-    )
+    return {
+        "modality": str(first.get("Modality", "")),
+        "units": "HU" if first.get("Modality") == "CT" else "",
+        "rescale": rescale,
+        "series_description": str(first.get("SeriesDescription", "")),
+        "series_uid": uid,
+        "study_uid": str(first.get("StudyInstanceUID", "")),
+        "frame_of_reference": str(first.get("FrameOfReferenceUID", "")),
+        "series": [_describe(u, h) for u, h in groups.items()],
+        "burned_in_annotation": any(_burned_in(h.ds) for h in groups[uid]),
+        "private_tags": sum(1 for element in first if element.tag.is_private),
+    }
 
 
 def _text(value: Any) -> str:
