@@ -40,6 +40,15 @@ def log_in(client: TestClient, name: str = "admin", password: str = ADMIN_PASSWO
     return token
 
 
+def started(data: Path, password: str = ADMIN_PASSWORD) -> TestClient:
+    """A server's app started on the data folder ``data`` (its administrator's
+    ``password``) and logged in as the administrator; the caller closes it (``__exit__``)."""
+    client = TestClient(create_app(settings_for(data, admin_password=password)))
+    client.__enter__()
+    log_in(client, password=password)
+    return client
+
+
 @pytest.fixture
 def admin_password() -> str:
     return ADMIN_PASSWORD

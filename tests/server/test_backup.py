@@ -11,12 +11,12 @@ from typing import Any
 
 import pytest
 from fastapi.testclient import TestClient
-from pg import database_url, settings_for, sqlalchemy_url
+from pg import database_url, sqlalchemy_url
+from server.conftest import started as start_logged_in
 from sqlalchemy import create_engine, text
 
 from miss.cli import main
 from miss.errors import BadParameter
-from miss.server.app import create_app
 from miss.server.storage.backup import MANIFEST, backup, restore
 from miss.server.storage.db import Base
 
@@ -48,12 +48,7 @@ def rows(url: str) -> dict[str, dict[Any, tuple[Any, ...]]]:
 
 
 def started(data: Path) -> TestClient:
-    client = TestClient(create_app(settings_for(data, admin_password=PASSWORD)))
-    client.__enter__()
-    r = client.post("/api/auth/login", json={"username": "admin", "password": PASSWORD})
-    client.cookies.clear()
-    client.headers["Authorization"] = f"Bearer {r.json()['token']}"
-    return client
+    return start_logged_in(data, PASSWORD)
 
 
 def test_backup_while_a_job_runs_and_restore_into_a_fresh_folder(

@@ -10,10 +10,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
-from pg import copy_seed, settings_for
+from pg import copy_seed
+from server.conftest import started as start_logged_in
 
 from miss.server import labelmaps
-from miss.server.app import create_app
 from miss.server.storage import chunked
 from miss.structures.labelmap import label_counts
 from miss.types import Volume
@@ -23,12 +23,7 @@ BIG = 1 << 40
 
 
 def started(data: Path) -> TestClient:
-    client = TestClient(create_app(settings_for(data, admin_password=PASSWORD)))
-    client.__enter__()
-    r = client.post("/api/auth/login", json={"username": "admin", "password": PASSWORD})
-    client.cookies.clear()
-    client.headers["Authorization"] = f"Bearer {r.json()['token']}"
-    return client
+    return start_logged_in(data, PASSWORD)
 
 
 def make_old(folder: Path) -> tuple[np.ndarray, np.ndarray]:

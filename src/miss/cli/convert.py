@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from miss.cli.options import add_job_options, add_source_options, job_form, source_of
+from miss.cli.options import add_job_options, add_source_options, job_form, source_of, whole_numbers
 
 
 def add_parser(sub: Any) -> None:
@@ -45,12 +45,11 @@ def _chunks(text: str) -> str | int | tuple[int, ...]:
     if text.strip().lower() == "auto":
         return "auto"
     try:
-        values = tuple(int(p) for p in text.split(","))
-    except ValueError:
+        return whole_numbers(text)
+    except argparse.ArgumentTypeError:
         raise argparse.ArgumentTypeError(
             f"expected auto, N or X,Y,Z voxels, got {text!r}"
         ) from None
-    return values[0] if len(values) == 1 else values
 
 
 def _blocks(args: argparse.Namespace) -> Any:

@@ -15,7 +15,7 @@ from typing import Any
 from miss.spec import FileSource, Source, Structure, default_of, form_fields, form_name
 
 
-def _ints(text: str) -> int | tuple[int, ...]:
+def whole_numbers(text: str) -> int | tuple[int, ...]:
     """``N`` or ``X,Y,Z`` (or any count, the spec checks how many)."""
     try:
         values = tuple(int(p) for p in text.split(","))
@@ -58,7 +58,7 @@ TEXT: dict[str, Callable[[str], Any]] = {
     "str": str,
     "int": _number(int),
     "float": _number(float),
-    "ints": _ints,
+    "ints": whole_numbers,
     "part": _part,
 }
 
