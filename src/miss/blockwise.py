@@ -34,8 +34,8 @@ from miss.surface import (
     _normals_to_patient,
     _pad_value,
     _points_to_patient,
-    _region,
-    _sample_steps,
+    check_level,
+    checked_region,
     extract_surface,
 )
 from miss.types import Mesh, Volume
@@ -86,16 +86,7 @@ def blockwise_surface(
     blocks. The same triangles and vertices as one flying-edges pass over the padded
     region, vertices placed from float64 edge parameters (see :mod:`miss.blocks`).
     """
-    if not np.isfinite(level):
-        raise BadParameter(f"level must be a finite number, got {level!r}.")
-    steps = _sample_steps(sample_rate)
-    box = _region(volume.dims, slices, roi)
-    shape = tuple(len(range(lo, hi + 1, st)) for (lo, hi), st in zip(box, steps, strict=True))
-    if min(shape) < 2:
-        raise BadParameter(
-            f"sample rate {steps} leaves {shape} voxels; a surface needs at least 2 per axis. "
-            "Lower the sample rate or widen the slice range."
-        )
+    steps, box, shape = checked_region(volume.dims, level, sample_rate, slices, roi)
     dtype = np.dtype(volume.data.dtype)
     data, start, step = _source(volume.data, [lo for lo, _ in box], steps)
     grid = Grid(data, start, step, shape, 0.0, dtype.str)  # type: ignore[arg-type]
@@ -112,7 +103,7 @@ def blockwise_surface(
     lo, hi, start = np.inf, -np.inf, 0.0
     if not in_one_pass:
         lo, hi = _range(grid, voxel_boxes(grid, RANGE_BLOCK), run, report)
-        _check_level(level, lo, hi)
+        check_level(level, lo, hi)
         start = 0.1
     pad_dtype, pad = _pad_value(dtype, contour, hi - lo if not in_one_pass else 0.0)
     grid = Grid(grid.data, grid.start, grid.step, grid.shape, pad, np.dtype(pad_dtype).str)
@@ -127,7 +118,7 @@ def blockwise_surface(
     for part in run(task, grid, blocks, progress=done):
         lo, hi = min(lo, part.span[0]), max(hi, part.span[1])
         welder.add(part, part.vertices, part.normals)
-    _check_level(level, lo, hi)
+    check_level(level, lo, hi)
     verts, faces, index_normals = welder.result()
     if len(faces) == 0:
         raise EmptySurface(
@@ -136,14 +127,6 @@ def blockwise_surface(
     if np.linalg.det(volume.affine[:3, :3]) < 0:
         faces = np.ascontiguousarray(faces[:, ::-1])  # a mirroring affine flips the winding
     return Mesh(vertices=verts, faces=faces, normals=index_normals if normals else None)
-
-
-def _check_level(level: float, lo: float, hi: float) -> None:
-    if not lo < level < hi:
-        raise EmptySurface(
-            f"no surface at level {level:g}: the chosen region holds values {lo:g}..{hi:g}; "
-            "pick a level inside that range."
-        )
 
 
 def _source(

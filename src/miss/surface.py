@@ -262,6 +262,37 @@ def _seam_vertices(verts: np.ndarray, plane: float) -> tuple[np.ndarray, np.ndar
     return on[order], xy
 
 
+def checked_region(
+    dims: Sequence[int],
+    level: float,
+    sample_rate: SampleRate,
+    slices: tuple[int, int] | None,
+    roi: Roi | None,
+) -> tuple[tuple[int, int, int], list[tuple[int, int]], tuple[int, ...]]:
+    """The sample steps, the region's voxel box and its sampled shape, checked: a finite
+    level and at least 2 voxels per axis."""
+    if not np.isfinite(level):
+        raise BadParameter(f"level must be a finite number, got {level!r}.")
+    steps = _sample_steps(sample_rate)
+    box = _region(dims, slices, roi)
+    shape = tuple(len(range(lo, hi + 1, st)) for (lo, hi), st in zip(box, steps, strict=True))
+    if min(shape) < 2:
+        raise BadParameter(
+            f"sample rate {steps} leaves {shape} voxels; a surface needs at least 2 per axis. "
+            "Lower the sample rate or widen the slice range."
+        )
+    return steps, box, shape
+
+
+def check_level(level: float, lo: float, hi: float) -> None:
+    """Refuse a level outside the region's values ``lo``..``hi`` (no surface there)."""
+    if not lo < level < hi:
+        raise EmptySurface(
+            f"no surface at level {level:g}: the chosen region holds values {lo:g}..{hi:g}; "
+            "pick a level inside that range."
+        )
+
+
 def extract_surface(
     volume: Volume,
     level: float,
@@ -299,24 +330,12 @@ def extract_surface(
         vertices (N, 3) float32 mm, faces (F, 3) int32 wound counter-clockwise seen
         from outside (from above-level towards below-level), outward unit normals.
     """
-    if not np.isfinite(level):
-        raise BadParameter(f"level must be a finite number, got {level!r}.")
-    steps = _sample_steps(sample_rate)
-    box = _region(volume.dims, slices, roi)
+    steps, box, _ = checked_region(volume.dims, level, sample_rate, slices, roi)
     block = volume.data[
         tuple(slice(lo, hi + 1, st) for (lo, hi), st in zip(box, steps, strict=True))
     ]
-    if min(block.shape) < 2:
-        raise BadParameter(
-            f"sample rate {steps} leaves {block.shape} voxels; a surface needs at least 2 per axis. "
-            "Lower the sample rate or widen the slice range."
-        )
     lo, hi = float(np.min(block)), float(np.max(block))
-    if not lo < level < hi:
-        raise EmptySurface(
-            f"no surface at level {level:g}: the chosen region holds values {lo:g}..{hi:g}; "
-            "pick a level inside that range."
-        )
+    check_level(level, lo, hi)
     offset = np.array([b[0] for b in box], dtype=np.float64)
     contour = _contour_level(block.dtype, level)
     if closed:
