@@ -125,19 +125,11 @@ def _single(array: Any) -> dict[str, Any]:
 
 
 def _blocks(volume: Any, workers: int, block: int) -> dict[str, Any]:
-    import dask
-    from distributed import LocalCluster
-
     from miss.blockwise import blockwise_surface
-    from miss.runner import NANNY_ENVIRON
+    from miss.runner import local_cluster
 
     start = time.perf_counter()
-    with (
-        dask.config.set(NANNY_ENVIRON),  # the workers MISS's own local cluster starts
-        LocalCluster(
-            n_workers=workers, threads_per_worker=1, dashboard_address=None, processes=True
-        ) as cluster,
-    ):
+    with local_cluster(workers) as cluster:  # the cluster MISS itself starts
         up = time.perf_counter() - start
         start = time.perf_counter()
         mesh = blockwise_surface(

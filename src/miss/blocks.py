@@ -22,6 +22,7 @@ import threading
 from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass, replace
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -140,7 +141,7 @@ def read_box(data: Any, src: tuple[slice, ...]) -> np.ndarray:
     for index in itertools.product(*spans):
         lo = [i * c for i, c in zip(index, chunks, strict=True)]
         box = tuple(slice(a, min(a + c, n)) for a, c, n in zip(lo, chunks, data.shape, strict=True))
-        chunk = CHUNKS.get((name, *index), lambda box=box: np.asarray(data[box]))
+        chunk = CHUNKS.get((name, *index), partial(_load_chunk, data, index, box))
         overlap = [
             (max(a, c0), min(b, c0 + c)) for (a, b), c0, c in zip(bounds, lo, chunks, strict=True)
         ]
@@ -148,6 +149,13 @@ def read_box(data: Any, src: tuple[slice, ...]) -> np.ndarray:
         put = tuple(slice(a - s0, b - s0) for (a, b), (s0, _) in zip(overlap, bounds, strict=True))
         out[put] = chunk[take]
     return out
+
+
+def _load_chunk(data: Any, index: tuple[int, ...], box: tuple[slice, ...]) -> np.ndarray:
+    """Chunk ``index`` of ``data`` (``box``: its voxels): straight from its file when the
+    array offers ``chunk`` (:class:`miss.server.storage.chunked.Voxels`), else sliced."""
+    read = getattr(data, "chunk", None)
+    return read(index) if read is not None else np.asarray(data[box])
 
 
 def _array_name(data: Any) -> str | None:
@@ -279,7 +287,7 @@ def _contour_with_indices(
         vectors = numpy_support.vtk_to_numpy(data.GetNormals()).astype(np.float32)
     else:
         vectors = np.zeros((len(local), 0), np.float32)
-    return local.astype(np.float64), faces, vectors
+    return local.astype(np.float64, copy=False), faces, vectors
 
 
 #: The index arrays of recent block shapes (read-only; most blocks share one shape):
@@ -327,19 +335,22 @@ def _exact_positions(
     two such vertices at one voxel on a block face are welded into one (a difference from
     the single pass only there).
     """
-    frac = local - np.floor(local)
-    off_grid = frac != 0.0
-    axis = np.where(off_grid.any(axis=1), np.argmax(off_grid, axis=1), 3).astype(np.int8)
-    base = np.floor(local).astype(np.int64)
-    verts = base.astype(np.float64)
-    moving = np.flatnonzero(off_grid.any(axis=1))
-    a = axis[moving]
-    start = base[moving]
-    end = start.copy()
-    end[np.arange(len(moving)), a] += 1
-    s0 = points[start[:, 0], start[:, 1], start[:, 2]].astype(np.float64)
-    s1 = points[end[:, 0], end[:, 1], end[:, 2]].astype(np.float64)
-    verts[moving, a] += (level - s0) / (s1 - s0)
+    floor = np.floor(local)
+    off_grid = local != floor
+    moving = off_grid.any(axis=1)
+    axis = np.argmax(off_grid, axis=1).astype(np.int8)
+    axis[~moving] = 3
+    base = floor.astype(np.int64)
+    verts = floor
+    rows = np.flatnonzero(moving)
+    a = axis[rows]
+    # the edge's two voxel values through the flat (F-ordered) points: one gather each
+    strides = np.array([1, points.shape[0], points.shape[0] * points.shape[1]], np.int64)
+    start = base[rows] @ strides
+    flat = points.ravel(order="F")
+    s0 = flat[start].astype(np.float64)
+    s1 = flat[start + strides[a]].astype(np.float64)
+    verts[rows, a] += (level - s0) / (s1 - s0)
     return axis, base, verts
 
 

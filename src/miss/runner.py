@@ -38,6 +38,17 @@ SCHEDULER_ENV = "MISS_DASK_SCHEDULER"
 #: Unset for the local cluster; start remote workers with this too (README).
 NANNY_ENVIRON = {"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None}
 
+#: Dask settings for MISS's clusters (the local one is started with them; give a remote
+#: scheduler and its workers the same, README): :data:`NANNY_ENVIRON`, and no queuing of
+#: root tasks at the scheduler (``worker-saturation``: its default 1.1 hands a worker its
+#: next block only after the last one is reported, a round trip per block; the blocks are
+#: independent and about equal, so they all go out at once and work stealing evens them).
+CLUSTER_CONFIG = {**NANNY_ENVIRON, "distributed.scheduler.worker-saturation": float("inf")}
+
+#: Imported by every worker of the local cluster as it starts (``--preload`` for remote
+#: ones): VTK and numpy load before the first block, not inside the job's time.
+PRELOAD = ["miss.blocks"]
+
 
 class SchedulerUnreachable(MissError, ConnectionError):
     """The Dask scheduler named by ``--scheduler`` or ``MISS_DASK_SCHEDULER`` did not answer."""
@@ -118,20 +129,10 @@ def _in_memory(shared: Any) -> bool:
 @contextmanager
 def _client(scheduler: str | None) -> Iterator[Any]:
     """A Client to ``scheduler``, or to a LocalCluster started (and stopped) here."""
-    import dask
-    from distributed import Client, LocalCluster
+    from distributed import Client
 
     if scheduler is None:
-        with (
-            dask.config.set(NANNY_ENVIRON),
-            LocalCluster(
-                n_workers=os.cpu_count() or 1,
-                threads_per_worker=1,
-                processes=True,
-                dashboard_address=None,
-            ) as local,
-            Client(local) as client,
-        ):
+        with local_cluster(os.cpu_count() or 1) as local, Client(local) as client:
             yield client
         return
     try:
@@ -144,3 +145,23 @@ def _client(scheduler: str | None) -> Iterator[Any]:
         ) from exc
     with client:
         yield client
+
+
+@contextmanager
+def local_cluster(workers: int) -> Iterator[Any]:
+    """A LocalCluster of ``workers`` single-threaded worker processes, set up as MISS runs
+    blocks (:data:`CLUSTER_CONFIG`, :data:`PRELOAD`); stopped on leaving."""
+    import dask
+    from distributed import LocalCluster
+
+    with (
+        dask.config.set(CLUSTER_CONFIG),
+        LocalCluster(
+            n_workers=workers,
+            threads_per_worker=1,
+            processes=True,
+            dashboard_address=None,
+            preload=PRELOAD,
+        ) as local,
+    ):
+        yield local

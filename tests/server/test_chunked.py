@@ -55,6 +55,44 @@ def test_round_trip_voxels_and_affine(tmp_path: Path, dtype: str, shape: tuple) 
     assert [p.name for p in tmp_path.iterdir()] == ["data.zarr"]  # no staging folder left
 
 
+@pytest.mark.parametrize(
+    ("dtype", "shape"), [("int16", (130, 70, 150)), ("uint8", (5, 64, 65)), ("float64", (3, 2, 70))]
+)
+def test_a_chunk_read_from_its_file_is_zarrs_chunk(
+    tmp_path: Path, dtype: str, shape: tuple
+) -> None:
+    rng = np.random.default_rng(2)
+    data = np.asfortranarray(rng.integers(1, 200, shape).astype(dtype))
+    data[:64, :64, :64] = 0  # a chunk of the fill value: zarr writes no file for it
+    path = tmp_path / "data.zarr"
+    chunked.write_array(path, data, {"affine": AFFINE})
+    array = chunked.open_array(path)[0]
+    assert not (path / "c" / "0" / "0" / "0").exists()
+    counts = [-(-n // c) for n, c in zip(shape, array.chunks, strict=True)]
+    for index in np.ndindex(*counts):
+        box = tuple(slice(i * c, (i + 1) * c) for i, c in zip(index, array.chunks, strict=True))
+        got = array.chunk(index)
+        assert got.shape == array.chunks and got.dtype == data.dtype  # edge chunks whole
+        part = data[box]
+        assert np.array_equal(got[tuple(slice(0, n) for n in part.shape)], part)
+
+
+def test_a_damaged_chunk_file_is_refused_before_decompressing(tmp_path: Path) -> None:
+    path = tmp_path / "data.zarr"
+    data = np.ones((70, 3, 3), np.int16, order="F")
+    chunked.write_array(path, data, {"affine": AFFINE})
+    array = chunked.open_array(path)[0]
+    where = path / "c" / "0" / "0" / "1"
+    raw = bytearray(where.read_bytes())
+    raw[4:8] = (1 << 31).to_bytes(4, "little")  # claims 2 GB once decompressed
+    where.write_bytes(bytes(raw))
+    with pytest.raises(UnreadableVolume, match="not a Blosc chunk"):
+        array.chunk((1, 0, 0))
+    where.write_bytes(b"short")
+    with pytest.raises(UnreadableVolume, match="restore the data folder"):
+        array.chunk((1, 0, 0))
+
+
 def tampered(meta: dict, change: str) -> dict:
     if change == "gzip codec":
         meta["codecs"][1] = {"name": "gzip", "configuration": {"level": 5}}
