@@ -118,6 +118,35 @@ def test_tasks_run_on_both_workers_and_equal_the_local_run(cluster, cthead, tmp_
     assert_same_surface(remote, local, 0.0)
 
 
+def _triangles_by_position(mesh) -> set[tuple[float, ...]]:
+    return {tuple(sorted(map(tuple, t))) for t in mesh.vertices[mesh.faces].tolist()}
+
+
+def test_blocks_decimated_on_the_workers_equal_the_local_run(cluster, cthead, tmp_path) -> None:
+    """Both waves (each block's surface, then its decimation once the bound is known) run
+    on the workers, and the welded result has the triangles of the run on threads."""
+    from distributed import Client, get_task_stream
+
+    from miss.blockwise import BlockDecimation, blockwise_decimated
+
+    running, workers = cluster
+    lazy = zarr_copy(cthead, tmp_path, (64, 64, 32))
+    wanted = BlockDecimation("quadric", 0.9, 0.002)
+    local, local_stage = blockwise_decimated(lazy, 1500.0, wanted, block=48, cluster=False)
+    with Client(running.address) as client, get_task_stream(client) as stream:
+        remote, stage = blockwise_decimated(
+            lazy, 1500.0, wanted, block=48, scheduler=running.address
+        )
+    for wave in ("miss-block", "miss-finish"):
+        assert {t["worker"] for t in stream.data if str(t["key"]).startswith(wave)} == set(workers)
+    assert (stage.triangles_in, stage.triangles_out) == (
+        local_stage.triangles_in,
+        local_stage.triangles_out,
+    )
+    assert stage.max_mm == local_stage.max_mm
+    assert _triangles_by_position(remote) == _triangles_by_position(local)
+
+
 def test_a_worker_killed_mid_job_leaves_the_job_to_the_other(cluster, cthead, tmp_path) -> None:
     running, workers = cluster
     lazy = zarr_copy(cthead, tmp_path, (32, 32, 16))

@@ -70,6 +70,21 @@ class BlockMesh:
     keys: np.ndarray
     #: the smallest and largest region voxel the block read (its pad aside)
     span: tuple[float, float] = (np.inf, -np.inf)
+    #: what decimating it where it was made did (``miss.blockwise.blockwise_decimated``)
+    decimated: Decimated | None = None
+
+
+@dataclass(frozen=True)
+class Decimated:
+    """A block decimated where it was made: its measured maximum and mean deviation from
+    its full-resolution surface (mm), its triangles before, and that surface's extent
+    (lowest and highest x, y, z, mm)."""
+
+    max_mm: float
+    mean_mm: float
+    triangles_in: int
+    lo: np.ndarray
+    hi: np.ndarray
 
 
 def cell_blocks(padded: tuple[int, int, int], edge: tuple[int, int, int]) -> list[Box]:

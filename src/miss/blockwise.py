@@ -8,16 +8,18 @@ mesh is mapped to LPS millimetres as it arrives and welded at the end.
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from functools import partial
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
 from miss.blocks import (
     BlockMesh,
     Box,
+    Decimated,
     Grid,
     Welder,
     block_range,
@@ -63,6 +65,44 @@ def block_edges(block: BlockShape) -> tuple[int, int, int]:
     return int(edges[0]), int(edges[1]), int(edges[2])
 
 
+@dataclass(frozen=True)
+class BlockDecimation:
+    """Decimate each block where it was made, its border vertices held (so that the blocks
+    still meet), before the blocks are welded: the job's ``method``, ``reduce`` and
+    ``error_bound`` (a fraction of the whole surface's diagonal, as ever). A block gets
+    :data:`BLOCK_BOUND_SHARE` of the bound and keeps :data:`BLOCK_KEEP` times the job's
+    share of its triangles; what is left is spent across the blocks (the job's
+    ``decimate`` on the welded mesh)."""
+
+    method: str
+    reduce: float
+    error_bound: float
+
+
+#: The share of the error bound the blocks may spend; the pass across them gets the rest
+#: (what the blocks did not use, measured).
+BLOCK_BOUND_SHARE = 0.5
+#: Blocks keep this many times the job's final share of their triangles (the pass across
+#: the blocks removes the rest, borders included): as the slabs of ``decimate.quadric``.
+BLOCK_KEEP = 2.0
+
+
+@dataclass(frozen=True)
+class BlockStage:
+    """What decimating the blocks did: triangles before (the full surface) and after,
+    the whole surface's diagonal (mm), the bound the blocks had and their measured
+    maximum and mean (triangle-weighted) deviation, mm, and the seconds it took."""
+
+    triangles_in: int
+    triangles_out: int
+    diagonal_mm: float
+    bound_mm: float
+    max_mm: float
+    mean_mm: float
+    #: from the blocks' extents known to the welded mesh (their surfaces' time not counted)
+    seconds: float
+
+
 def blockwise_surface(
     volume: Volume,
     level: float,
@@ -86,6 +126,78 @@ def blockwise_surface(
     blocks. The same triangles and vertices as one flying-edges pass over the padded
     region, vertices placed from float64 edge parameters (see :mod:`miss.blocks`).
     """
+    mesh, _, _ = _blockwise(
+        volume, level, sample_rate, slices, roi, normals=normals, block=block,
+        scheduler=scheduler, cluster=cluster, progress=progress, decimation=None,
+    )  # fmt: skip
+    return mesh
+
+
+def blockwise_decimated(
+    volume: Volume,
+    level: float,
+    decimation: BlockDecimation,
+    *,
+    block: BlockShape = None,
+    scheduler: str | None = None,
+    cluster: bool | None = None,
+    progress: Progress | None = None,
+) -> tuple[Mesh, BlockStage]:
+    """:func:`blockwise_surface` (no normals) with each block decimated where it was made,
+    its border held: the welded mesh, still to be decimated across the blocks, and what
+    the blocks did. The full-resolution surface is never in one place: each block's stays
+    in the process (or Dask worker) that made it until the bound, which needs the whole
+    surface's diagonal, is known from every block's extent (a second wave of tasks).
+
+    Each block's output is measured against its own full-resolution surface
+    (:func:`miss.decimate.decimate_held`); the blocks tile the surface, so the welded mesh
+    lies within the largest block's measured deviation of it, both ways.
+    """
+    mesh, parts, began = _blockwise(
+        volume, level, normals=False, block=block, scheduler=scheduler, cluster=cluster,
+        progress=progress, decimation=decimation,
+    )  # fmt: skip
+    assert parts is not None
+    before = sum(p.triangles_in for p in parts)
+    diagonal = _diagonal(parts)
+    stage = BlockStage(
+        triangles_in=before,
+        triangles_out=mesh.n_triangles,
+        diagonal_mm=diagonal,
+        bound_mm=BLOCK_BOUND_SHARE * decimation.error_bound * diagonal,
+        max_mm=max((p.max_mm for p in parts), default=0.0),
+        mean_mm=sum(p.mean_mm * p.triangles_in for p in parts) / max(before, 1),
+        seconds=time.perf_counter() - began,
+    )
+    return mesh, stage
+
+
+def _diagonal(extents: Sequence[Any]) -> float:
+    """The diagonal (mm) of the box around every block's ``lo`` .. ``hi``."""
+    used = [e for e in extents if np.all(e.lo <= e.hi)]
+    if not used:
+        return 0.0
+    lo = np.min([e.lo for e in used], axis=0)
+    hi = np.max([e.hi for e in used], axis=0)
+    return float(np.linalg.norm(hi - lo))
+
+
+def _blockwise(
+    volume: Volume,
+    level: float,
+    sample_rate: SampleRate = 1,
+    slices: tuple[int, int] | None = None,
+    roi: Roi | None = None,
+    *,
+    normals: bool,
+    block: BlockShape,
+    scheduler: str | None,
+    cluster: bool | None,
+    progress: Progress | None,
+    decimation: BlockDecimation | None,
+) -> tuple[Mesh, list[Decimated] | None, float]:
+    """The welded surface; with ``decimation`` (blocks decimated where they were made),
+    what each block's decimation did, and when it began (``time.perf_counter``)."""
     steps, box, shape = checked_region(volume.dims, level, sample_rate, slices, roi)
     dtype = np.dtype(volume.data.dtype)
     data, start, step = _source(volume.data, [lo for lo, _ in box], steps)
@@ -115,9 +227,14 @@ def blockwise_surface(
         offset=offset,
     )  # fmt: skip
     done = partial(_counted, report, start, 1.0 - start)
-    for part in run(task, grid, blocks, progress=done):
+    second: list[float] = []  # when the blocks' decimation (the second wave) began
+    then = None if decimation is None else (_extent, partial(_decide, decimation, second))
+    stages: list[Decimated] | None = None if decimation is None else []
+    for part in run(task, grid, blocks, progress=done, then=then):
         lo, hi = min(lo, part.span[0]), max(hi, part.span[1])
         welder.add(part, part.vertices, part.normals)
+        if stages is not None and part.decimated is not None:
+            stages.append(part.decimated)
     check_level(level, lo, hi)
     verts, faces, index_normals = welder.result()
     if len(faces) == 0:
@@ -126,7 +243,8 @@ def blockwise_surface(
         )
     if np.linalg.det(volume.affine[:3, :3]) < 0:
         faces = np.ascontiguousarray(faces[:, ::-1])  # a mirroring affine flips the winding
-    return Mesh(vertices=verts, faces=faces, normals=index_normals if normals else None)
+    mesh = Mesh(vertices=verts, faces=faces, normals=index_normals if normals else None)
+    return mesh, stages, second[0] if second else time.perf_counter()
 
 
 def _source(
@@ -160,6 +278,59 @@ def _surface_task(
     return replace(part, vertices=verts, normals=vectors)
 
 
+class _Extent(NamedTuple):
+    lo: np.ndarray
+    hi: np.ndarray
+    triangles: int
+
+
+def _extent(part: BlockMesh) -> _Extent:
+    """A block's full-resolution extent (mm) and triangles: what the bound needs."""
+    if len(part.faces) == 0:
+        return _Extent(np.full(3, np.inf), np.full(3, -np.inf), 0)
+    v = part.vertices
+    return _Extent(
+        v.min(axis=0).astype(np.float64), v.max(axis=0).astype(np.float64), len(part.faces)
+    )
+
+
+def _decide(
+    decimation: BlockDecimation, began: list[float], extents: list[_Extent]
+) -> Callable[[BlockMesh], BlockMesh]:
+    """Once every block's extent is known: each block's decimation, to its share of the
+    bound (mm, from the whole surface's diagonal) and of the triangles (the time noted in
+    ``began``)."""
+    began.append(time.perf_counter())
+    bound_mm = BLOCK_BOUND_SHARE * decimation.error_bound * _diagonal(extents)
+    keep = min(1.0, BLOCK_KEEP * (1.0 - decimation.reduce))
+    return partial(_decimate_block, method=decimation.method, reduce=1.0 - keep, bound_mm=bound_mm)
+
+
+def _decimate_block(part: BlockMesh, method: str, reduce: float, bound_mm: float) -> BlockMesh:
+    """``part`` decimated within ``bound_mm`` of itself (measured), its border vertices
+    (``part.shared``) kept: they meet the neighbouring blocks'."""
+    from miss.decimate import decimate_held
+
+    lo, hi, count = _extent(part)
+    if count == 0 or reduce <= 0.0:
+        return replace(part, decimated=Decimated(0.0, 0.0, count, lo, hi))
+    fixed = np.zeros(len(part.vertices), dtype=bool)
+    fixed[part.shared] = True
+    mesh = Mesh(vertices=part.vertices, faces=part.faces)
+    faces, check = decimate_held(mesh, method, reduce, bound_mm, fixed)
+    used = fixed.copy()
+    used[faces.ravel()] = True
+    new = np.cumsum(used) - 1
+    return replace(
+        part,
+        vertices=part.vertices[used],
+        faces=new[faces].astype(np.int32),
+        normals=part.normals[used],
+        shared=new[part.shared],
+        decimated=Decimated(check.max_mm, check.mean_mm, count, lo, hi),
+    )
+
+
 def _counted(report: Progress, start: float, width: float, done: int, total: int) -> None:
     report("surface", start + width * done / total)
 
@@ -185,12 +356,30 @@ class BlockRun:
     progress: Progress | None = None
 
 
+def in_blocks(volume: Volume, blocks: BlockRun | None) -> bool:
+    """Whether a job's surfaces go block by block: ``blocks`` given, or the volume's data
+    not in memory (a ``zarr.Array``)."""
+    return blocks is not None or not isinstance(volume.data, np.ndarray)
+
+
+def decimated_surface_of(
+    volume: Volume, level: float, decimation: BlockDecimation, blocks: BlockRun | None
+) -> tuple[Mesh, BlockStage]:
+    """The job's surface stage with its blocks decimated where they were made
+    (:func:`blockwise_decimated`)."""
+    run = blocks or BlockRun()
+    return blockwise_decimated(
+        volume, level, decimation, block=run.block, scheduler=run.scheduler,
+        progress=run.progress,
+    )  # fmt: skip
+
+
 def surface_of(
     volume: Volume, level: float, *, normals: bool, blocks: BlockRun | None = None
 ) -> Mesh:
-    """The job's surface stage: block by block when ``blocks`` is given or the volume's
-    data is not in memory (a ``zarr.Array``), else :func:`~miss.surface.extract_surface`."""
-    if blocks is None and isinstance(volume.data, np.ndarray):
+    """The job's surface stage: block by block when :func:`in_blocks`, else
+    :func:`~miss.surface.extract_surface`."""
+    if not in_blocks(volume, blocks):
         return extract_surface(volume, level, normals=normals)
     run = blocks or BlockRun()
     return blockwise_surface(

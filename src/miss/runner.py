@@ -71,34 +71,65 @@ def run_blocks(
     scheduler: str | None = None,
     cluster: bool = False,
     progress: Callable[[int, int], None] | None = None,
+    then: Then | None = None,
 ) -> Iterator[Any]:
     """Yield ``task(shared, item)`` for every item, in the order they finish.
 
     ``scheduler`` is a Dask address (``tcp://host:8786``); without one, ``cluster`` starts
     a LocalCluster sized to the machine, else a thread pool runs the tasks.
     ``progress(done, total)`` is called after each result.
+
+    With ``then = (look, decide)``, the tasks' results stay where they were made (a
+    worker's memory); ``decide([look(result), ...])`` (the looks in item order, small)
+    returns a function ``finish``, and ``finish(result)`` is yielded for each item, run
+    where the result is. Progress counts both waves.
     """
-    total = len(items)
+    total = len(items) * (2 if then else 1)
     if scheduler is None and not cluster:
-        runs = _on_threads(task, shared, items)
+        runs = _on_threads(task, shared, items, then)
     else:
-        runs = _on_dask(task, shared, items, scheduler)
+        runs = _on_dask(task, shared, items, scheduler, then)
     for done, result in enumerate(runs, start=1):
         if progress is not None:
             progress(done, total)
-        yield result
+        if result is not _FIRST_WAVE:
+            yield result
 
 
-def _on_threads(task: Callable[..., Any], shared: Any, items: Sequence[Any]) -> Iterator[Any]:
+#: (look, decide): see :func:`run_blocks`.
+Then = tuple[Callable[[Any], Any], Callable[[list[Any]], Callable[[Any], Any]]]
+#: What the runners hand back for each result of a first wave (counted, not yielded).
+_FIRST_WAVE = object()
+
+
+def _on_threads(
+    task: Callable[..., Any], shared: Any, items: Sequence[Any], then: Then | None
+) -> Iterator[Any]:
     workers = min(len(items), os.cpu_count() or 1) or 1
     with ThreadPoolExecutor(max_workers=workers) as pool:
-        futures = [pool.submit(task, shared, item) for item in items]
+        futures = {pool.submit(task, shared, item): i for i, item in enumerate(items)}
+        if then is None:
+            for future in as_completed(futures):
+                yield future.result()
+            return
+        results: list[Any] = [None] * len(items)
         for future in as_completed(futures):
+            results[futures[future]] = future.result()
+            yield _FIRST_WAVE
+        look, decide = then
+        finish = decide([look(r) for r in results])
+        seconds = [pool.submit(finish, r) for r in results]
+        results.clear()
+        for future in as_completed(seconds):
             yield future.result()
 
 
 def _on_dask(
-    task: Callable[..., Any], shared: Any, items: Sequence[Any], scheduler: str | None
+    task: Callable[..., Any],
+    shared: Any,
+    items: Sequence[Any],
+    scheduler: str | None,
+    then: Then | None,
 ) -> Iterator[Any]:
     from distributed import as_completed as dask_completed
 
@@ -108,15 +139,36 @@ def _on_dask(
             client.submit(task, ref, item, pure=False, retries=2, key=f"miss-block-{i}")
             for i, item in enumerate(items)
         ]
-        for future in dask_completed(futures):
-            try:
-                yield future.result()
-            except Exception as exc:  # KilledWorker, a task's own error
-                raise BlockTaskFailed(
-                    f"a block task failed on the Dask cluster ({type(exc).__name__}: {exc}); "
-                    "check the workers' logs and that they can read the data folder."
-                ) from exc
-            finally:
+        if then is not None:
+            look, decide = then
+            looks = [
+                client.submit(look, f, pure=False, key=f"miss-look-{i}")
+                for i, f in enumerate(futures)
+            ]
+            for _ in _results(dask_completed(looks), release=False):
+                yield _FIRST_WAVE
+            finish = decide(client.gather(looks))
+            seconds = [
+                client.submit(finish, f, pure=False, retries=2, key=f"miss-finish-{i}")
+                for i, f in enumerate(futures)
+            ]
+            del looks, futures  # the first wave's results go once the second has used them
+            futures = seconds
+        yield from _results(dask_completed(futures))
+
+
+def _results(futures: Iterator[Any], release: bool = True) -> Iterator[Any]:
+    """Each future's result as it finishes; a failure as :class:`BlockTaskFailed`."""
+    for future in futures:
+        try:
+            yield future.result()
+        except Exception as exc:  # KilledWorker, a task's own error
+            raise BlockTaskFailed(
+                f"a block task failed on the Dask cluster ({type(exc).__name__}: {exc}); "
+                "check the workers' logs and that they can read the data folder."
+            ) from exc
+        finally:
+            if release:
                 future.release()
 
 

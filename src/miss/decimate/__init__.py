@@ -233,6 +233,7 @@ def _runner(
     max_error: float,
     paper_passes: int,
     schedule: str,
+    fixed: np.ndarray | None = None,
 ) -> Run:
     """One run of ``method`` given the vertices locked: (faces kept, the bound it is held
     to, mm, the method that ran). Quadric runs after its first ``_QUADRIC_ROUNDS`` (per
@@ -252,8 +253,8 @@ def _runner(
 
         def run_quadric(locked: np.ndarray | None, round_: int) -> tuple[np.ndarray, float, str]:
             if round_ > runs:
-                # quadric's locks are not schroeder's: its first run starts free
-                free = None if round_ == runs + 1 else locked
+                # quadric's locks are not schroeder's: its first run starts free (bar ``fixed``)
+                free = fixed if round_ == runs + 1 else locked
                 return (*schroeder(mesh, reduce, bound_mm / 8, bound_mm, 0, free), "schroeder")
             target = bound_mm / extent * _QUADRIC_TIGHTER ** (round_ - 1)
             return quadric(mesh, reduce, target, locked)[0], bound_mm, "quadric"
@@ -271,14 +272,31 @@ def _runner(
     )
 
 
+def decimate_held(
+    mesh: Mesh, method: Method | str, reduce: float, bound_mm: float, fixed: np.ndarray
+) -> tuple[np.ndarray, BoundCheck]:
+    """The faces a ``guaranteed`` decimation of ``mesh`` keeps, with the ``fixed`` (N,)
+    vertices never removed, and its check: measured within ``bound_mm`` (mm). For one
+    block of a surface (its border fixed, so that the blocks still meet); the caller
+    compacts. ``decimate`` is the whole-mesh function."""
+    _check(method, reduce, 1.0, 1.0, "guaranteed")
+    diag = mesh.diagonal()
+    if method == "none" or mesh.n_triangles == 0 or diag <= 0.0:
+        run: Run = lambda locked, _: (mesh.faces, bound_mm, "none")  # noqa: E731
+    else:
+        run = _runner(mesh, method, reduce, bound_mm / diag, 1.0, 0, "guaranteed", fixed)
+    faces, _, (check, _), _, _ = _held(mesh, run, fixed=fixed)
+    return faces, check
+
+
 def _held(
-    mesh: Mesh, run: Run, rounds: int = ROUNDS
+    mesh: Mesh, run: Run, rounds: int = ROUNDS, fixed: np.ndarray | None = None
 ) -> tuple[np.ndarray, float, tuple[BoundCheck, float], int, str]:
     """Run until the output is measured within its bound: each time it is not, the input
     vertices around the points out of bound are locked and the run repeated (the locks
-    start again when another method takes over); the last round keeps the input as it is
-    (0 mm). Returns (faces, bound mm, (check, seconds of checking), rounds run, the method
-    that made the faces)."""
+    start again, from ``fixed``, when another method takes over); the last round keeps the
+    input as it is (0 mm). Returns (faces, bound mm, (check, seconds of checking), rounds
+    run, the method that made the faces)."""
     import numpy as np
 
     from miss.deviation import bound_check, face_keys, surface_grid
@@ -286,7 +304,8 @@ def _held(
     begin = time.perf_counter()
     grid = surface_grid(mesh)  # the input's cells, searched in every round's check
     known = np.sort(face_keys(mesh.faces))  # its triangles, which need no measuring
-    locked = np.zeros(mesh.n_vertices, dtype=bool)
+    fixed = np.zeros(mesh.n_vertices, dtype=bool) if fixed is None else fixed.astype(bool)
+    locked = fixed.copy()
     spent, last = time.perf_counter() - begin, ""
     slack = _TOLERANCE * mesh.diagonal()
     for round_ in range(1, rounds + 1):
@@ -301,7 +320,7 @@ def _held(
         if check.max_mm <= bound_mm + slack or round_ == rounds:
             return faces, bound_mm, (check, spent), round_, by
         if by != last and last:
-            locked[:] = False
+            locked[:] = fixed
         locked |= _out_of_bound(mesh, check, bound_mm)
         last = by
     raise AssertionError("unreachable: the last round keeps the input")

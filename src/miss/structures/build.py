@@ -23,7 +23,13 @@ from typing import Any
 
 import numpy as np
 
-from miss.blockwise import BlockRun, surface_of
+from miss.blockwise import (
+    BlockDecimation,
+    BlockRun,
+    decimated_surface_of,
+    in_blocks,
+    surface_of,
+)
 from miss.decimate import SAMPLES, DecimationReport, decimate, measured
 from miss.errors import BadParameter, EmptySurface
 from miss.scene import DEFAULT_SCENE_TITLE, Part, Scene
@@ -230,6 +236,11 @@ def _level_parts(
     color = item.color or style[1]
     opacity = style[2] if item.opacity is None else item.opacity
     if item.components == "all" and item.min_size_mm3 == 0:
+        if in_blocks(volume, blocks) and _blocks_decimate(item, decimation):
+            made, report, welded = _decimated_in_blocks(
+                volume, item.level, decimation, blocks, name, notes
+            )
+            return [(Part(name, made, color, opacity), report, welded, SAMPLES)]
         # A decimated mesh gets new normals from its faces: gradients only for "none".
         normals = decimation.method == "none"
         meshes = [surface_of(volume, item.level, normals=normals, blocks=blocks)]
@@ -250,6 +261,58 @@ def _level_parts(
         part = Part(part_name, decimated, part_color, opacity)
         out.append((part, report, smoothed, SAMPLES))
     return out
+
+
+def _blocks_decimate(item: Structure, decimation: Decimation) -> bool:
+    """Whether a blockwise surface is decimated in its blocks first: under a guaranteed
+    bound (its share of the bound is known from the blocks' extents) and unsmoothed (the
+    smoothing runs on the whole surface, before any decimation)."""
+    return decimation.method != "none" and decimation.schedule == "guaranteed" and not item.smooth
+
+
+def _decimated_in_blocks(
+    volume: Volume,
+    level: float,
+    decimation: Decimation,
+    blocks: BlockRun | None,
+    name: str,
+    notes: list[str],
+) -> tuple[Mesh, DecimationReport, Mesh]:
+    """A level's surface decimated in two stages: each block where it was made, its border
+    held, to half the bound (:func:`miss.blockwise.blockwise_decimated`); then the welded
+    mesh, across the blocks, to what the blocks left of the bound and of the triangles.
+
+    The report's maximum is the two stages' measured maxima added: the output lies within
+    that of the full-resolution surface, both ways (each stage's deviation is a distance
+    between surfaces, and distances add up), which is never in one place to measure.
+    """
+    wanted = BlockDecimation(decimation.method, decimation.reduce, decimation.error_bound)
+    welded, stage = decimated_surface_of(volume, level, wanted, blocks)
+    left_mm = decimation.error_bound * stage.diagonal_mm - stage.max_mm
+    target = (1.0 - decimation.reduce) * stage.triangles_in
+    again = min(max(0.0, 1.0 - target / max(welded.n_triangles, 1)), 0.999)
+    out, across = decimate(
+        welded, decimation.method, again, max(left_mm, 0.0) / max(welded.diagonal(), 1e-12),
+        schedule="guaranteed", measure=True,
+    )  # fmt: skip
+    report = replace(
+        across,
+        reduce=decimation.reduce,
+        error_bound=decimation.error_bound,
+        triangles_in=stage.triangles_in,
+        achieved_reduction=1.0 - across.triangles_out / max(stage.triangles_in, 1),
+        final_bound_mm=decimation.error_bound * stage.diagonal_mm,
+        bound_mm=decimation.error_bound * stage.diagonal_mm,
+        max_error_mm=stage.max_mm + (across.max_error_mm or 0.0),
+        mean_error_mm=stage.mean_mm + (across.mean_error_mm or 0.0),
+        seconds=stage.seconds + across.seconds,
+        stopped_by="reduce" if across.triangles_out <= target + 1e-9 else "bound",
+    )
+    notes.append(
+        f"{name}: decimated in its blocks (borders held), then across them; the error is "
+        "the two stages' measured errors added (at most that)"
+    )
+    return out, report, welded
 
 
 def _component_meshes(volume: Volume, item: Structure, notes: list[str], name: str) -> list[Mesh]:
