@@ -284,3 +284,24 @@ def test_metrics_of_either_process_sum_both(two: tuple[Server, Server], small_ni
     b.stop(15)
     got = samples(a)
     assert got[not_found] == 8 and got[rooms] == 0
+
+
+#: The API's burst in the next test; no refill to speak of while it runs.
+BURST = 40
+
+
+def test_the_api_limit_holds_across_processes(tmp_path: Path) -> None:
+    """One account hammering A and B in turn is let through about one burst in all, not
+    a burst on each (what A let through is taken from B's bucket and back within
+    ``ratelimit.SHARE_EVERY``); then both refuse, and keep refusing."""
+    with two_servers(tmp_path, MISS_API_RATE="0.01", MISS_API_BURST=str(BURST)) as (a, b):
+        answers = [
+            (a if n % 2 else b).http.get("/api/models/0000000000000000").status_code
+            for n in range(3 * BURST)
+        ]
+        assert set(answers) == {404, 429}, answers
+        let_through = answers.count(404)
+        assert BURST <= let_through <= BURST * 1.5, answers  # one process each: 2 * BURST
+        time.sleep(0.3)  # each has heard all the other let through
+        for server in (a, b):
+            assert server.http.get("/api/volumes").status_code == 429

@@ -31,7 +31,14 @@ from miss.server.metrics import (
     scrape_token,
 )
 from miss.server.pacs import PacsImports, fail_interrupted
-from miss.server.ratelimit import ApiLimits, JobLimit, OverLimit, RateLimitMiddleware, too_many
+from miss.server.ratelimit import (
+    ApiLimits,
+    JobLimit,
+    OverLimit,
+    RateLimitMiddleware,
+    SharedBuckets,
+    too_many,
+)
 from miss.server.rooms import Hub
 from miss.server.routes import audit, auth, models, pacs, pages, rooms, shares, volumes
 from miss.server.routes.pages import WEB
@@ -114,11 +121,13 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.state.rooms = Hub(store)
         app.state.rooms.on_people = app.state.metrics.rooms.set
         app.state.rooms.start()
+        app.state.shared_limits.start(store.bus)
         store.bus.start()  # after every subscriber: the job queue, the rooms
         try:
             yield
         finally:
             app.state.pacs_imports.stop()
+            app.state.shared_limits.stop()
             await app.state.rooms.stop()
             await run_in_threadpool(queue.stop)
             app.state.metrics.stop()
@@ -140,6 +149,13 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.metrics.watch(lambda: getattr(app.state, "store", None))
     app.state.failed_logins = auth.failed_login_limits()
     app.state.api_limits = ApiLimits(settings.api_rate, settings.api_burst)
+    app.state.shared_limits = SharedBuckets(
+        {
+            "api": app.state.api_limits.buckets,
+            "login-addresses": app.state.failed_logins.addresses,
+            "login-accounts": app.state.failed_logins.accounts,
+        }
+    )
     app.state.job_limit = JobLimit(settings.max_jobs_per_user)
     app.state.upload_slots = UploadSlots(settings.uploads_per_user, settings.uploads_at_once)
     app.add_middleware(RateLimitMiddleware, limits=app.state.api_limits)
