@@ -13,8 +13,9 @@ other's counts, and a sweep can tell which files belong to processes no longer r
 What the merge does with each kind is the library's: counters and histograms of every
 file are summed, those of processes that have exited included (a total never goes back
 while any server runs); ``livesum`` gauges are summed over the files of the running
-processes only, since a process that stops removes its own (:meth:`SampleFiles.close`)
-and a killed one's are swept at the next start.
+processes only: a process that stops removes its own (:meth:`SampleFiles.close`), a
+killed one's are left out of the sums (its process id no longer runs) and swept at the
+next start.
 """
 
 from __future__ import annotations
@@ -80,7 +81,7 @@ class SampleFiles:
         if not self.folder.is_dir():
             return
         for path in self.folder.glob("*.db"):
-            owner = path.name.rsplit("_", 1)[-1].removesuffix(".db")
+            owner = _owner(path)
             if owner == self.name:
                 continue
             if alone or (path.name.startswith("gauge_live") and not _running(owner)):
@@ -101,9 +102,7 @@ def _running(owner: str) -> bool:
     """Whether the process of a file's owner (``<pid>-<tag>``) runs on this host."""
     try:
         os.kill(int(owner.split("-", 1)[0]), 0)
-    except ValueError:
-        return False
-    except ProcessLookupError:
+    except (ValueError, ProcessLookupError):
         return False
     except PermissionError:
         return True
@@ -162,9 +161,18 @@ class FolderCollector(Collector):
         self.folder = folder
 
     def collect(self) -> Iterator[Any]:
-        # A file being made by a process that is starting may still be empty.
-        files = [str(p) for p in self.folder.glob("*.db") if _size(p) >= 8]
+        files = [
+            str(path)
+            for path in self.folder.glob("*.db")
+            if _size(path) >= 8  # one a process is making may still be empty
+            and not (path.name.startswith("gauge_live") and not _running(_owner(path)))
+        ]
         yield from MultiProcessCollector.merge(files, accumulate=True)
+
+
+def _owner(path: Path) -> str:
+    """``<pid>-<tag>`` of ``<kind>_<pid>-<tag>.db``."""
+    return path.name.rsplit("_", 1)[-1].removesuffix(".db")
 
 
 def _size(path: Path) -> int:
