@@ -7,6 +7,7 @@ Refill rates are set so low (one request per 100 s) that no test depends on timi
 
 from __future__ import annotations
 
+import json
 import os
 from collections.abc import Callable
 from typing import Any
@@ -15,6 +16,7 @@ import pytest
 from fastapi.testclient import TestClient
 from starlette.websockets import WebSocketDisconnect
 
+from miss.server.ratelimit import KeyedBuckets, SharedBuckets, split
 from miss.server.rooms import Close
 
 NOBODY = {"Authorization": ""}  # overrides the client's own admin token
@@ -93,6 +95,45 @@ def test_tiles_of_a_large_model_cost_a_share_of_a_request(
     sent = until_refused(client, tile, carol, most=400)
     assert 150 <= sent <= 170, sent
     assert_429(client.get("/api/volumes", headers=carol), "this account")
+
+
+def test_what_one_process_spends_is_taken_from_the_others_buckets() -> None:
+    """Two processes' buckets for one key, each let through 6 of a burst of 10 before
+    hearing of the other: once told, both refuse, and stay in debt (2 tokens) until they
+    have refilled past it; a token given back (a good password) is given back on both.
+    The same through PostgreSQL: ``test_processes.py``."""
+    a, b = KeyedBuckets(10, SLOW), KeyedBuckets(10, SLOW)
+    for buckets in (a, b):
+        buckets.record()
+    shared_a, shared_b = SharedBuckets({"api": a}), SharedBuckets({"api": b})
+    for _ in range(6):
+        assert a.take("user:1") and b.take("user:1") and b.take("user:2", 0.125)
+    for message in split({"api": a.drain()}, 7000):
+        shared_b.heard(message)
+    for message in split({"api": b.drain()}, 7000):
+        shared_a.heard(message)
+    assert a.drain() == b.drain() == {}  # what was heard is not told again
+    for buckets in (a, b):
+        assert not buckets.take("user:1")
+        assert buckets.take_or_wait("user:1") == pytest.approx(3 / SLOW, rel=0.01)
+        assert buckets.take("user:2")  # another key: 0.75 of 10 spent
+    b.give_back("user:1", 5)
+    shared_a.heard({"api": b.drain()})
+    assert a.take("user:1") and b.take("user:1")
+
+
+def test_spending_of_many_keys_is_split_into_messages_that_fit() -> None:
+    spent = {"api": {f"addr:10.0.{n // 256}.{n % 256}": 1.0 for n in range(1000)}}
+    spent["login-accounts"] = {"ann": -1.0}
+    messages = split(spent, 7000)
+    assert len(messages) > 1
+    assert all(len(json.dumps(m, separators=(",", ":"))) <= 7000 for m in messages)
+    joined: dict[str, dict[str, float]] = {}
+    for message in messages:
+        for name, keys in message.items():
+            joined.setdefault(name, {}).update(keys)
+    assert joined == spent
+    assert split({"api": {}}, 7000) == []
 
 
 def test_jobs_per_account(

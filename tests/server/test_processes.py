@@ -10,12 +10,14 @@ import json
 import secrets
 import time
 from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
 import httpx
 import pg
 import pytest
+from prometheus_client.parser import text_string_to_metric_families
 from realserver import Server
 from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import ClientConnection, connect
@@ -23,10 +25,11 @@ from websockets.sync.client import ClientConnection, connect
 pytestmark = pytest.mark.skipif(pg.missing() is not None, reason=str(pg.missing()))
 
 
-@pytest.fixture
-def two(tmp_path: Path) -> Iterator[tuple[Server, Server]]:
+@contextmanager
+def two_servers(tmp_path: Path, **env: str) -> Iterator[tuple[Server, Server]]:
+    """Two ``miss serve`` on one new database and one data folder; ``env``: more settings."""
     url = pg.shared().create(f"procs_{secrets.token_hex(4)}")
-    env = {"MISS_DATABASE_URL": url, "MISS_DEMO": "0", "MISS_WORKERS": "2"}
+    env = {"MISS_DATABASE_URL": url, "MISS_DEMO": "0", "MISS_WORKERS": "2", **env}
     data = tmp_path / "data"
     servers: list[Server] = []
     try:
@@ -37,6 +40,12 @@ def two(tmp_path: Path) -> Iterator[tuple[Server, Server]]:
         for server in servers:
             if server.proc.poll() is None:
                 server.stop(15)
+
+
+@pytest.fixture
+def two(tmp_path: Path) -> Iterator[tuple[Server, Server]]:
+    with two_servers(tmp_path) as servers:
+        yield servers
 
 
 def ws_url(server: Server, model: str, query: str = "") -> str:
@@ -237,3 +246,66 @@ def test_serve_processes_answers_from_several(tmp_path: Path) -> None:
         assert len(seen) == 2, seen
     finally:
         server.stop(15)
+
+
+def samples(server: Server) -> dict[tuple[str, frozenset[tuple[str, str]]], float]:
+    r = server.http.get("/metrics")
+    assert r.status_code == 200, r.text
+    return {
+        (s.name, frozenset(s.labels.items())): s.value
+        for family in text_string_to_metric_families(r.text)
+        for s in family.samples
+    }
+
+
+def test_metrics_of_either_process_sum_both(two: tuple[Server, Server], small_nifti: bytes) -> None:
+    """Requests through A and B counted once each in ``/metrics`` of either; room
+    connections summed over the running processes; B killed: its requests still count,
+    its connections no longer."""
+    a, b = two
+    _, model = ball_model(a, small_nifti)
+    missing = "/api/models/0000000000000000"
+    for server, n in ((a, 3), (b, 5)):
+        for _ in range(n):
+            assert server.http.get(missing).status_code == 404
+    route = frozenset({("method", "GET"), ("route", "/api/models/{model_id}")})
+    not_found = ("miss_http_requests_total", route | {("status", "404")})
+    rooms = ("miss_room_connections", frozenset())
+    for server in (a, b):
+        got = samples(server)
+        assert got[not_found] == 8
+        assert got[("miss_http_request_seconds_count", route)] >= 8
+        assert got[rooms] == 0
+    headers = {"Authorization": f"Bearer {b.token}"}
+    with connect(ws_url(b, model), additional_headers=headers, open_timeout=30) as ws:
+        until(ws, "welcome")
+        assert samples(a)[rooms] == 1
+    assert seen_within(lambda: samples(a)[rooms] == 0)
+    with connect(ws_url(b, model), additional_headers=headers, open_timeout=30) as ws:
+        until(ws, "welcome")
+        assert samples(a)[rooms] == 1
+        b.proc.kill()  # no time to leave the room or remove its files
+        b.proc.wait()
+    got = samples(a)
+    assert got[not_found] == 8 and got[rooms] == 0
+
+
+#: The API's burst in the next test; no refill to speak of while it runs.
+BURST = 40
+
+
+def test_the_api_limit_holds_across_processes(tmp_path: Path) -> None:
+    """One account hammering A and B in turn is let through about one burst in all, not
+    a burst on each (what A let through is taken from B's bucket and back within
+    ``ratelimit.SHARE_EVERY``); then both refuse, and keep refusing."""
+    with two_servers(tmp_path, MISS_API_RATE="0.01", MISS_API_BURST=str(BURST)) as (a, b):
+        answers = [
+            (a if n % 2 else b).http.get("/api/models/0000000000000000").status_code
+            for n in range(3 * BURST)
+        ]
+        assert set(answers) == {404, 429}, answers
+        let_through = answers.count(404)
+        assert BURST <= let_through <= BURST * 1.5, answers  # one process each: 2 * BURST
+        time.sleep(0.3)  # each has heard all the other let through
+        for server in (a, b):
+            assert server.http.get("/api/volumes").status_code == 429

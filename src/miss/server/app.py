@@ -31,7 +31,14 @@ from miss.server.metrics import (
     scrape_token,
 )
 from miss.server.pacs import PacsImports, fail_interrupted
-from miss.server.ratelimit import ApiLimits, JobLimit, OverLimit, RateLimitMiddleware, too_many
+from miss.server.ratelimit import (
+    ApiLimits,
+    JobLimit,
+    OverLimit,
+    RateLimitMiddleware,
+    SharedBuckets,
+    too_many,
+)
 from miss.server.rooms import Hub
 from miss.server.routes import audit, auth, models, pacs, pages, rooms, shares, volumes
 from miss.server.routes.pages import WEB
@@ -48,6 +55,8 @@ def _open(settings: Settings, metrics: Metrics | None = None) -> tuple[Store, Jo
     demo, start the job threads."""
     store = Store(settings.data_dir, settings.database_url, settings.in_memory_max_bytes)
     store.init()
+    if metrics is not None:
+        metrics.start(alone=store.alone)
     if settings.demo and store.count_volumes() == 0:
         log.info("first start: registering the demo phantom")
         register_demo(store)
@@ -55,7 +64,7 @@ def _open(settings: Settings, metrics: Metrics | None = None) -> tuple[Store, Jo
     store.appender.start()
     queue = JobQueue(store, settings.workers, WorkerProcess(store, settings.spare_workers))
     if metrics is not None:
-        queue.on_finished = lambda outcome, seconds: metrics.jobs.labels(outcome).observe(seconds)
+        queue.on_finished = lambda outcome, seconds: metrics.jobs.observe(outcome, value=seconds)
     queue.start()
     if store.alone:  # no other server of this data folder is importing
         fail_interrupted(store)
@@ -110,14 +119,18 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.state.reading = (confinement, settings.parse_limits())
         app.state.pacs_imports = PacsImports(store, settings, lambda: app.state.reading)
         app.state.rooms = Hub(store)
+        app.state.rooms.on_people = app.state.metrics.rooms.set
         app.state.rooms.start()
+        app.state.shared_limits.start(store.bus)
         store.bus.start()  # after every subscriber: the job queue, the rooms
         try:
             yield
         finally:
             app.state.pacs_imports.stop()
+            app.state.shared_limits.stop()
             await app.state.rooms.stop()
             await run_in_threadpool(queue.stop)
+            app.state.metrics.stop()
             store.close()
 
     app = FastAPI(
@@ -132,17 +145,17 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     )
     app.state.settings = settings
     app.state.bytes = ByteCaches()
-    app.state.metrics = Metrics()
-    app.state.metrics.watch(
-        lambda: getattr(app.state, "store", None),
-        lambda: (
-            sum(len(r.people) for r in app.state.rooms.rooms.values())
-            if hasattr(app.state, "rooms")
-            else 0
-        ),
-    )
+    app.state.metrics = Metrics(settings.data_dir)
+    app.state.metrics.watch(lambda: getattr(app.state, "store", None))
     app.state.failed_logins = auth.failed_login_limits()
     app.state.api_limits = ApiLimits(settings.api_rate, settings.api_burst)
+    app.state.shared_limits = SharedBuckets(
+        {
+            "api": app.state.api_limits.buckets,
+            "login-addresses": app.state.failed_logins.addresses,
+            "login-accounts": app.state.failed_logins.accounts,
+        }
+    )
     app.state.job_limit = JobLimit(settings.max_jobs_per_user)
     app.state.upload_slots = UploadSlots(settings.uploads_per_user, settings.uploads_at_once)
     app.add_middleware(RateLimitMiddleware, limits=app.state.api_limits)

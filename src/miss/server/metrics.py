@@ -4,8 +4,16 @@ and the job runners checked) and ``GET /metrics`` in Prometheus's text format.
 ``/metrics`` is for administrators: an administrator's session, or the bearer token set
 in ``MISS_METRICS_TOKEN`` (what a Prometheus scraper is given; sessions expire). It
 holds requests by route and status, their latency, jobs by state and how long they took,
-and the room connections; each server process answers for itself (label your scrape
-targets by process), except jobs by state, which come from the shared database.
+and the room connections.
+
+Whichever process answers, the numbers are those of every server process of its host
+that shares the data folder (``miss serve --processes N`` behind one port, or several
+``miss serve``): requests, latencies and job times summed over them, those of processes
+that have exited included (the totals never go back while any server runs; they start
+from zero again when the first server starts after all had stopped, as after a
+restart); room connections summed over the running ones (``metricfiles``). Jobs by state
+come from the shared database: the same on every host. Several hosts on one data folder
+each answer for their own processes: scrape one process per host.
 """
 
 from __future__ import annotations
@@ -15,14 +23,23 @@ import os
 import secrets
 import time
 from collections.abc import Callable, Iterator
+from pathlib import Path
 from typing import Any
 
-from prometheus_client import CollectorRegistry, Counter, Histogram, generate_latest
+from prometheus_client import CollectorRegistry, generate_latest
 from prometheus_client.core import GaugeMetricFamily
 from prometheus_client.registry import Collector
 from sqlalchemy import func, select, text
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from miss.server.metricfiles import (
+    FolderCollector,
+    SampleFiles,
+    SharedCounter,
+    SharedHistogram,
+    SharedLiveSum,
+    host_folder,
+)
 from miss.server.storage.db import ModelRow
 from miss.server.storage.store import Store
 
@@ -32,49 +49,61 @@ JOB_BUCKETS = (1, 2, 5, 10, 20, 30, 60, 120, 300, 600, 1800, 3600)
 
 
 class Metrics:
-    """One server process's Prometheus registry (its own: tests run many apps at once)."""
+    """The server's metrics, in this app's files in the host's folder of the data folder
+    (``metricfiles.host_folder``); ``text()`` reads every process's files there."""
 
-    def __init__(self) -> None:
-        self.registry = CollectorRegistry()
-        self.requests = Counter(
+    def __init__(self, data_dir: Path) -> None:
+        self.files = SampleFiles(host_folder(data_dir))
+        self.requests = SharedCounter(
+            self.files,
             "miss_http_requests",
             "HTTP requests answered, by method, route (its template) and status.",
             ["method", "route", "status"],
-            registry=self.registry,
         )
-        self.latency = Histogram(
+        self.latency = SharedHistogram(
+            self.files,
             "miss_http_request_seconds",
             "Time from a request's arrival to the end of its answer, by route.",
             ["method", "route"],
-            buckets=LATENCY_BUCKETS,
-            registry=self.registry,
+            LATENCY_BUCKETS,
         )
-        self.jobs = Histogram(
+        self.jobs = SharedHistogram(
+            self.files,
             "miss_job_seconds",
-            "Wall time of the jobs this process ran, by outcome (done, failed, requeued).",
+            "Wall time of the jobs run, by outcome (done, failed, requeued).",
             ["outcome"],
-            buckets=JOB_BUCKETS,
-            registry=self.registry,
+            JOB_BUCKETS,
         )
+        self.rooms = SharedLiveSum(
+            self.files,
+            "miss_room_connections",
+            "Room WebSocket connections open on the running server processes.",
+        )
+        self.registry = CollectorRegistry()
+        self.registry.register(FolderCollector(self.files.folder))
 
-    def watch(self, store: Callable[[], Store | None], people: Callable[[], int]) -> None:
-        """Add what is read at scrape time: jobs by state, room connections."""
-        self.registry.register(_Gauges(store, people))
+    def start(self, alone: bool) -> None:
+        """Sweep the files of processes that are gone (all of them when ``alone``: the
+        first server to start on the data folder) and show no room connections yet."""
+        self.files.sweep(alone)
+        self.rooms.set(0)
+
+    def stop(self) -> None:
+        self.files.close()
+
+    def watch(self, store: Callable[[], Store | None]) -> None:
+        """Add what is read at scrape time: jobs by state."""
+        self.registry.register(_Jobs(store))
 
     def text(self) -> bytes:
         return generate_latest(self.registry)
 
 
-class _Gauges(Collector):
-    def __init__(self, store: Callable[[], Store | None], people: Callable[[], int]) -> None:
-        self.store, self.people = store, people
+class _Jobs(Collector):
+    def __init__(self, store: Callable[[], Store | None]) -> None:
+        self.store = store
 
     def collect(self) -> Iterator[Any]:
-        rooms = GaugeMetricFamily(
-            "miss_room_connections", "Room WebSocket connections open on this process."
-        )
-        rooms.add_metric([], self.people())
-        yield rooms
         store = self.store()
         if store is None:
             return
@@ -112,8 +141,8 @@ class RequestMetrics:
         finally:
             route = getattr(scope.get("route"), "path", None) or "(no route)"
             method = scope.get("method", "")
-            self.metrics.requests.labels(method, route, str(status)).inc()
-            self.metrics.latency.labels(method, route).observe(time.perf_counter() - start)
+            self.metrics.requests.inc(method, route, str(status))
+            self.metrics.latency.observe(method, route, value=time.perf_counter() - start)
 
 
 def scrape_token(env: dict[str, str] | None = None) -> str:

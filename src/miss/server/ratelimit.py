@@ -6,6 +6,9 @@
 - :class:`ApiLimits` and :class:`RateLimitMiddleware`: the REST API's bucket per account,
   or per client address for requests without a known session (share-link viewers).
 - :class:`JobLimit`: how many surface jobs one account may have queued or running.
+- :class:`SharedBuckets`: the keyed buckets of the server processes of one PostgreSQL
+  database kept in step, so a client spread over N processes gets the limit once, not
+  N times.
 
 Over a limit the answer is 429 with a JSON ``detail`` and a ``Retry-After`` header.
 """
@@ -13,11 +16,12 @@ Over a limit the answer is 429 with a JSON ``detail`` and a ``Retry-After`` head
 from __future__ import annotations
 
 import hashlib
+import json
 import math
 import threading
 import time
 from collections import OrderedDict
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
 from sqlalchemy import select
@@ -27,6 +31,7 @@ from starlette.types import ASGIApp, Receive, Scope, Send
 
 from miss.server.auth import presented_token
 from miss.server.errors import TooManyRequests
+from miss.server.storage.bus import Bus
 from miss.server.storage.db import FAILED, QUEUED, RUNNING, ModelRow
 from miss.server.storage.store import Store
 
@@ -48,9 +53,23 @@ class TokenBucket:
             return True
         return False
 
+    def deduct(self, spent: float) -> None:
+        """Take what was spent elsewhere (negative: given back) whether or not it is there:
+        a bucket in debt refuses until it has refilled past it, so N processes that
+        each let a burst through in the same moment are paid back. The debt is bounded
+        by one burst."""
+        self.take(0.0)
+        self.tokens = min(self.capacity, max(-self.capacity, self.tokens - spent))
+
     def seconds_until(self, cost: float = 1.0) -> float:
         """How long until ``take(cost)`` would succeed."""
         return max(0.0, (cost - self.tokens) / self.rate) if self.rate > 0 else float("inf")
+
+
+#: A shared bucket below this share of its capacity is told to the other processes at
+#: once (``SharedBuckets``), not at the next round: near the limit, what a client spends
+#: on several processes at the same moment is what lets it past.
+LOW = 0.25
 
 
 class KeyedBuckets:
@@ -61,23 +80,63 @@ class KeyedBuckets:
         self.capacity, self.rate, self.max_keys = capacity, rate, max_keys
         self._buckets: OrderedDict[str, TokenBucket] = OrderedDict()
         self._lock = threading.Lock()
+        #: Tokens taken (net of those given back) per key since ``drain``, while shared.
+        self._spent: dict[str, float] | None = None
+        #: Called when a take leaves a bucket below ``LOW`` of its capacity, while shared.
+        self.on_low: Callable[[], None] = lambda: None
 
     def take(self, key: str, cost: float = 1.0) -> bool:
         with self._lock:
-            return self._bucket(key).take(cost)
+            bucket = self._bucket(key)
+            taken = bucket.take(cost)
+            if taken:
+                self._note(key, cost, bucket)
+            return taken
 
     def take_or_wait(self, key: str, cost: float = 1.0) -> float:
         """Take ``cost`` tokens: 0.0 when they were there, else the seconds until they
         will be (and nothing is taken)."""
         with self._lock:
             bucket = self._bucket(key)
-            return 0.0 if bucket.take(cost) else max(bucket.seconds_until(cost), 1e-3)
+            if bucket.take(cost):
+                self._note(key, cost, bucket)
+                return 0.0
+            return max(bucket.seconds_until(cost), 1e-3)
 
     def give_back(self, key: str, cost: float = 1.0) -> None:
         """Return ``cost`` tokens taken for an attempt that turned out fine."""
         with self._lock:
             bucket = self._bucket(key)
             bucket.tokens = min(bucket.capacity, bucket.tokens + cost)
+            self._note(key, -cost, bucket)
+
+    # -- what the other processes spent (``SharedBuckets``) ---------------------------------
+
+    def record(self) -> None:
+        """From now on, count what is taken and given back, for ``drain``."""
+        with self._lock:
+            if self._spent is None:
+                self._spent = {}
+
+    def drain(self) -> dict[str, float]:
+        """What was taken per key since the last call (net of what was given back)."""
+        with self._lock:
+            if not self._spent:
+                return {}
+            spent, self._spent = self._spent, {}
+        return {key: n for key, n in spent.items() if n}
+
+    def deduct(self, spent: dict[str, float]) -> None:
+        """Take from each key's bucket what another process took for that key."""
+        with self._lock:
+            for key, n in spent.items():
+                self._bucket(key).deduct(n)
+
+    def _note(self, key: str, cost: float, bucket: TokenBucket) -> None:
+        if self._spent is not None:
+            self._spent[key] = self._spent.get(key, 0.0) + cost
+            if bucket.tokens < LOW * bucket.capacity:
+                self.on_low()
 
     def allowed(self, key: str) -> tuple[bool, float]:
         """(a token is there now, seconds until one is) without taking it."""
@@ -206,6 +265,97 @@ class RateLimitMiddleware:
             await too_many(*refused)(scope, receive, send)
             return
         await self.app(scope, receive, send)
+
+
+# -- across server processes ----------------------------------------------------------------
+
+#: Seconds between two messages of what a process's clients spent: how long a client
+#: spread over several processes may spend more than its limit (one burst at most, paid
+#: back as a debt).
+SHARE_EVERY = 0.1
+#: Bytes of one message's spending (``Bus.MAX_PAYLOAD`` less its envelope); more is split.
+SHARE_BYTES = 7000
+
+
+class SharedBuckets:
+    """The keyed buckets of every server process of one PostgreSQL database in step.
+
+    Each process decides alone, from its own buckets, in memory: no database round trip
+    on a request's way. Every ``SHARE_EVERY`` seconds it publishes on the bus (one
+    ``NOTIFY``) the tokens its clients spent per key, and at once when a bucket runs
+    low; every other process takes them from its own bucket for the key. So the limit
+    holds across processes within about ``SHARE_EVERY``: what a client sprays over N
+    processes in that window is let through, and taken from it afterwards (the buckets
+    may go into debt). On SQLite (one process) nothing is recorded or sent."""
+
+    CHANNEL = "spent"
+
+    def __init__(self, buckets: dict[str, KeyedBuckets], every: float = SHARE_EVERY) -> None:
+        self.buckets, self.every = buckets, every
+        self._bus: Bus | None = None
+        self._stopping = threading.Event()
+        self._wake = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def start(self, bus: Bus) -> None:
+        """Subscribe (before ``bus.start()``) and publish from a thread of its own."""
+        if not bus.enabled or self._thread is not None:
+            return
+        self._bus = bus
+        for buckets in self.buckets.values():
+            buckets.record()
+            buckets.on_low = self._wake.set
+        bus.subscribe(self.CHANNEL, self.heard)
+        self._thread = threading.Thread(target=self._run, name="miss-limits", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stopping.set()
+        self._wake.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5)
+            self._thread = None
+
+    def _run(self) -> None:
+        while not self._stopping.is_set():
+            self._wake.wait(self.every)
+            self._wake.clear()
+            self.publish()
+
+    def publish(self) -> None:
+        """Send what was spent since the last time, in messages of at most
+        ``SHARE_BYTES`` (usually one)."""
+        if self._bus is None:
+            return
+        for message in split(
+            {name: buckets.drain() for name, buckets in self.buckets.items()}, SHARE_BYTES
+        ):
+            self._bus.publish(self.CHANNEL, message)
+
+    def heard(self, message: dict[str, dict[str, float]]) -> None:
+        for name, spent in message.items():
+            buckets = self.buckets.get(name)
+            if buckets is not None:
+                buckets.deduct(spent)
+
+
+def split(spent: dict[str, dict[str, float]], most: int) -> list[dict[str, dict[str, float]]]:
+    """``{buckets: {key: tokens}}`` as messages whose JSON is at most about ``most``
+    bytes; none when nothing was spent."""
+    messages: list[dict[str, dict[str, float]]] = []
+    message: dict[str, dict[str, float]] = {}
+    size = 2
+    for name, keys in spent.items():
+        for key, n in keys.items():
+            entry = len(json.dumps({name: {key: round(n, 4)}})) + 1
+            if message and size + entry > most:
+                messages.append(message)
+                message, size = {}, 2
+            message.setdefault(name, {})[key] = round(n, 4)
+            size += entry
+    if message:
+        messages.append(message)
+    return messages
 
 
 # -- surface jobs --------------------------------------------------------------------------

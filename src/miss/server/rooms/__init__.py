@@ -335,6 +335,12 @@ class Hub:
         store.bus.subscribe("ended", lambda grant: self.end_here(*grant))
         store.bus.subscribe("room", self._heard)
         self._loop: asyncio.AbstractEventLoop | None = None
+        #: Told the number of this process's room connections at each join and leave
+        #: (the metrics: other processes read it from a file, not by asking this one).
+        self.on_people: Callable[[int], None] = lambda n: None
+
+    def connections(self) -> int:
+        return sum(len(room.people) for room in self.rooms.values())
 
     def end(self, kind: str, value: str) -> None:
         """A grant ended (a session, a user's access, a link, a model, a volume): every
@@ -489,6 +495,7 @@ class Hub:
                 self.store.bus.publish_soon("room", {"m": model_id, "msg": {"type": "hello"}})
             person = Participant(ws, visitor, room.colour())
             room.people[person.id] = person
+            self.on_people(self.connections())
         person.send(room.welcome(person))
         self.broadcast(room, {"type": "joined", "participant": person.public()}, skip=person)
         await self.store_event(room, person, "join", {"colour": person.colour})
@@ -500,6 +507,7 @@ class Hub:
         room.people.pop(person.id, None)
         if not room.people and self.rooms.get(room.model_id) is room:
             del self.rooms[room.model_id]
+        self.on_people(self.connections())
         if room.presenter == person.id:
             room.presenter = None
             self.broadcast(room, {"type": "presenter", "id": None, "name": None})

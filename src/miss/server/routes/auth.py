@@ -29,7 +29,8 @@ class LoginLimits:
 
     An attempt is counted *before* the password is checked, in one locked step per
     bucket, and given back when the password was right: parallel requests cannot all
-    pass a check that reads the count first and adds to it afterwards."""
+    pass a check that reads the count first and adds to it afterwards. Several server
+    processes keep their counts in step (``ratelimit.SharedBuckets``)."""
 
     def __init__(self) -> None:
         self.addresses = KeyedBuckets(capacity=10, rate=1 / 30)
