@@ -260,3 +260,23 @@ def test_blocks_hold_their_borders_and_half_the_bound(cthead) -> None:
     assert exact.max_mm <= stage.max_mm + 1e-6 * full.diagonal()
     assert stage.max_mm <= stage.bound_mm + 1e-6 * full.diagonal()
     assert boundary_edge_count(welded.faces) == 0
+
+
+def test_a_label_map_on_disk_makes_the_model_it_makes_in_memory(tmp_path) -> None:
+    """Label maps are not blockwise yet: a lazy one (stored, read by chunks) is read whole
+    for the job, and the model is the in-memory one's, part by part."""
+    from miss.pipeline import run
+    from miss.server.storage import chunked
+    from miss.spec import JobSpec
+
+    labels = np.zeros((40, 36, 30), np.uint8, order="F")
+    labels[3:15, 4:20, 5:25], labels[20:35, 10:30, 3:12], labels[22:30, 5:9, 15:28] = 1, 2, 7
+    affine = np.diag([0.8, 0.9, 1.5, 1.0])
+    chunked.write_array(tmp_path / "labels.zarr", labels, {"affine": affine.tolist()})
+    lazy = Volume(chunked.open_array(tmp_path / "labels.zarr")[0], affine)
+    spec = JobSpec.of(labels="all", decimate="none", formats=("glb",))
+    got, want = run(lazy, spec, measure=False), run(Volume(labels, affine), spec, measure=False)
+    assert [p.name for p in got.scene.parts] == [p.name for p in want.scene.parts]
+    for a, b in zip(got.scene.parts, want.scene.parts, strict=True):
+        np.testing.assert_array_equal(a.mesh.vertices, b.mesh.vertices)
+        np.testing.assert_array_equal(a.mesh.faces, b.mesh.faces)

@@ -388,6 +388,16 @@ def surface_of(
     )  # fmt: skip
 
 
+def in_memory(volume: Volume) -> Volume:
+    """``volume`` with its voxels read into one (X, Y, Z) numpy array when they are on
+    disk (a :class:`StridedView` or a stored array), for the work not yet done block by
+    block (label maps). A worker's memory cap stops a region too large for it."""
+    if isinstance(volume.data, np.ndarray):
+        return volume
+    data = np.asfortranarray(volume.data[(slice(None),) * 3])
+    return replace(volume, data=data)
+
+
 class StridedView:
     """A lazy box of a 3-D array at a sample step: slicing it (unit steps) reads only that
     part of ``data``. What :meth:`miss.spec.Region.apply` returns for data on disk."""

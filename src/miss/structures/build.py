@@ -28,6 +28,7 @@ from miss.blockwise import (
     BlockRun,
     decimated_surface_of,
     in_blocks,
+    in_memory,
     surface_of,
 )
 from miss.decimate import SAMPLES, DecimationReport, decimate, measured
@@ -188,7 +189,7 @@ def build_scene(
             )
             built += _level_parts(region, item, style, spec.decimation, measure, notes, blocks)
     if labels_volume is not None:
-        labels_region = spec.region.apply(labels_volume)
+        labels_region = in_memory(spec.region.apply(labels_volume))  # not blockwise yet
         built += _label_parts(
             labels_region, label_items, spec.decimation, measure, resolve_table(table), notes
         )
