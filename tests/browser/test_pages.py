@@ -294,6 +294,29 @@ def test_viewer_on_a_tablet_turns_by_touch(
         context.close()
 
 
+def test_software_webgl_draws_without_multisampling(
+    page: Any, server: Any, uploaded: dict[str, Any]
+) -> None:
+    """This chromium draws WebGL in software (SwiftShader, as a desktop without a GPU):
+    the viewer asks for no multisampling there, which halved a full frame's time."""
+    model_id = _finished_model(server, uploaded["id"])
+    page.goto(f"/models/{model_id}")
+    wait_drawn(page, "glb")
+    renderer = page.evaluate(
+        """() => {
+            const gl = document.createElement('canvas').getContext('webgl2');
+            const info = gl.getExtension('WEBGL_debug_renderer_info');
+            return String(gl.getParameter(info.UNMASKED_RENDERER_WEBGL));
+        }"""
+    )
+    assert "SwiftShader" in renderer
+    assert page.evaluate("() => window.__miss.softwareWebGL") is True
+    attributes = page.evaluate(
+        "() => document.querySelector('#stage canvas').getContext('webgl2').getContextAttributes()"
+    )
+    assert attributes["antialias"] is False
+
+
 def test_delete_from_library(page: Any, server: Any, phantom: Path) -> None:
     # The page's own session: a cookie, so the write carries the CSRF token as api.js does.
     csrf = next(c["value"] for c in page.context.cookies() if c["name"] == "miss_csrf")
