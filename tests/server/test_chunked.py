@@ -13,6 +13,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from miss.errors import DiskFull, UnreadableVolume
 from miss.server import imaging
@@ -75,6 +77,42 @@ def test_a_chunk_read_from_its_file_is_zarrs_chunk(
         assert got.shape == array.chunks and got.dtype == data.dtype  # edge chunks whole
         part = data[box]
         assert np.array_equal(got[tuple(slice(0, n) for n in part.shape)], part)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.data())
+def test_reads_from_the_chunk_files_equal_zarrs(tmp_path_factory, data) -> None:
+    """Any basic index (integers, negative ones, slices with steps, empty, past the end)
+    reads what zarr reads, shape and values."""
+    path = _random_store(tmp_path_factory)
+    array = chunked.open_array(path)[0]
+    key = tuple(data.draw(_index(n)) for n in array.shape)
+    want = np.asarray(array.stored[key[::-1]]).T
+    got = array[key]
+    assert got.shape == want.shape and np.array_equal(got, want)
+
+
+_STORES: dict[str, Path] = {}
+
+
+def _random_store(factory) -> Path:
+    """One stored (70, 130, 66) int16 volume (chunks of 64: edge chunks on every axis,
+    one chunk of the fill value, so no file), made once."""
+    if "path" not in _STORES:
+        rng = np.random.default_rng(3)
+        data = np.asfortranarray(rng.integers(1, 3000, (70, 130, 66)).astype(np.int16))
+        data[:64, 64:128, :64] = 0
+        path = factory.mktemp("store") / "data.zarr"
+        chunked.write_array(path, data, {"affine": AFFINE})
+        _STORES["path"] = path
+    return _STORES["path"]
+
+
+def _index(n: int):
+    ints = st.integers(-n, n - 1)
+    ends = st.one_of(st.none(), st.integers(-n - 3, n + 3))
+    slices = st.builds(slice, ends, ends, st.one_of(st.none(), st.integers(1, 9)))
+    return st.one_of(ints, slices)
 
 
 def test_a_damaged_chunk_file_is_refused_before_decompressing(tmp_path: Path) -> None:

@@ -10,6 +10,14 @@ It is written from an iterator of (X, Y) planes, z in order, so no one ever hold
 whole volume: ``CHUNK[2]`` planes are buffered, then written as one slab.
 :class:`Voxels` gives the stored array back as (X, Y, Z), read lazily.
 
+Reading: ``zarr`` writes the arrays; MISS reads them itself, chunk by chunk from the
+files (:meth:`Voxels.chunk`, Blosc's ``decompress``, the header's sizes checked first),
+with zarr kept for the indexes it does not take (tested equal to zarr's on any basic
+index). Through zarr each read crosses to its event loop's thread and back: a 64³ int16
+chunk took 1.05 ms that way against 0.44 ms directly, and on 512 x 512 x 600 (2 shared
+cores, loaded) a whole read 0.60 against 0.44 s, a sagittal / coronal / axial slice
+63 / 61 / 46 against 45 / 43 / 36 ms.
+
 Why 64 x 64 x 64: on a 512 x 512 x 300 int16 CT (measured with ``zarr`` 3.1, 2 cores)
 one sagittal / coronal / axial slice reads in 24 / 22 / 36 ms and the whole volume in
 0.20 s; 128 x 128 x 16 reads axial slices in 9 ms but sagittal in 43, 32^3 is 2-5 x
@@ -17,18 +25,20 @@ slower everywhere (more chunks), one chunk per axial plane takes 160 ms per sagi
 slice. Slice pages use all three planes, jobs read everything: cubes are the balance.
 
 The files are written by MISS, but :func:`open_array` still checks their metadata
-against what MISS writes (format, dimensions, dtype, chunking, codecs) before zarr
-reads a byte of voxels: a folder restored from elsewhere cannot ask for other codecs.
+against what MISS writes (format, dimensions, dtype, chunking, codecs) before a byte of
+voxels is read: a folder restored from elsewhere cannot ask for other codecs.
 """
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 import os
 import secrets
 import shutil
 from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -49,6 +59,8 @@ BLOSC = {"cname": "zstd", "clevel": 3, "shuffle": "bitshuffle"}
 _MAX_CHUNK_SIDE = 1024
 _BYTES = {"name": "bytes", "configuration": {"endian": "little"}}
 _MAX_META_BYTES = 1 << 20
+#: A read crossing at least this many chunks decompresses them on every core.
+_PARALLEL_CHUNKS = 16
 #: Suffix of a Zarr folder being written (``Store.init`` removes the leftovers of a crash).
 PART = ".part"
 
@@ -157,7 +169,65 @@ class Voxels:
         return self.size * self.dtype.itemsize
 
     def __getitem__(self, key: Any) -> np.ndarray:
-        return np.asarray(self.stored[_xyz(key)[::-1]]).T
+        key = _xyz(key)
+        picked = self._picked(key)
+        if picked is None:  # an index this does not read itself (out of range, steps < 1)
+            return np.asarray(self.stored[key[::-1]]).T
+        box, steps, drop = picked
+        out = self._box(box)[tuple(slice(None, None, st) for st in steps)]
+        return out[tuple(0 if d else slice(None) for d in drop)]
+
+    def _picked(
+        self, key: tuple[Any, ...]
+    ) -> tuple[list[tuple[int, int]], list[int], list[bool]] | None:
+        """Per axis: the voxels to read (start, stop), the step, whether the axis goes
+        (an integer index); None for what zarr should answer (its errors included)."""
+        if self.folder is None:
+            return None
+        box, steps, drop = [], [], []
+        for k, n in zip(key, self.shape, strict=True):
+            if isinstance(k, int | np.integer) and not isinstance(k, bool):
+                i = int(k) + n if k < 0 else int(k)
+                if not 0 <= i < n:
+                    return None
+                box.append((i, i + 1)), steps.append(1), drop.append(True)
+            elif isinstance(k, slice):
+                start, stop, step = k.indices(n)
+                if step < 1:
+                    return None
+                stop = max(start, stop)
+                box.append((start, stop)), steps.append(step), drop.append(False)
+            else:
+                return None
+        return box, steps, drop
+
+    def _box(self, box: list[tuple[int, int]]) -> np.ndarray:
+        """The voxels of ``box`` ((start, stop) per axis, unit steps) as an (X, Y, Z)
+        F-ordered array, assembled from the chunks it crosses (:meth:`chunk`), their
+        decompression spread over the cores when there are many."""
+        out = np.empty([b - a for a, b in box], dtype=self.dtype, order="F")
+        if out.size == 0:
+            return out
+        chunks = self.chunks
+        spans = [range(a // c, (b - 1) // c + 1) for (a, b), c in zip(box, chunks, strict=True)]
+        indices = list(itertools.product(*spans))
+
+        def put(index: tuple[int, ...]) -> None:
+            lo = [i * c for i, c in zip(index, chunks, strict=True)]
+            part = [
+                (max(a, c0), min(b, c0 + c)) for (a, b), c0, c in zip(box, lo, chunks, strict=True)
+            ]
+            take = tuple(slice(a - c0, b - c0) for (a, b), c0 in zip(part, lo, strict=True))
+            into = tuple(slice(a - s0, b - s0) for (a, b), (s0, _) in zip(part, box, strict=True))
+            out[into] = self.chunk(index)[take]
+
+        if len(indices) < _PARALLEL_CHUNKS:
+            for index in indices:
+                put(index)
+        else:  # Blosc decompresses without the GIL
+            with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
+                list(pool.map(put, indices))
+        return out
 
     def min(self) -> Any:
         """The smallest voxel, read one layer of chunks at a time."""
@@ -245,9 +315,9 @@ def read(path: Path, in_memory_max: int) -> np.ndarray | Voxels:
     voxels, _, _ = open_array(path)
     if voxels.nbytes > in_memory_max:
         return voxels
-    data = voxels.stored[...]  # (Z, Y, X) C order: the (X, Y, Z) Fortran bytes
+    data = voxels[...]  # (X, Y, Z) in Fortran order, assembled from the chunks
     data.flags.writeable = False
-    return data.T
+    return data
 
 
 def same_voxels(path: Path, data: np.ndarray) -> bool:
