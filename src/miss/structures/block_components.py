@@ -284,20 +284,21 @@ def _seam_planes(
     offsets: np.ndarray,
 ) -> dict[int, np.ndarray]:
     """Planes ``c - 1``, ``c`` and ``c + 1`` of every cut ``c`` along axis ``k`` (where an
-    owned box starts), across the grid, in provisional ids (0: below the level)."""
-    cuts = sorted({box[k][0] for box in owned} - {0})
-    out = {}
-    for c in cuts:
-        seam = tuple((c - 1, min(c + 1, padded[k] - 1)) if j == k else (0, n - 1)
-                     for j, n in enumerate(padded))  # fmt: skip
-        ids = np.zeros([b - a + 1 for a, b in seam], dtype=np.int64)
-        for part, offset in zip(parts, offsets, strict=True):
-            for sub, labels in part.planes:
-                both = _overlap(sub, seam)
+    owned box starts), across the grid, in provisional ids (0: below the level): each box's
+    low planes go to the cut at its start, its high plane to the cut after its end."""
+    out: dict[int, np.ndarray] = {}
+    seams: dict[int, Box] = {}
+    for c in sorted({box[k][0] for box in owned} - {0}):
+        seams[c] = tuple((c - 1, c + 1) if j == k else (0, n - 1) for j, n in enumerate(padded))
+        out[c] = np.zeros([b - a + 1 for a, b in seams[c]], dtype=np.int64)
+    for box, part, offset in zip(owned, parts, offsets, strict=True):
+        low, high = part.planes[2 * k], part.planes[2 * k + 1]
+        for (sub, labels), c in ((low, box[k][0]), (high, box[k][1] + 1)):
+            if c in seams:
+                both = _overlap(sub, seams[c])
                 if both is not None:
                     local = labels[_within(both, sub)]
-                    ids[_within(both, seam)] = np.where(local > 0, local + offset, 0)
-        out[c] = ids
+                    out[c][_within(both, seams[c])] = np.where(local > 0, local + offset, 0)
     return out
 
 
