@@ -120,3 +120,25 @@ def test_a_job_on_a_lazy_volume_keeps_its_largest_piece(cthead, lazy_cthead) -> 
     assert result.artifacts["glb"][:4] == b"glTF"
     assert any(n.endswith(": 125 smaller piece(s) left out") for n in result.scene.notes)
     assert len(result.scene.parts) == 1
+
+
+def test_on_a_dask_cluster_the_same_as_on_threads(tmp_path) -> None:
+    """The tasks and their items pickle: both passes on one local cluster, the snake read
+    from Zarr by the workers."""
+    from miss.runner import local_cluster
+    from miss.structures.block_components import component_surfaces
+
+    snake = _snake()
+    path = tmp_path / "snake.zarr"
+    chunked.write_array(path, snake.data, {"affine": snake.affine.tolist()})
+    voxels, affine, _ = chunked.open_array(path)
+    lazy = Volume(voxels, affine, {})
+    threads = blockwise_components(lazy, 50.0, "split", 0, 10, block=8)
+    want = component_surfaces(lazy, 50.0, threads)
+    with local_cluster(2) as cluster:
+        address = cluster.scheduler_address
+        chosen = blockwise_components(lazy, 50.0, "split", 0, 10, block=8, scheduler=address)
+        got = component_surfaces(lazy, 50.0, chosen, scheduler=address)
+    assert chosen.sizes == threads.sizes == [79, 27]
+    for mesh, reference in zip(got, want, strict=True):
+        assert_same_surface(mesh, reference, 0.0)
