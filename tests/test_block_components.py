@@ -116,8 +116,12 @@ def test_a_piece_that_crosses_the_seams_only_at_corners_is_one(tmp_path) -> None
 def test_a_job_on_a_lazy_volume_keeps_its_largest_piece(cthead, lazy_cthead) -> None:
     """The reproduction: '>' on a StridedView crashed the job."""
     spec = JobSpec.of(level=LEVEL, components="largest", formats=("glb",))
-    result = run(lazy_cthead, spec, measure=False)
+    seen: list[tuple[str, float]] = []
+    result = run(lazy_cthead, spec, measure=False, progress=lambda s, f: seen.append((s, f)))
     assert result.artifacts["glb"][:4] == b"glTF"
+    surface = [f for stage, f in seen if stage == "surface"]
+    assert surface == sorted(surface) and surface[-1] == pytest.approx(1.0)
+    assert any(0.0 < f < 0.3 for f in surface)  # the labelling counted too
     assert any(n.endswith(": 125 smaller piece(s) left out") for n in result.scene.notes)
     assert len(result.scene.parts) == 1
 

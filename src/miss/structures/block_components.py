@@ -39,7 +39,7 @@ from typing import Any
 import numpy as np
 
 from miss.blocks import Box, Grid, Welder, read_points
-from miss.blockwise import BlockShape, _source, _surface_task, block_edges
+from miss.blockwise import BlockShape, Progress, _counted, _source, _surface_task, block_edges
 from miss.errors import EmptySurface
 from miss.runner import CLUSTER_VOXELS, run_blocks, scheduler_address
 from miss.structures.components import _CONNECTIVITY, Components, choose_components
@@ -49,6 +49,10 @@ from miss.types import Mesh, Volume
 #: Face planes a labelled box keeps on its low and high side of each axis: a surface block
 #: reads one plane before its box and two after (its last plane and the gradients' one).
 LOW_PLANES, HIGH_PLANES = 2, 1
+
+#: The share of a job's surface progress that labelling the boxes takes (the surfaces of
+#: the chosen groups share the rest).
+LABELS_SHARE = 0.3
 
 
 @dataclass(frozen=True)
@@ -199,6 +203,7 @@ def blockwise_components(
     block: BlockShape = None,
     scheduler: str | None = None,
     cluster: bool | None = None,
+    progress: Progress | None = None,
 ) -> Chosen:
     """The components of ``volume.data > level`` chosen as
     :func:`~miss.structures.components.select_components` chooses them (the same ids,
@@ -206,7 +211,8 @@ def blockwise_components(
 
     ``volume.data`` is any 3-D array that slices like numpy (read a box at a time);
     ``block`` the block edge in cells (int or (x, y, z), at least 2), ``scheduler`` and
-    ``cluster`` as for :func:`miss.blockwise.blockwise_surface`.
+    ``cluster`` as for :func:`miss.blockwise.blockwise_surface`; ``progress("surface",
+    fraction)`` counts the boxes labelled up to :data:`LABELS_SHARE`.
     """
     dtype = np.dtype(volume.data.dtype)
     data, start, step = _source(volume.data, (0, 0, 0), (1, 1, 1))
@@ -220,7 +226,8 @@ def blockwise_components(
     run = _runner(scheduler, cluster, shape)
     found: list[Labelled | None] = [None] * len(owned)
     index = {box: i for i, box in enumerate(owned)}
-    for box, part in run(partial(_label_item, level=level), grid, owned):
+    done = None if progress is None else partial(_counted, progress, 0.0, LABELS_SHARE)
+    for box, part in run(partial(_label_item, level=level), grid, owned, progress=done):
         found[index[box]] = part
     parts: list[Labelled] = [p for p in found if p is not None]
     check_level(level, min(p.span[0] for p in parts), max(p.span[1] for p in parts))
@@ -344,10 +351,12 @@ def component_surfaces(
     normals: bool = True,
     scheduler: str | None = None,
     cluster: bool | None = None,
+    progress: Progress | None = None,
 ) -> list[Mesh]:
     """Pass 3: the surface of each of ``chosen.groups``, block by block, in LPS mm: the
     triangles and vertices (to float32 rounding) of the in-memory path's surfaces
-    (:func:`miss.structures.build._component_surface` on the whole volume)."""
+    (:func:`miss.structures.build._component_surface` on the whole volume).
+    ``progress("surface", fraction)`` counts the blocks from :data:`LABELS_SHARE` on."""
     grid, labels = chosen.grid, chosen.labels
     run = _runner(scheduler, cluster, grid.shape)
     task = partial(
@@ -355,9 +364,12 @@ def component_surfaces(
         normals=normals, affine=volume.affine,
     )  # fmt: skip
     meshes = []
-    for group in chosen.groups:
+    width = (1.0 - LABELS_SHARE) / max(len(chosen.groups), 1)
+    for n, group in enumerate(chosen.groups):
         welder = Welder()
-        for part in run(task, grid, _part_blocks(grid, labels, group)):
+        start = LABELS_SHARE + n * width
+        done = None if progress is None else partial(_counted, progress, start, width)
+        for part in run(task, grid, _part_blocks(grid, labels, group), progress=done):
             welder.add(part, part.vertices, part.normals)
         verts, faces, vectors = welder.result()
         if len(faces) == 0:

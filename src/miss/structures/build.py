@@ -332,10 +332,12 @@ def _component_meshes(
         run = blocks or BlockRun()
         chosen = blockwise_components(
             volume, item.level, item.components, min_voxels, item.max_parts,
-            block=run.block, scheduler=run.scheduler,
+            block=run.block, scheduler=run.scheduler, progress=run.progress,
         )  # fmt: skip
         _note_components(chosen.groups, chosen.dropped, item, name, notes)
-        return component_surfaces(volume, item.level, chosen, scheduler=run.scheduler)
+        return component_surfaces(
+            volume, item.level, chosen, scheduler=run.scheduler, progress=run.progress
+        )
     mask = volume.data > item.level
     picked = select_components(mask, item.components, min_voxels, item.max_parts)
     groups = [[c] for c in picked.kept] if item.components == "split" else [picked.kept]
