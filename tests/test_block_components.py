@@ -73,6 +73,21 @@ def test_cthead_min_size_drops_the_same_pieces(cthead, lazy_cthead) -> None:
     assert notes == ["bone: 123 smaller piece(s) left out"]
 
 
+def test_a_job_s_region_of_a_lazy_volume_equals_the_in_memory_one(cthead, lazy_cthead) -> None:
+    """A sampled, cropped region of data on disk is a StridedView: its components too."""
+    spec = JobSpec.of(
+        level=LEVEL, components="split", max_parts=3, sample_rate=2, roi=(10, 240, 20, 230, 5, 100)
+    )
+    lazy, memory = spec.region.apply(lazy_cthead), spec.region.apply(cthead)
+    assert type(lazy.data).__name__ == "StridedView"
+    item = spec.structures.items[0]
+    got = _component_meshes(lazy, item, [], "bone", BlockRun(block=(20, 30, 17)))
+    want = _component_meshes(memory, item, [], "bone")
+    assert len(got) == len(want) == 3
+    for mesh, reference in zip(got, want, strict=True):
+        assert_same_surface(mesh, reference, FLOAT32_ROUNDING_MM)
+
+
 def test_blockwise_choice_is_ndimage_s_ids_and_sizes(cthead, lazy_cthead) -> None:
     """Every component, numbered as ndimage.label numbers them (ties broken alike)."""
     wanted = select_components(cthead.data > LEVEL, "split", 0, 1000)

@@ -26,6 +26,11 @@ never the voxels):
    group's box grown by one voxel (the in-memory path's crop), and runs flying edges;
    blocks outside that box are not run. Welding is exact as for any blockwise surface
    (:mod:`miss.blocks`).
+
+Integer data gives the in-memory path's triangles and vertices (to float32 rounding).
+Float data is labelled as float32, as its surfaces are read; where a piece meets the
+region's faces its cap vertices move by a few 1e-5 mm, as the pad below the level goes
+as deep as the whole region's span here and the crop's in memory.
 """
 
 from __future__ import annotations
