@@ -33,6 +33,8 @@ from miss._vtk import image_data
 from miss.surface import _use_both_cores
 
 Box = tuple[tuple[int, int], ...]  # per axis (first point, last point), padded grid, inclusive
+#: Changes a block's points (F-ordered, read over the box) before they are contoured.
+Edit = Callable[[np.ndarray, Box], np.ndarray]
 
 
 @dataclass(frozen=True)
@@ -208,12 +210,16 @@ def block_range(grid: Grid, box: Box) -> tuple[float, float]:
     return float(part.min()), float(part.max())
 
 
-def surface_block(grid: Grid, box: Box, level: float, normals: bool) -> BlockMesh:
+def surface_block(
+    grid: Grid, box: Box, level: float, normals: bool, edit: Edit | None = None
+) -> BlockMesh:
     """Flying edges over one box's cells; vertices placed exactly (see the module's note).
 
     With ``normals`` the box is read with one context point beyond each inner face, so the
     gradients on the face are central differences as in one run over the whole region; the
-    context cells' triangles (a vertex beyond the face) are dropped.
+    context cells' triangles (a vertex beyond the face) are dropped. ``edit(points, read)``
+    may change the points read (over the box ``read``) before they are contoured: the
+    blockwise components blank the pieces not chosen.
     """
     context = 1 if normals else 0
     read = tuple(
@@ -221,6 +227,8 @@ def surface_block(grid: Grid, box: Box, level: float, normals: bool) -> BlockMes
         for (a, b), n in zip(box, grid.padded, strict=True)
     )
     points = read_points(grid, read)
+    if edit is not None:
+        points = edit(points, read)
     span = _region_span(points, read, grid.shape)
     if not points.min() < level <= points.max():  # all inside or all outside: no triangle
         return replace(_empty_block(normals), span=span)

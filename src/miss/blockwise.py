@@ -20,6 +20,7 @@ from miss.blocks import (
     BlockMesh,
     Box,
     Decimated,
+    Edit,
     Grid,
     Welder,
     block_range,
@@ -268,9 +269,11 @@ def _surface_task(
     affine: np.ndarray,
     steps: tuple[int, int, int],
     offset: np.ndarray,
+    edit: Edit | None = None,
 ) -> BlockMesh:
-    """One block's surface with its vertices (float32) and normals in LPS mm."""
-    part = surface_block(grid, box, level, normals)
+    """One block's surface with its vertices (float32) and normals in LPS mm (``edit``: see
+    :func:`miss.blocks.surface_block`)."""
+    part = surface_block(grid, box, level, normals, edit)
     verts = _points_to_patient(part.vertices - 1.0, affine, steps, offset)  # pad: -1
     vectors = part.normals
     if normals and len(vectors):

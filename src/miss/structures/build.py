@@ -36,6 +36,7 @@ from miss.errors import BadParameter, EmptySurface
 from miss.scene import DEFAULT_SCENE_TITLE, Part, Scene
 from miss.smooth import VOLUME_TOLERANCE, smooth_mesh
 from miss.spec import Decimation, JobSpec, Structure
+from miss.structures.block_components import blockwise_components, component_surfaces
 from miss.structures.components import relabel_components, select_components
 from miss.structures.labelmap import (
     MEASURE_SAMPLES,
@@ -246,7 +247,7 @@ def _level_parts(
         normals = decimation.method == "none"
         meshes = [surface_of(volume, item.level, normals=normals, blocks=blocks)]
     else:
-        meshes = _component_meshes(volume, item, notes, name)
+        meshes = _component_meshes(volume, item, notes, name, blocks)
     out = []
     for rank, mesh in enumerate(meshes):
         split = item.components == "split" and len(meshes) > 1
@@ -316,20 +317,45 @@ def _decimated_in_blocks(
     return out, report, welded
 
 
-def _component_meshes(volume: Volume, item: Structure, notes: list[str], name: str) -> list[Mesh]:
-    """Surfaces of the chosen voxel components above the level, largest first."""
+def _component_meshes(
+    volume: Volume,
+    item: Structure,
+    notes: list[str],
+    name: str,
+    blocks: BlockRun | None = None,
+) -> list[Mesh]:
+    """Surfaces of the chosen voxel components above the level, largest first; block by
+    block when :func:`~miss.blockwise.in_blocks` (the same pieces and surfaces)."""
     assert item.level is not None
     voxel_mm3 = abs(float(np.linalg.det(volume.affine[:3, :3])))
+    min_voxels = item.min_size_mm3 / voxel_mm3
+    if in_blocks(volume, blocks):
+        run = blocks or BlockRun()
+        chosen = blockwise_components(
+            volume, item.level, item.components, min_voxels, item.max_parts,
+            block=run.block, scheduler=run.scheduler, progress=run.progress,
+        )  # fmt: skip
+        _note_components(chosen.groups, chosen.dropped, item, name, notes)
+        return component_surfaces(
+            volume, item.level, chosen, scheduler=run.scheduler, progress=run.progress
+        )
     mask = volume.data > item.level
-    picked = select_components(mask, item.components, item.min_size_mm3 / voxel_mm3, item.max_parts)
-    if not picked.kept:
+    picked = select_components(mask, item.components, min_voxels, item.max_parts)
+    groups = [[c] for c in picked.kept] if item.components == "split" else [picked.kept]
+    _note_components(picked.kept, picked.dropped, item, name, notes)
+    return [_component_surface(volume, item.level, picked.labelled, ids) for ids in groups]
+
+
+def _note_components(
+    kept: Sequence[object], dropped: int, item: Structure, name: str, notes: list[str]
+) -> None:
+    """No piece kept is an error; pieces left out a note."""
+    if not kept:
         raise EmptySurface(
             f"no piece of {name} is at least {item.min_size_mm3:g} mm³; lower the minimum size."
         )
-    if picked.dropped:
-        notes.append(f"{name}: {picked.dropped} smaller piece(s) left out")
-    groups = [[c] for c in picked.kept] if item.components == "split" else [picked.kept]
-    return [_component_surface(volume, item.level, picked.labelled, ids) for ids in groups]
+    if dropped:
+        notes.append(f"{name}: {dropped} smaller piece(s) left out")
 
 
 def _component_surface(volume: Volume, level: float, labelled: np.ndarray, ids: list[int]) -> Mesh:

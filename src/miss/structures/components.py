@@ -57,12 +57,28 @@ def select_components(
 
     labelled, count = ndimage.label(mask, structure=_CONNECTIVITY, output=np.int32)
     sizes = np.bincount(labelled.ravel(order="K"), minlength=count + 1)
+    kept, dropped = choose_components(sizes, components, min_voxels, max_parts)
+    return Selection(labelled, kept, [int(sizes[i]) for i in kept], dropped)
+
+
+def choose_components(
+    sizes: np.ndarray, components: Components | str, min_voxels: float, max_parts: int
+) -> tuple[list[int], int]:
+    """The ids to keep, largest first (ties: the lower id), and how many were left out.
+
+    ``sizes`` : (count + 1,) int array, the voxel count of component ``i`` at ``i`` (ids
+    numbered as ``scipy.ndimage.label`` numbers them; ``sizes[0]`` ignored). Shared by the
+    in-memory and the blockwise (:mod:`miss.structures.block_components`) paths, so that
+    both choose alike.
+    """
+    sizes = np.asarray(sizes).copy()
+    count = len(sizes) - 1
     sizes[0] = 0
     order = np.argsort(-sizes[1:], kind="stable") + 1  # ids, largest first; ties by id
     big = [int(i) for i in order if sizes[i] >= max(min_voxels, 1)]
     limit = 1 if components == "largest" else max_parts
     kept = big[:limit]
-    return Selection(labelled, kept, [int(sizes[i]) for i in kept], count - len(kept))
+    return kept, count - len(kept)
 
 
 def relabel_components(
