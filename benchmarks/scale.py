@@ -127,18 +127,37 @@ def _single(array: Any) -> dict[str, Any]:
 
 
 def _blocks(volume: Any, workers: int, block: int) -> dict[str, Any]:
+    from distributed import Client
+
     from miss.blockwise import blockwise_surface
     from miss.runner import local_cluster
 
     start = time.perf_counter()
     with local_cluster(workers) as cluster:  # the cluster MISS itself starts
         up = time.perf_counter() - start
-        start = time.perf_counter()
-        mesh = blockwise_surface(
-            volume, LEVEL, normals=False, block=block, scheduler=cluster.scheduler_address
-        )
-        seconds = time.perf_counter() - start
-    return {"seconds": seconds, "cluster_start": up, "triangles": mesh.n_triangles}
+        times = []
+        for _ in range(2):  # a new cluster's first job, then the next job on it
+            with Client(cluster) as client:
+                client.run(_forget_chunks)  # each job decompresses its chunks afresh
+            start = time.perf_counter()
+            mesh = blockwise_surface(
+                volume, LEVEL, normals=False, block=block, scheduler=cluster.scheduler_address
+            )
+            times.append(time.perf_counter() - start)
+    return {
+        "seconds": times[0],
+        "next_job": times[1],
+        "cluster_start": up,
+        "triangles": mesh.n_triangles,
+    }
+
+
+def _forget_chunks() -> None:
+    from miss.blocks import CHUNKS
+
+    with CHUNKS.lock:
+        CHUNKS.chunks.clear()
+        CHUNKS.held = 0
 
 
 class _Clock:
@@ -272,6 +291,9 @@ def main_table(size: tuple[int, int, int], runs: int, block: int, folder: Path) 
         read = statistics.median(d.get("read", 0.0) for d in done)
         rows.append((label, seconds, read, peak, total, done[0]["triangles"]))
         print(label, f"{seconds:.2f} s", peak, f"total {total:.0f} MB", file=sys.stderr)
+        if "next_job" in done[0]:  # the workers warm, the chunks decompressed afresh
+            again = statistics.median(d["next_job"] for d in done)
+            rows.append((f"{label}, next job", again, 0.0, peak, total, done[0]["triangles"]))
     jobs = []
     for label, name in (
         ("blocks decimated where they were made, then across them", "job"),
@@ -289,10 +311,12 @@ def _job_markdown(base: float, jobs: list[tuple[str, list[dict[str, Any]]]]) -> 
         "The job a user starts on it (level 1500, the default decimation: quadric to 90 % "
         "within 0.002 of the diagonal, GLB), run as the server runs it (a sink that wants "
         "a preview and levels of detail over 2 M triangles; blocks of 128 on threads below "
-        "1 G voxels, else a local cluster); seconds from the job's start, medians:",
+        "1 G voxels, else a local cluster); seconds from the job's start, medians. The max error "
+        "is the report's: measured on the whole mesh, or for blocks decimated where they "
+        "were made the two stages' measured maxima added (at most that):",
         "",
         "| decimation | preview ready | levels of detail ready | GLB ready | surface | "
-        "decimate | triangles | max error mm (bound) | peak RSS - base (MB) |",
+        "decimate | triangles | max error mm | peak RSS - base (MB) |",
         "|---|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for label, done in jobs:
@@ -319,7 +343,7 @@ def _markdown(
     size: tuple[int, int, int], block: int, runs: int, base: float, rows: list[Any]
 ) -> str:
     single = rows[0][1] + rows[0][2]
-    one = rows[2][1]
+    one = {label: seconds for label, seconds, *_ in rows}
     lines = [
         f"Volume {size[0]}x{size[1]}x{size[2]} int16 ({np.prod(size) / 1e6:.0f} M voxels, "
         f"{np.prod(size) * 2 / 2**30:.2f} GiB) on Zarr, level {LEVEL:g}, blocks of {block}, "
@@ -331,7 +355,11 @@ def _markdown(
         "The single pass's time is the contour alone; its read (the whole Zarr array into "
         "one F-ordered numpy array) is the next column. Blockwise times include all "
         "reading (int16: one pass, each block's value range checked at the end), the "
-        "welding and the mapping to mm.",
+        "welding and the mapping to mm, not the cluster's start. A cluster's first job "
+        "meets new worker processes (first use of VTK, memory touched for the first "
+        "time); 'next job' is a second job on the same cluster, its chunk caches emptied "
+        "first, as a job on another volume would find them. The read is the whole "
+        "array's, through MISS's reader of the chunk files.",
         "",
         "| variant | time (s) | + read (s) | vs single + read | job peak - base (MB) "
         "| worker peak - base (MB) | total peak (MB) | triangles |",
@@ -345,7 +373,12 @@ def _markdown(
             f"| {'-' if worker is None else f'{worker - base:.0f}'} | {total:.0f} "
             f"| {triangles:,} |"
         )
-    lines += ["", f"2 workers against 1: {one / rows[3][1]:.2f}x faster."]
+    one_w, two_w = "MISS blockwise, 1 worker", "MISS blockwise, 2 workers"
+    lines += [
+        "",
+        f"2 workers against 1: {one[one_w] / one[two_w]:.2f}x faster on a new cluster's "
+        f"first job, {one[one_w + ', next job'] / one[two_w + ', next job']:.2f}x on the next.",
+    ]
     return "\n".join(lines) + "\n"
 
 

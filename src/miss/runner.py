@@ -46,8 +46,8 @@ NANNY_ENVIRON = {"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": N
 CLUSTER_CONFIG = {**NANNY_ENVIRON, "distributed.scheduler.worker-saturation": float("inf")}
 
 #: Imported by every worker of the local cluster as it starts (``--preload`` for remote
-#: ones): VTK and numpy load before the first block, not inside the job's time.
-PRELOAD = ["miss.blocks"]
+#: ones): VTK, numpy and zarr load before the first block, not inside the job's time.
+PRELOAD = ["miss.blockwise", "zarr"]
 
 
 class SchedulerUnreachable(MissError, ConnectionError):
