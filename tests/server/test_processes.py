@@ -248,6 +248,28 @@ def test_serve_processes_answers_from_several(tmp_path: Path) -> None:
         server.stop(15)
 
 
+def test_a_rooms_cap_counts_its_people_on_every_process(tmp_path: Path, small_nifti) -> None:
+    """MISS_ROOM_MAX_PEOPLE=2: one person on A, one on B, and a third on either is
+    refused, room full (each process alone would have let them in)."""
+    with two_servers(tmp_path, MISS_ROOM_MAX_PEOPLE="2") as (a, b):
+        _, model = ball_model(a, small_nifti)
+        headers = {"Authorization": f"Bearer {a.token}"}
+        with connect(ws_url(a, model), additional_headers=headers, open_timeout=30) as first:
+            until(first, "welcome")
+            with connect(ws_url(b, model), additional_headers=headers, open_timeout=30) as second:
+                until(second, "welcome")
+                until(first, "joined")  # A has heard of B's person
+                for server in (a, b):
+                    with connect(
+                        ws_url(server, model), additional_headers=headers, open_timeout=30
+                    ) as third:
+                        refused = until(third, "error")
+                        assert refused["code"] == "full" and "2 people" in refused["error"]
+                        with pytest.raises(ConnectionClosed) as closed:
+                            third.recv(timeout=10)
+                        assert closed.value.rcvd.code == 4429
+
+
 def samples(server: Server) -> dict[tuple[str, frozenset[tuple[str, str]]], float]:
     r = server.http.get("/metrics")
     assert r.status_code == 200, r.text

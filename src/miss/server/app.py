@@ -118,7 +118,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         _say_confinement(confinement)
         app.state.reading = (confinement, settings.parse_limits())
         app.state.pacs_imports = PacsImports(store, settings, lambda: app.state.reading)
-        app.state.rooms = Hub(store)
+        app.state.rooms = Hub(store, max_people=settings.room_max_people)
         app.state.rooms.on_people = app.state.metrics.rooms.set
         app.state.rooms.start()
         app.state.shared_limits.start(store.bus)

@@ -33,6 +33,8 @@ Environment variables (all optional):
                           ``MISS_PACS_AUTH_FILE``, ``MISS_PACS_TIMEOUT`` and more PACS as
                           ``MISS_PACS2_URL`` ...: see ``miss.pacs.server``
 ``MISS_PACS_IMPORTS``     PACS series imported at once (2)
+``MISS_ROOM_MAX_PEOPLE``  people in one model's consultation room at once, counted over
+                          every server process (50)
 ``MISS_LOD_TRIANGLES``    a model of more triangles also gets levels of detail (a 3D Tiles
                           tileset the viewer refines as it zooms in); 2,000,000; 0: never
 """
@@ -81,6 +83,7 @@ class Settings:
     pacs: tuple[PacsServer, ...] = ()
     pacs_imports: int = 2
     lod_triangles: int = 2_000_000
+    room_max_people: int = 50
 
     def __post_init__(self) -> None:
         # Resolve once so the worker subprocesses, which get these as arguments, see the
@@ -120,6 +123,10 @@ class Settings:
             )
         if self.pacs_imports < 1:
             raise ValueError(f"MISS_PACS_IMPORTS must be at least 1, got {self.pacs_imports}.")
+        if self.room_max_people < 1:
+            raise ValueError(
+                f"MISS_ROOM_MAX_PEOPLE must be at least 1, got {self.room_max_people}."
+            )
         if self.lod_triangles < 0:
             raise ValueError(f"MISS_LOD_TRIANGLES must be 0 or more, got {self.lod_triangles}.")
         if self.worker_memory_mb is not None and not self.worker_memory_mb >= 0:
@@ -211,6 +218,7 @@ _ENV: tuple[tuple[str, str, Any], ...] = (
     ("uploads_at_once", "MISS_UPLOADS_AT_ONCE", int),
     ("pacs_imports", "MISS_PACS_IMPORTS", int),
     ("lod_triangles", "MISS_LOD_TRIANGLES", int),
+    ("room_max_people", "MISS_ROOM_MAX_PEOPLE", int),
 )
 
 

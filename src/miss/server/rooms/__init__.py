@@ -46,7 +46,9 @@ RATE, BURST = 30.0, 60
 FLOOD_LIMIT, FLOOD_WINDOW = 200, 10.0
 OUTBOX = 512
 #: Connections one room takes at once (a consultation, not a broadcast): a leaked link
-#: opened thousands of times must not hold thousands of sockets and queues.
+#: opened thousands of times must not hold thousands of sockets and queues. Counted over
+#: every server process (the others' people as the bus has told them: a room opened
+#: here learns of them within a moment of its first person). ``MISS_ROOM_MAX_PEOPLE``.
 MAX_PEOPLE = 50
 MAX_NOTE, MAX_CHAT, MAX_NAME = 500, 2000, 40
 #: The presenter's camera goes to the replay at most this often (seconds).
@@ -482,7 +484,7 @@ class Hub:
     ) -> tuple[Room, Participant]:
         async with self._lock:
             room = self.rooms.get(model_id)
-            if room is not None and len(room.people) >= self.max_people:
+            if room is not None and len(room.people) + len(room.remote) >= self.max_people:
                 raise Refused(
                     Close.FULL, f"this room is full ({self.max_people} people); try again later."
                 )
