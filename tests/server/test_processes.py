@@ -270,6 +270,29 @@ def test_a_rooms_cap_counts_its_people_on_every_process(tmp_path: Path, small_ni
                         assert closed.value.rcvd.code == 4429
 
 
+def test_people_on_a_process_that_dies_leave_the_room_elsewhere(
+    two: tuple[Server, Server], small_nifti: bytes
+) -> None:
+    """B killed (no time to say its people left): A's people hear them leave within a
+    few seconds (B's liveness lock is free), and the room's cap no longer counts them."""
+    a, b = two
+    _, model = ball_model(a, small_nifti)
+    headers = {"Authorization": f"Bearer {a.token}"}
+    with connect(ws_url(a, model), additional_headers=headers, open_timeout=30) as here:
+        until(here, "welcome")
+        with connect(ws_url(b, model), additional_headers=headers, open_timeout=30) as there:
+            theirs = until(there, "welcome")["you"]["id"]
+            assert until(here, "joined")["participant"]["id"] == theirs
+            b.proc.kill()
+            b.proc.wait()
+            start = time.monotonic()
+        left = until(here, "left")
+        assert left["id"] == theirs and time.monotonic() - start < 10
+        with connect(ws_url(a, model), additional_headers=headers, open_timeout=30) as late:
+            people = until(late, "welcome")["participants"]
+        assert theirs not in {p["id"] for p in people}
+
+
 def samples(server: Server) -> dict[tuple[str, frozenset[tuple[str, str]]], float]:
     r = server.http.get("/metrics")
     assert r.status_code == 200, r.text

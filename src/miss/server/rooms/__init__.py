@@ -140,7 +140,8 @@ ENDED = {
 #: before the grant ended still finds it).
 WATCH_EVERY = 0.25
 REMEMBER_ENDED = 30.0
-#: Every this many checks, the connected users' logins are looked up in the database.
+#: Every this many checks, the connected users' logins are looked up in the database, and
+#: the server processes of the people listed from other processes checked alive.
 RECHECK_TICKS = 8
 
 
@@ -264,8 +265,10 @@ class Room:
         self.model_id, self.session, self.state = model_id, session, state
         self.bounds = bounds  # [[min x, y, z], [max x, y, z]] in mm, or None when unknown
         self.people: dict[str, Participant] = {}
-        #: People in this room on other server processes (``Participant.public()``).
+        #: People in this room on other server processes (``Participant.public()``), and
+        #: the process (bus origin) each is on.
         self.remote: dict[str, dict[str, Any]] = {}
+        self.remote_on: dict[str, str] = {}
         self.presenter: str | None = None
         self.view: dict[str, Any] | None = None  # the presenter's latest camera, for late joiners
         self.last_view = 0.0
@@ -372,7 +375,11 @@ class Hub:
         """Send to the room's people here and, through the bus, on the other processes;
         ``event`` (id, at, kind, author, data), when stored, is folded into their state."""
         room.broadcast(message, skip)
-        self.store.bus.publish_soon("room", {"m": room.model_id, "msg": message, "event": event})
+        self._publish(room.model_id, message, event)
+
+    def _publish(self, model_id: str, message: dict[str, Any], event: Any = None) -> None:
+        bus = self.store.bus
+        bus.publish_soon("room", {"m": model_id, "msg": message, "event": event, "on": bus.origin})
 
     def _heard(self, data: dict[str, Any]) -> None:
         """A room message from another process (the bus's thread): handled on the loop."""
@@ -387,10 +394,7 @@ class Hub:
         kind = message.get("type")
         if kind == "hello":  # a room just opened there: say who is here
             for person in room.people.values():
-                self.store.bus.publish_soon(
-                    "room",
-                    {"m": room.model_id, "msg": {"type": "joined", "participant": person.public()}},
-                )
+                self._publish(room.model_id, {"type": "joined", "participant": person.public()})
             return
         if data.get("event"):
             room.state.apply(*data["event"])
@@ -398,8 +402,10 @@ class Hub:
             if message["participant"]["id"] in room.remote:
                 return  # already known (an answer to a hello)
             room.remote[message["participant"]["id"]] = message["participant"]
+            room.remote_on[message["participant"]["id"]] = str(data.get("on", ""))
         elif kind == "left":
             room.remote.pop(message["id"], None)
+            room.remote_on.pop(message["id"], None)
         elif kind == "presenter":
             room.presenter, room.view = message["id"], None
         elif kind == "camera":
@@ -420,9 +426,26 @@ class Hub:
             try:
                 if ticks % RECHECK_TICKS == 0:  # ended elsewhere: `miss user disable`
                     await self._recheck_sessions()
+                    await self._drop_the_dead()
                 self.close_ended()
             except Exception:  # keep watching whatever one pass met
                 log.exception("room watcher")
+
+    async def _drop_the_dead(self) -> None:
+        """People listed here from a server process that died (it could not say they
+        left): gone from the rooms, and their leaving told to the people here."""
+        origins = {o for room in self.rooms.values() for o in room.remote_on.values() if o}
+        for origin in origins:
+            if await run_in_threadpool(self.store.bus.is_alive, origin):
+                continue
+            for room in list(self.rooms.values()):
+                for pid in [p for p, o in room.remote_on.items() if o == origin]:
+                    room.remote.pop(pid, None)
+                    room.remote_on.pop(pid, None)
+                    if room.presenter == pid:
+                        room.presenter, room.view = None, None
+                        room.broadcast({"type": "presenter", "id": None, "name": None})
+                    room.broadcast({"type": "left", "id": pid})
 
     async def _recheck_sessions(self) -> None:
         """Logins of connected users that the database no longer holds (ended by the
@@ -494,7 +517,7 @@ class Hub:
                 writing = self._writing.setdefault(model_id, asyncio.Lock())
                 room = Room(model_id, session, state, bounds, writing)
                 self.rooms[model_id] = room
-                self.store.bus.publish_soon("room", {"m": model_id, "msg": {"type": "hello"}})
+                self._publish(model_id, {"type": "hello"})
             person = Participant(ws, visitor, room.colour())
             room.people[person.id] = person
             self.on_people(self.connections())
