@@ -31,6 +31,7 @@ START = time.perf_counter()  # a fresh child's clock starts before its first imp
 import argparse  # noqa: E402
 import importlib.util  # noqa: E402
 import json  # noqa: E402
+import os  # noqa: E402
 import statistics  # noqa: E402
 import subprocess  # noqa: E402
 import sys  # noqa: E402
@@ -46,7 +47,8 @@ REDUCE = 0.9
 
 
 def datasets() -> Path:
-    return HERE.parent.parent / "shared" / "datasets"
+    """``../shared/datasets`` beside the repository, or ``$MISS_DATASETS`` (a worktree's)."""
+    return Path(os.environ.get("MISS_DATASETS", HERE.parent.parent / "shared" / "datasets"))
 
 
 def cases() -> dict[str, tuple[Path, dict[str, Any]]]:
@@ -84,22 +86,23 @@ def run_job(path: Path, what: dict[str, Any]) -> list[Pair]:
 def _scene_pairs(volume: Any, labels: str) -> list[Pair]:
     """A label map's job: every part's surfaces, caught where the scene would measure them
     (the stand-in answers at once, so the job is timed without its measurement)."""
+    from dataclasses import replace
+
     import miss
-    from miss.deviation import Deviation
     from miss.structures import labelmap
 
     pairs: list[Pair] = []
 
-    def catch(a: Any, b: Any, samples: int = 100_000, seed: int = 0) -> Deviation:
-        pairs.append((a, b, samples))
-        return Deviation(0.0, 0.0, 0)
+    def catch(report: Any, before: Any, after: Any, samples: int) -> Any:
+        pairs.append((before, after, samples))
+        return replace(report, max_error_mm=0.0, mean_error_mm=0.0)
 
-    measure = labelmap.deviation
-    labelmap.deviation = catch
+    measured = labelmap.measured
+    labelmap.measured = catch
     try:
         scene = miss.extract_scene(volume, labels=labels, reduce=REDUCE, measure=True)
     finally:
-        labelmap.deviation = measure
+        labelmap.measured = measured
     miss.export(scene, "glb")
     miss.export(scene, "wrl")
     return pairs
