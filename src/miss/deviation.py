@@ -21,6 +21,7 @@ before that, took 0.57 s for the 100 000 points of one side alone, serially.
 from __future__ import annotations
 
 import math
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -51,11 +52,15 @@ def _sample(mesh: Mesh, count: int, rng: np.random.Generator, drawn: bool) -> np
     used = np.flatnonzero(_used(mesh.faces, mesh.n_vertices))
     # choice(n) draws what choice(used) does (it takes used[those] after)
     chosen = rng.choice(len(used), size=min(len(used), count // 2), replace=False)
-    corners = mesh.vertices[used[chosen if drawn else np.sort(chosen)]]
+    if not drawn:  # the same vertices in increasing order, without a sort
+        mark = np.zeros(len(used), dtype=bool)
+        mark[chosen] = True
+        chosen = np.flatnonzero(mark)
+    corners = mesh.vertices[used[chosen]]
     n_inner = count - len(corners)
     cum = _cumulative_areas(mesh.vertices, mesh.faces)
     target = rng.random(n_inner) * cum[-1]
-    order = np.argsort(target)
+    order = _increasing(target, cum[-1])
     r1, r2 = rng.random(n_inner), rng.random(n_inner)
     out = np.empty((count, 3))
     out[: len(corners)] = corners
@@ -72,6 +77,34 @@ def _used(faces, n):
         for k in range(3):
             out[faces[f, k]] = True
     return out
+
+
+@njit(cache=True, nogil=True)
+def _increasing(values, top):
+    """Indices that sort ``values`` (uniform in [0, top]): into a bucket each by value, then
+    each bucket's few in order (a quarter of np.argsort's time for 100 000)."""
+    n = len(values)
+    scale = n / top if top > 0 else 0.0
+    bucket = np.empty(n, dtype=np.int64)
+    start = np.zeros(n + 1, dtype=np.int64)
+    for i in range(n):
+        bucket[i] = min(int(values[i] * scale), n - 1)
+        start[bucket[i] + 1] += 1
+    for b in range(1, n + 1):
+        start[b] += start[b - 1]
+    order = np.empty(n, dtype=np.int64)
+    fill = start[:-1].copy()
+    for i in range(n):
+        order[fill[bucket[i]]] = i
+        fill[bucket[i]] += 1
+    for b in range(n):  # insertion sort: a bucket holds one or two as a rule
+        for j in range(start[b] + 1, start[b + 1]):
+            i, m = order[j], j
+            while m > start[b] and values[order[m - 1]] > values[i]:
+                order[m] = order[m - 1]
+                m -= 1
+            order[m] = i
+    return order
 
 
 @njit(cache=True, nogil=True)
@@ -190,28 +223,22 @@ def _grid_shape(verts: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, float
     return lo, cell, dims
 
 
-@njit(cache=True, parallel=True, nogil=True)
-def _corners(verts, faces):
+@njit(cache=True, nogil=True)
+def _corners(verts, faces, lo, cell, dims, spans):
     """(F, 9) each triangle's corners a, b, c side by side, in the vertices' dtype: the search
-    reads one row where it read three scattered vertices (a third faster on CThead)."""
+    reads one row where it read three scattered vertices (a third faster on CThead). Fills
+    ``spans`` (F, 6): the first and last cell along x, y, z that each triangle's box meets.
+    Serial: :func:`deviation` builds one grid in a thread of its own while it samples."""
     out = np.empty((len(faces), 9), dtype=verts.dtype)
-    for f in prange(len(faces)):
-        for k in range(3):
-            for axis in range(3):
-                out[f, 3 * k + axis] = verts[faces[f, k], axis]
-    return out
-
-
-@njit(cache=True, parallel=True, nogil=True)
-def _spans(tri, lo, cell, dims, out):
-    """out[f] = first and last cell along x, y, z met by triangle f's bounding box."""
-    for f in prange(len(tri)):
+    for f in range(len(faces)):
         for axis in range(3):
-            a, b, c = tri[f, axis], tri[f, 3 + axis], tri[f, 6 + axis]
+            a, b, c = verts[faces[f, 0], axis], verts[faces[f, 1], axis], verts[faces[f, 2], axis]
+            out[f, axis], out[f, 3 + axis], out[f, 6 + axis] = a, b, c
             first = int((min(a, b, c) - lo[axis]) / cell)
             last = int((max(a, b, c) - lo[axis]) / cell)
-            out[f, axis] = max(0, min(first, dims[axis] - 1))
-            out[f, 3 + axis] = max(0, min(last, dims[axis] - 1))
+            spans[f, axis] = max(0, min(first, dims[axis] - 1))
+            spans[f, 3 + axis] = max(0, min(last, dims[axis] - 1))
+    return out
 
 
 @njit(cache=True, nogil=True)
@@ -373,9 +400,8 @@ def surface_grid(mesh: Mesh) -> tuple:
     verts = np.ascontiguousarray(mesh.vertices)
     faces = np.ascontiguousarray(mesh.faces)
     lo, cell, dims = _grid_shape(verts, faces)
-    tri = _corners(verts, faces)
     spans = np.empty((len(faces), 6), dtype=np.int16 if dims.max() < 2**15 else np.int32)
-    _spans(tri, lo, cell, dims, spans)
+    tri = _corners(verts, faces, lo, cell, dims, spans)
     offsets, items = _build_grid(spans, dims)
     return (lo, cell, dims, offsets, items, tri)
 
@@ -401,9 +427,12 @@ def deviation(a: Mesh, b: Mesh, samples: int = 100_000, seed: int = 0) -> Deviat
     if a.n_triangles == 0 or b.n_triangles == 0:
         return Deviation(0.0, 0.0, 0)
     rng = np.random.default_rng(seed)
-    # the same points as sample_surface's, neighbours together: max and mean are the same
-    d_ab = distances_to(_sample(a, samples, rng, drawn=False), b)
-    d_ba = distances_to(_sample(b, samples, rng, drawn=False), a)
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        # a's cells (a is the larger surface, as a rule) are made on the second core meanwhile
+        grid_a = pool.submit(surface_grid, a)
+        # the same points as sample_surface's, neighbours together: max and mean are the same
+        d_ab = distances_to(_sample(a, samples, rng, drawn=False), b)
+        d_ba = distances_to(_sample(b, samples, rng, drawn=False), a, grid=grid_a.result())
     both = np.concatenate([d_ab, d_ba])
     return Deviation(max_mm=float(both.max()), mean_mm=float(both.mean()), samples=len(both))
 
