@@ -387,9 +387,13 @@ def _grid_distances(points, grid, cap2):
     """Exact distance from each point to the nearest triangle of the grid's mesh (see
     _nearest_sq for ``cap2``)."""
     order = _block_order(points, grid[0], grid[1], grid[2])
-    out = np.empty(len(points))
+    found = np.empty(len(points))
     for n in prange(len(points)):
-        out[order[n]] = math.sqrt(_nearest_sq(points[order[n]], grid, cap2))
+        # written in search order: threads writing all over ``out`` would contend for its
+        # cache lines (4x slower for 10 000 points)
+        found[n] = math.sqrt(_nearest_sq(points[order[n]], grid, cap2))
+    out = np.empty(len(points))
+    out[order] = found
     return out
 
 
