@@ -5,17 +5,21 @@ points are sampled on each surface (its vertices plus random points inside its
 triangles) and their exact distance to the other surface is taken, both ways.
 
 The distances are exact: triangles are binned into a uniform grid of cells about the median
-edge long (by their bounding boxes). Each query looks in its own cell first, then in rings of
-cells around it, skipping cells and triangles whose box is farther than the best triangle so
-far, and stops once the best is nearer than the outside of the searched block (Ericson's
-closest-point-on-triangle for each candidate). Queries run in parallel (numba) in cell order,
-so neighbouring queries share cached triangles. Zero-area triangles count by their edges;
-checked against brute force in the tests. On CThead's bone (545 796 triangles against its
-10 % decimation, 100 000 samples a side, 2 shared cores): 0.42 s warm and 0.40 s in a fresh
-process with the kernels loaded from numba's cache, against 0.95 s and 0.97 s for the
-previous search (a second ring of cells always, no box test per triangle), with the same
-samples and distances (``benchmarks/measure.py``). ``vtkImplicitPolyDataDistance``, used
-before that, took 0.57 s for the 100 000 points of one side alone, serially.
+edge long (by their bounding boxes), their corners copied side by side, a row a triangle.
+Each query looks in its own cell first, then in rings of cells around it, skipping cells and
+triangles whose box is farther than the best triangle so far, and stops once the best is
+nearer than the outside of the searched block (Ericson's closest-point-on-triangle for each
+candidate). Queries run in parallel (numba) grouped by blocks of cells, so neighbouring
+queries share cached triangles, and write their answers in that order. Zero-area triangles
+count by their edges; checked against brute force in tests/test_deviation.py.
+
+:func:`deviation` draws the same samples as :func:`sample_surface` (so the same figures) but
+keeps them in vertex and triangle order, and makes the larger surface's grid in a second
+thread while it samples and searches the other. On CThead's bone (545 796 triangles against
+its 10 % decimation, 100 000 samples a side, 2 shared cores), medians right after the job:
+about 0.09 s against 0.19 s before these changes, with the same samples and distances
+(``benchmarks/measure.py``, results/measure.md). ``vtkImplicitPolyDataDistance``, used
+before the grid, took 0.57 s for the 100 000 points of one side alone, serially.
 """
 
 from __future__ import annotations
@@ -226,7 +230,7 @@ def _grid_shape(verts: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, float
 @njit(cache=True, nogil=True)
 def _corners(verts, faces, lo, cell, dims, spans):
     """(F, 9) each triangle's corners a, b, c side by side, in the vertices' dtype: the search
-    reads one row where it read three scattered vertices (a third faster on CThead). Fills
+    reads one row where it read three scattered vertices (its queries a third faster). Fills
     ``spans`` (F, 6): the first and last cell along x, y, z that each triangle's box meets.
     Serial: :func:`deviation` builds one grid in a thread of its own while it samples."""
     out = np.empty((len(faces), 9), dtype=verts.dtype)
