@@ -436,11 +436,16 @@ def deviation(a: Mesh, b: Mesh, samples: int = 100_000, seed: int = 0) -> Deviat
         return Deviation(0.0, 0.0, 0)
     rng = np.random.default_rng(seed)
     with ThreadPoolExecutor(max_workers=1) as pool:
-        # a's cells (a is the larger surface, as a rule) are made on the second core meanwhile
-        grid_a = pool.submit(surface_grid, a)
+        # a's cells (a is the larger surface, as a rule) are made on the second core while
+        # this one samples both and makes b's; the searches, on both cores, come after
+        making = pool.submit(surface_grid, a)
         # the same points as sample_surface's, neighbours together: max and mean are the same
-        d_ab = distances_to(_sample(a, samples, rng, drawn=False), b)
-        d_ba = distances_to(_sample(b, samples, rng, drawn=False), a, grid=grid_a.result())
+        points_a = _sample(a, samples, rng, drawn=False)
+        points_b = _sample(b, samples, rng, drawn=False)
+        grid_b = surface_grid(b)
+        grid_a = making.result()
+    d_ab = distances_to(points_a, b, grid=grid_b)
+    d_ba = distances_to(points_b, a, grid=grid_a)
     both = np.concatenate([d_ab, d_ba])
     return Deviation(max_mm=float(both.max()), mean_mm=float(both.mean()), samples=len(both))
 
