@@ -17,7 +17,7 @@ count by their edges; checked against brute force in tests/test_deviation.py.
 keeps them in vertex and triangle order, and makes the larger surface's grid in a second
 thread while it samples and searches the other. On CThead's bone (545 796 triangles against
 its 10 % decimation, 100 000 samples a side, 2 shared cores), medians right after the job:
-about 0.09 s against 0.19 s before these changes, with the same samples and distances
+0.10 s against 0.18 s before these changes (5858f1f), with the same samples and distances
 (``benchmarks/measure.py``, results/measure.md). ``vtkImplicitPolyDataDistance``, used
 before the grid, took 0.57 s for the 100 000 points of one side alone, serially.
 """
