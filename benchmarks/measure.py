@@ -1,13 +1,14 @@
 """What measuring a decimation's error costs, beside the job it measures.
 
-    .venv/bin/python benchmarks/measure.py [--repeats 5] [--fresh-repeats 5] [--out DIR]
+    .venv/bin/python benchmarks/measure.py [--repeats 5] [--fresh-repeats 5] [--before REF] [--out DIR]
 
 The job is the public API's: ``load_volume`` -> ``extract_surface`` (or ``extract_scene``
 for a label map) -> quadric decimation to 10 % -> GLB and VRML, with ``measure=False``. The
 measurement is :func:`miss.deviation.deviation` on what the job made: 100 000 samples a side
 for a surface, ``MEASURE_SAMPLES`` a part for a label map's scene, as the job itself would
-measure. "Old" is the implementation before issue 14 (``git show BEFORE:src/miss/deviation.py``
-loaded as a module of its own), run in the same session, alternately with the new one.
+measure. "Old" is the implementation at ``--before`` (default: before issue 14; ``git show
+REF:src/miss/deviation.py`` loaded as a module of its own), run in the same session,
+alternately with the new one.
 
 - **warm**: one process; the job, the new measurement and the old one round-robin
   ``--repeats`` times (after one untimed round), medians.
@@ -31,6 +32,7 @@ START = time.perf_counter()  # a fresh child's clock starts before its first imp
 import argparse  # noqa: E402
 import importlib.util  # noqa: E402
 import json  # noqa: E402
+import os  # noqa: E402
 import statistics  # noqa: E402
 import subprocess  # noqa: E402
 import sys  # noqa: E402
@@ -46,7 +48,8 @@ REDUCE = 0.9
 
 
 def datasets() -> Path:
-    return HERE.parent.parent / "shared" / "datasets"
+    """``../shared/datasets`` beside the repository, or ``$MISS_DATASETS`` (a worktree's)."""
+    return Path(os.environ.get("MISS_DATASETS", HERE.parent.parent / "shared" / "datasets"))
 
 
 def cases() -> dict[str, tuple[Path, dict[str, Any]]]:
@@ -84,22 +87,23 @@ def run_job(path: Path, what: dict[str, Any]) -> list[Pair]:
 def _scene_pairs(volume: Any, labels: str) -> list[Pair]:
     """A label map's job: every part's surfaces, caught where the scene would measure them
     (the stand-in answers at once, so the job is timed without its measurement)."""
+    from dataclasses import replace
+
     import miss
-    from miss.deviation import Deviation
     from miss.structures import labelmap
 
     pairs: list[Pair] = []
 
-    def catch(a: Any, b: Any, samples: int = 100_000, seed: int = 0) -> Deviation:
-        pairs.append((a, b, samples))
-        return Deviation(0.0, 0.0, 0)
+    def catch(report: Any, before: Any, after: Any, samples: int) -> Any:
+        pairs.append((before, after, samples))
+        return replace(report, max_error_mm=0.0, mean_error_mm=0.0)
 
-    measure = labelmap.deviation
-    labelmap.deviation = catch
+    measured = labelmap.measured
+    labelmap.measured = catch
     try:
         scene = miss.extract_scene(volume, labels=labels, reduce=REDUCE, measure=True)
     finally:
-        labelmap.deviation = measure
+        labelmap.measured = measured
     miss.export(scene, "glb")
     miss.export(scene, "wrl")
     return pairs
@@ -113,14 +117,14 @@ def measure(pairs: list[Pair], deviation: Callable[..., Any]) -> tuple[float, fl
     return max(d.max_mm for d in devs), sum(d.mean_mm * d.samples for d in devs) / total
 
 
-def old_module() -> ModuleType | None:
-    """deviation.py as it was at ``BEFORE``, importable beside the new one (None without git)."""
+def old_module(before: str = BEFORE) -> ModuleType | None:
+    """deviation.py as it was at ``before``, importable beside the new one (None without git)."""
     from common import CACHE
 
-    path = CACHE / f"deviation_{BEFORE}.py"
+    path = CACHE / f"deviation_{before}.py"
     if not path.is_file():
         proc = subprocess.run(
-            ["git", "show", f"{BEFORE}:src/miss/deviation.py"],
+            ["git", "show", f"{before}:src/miss/deviation.py"],
             cwd=HERE,
             capture_output=True,
             text=True,
@@ -141,7 +145,7 @@ def old_module() -> ModuleType | None:
 # ----------------------------------------------------------------------------- fresh runs
 
 
-def child(case: str, impl: str) -> dict[str, Any]:
+def child(case: str, impl: str, before: str) -> dict[str, Any]:
     """In a fresh interpreter: the job, then the measurement with its remaining imports."""
     path, what = cases()[case]
     pairs = run_job(path, what)
@@ -152,7 +156,7 @@ def child(case: str, impl: str) -> dict[str, Any]:
     baseline = start_peak()
     t0 = time.perf_counter()
     if impl == "old":
-        old = old_module()
+        old = old_module(before)
         assert old is not None
         deviation = old.deviation
     else:
@@ -168,9 +172,9 @@ def child(case: str, impl: str) -> dict[str, Any]:
     }
 
 
-def fresh(case: str, impl: str) -> dict[str, Any]:
+def fresh(case: str, impl: str, before: str) -> dict[str, Any]:
     proc = subprocess.run(
-        [sys.executable, str(Path(__file__)), "--child", case, impl],
+        [sys.executable, str(Path(__file__)), "--child", case, impl, "--before", before],
         capture_output=True,
         text=True,
         timeout=600,
@@ -268,10 +272,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--fresh-repeats", type=int, default=5)
     parser.add_argument("--cases", default=",".join(cases()), help="comma-separated names")
     parser.add_argument("--out", type=Path, default=None, help="folder for measure.{json,md}")
+    parser.add_argument("--before", default=BEFORE, help="git ref of the old deviation.py")
     parser.add_argument("--child", nargs=2, metavar=("CASE", "IMPL"), help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.child:
-        print(json.dumps(child(*args.child)))
+        print(json.dumps(child(*args.child, args.before)))
         return 0
 
     from common import RESULTS, markdown_table, save
@@ -280,14 +285,14 @@ def main(argv: list[str] | None = None) -> int:
     unknown = sorted(set(names) - set(cases()))
     if unknown:
         parser.error(f"unknown case(s) {', '.join(unknown)}; choose from {', '.join(cases())}")
-    old = old_module()
+    old = old_module(args.before)
     rows, data = [], {}
     for case in names:
         w = warm(case, args.repeats, old)
         f: dict[str, list[dict[str, Any]]] = {"new": [], "old": []}
         for _ in range(args.fresh_repeats):
             for impl in ("new", "old") if old is not None else ("new",):
-                f[impl].append(fresh(case, impl))
+                f[impl].append(fresh(case, impl, args.before))
         rows.append(row(case, w, f))
         data[case] = {"warm": w, "fresh": f}
         print(markdown_table(HEADER, rows[-1:]), flush=True)
@@ -297,7 +302,7 @@ def main(argv: list[str] | None = None) -> int:
         f"round-robin runs in one process; fresh: medians of {args.fresh_repeats} new "
         "interpreters each, new and old alternately (the job's time counts its imports, the "
         "measurement's its own). Old = deviation.py at "
-        f"{BEFORE}. Peak: the job's VmHWM; the measurement's above the job's resident set.\n"
+        f"{args.before}. Peak: the job's VmHWM; the measurement's above the job's resident set.\n"
     )
     print(table + note)
     out = args.out or RESULTS
