@@ -433,7 +433,11 @@ def main() -> None:
             name = "scale_crossover.md"
         else:
             text = main_table(size, args.runs, args.block, Path(tmp))  # type: ignore[arg-type]
-            name = "scale.md"
+            name = (
+                "scale.md"
+                if args.size == "512,512,600"
+                else f"scale_{args.size.replace(',', 'x')}.md"
+            )
     print(text)
     RESULTS.mkdir(exist_ok=True)
     (RESULTS / name).write_text(text)
