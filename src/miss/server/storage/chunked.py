@@ -174,7 +174,7 @@ class Voxels:
         if picked is None:  # an index this does not read itself (out of range, steps < 1)
             return np.asarray(self.stored[key[::-1]]).T
         box, steps, drop = picked
-        out = self._box(box)[tuple(slice(None, None, st) for st in steps)]
+        out = self._read(box, steps)
         return out[tuple(0 if d else slice(None) for d in drop)]
 
     def _picked(
@@ -201,32 +201,31 @@ class Voxels:
                 return None
         return box, steps, drop
 
-    def _box(self, box: list[tuple[int, int]]) -> np.ndarray:
-        """The voxels of ``box`` ((start, stop) per axis, unit steps) as an (X, Y, Z)
-        F-ordered array, assembled from the chunks it crosses (:meth:`chunk`), their
-        decompression spread over the cores when there are many."""
-        out = np.empty([b - a for a, b in box], dtype=self.dtype, order="F")
+    def _read(self, box: list[tuple[int, int]], steps: list[int]) -> np.ndarray:
+        """Every ``steps``-th voxel of ``box`` ((start, stop) per axis) as an (X, Y, Z)
+        F-ordered array, filled chunk by chunk (:meth:`chunk`) from the chunks holding one
+        of those voxels, never more than the answer plus a chunk a thread: a strided
+        read of a large volume (a preview) stays small. Decompression is spread over the
+        cores when there are many chunks."""
+        picks = [
+            _lattice(a, b, st, c) for (a, b), st, c in zip(box, steps, self.chunks, strict=True)
+        ]
+        out = np.empty([len(range(a, b, st)) for (a, b), st in zip(box, steps, strict=True)],
+                       dtype=self.dtype, order="F")  # fmt: skip
         if out.size == 0:
             return out
-        chunks = self.chunks
-        spans = [range(a // c, (b - 1) // c + 1) for (a, b), c in zip(box, chunks, strict=True)]
-        indices = list(itertools.product(*spans))
+        jobs = list(itertools.product(*picks))
 
-        def put(index: tuple[int, ...]) -> None:
-            lo = [i * c for i, c in zip(index, chunks, strict=True)]
-            part = [
-                (max(a, c0), min(b, c0 + c)) for (a, b), c0, c in zip(box, lo, chunks, strict=True)
-            ]
-            take = tuple(slice(a - c0, b - c0) for (a, b), c0 in zip(part, lo, strict=True))
-            into = tuple(slice(a - s0, b - s0) for (a, b), (s0, _) in zip(part, box, strict=True))
-            out[into] = self.chunk(index)[take]
+        def put(job: tuple[tuple[int, slice, slice], ...]) -> None:
+            chunk = self.chunk(tuple(j[0] for j in job))
+            out[tuple(j[2] for j in job)] = chunk[tuple(j[1] for j in job)]
 
-        if len(indices) < _PARALLEL_CHUNKS:
-            for index in indices:
-                put(index)
+        if len(jobs) < _PARALLEL_CHUNKS:
+            for job in jobs:
+                put(job)
         else:  # Blosc decompresses without the GIL
             with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
-                list(pool.map(put, indices))
+                list(pool.map(put, jobs))
         return out
 
     def min(self) -> Any:
@@ -283,6 +282,22 @@ class Voxels:
 
     def __repr__(self) -> str:
         return f"Voxels(shape={self.shape}, dtype={self.dtype}, chunks={self.chunks})"
+
+
+def _lattice(start: int, stop: int, step: int, size: int) -> list[tuple[int, slice, slice]]:
+    """Along one axis, for the voxels ``range(start, stop, step)``: each chunk (of
+    ``size``) holding one of them, with where they are in the chunk and in the answer."""
+    found = []
+    for c in range(start // size, (stop - 1) // size + 1) if stop > start else ():
+        c0 = c * size
+        first = max(0, -(-(c0 - start) // step))  # the first voxel at or past the chunk
+        last = (min(stop, c0 + size) - 1 - start) // step
+        if first <= last:
+            at = start + first * step - c0
+            found.append(
+                (c, slice(at, at + (last - first) * step + 1, step), slice(first, last + 1))
+            )
+    return found
 
 
 def _xyz(key: Any) -> tuple[Any, ...]:
