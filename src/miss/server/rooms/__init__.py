@@ -135,6 +135,9 @@ ENDED = {
     "model": "the model was deleted",
     "volume": "the volume was deleted",
 }
+#: Which ended grant a closed connection is told of when several ended at once (disabling
+#: an account also ends its logins: "disabled" says more than "logged out").
+REASONS = ("user", "share", "model", "volume", "session")
 #: Seconds between checks for ended grants and expired access (the promise: closed within
 #: a second), and how long an ended grant is remembered (a connection admitted just
 #: before the grant ended still finds it).
@@ -473,9 +476,10 @@ class Hub:
             for person in list(room.people.values()):
                 if person.closing:
                     continue
-                gone = [k for k in person.visitor.grants(room.model_id) if k in ended]
+                grants = person.visitor.grants(room.model_id)
+                gone = [kind for kind, value in grants if (kind, value) in ended]
                 if gone:
-                    kind = gone[0][0]
+                    kind = min(gone, key=REASONS.index)  # the most telling of those that ended
                     code = "revoked" if kind == "share" else "ended"
                     person.error(code, f"{ENDED[kind]}; this connection is closed.")
                     person.close(Close.GONE, ENDED[kind])

@@ -246,8 +246,8 @@ def change_user(
     if body.pacs is not None:
         accounts.set_pacs(store, user.id, body.pacs)
     if body.password is not None or body.disabled:
+        request.app.state.rooms.end("user", user.id)  # first: its rooms hear why
         accounts.end_sessions(store, user.id)
-        request.app.state.rooms.end("user", user.id)
     changes = {k: v for k, v in (("disabled", body.disabled), ("pacs", body.pacs)) if v is not None}
     audit.record(
         store, "user_change", admin.name, user.name, audit.address(request),
