@@ -255,10 +255,13 @@ def test_a_rooms_cap_counts_its_people_on_every_process(tmp_path: Path, small_ni
         _, model = ball_model(a, small_nifti)
         headers = {"Authorization": f"Bearer {a.token}"}
         with connect(ws_url(a, model), additional_headers=headers, open_timeout=30) as first:
-            until(first, "welcome")
+            mine = until(first, "welcome")["you"]["id"]
             with connect(ws_url(b, model), additional_headers=headers, open_timeout=30) as second:
-                until(second, "welcome")
+                welcome = until(second, "welcome")
                 until(first, "joined")  # A has heard of B's person
+                if mine not in {p["id"] for p in welcome["participants"]}:
+                    # B hears of A's person when A answers the room's hello
+                    assert until(second, "joined")["participant"]["id"] == mine
                 for server in (a, b):
                     with connect(
                         ws_url(server, model), additional_headers=headers, open_timeout=30
