@@ -20,6 +20,7 @@ from typing import Any
 
 from miss.errors import MissError, UnreadableVolume, UnsupportedFormat
 from miss.io import dicom, itk, metaimage, nifti, nrrd
+from miss.io.common import Streamed
 from miss.types import Volume
 
 #: Tried in this order; ``itk`` is the catch-all for anything else SimpleITK reads.
@@ -72,6 +73,25 @@ def load_volume(path: str | os.PathLike[str], series: str | None = None) -> Volu
         except Exception as exc:  # library internals: report, let the next reader try
             failures.append(f"{_name(reader)}: {_first_line(exc)}")
     raise _all_failed(p, failures)
+
+
+def stream_volume(path: str | os.PathLike[str], series: str | None = None) -> Streamed | None:
+    """What :func:`load_volume` would read at ``path``, as planes read one at a time, when
+    the reader it picks can stream it: a folder of DICOM slices (:func:`dicom.stream`) or
+    a plain NIfTI-1 file (:func:`nifti.stream`); None when it reads the volume whole.
+
+    The same voxels, dtype, affine, metadata and patient as ``load_volume``. A file it
+    would refuse may raise here with another message: read it whole then, to say why.
+    """
+    p = Path(path)
+    if p.is_dir():
+        return dicom.stream(p, series)
+    if series is not None or not p.is_file() or p.stat().st_size == 0:
+        return None  # NIfTI refuses ``series``; an empty file: load_volume says so
+    head = _head(p)
+    if dicom.sniff(p, head) or not nifti.sniff(p, head):
+        return None  # DICOM is tried first there, and only a folder of it streams
+    return nifti.stream(p)
 
 
 def list_series(path: str | os.PathLike[str]) -> list[dict[str, Any]]:
@@ -160,4 +180,4 @@ def _first_line(exc: BaseException) -> str:
     return "not enough memory" if isinstance(exc, MemoryError) else "an internal error"
 
 
-__all__ = ["READERS", "list_series", "load_volume", "self_contained"]
+__all__ = ["READERS", "list_series", "load_volume", "self_contained", "stream_volume"]

@@ -17,7 +17,9 @@ SimpleITK's catch-all) runs here, in a child process that
 
 The child sends the voxels back as ``out/data.npy`` and everything else as JSON, never
 as a pickle, and the parent checks both before it believes them: a reader that a
-hostile file took over can lie about what it read, not make the server read more.
+hostile file took over can lie about what it read, not make the server read more. For
+an upload, neither holds the volume whole where the reader streams (a plain NIfTI-1,
+DICOM slices): the child writes the file plane by plane, the parent reads it so.
 
 Where Landlock is missing (an old kernel, a container that blocks it), ``probe`` says
 why and the server starts anyway, says so in one line, and refuses the formats that can
@@ -35,9 +37,11 @@ import signal
 import socket
 import subprocess
 import sys
+import time
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 import numpy as np
 
@@ -53,6 +57,7 @@ from miss.errors import (
     UnsupportedFormat,
     is_disk_full,
 )
+from miss.io.common import Streamed
 from miss.types import Volume
 
 #: The child's exit codes for "out of memory" and "disk full" (1 is a Python traceback).
@@ -118,14 +123,21 @@ class Confinement:
 
 @dataclass
 class Parsed:
-    """What the child read: the volume (identity still in ``patient``), the DICOM series
-    it found (mode ``series``), a label table (mode ``labels``)."""
+    """What the child read: the volume (identity still in ``patient``), or, asked for
+    planes (``whole=False``), the same as ``streamed``; the DICOM series it found (mode
+    ``series``), a label table (mode ``labels``). ``close()`` once the planes are read."""
 
     volume: Volume | None = None
+    streamed: Streamed | None = None
     series: list[dict[str, Any]] = field(default_factory=list)
     table: list[dict[str, Any]] = field(default_factory=list)
     table_source: str = ""
     source_name: str = ""
+    voxel_file: BinaryIO | None = None
+
+    def close(self) -> None:
+        if self.voxel_file is not None:
+            self.voxel_file.close()
 
 
 # --------------------------------------------------------------------------- parent side
@@ -217,6 +229,7 @@ def parse_upload(
     mode: str = "volume",
     series: str | None = None,
     grid: dict[str, Any] | None = None,
+    whole: bool = True,
 ) -> Parsed:
     """Read ``work/upload`` (a zip is unpacked into ``work/unzipped`` first) in a child.
 
@@ -225,7 +238,9 @@ def parse_upload(
     label table that comes with it) or ``segmentation`` (the one DICOM SEG or RT-STRUCT
     among the files as a label map and its table; an RT-STRUCT is rasterised on ``grid``,
     ``{"affine": 4x4 voxel-to-LPS-mm rows, "dims": [X, Y, Z]}`` of its image series).
-    Raises the reader's ``MissError`` as the child reported it.
+    ``whole=False``: the volume as ``Parsed.streamed``, its (X, Y) planes read from the
+    child's file one at a time (this process never holds it whole); the caller closes
+    the ``Parsed``. Raises the reader's ``MissError`` as the child reported it.
     """
     out = work / OUT
     _remove(out)
@@ -242,7 +257,7 @@ def parse_upload(
     }
     proc = _spawn(work, config, limits)
     answer = _result(work, proc, limits)
-    return _parsed(out, answer)
+    return _parsed(out, answer, whole)
 
 
 def _spawn(work: Path, config: dict[str, Any], limits: Limits) -> subprocess.Popen[bytes]:
@@ -267,7 +282,7 @@ def _result(work: Path, proc: subprocess.Popen[bytes], limits: Limits) -> dict[s
     """The child's answer; its failure as a ``MissError`` with a message that says what
     to do (the child's own message when it sent one)."""
     try:
-        code = proc.wait(timeout=limits.seconds)
+        _wait_unreaped(proc, limits.seconds)
     except subprocess.TimeoutExpired:
         _kill(proc)
         raise UnreadableVolume(
@@ -277,6 +292,12 @@ def _result(work: Path, proc: subprocess.Popen[bytes], limits: Limits) -> dict[s
     except BaseException:
         _kill(proc)
         raise
+    # The child has exited; what it started in its process group goes now, while the
+    # group's id is still held by the child's unreaped zombie (so no other process can
+    # have it), before anything it wrote is read. A descendant that left the group
+    # (``setsid``) could outlive this and still write in the folder: the parent reads
+    # nothing from it by name after checking it, and never through a map (``_planes``).
+    code = _kill(proc)
     answer = _read_json(work / OUT / "result.json")
     if isinstance(answer, dict) and "error" in answer:
         cls = ERRORS.get(str(answer["error"]), UnreadableVolume)
@@ -286,10 +307,24 @@ def _result(work: Path, proc: subprocess.Popen[bytes], limits: Limits) -> dict[s
     raise _crash(code)
 
 
-def _kill(proc: subprocess.Popen[bytes]) -> None:
+def _wait_unreaped(proc: subprocess.Popen[bytes], seconds: float) -> None:
+    """Wait until the child exits, leaving it a zombie (its process group stays its own);
+    ``subprocess.TimeoutExpired`` after ``seconds``."""
+    deadline = time.monotonic() + seconds
+    delay = 0.0005
+    while not os.waitid(os.P_PID, proc.pid, os.WEXITED | os.WNOWAIT | os.WNOHANG):
+        if time.monotonic() > deadline:
+            raise subprocess.TimeoutExpired(proc.args, seconds)
+        time.sleep(delay)
+        delay = min(2 * delay, 0.05)
+
+
+def _kill(proc: subprocess.Popen[bytes]) -> int:
+    """Kill the child's process group (the child and all it started that stayed in it),
+    reap the child; its exit code."""
     with contextlib.suppress(ProcessLookupError, PermissionError):
         os.killpg(proc.pid, signal.SIGKILL)
-    proc.wait()
+    return proc.wait()
 
 
 def _crash(code: int) -> MissError:
@@ -355,15 +390,23 @@ def _read_json(path: Path) -> Any:
         raise UnreadableVolume("the file reader gave an unusable result.") from None
 
 
-def _parsed(out: Path, answer: dict[str, Any]) -> Parsed:
+def _parsed(out: Path, answer: dict[str, Any], whole: bool = True) -> Parsed:
     parsed = Parsed(
         series=_list_of_dicts(answer.get("series")),
         table=_list_of_dicts(answer.get("table")),
         table_source=str(answer.get("table_source") or "")[:MAX_MESSAGE],
         source_name=str(answer.get("source_name") or "")[:MAX_MESSAGE],
     )
-    if answer.get("volume"):
+    if answer.get("volume") and whole:
         parsed.volume = _volume(out, answer["volume"])
+    elif answer.get("volume"):
+        affine, meta, patient = _described(answer["volume"])
+        parsed.voxel_file, shape, dtype = _planes_file(out / "data.npy")
+        source_format = str(meta.get("source_format", ""))
+        planes = _planes(parsed.voxel_file, shape, dtype)
+        parsed.streamed = Streamed(
+            shape, dtype, affine, planes, lambda lo, hi: meta, source_format, patient
+        )
     return parsed
 
 
@@ -374,6 +417,13 @@ def _list_of_dicts(value: Any) -> list[dict[str, Any]]:
 def _volume(out: Path, described: Any) -> Volume:
     """The volume the child wrote, checked: numeric 3-D voxels of the declared shape, a
     finite 4x4 affine, JSON metadata."""
+    affine, meta, patient = _described(described)
+    return Volume(_voxels(out / "data.npy"), affine, meta=meta, patient=patient)
+
+
+def _described(described: Any) -> tuple[np.ndarray, dict[str, Any], dict[str, Any]]:
+    """The child's (affine, meta, patient) of the volume it wrote, checked: a 4x4
+    affine, JSON objects."""
     if not isinstance(described, dict):
         raise UnreadableVolume("the file reader gave an unusable result.")
     try:
@@ -384,11 +434,40 @@ def _volume(out: Path, described: Any) -> Volume:
         raise UnreadableVolume("the file reader gave an unusable geometry.")
     meta = described.get("meta") if isinstance(described.get("meta"), dict) else {}
     patient = described.get("patient") if isinstance(described.get("patient"), dict) else {}
-    return Volume(_voxels(out / "data.npy"), affine, meta=meta, patient=patient)
+    return affine, meta, patient
 
 
 def _voxels(path: Path) -> np.ndarray:
-    with os.fdopen(_open_regular(path), "rb") as f:
+    """The child's voxels, checked (:func:`_checked_npy`), read whole."""
+    f, shape, fortran, dtype = _checked_npy(path)
+    with f:
+        flat = np.fromfile(f, dtype=dtype, count=math.prod(shape))
+    return flat.reshape(shape, order="F" if fortran else "C")
+
+
+def _planes_file(path: Path) -> tuple[BinaryIO, tuple[int, int, int], np.dtype]:
+    """The child's voxels, checked (:func:`_checked_npy`), open for :func:`_planes`:
+    (file, shape, dtype). Fortran order only (what the child writes of a volume), in
+    which each (X, Y) plane is one run of bytes."""
+    f, shape, fortran, dtype = _checked_npy(path)
+    if not fortran:
+        f.close()
+        raise UnreadableVolume("the file reader gave unusable voxels.")
+    x, y, z = (int(n) for n in shape)
+    return f, (x, y, z), dtype
+
+
+def _checked_npy(path: Path) -> tuple[BinaryIO, tuple[int, ...], bool, np.dtype]:
+    """The child's ``data.npy`` open at its first voxel, once it is known to be a regular
+    file of its own (no link), an ``np.save`` header of numeric 3-D voxels, and exactly
+    as long as that header says: (file, shape, Fortran order, dtype).
+
+    Its name is removed at once: the descriptor is all this process reads from, so a
+    file put in its place later is never seen; its disk space comes back on ``close``.
+    """
+    f = os.fdopen(_open_regular(path), "rb")
+    path.unlink()
+    try:
         try:
             version = np.lib.format.read_magic(f)
             read_header = _NPY_HEADERS.get(version)
@@ -399,12 +478,37 @@ def _voxels(path: Path) -> np.ndarray:
             raise UnreadableVolume("the file reader gave unusable voxels.") from None
         if dtype.kind not in NUMERIC_KINDS or dtype.hasobject or len(shape) != 3:
             raise UnreadableVolume("the file reader gave unusable voxels.")
-        count = math.prod(shape)
-        if os.fstat(f.fileno()).st_size - f.tell() != count * dtype.itemsize:
+        if os.fstat(f.fileno()).st_size - f.tell() != math.prod(shape) * dtype.itemsize:
             raise UnreadableVolume("the file reader gave truncated voxels.")
-        flat = np.fromfile(f, dtype=dtype, count=count)
-    path.unlink()  # in memory now: give its disk space back before the volume is stored
-    return flat.reshape(shape, order="F" if fortran else "C")
+    except BaseException:
+        f.close()
+        raise
+    return f, shape, fortran, dtype
+
+
+def _planes(f: BinaryIO, shape: tuple[int, int, int], dtype: np.dtype) -> Iterator[np.ndarray]:
+    """The (X, Y) planes, z in order, of the checked Fortran-order file ``f`` (at its first
+    voxel), one in memory at a time.
+
+    Read with ``pread`` from the checked descriptor, not mapped: a map's pages would all
+    stay resident in this process as they are read, and a file truncated under a map
+    (by a descendant of the child that escaped its process group) kills the server with
+    SIGBUS, where a short read here is refused. Non-finite values are refused too: the
+    readers replace NaN, so only a reader that lies sends one.
+    """
+    x, y, z = shape
+    size, start = x * y * dtype.itemsize, f.tell()
+    for k in range(z):
+        buffer = bytearray(size)
+        view, got = memoryview(buffer), 0
+        while got < size and (n := os.preadv(f.fileno(), [view[got:]], start + k * size + got)):
+            got += n
+        if got < size:
+            raise UnreadableVolume("the file reader gave truncated voxels.")
+        plane = np.frombuffer(buffer, dtype=dtype).reshape((x, y), order="F")
+        if dtype.kind == "f" and not np.isfinite(plane).all():
+            raise UnreadableVolume("the file reader gave voxels that are not numbers.")
+        yield plane
 
 
 #: The .npy header versions ``np.save`` writes (3.0 only for non-Latin-1 field names).
@@ -571,8 +675,58 @@ def _read(config: dict[str, Any]) -> dict[str, Any]:
     source = _source(config)
     if not config.get("confined", True):
         _refuse_pointers(source)
-    volume = load_volume(source, series=config.get("series") or None)
-    return {"volume": _write_volume(volume), "source_name": _relative(source)}
+    series = config.get("series") or None
+    described = _stream_volume(source, series)
+    if described is None:
+        described = _write_volume(load_volume(source, series=series))
+    return {"volume": described, "source_name": _relative(source)}
+
+
+def _stream_volume(source: Path, series: str | None) -> dict[str, Any] | None:
+    """Write what ``load_volume`` would read plane by plane, when its reader streams
+    (:func:`miss.io.stream_volume`), so this process never holds the volume; None when
+    it must be read whole: not streamable, NaN voxels (``NotStreamable``), or any failure,
+    which the whole read then reports as ``load_volume`` would."""
+    from miss.io import stream_volume
+
+    written = Path(OUT) / "data.npy"
+    try:
+        streamed = stream_volume(source, series)
+        if streamed is None:
+            return None
+        lo, hi = _write_planes(written, streamed.dims, np.dtype(streamed.dtype), streamed.planes)
+    except OSError as exc:
+        if is_disk_full(exc):
+            raise
+        written.unlink(missing_ok=True)
+        return None
+    except Exception:  # noqa: BLE001 - the whole read gives the diagnosis (or the volume)
+        written.unlink(missing_ok=True)
+        return None
+    described = {"affine": streamed.affine.tolist(), "meta": streamed.meta(lo, hi)}
+    return _jsonable(described | {"patient": streamed.patient})
+
+
+def _write_planes(
+    path: Path, dims: tuple[int, int, int], dtype: np.dtype, planes: Iterator[np.ndarray]
+) -> tuple[float, float]:
+    """Write (X, Y) planes, z in order, as the .npy file ``np.save`` writes of the
+    Fortran-order volume (same header, same bytes), one plane in memory at a time;
+    returns the values' (min, max). Plain writes, not a writable map: the pages of a map
+    would stay in this process's resident memory until it is closed, all of them."""
+    header = {"descr": np.lib.format.dtype_to_descr(dtype), "fortran_order": True}
+    lo, hi, count = math.inf, -math.inf, 0
+    with open(path, "wb") as f:
+        np.lib.format.write_array_header_1_0(f, header | {"shape": tuple(dims)})
+        for plane in planes:
+            if plane.shape != tuple(dims[:2]) or plane.dtype != dtype:
+                raise ValueError(f"plane {count} is {plane.shape} {plane.dtype}")
+            f.write(np.ascontiguousarray(plane.T).data)  # x fastest, as Fortran order
+            lo, hi = min(lo, float(plane.min())), max(hi, float(plane.max()))
+            count += 1
+    if count != dims[2]:
+        raise ValueError(f"{count} planes of {dims[2]}")
+    return lo, hi
 
 
 def _series(config: dict[str, Any]) -> dict[str, Any]:

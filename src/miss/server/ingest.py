@@ -26,6 +26,7 @@ import numpy as np
 from miss.deid import deidentify, identity_values, remap_uid, scrub, scrub_patterns
 from miss.errors import EmptySurface, MissError, UnreadableVolume
 from miss.io.archive import volume_suffix
+from miss.io.common import Streamed
 from miss.io.confined import Confinement, Limits, parse_upload
 from miss.server import imaging
 from miss.server.errors import UploadTooLarge
@@ -150,30 +151,38 @@ def ingest(
 ) -> VolumeRow:
     """Read an uploaded file once (confined: :mod:`miss.io.confined`), de-identify it and
     store it for ``owner_id``. ``origin`` (where a PACS series came from: the PACS, the
-    original UIDs of its study, series and images) joins the owner-only identity record."""
+    original UIDs of its study, series and images) joins the owner-only identity record.
+
+    The child writes the voxels plane by plane where the format allows (a plain NIfTI-1,
+    a folder of DICOM slices) and this process stores them plane by plane from its file
+    (:func:`store_streamed`, as ``miss ingest`` does): neither holds the whole volume."""
     assert upload.path is not None
+    key = store.secret(UID_KEY)
     try:
         series = original_series(store, work, upload, reading)
-        parsed = parse_upload(work, upload.path.name, *reading, series=series)
-        shutil.rmtree(work / "unzipped", ignore_errors=True)  # read: room for the stored copy
-        assert parsed.volume is not None
-        volume = parsed.volume
-        check_storable(volume, upload.filename)
+        parsed = parse_upload(work, upload.path.name, *reading, series=series, whole=False)
+        try:
+            shutil.rmtree(work / "unzipped", ignore_errors=True)  # room for the stored copy
+            if parsed.streamed is None:  # only a reader that lies answers so
+                raise UnreadableVolume("the file reader gave no volume; the file is damaged.")
+            check_storable_geometry(parsed.streamed.affine, upload.filename)
+            staged, volume, identity, info = store_streamed(
+                store, parsed.streamed, key, upload.filename
+            )
+        finally:
+            parsed.close()
     except MissError as exc:  # the server's folders are none of the client's business
         raise type(exc)(public_message(str(exc), work)) from None
     except MemoryError:
         raise UploadTooLarge(
             "the volume does not fit in the server's memory; upload fewer slices."
         ) from None
-    clean = deidentify(volume, store.secret(UID_KEY))
-    identity = clean.identity
+    patient = identity_values(identity.get("patient", {}))
     if identity:  # the file name people give a series often is the patient's name
         identity = {**identity, "upload_filename": upload.filename}
     if origin:
         identity = {**identity, "origin": origin}
-    patient = identity_values(clean.identity.get("patient", {}))
-    name = display_name(upload.fields.get("name", ""), upload.filename, clean.volume, patient)
-    staged, info = stage(store, clean.volume, clean.report)
+    name = display_name(upload.fields.get("name", ""), upload.filename, volume, patient)
     return store.add_volume(
         staged, name=name, slug=slugify(name), info=info, owner_id=owner_id, identity=identity
     )
@@ -207,19 +216,26 @@ def _stream_in(store: Store, path: Path, key: bytes) -> Stored | None:
     streamed = nifti.stream(path) or (dicom.stream(path) if path.is_dir() else None)
     if streamed is None:
         return None
+    try:
+        return store_streamed(store, streamed, key, path.name)
+    except NotStreamable:  # NaN voxels become the minimum, which only a whole read knows
+        return None
+
+
+def store_streamed(store: Store, streamed: Streamed, key: bytes, name: str) -> Stored:
+    """Store a volume that comes plane by plane into a folder under ``tmp/`` (de-identified
+    as it is stored: the same files as :func:`stage` of it read whole); ``name`` is the
+    file's name, for messages. Raises what the planes raise, leaving no folder behind."""
     folder = store.tmp_dir()
     try:
         layout = (streamed.dims, streamed.dtype, streamed.affine)
         summary = store_voxels(folder, layout, streamed.source_format, streamed.planes)
-        check_storable_range(summary.lo, summary.hi, path.name)
+        check_storable_range(summary.lo, summary.hi, name)
         lazy, _, _ = chunked.open_array(folder / DATA)
         meta = streamed.meta(summary.lo, summary.hi)
         volume = Volume(lazy, streamed.affine, meta=meta, patient=streamed.patient)
         clean = deidentify(volume, key)
         info = finish(folder, clean.volume, summary, clean.report)
-    except NotStreamable:  # NaN voxels become the minimum, which only a whole read knows
-        shutil.rmtree(folder, ignore_errors=True)
-        return None
     except BaseException:  # a full disk, a bad slice: no half-written folder stays behind
         shutil.rmtree(folder, ignore_errors=True)
         raise
@@ -247,7 +263,13 @@ def public_message(message: str, work: Path) -> str:
 def check_storable(volume: Volume, name: str) -> None:
     """Refuse what no reader should hand on but the pages could not show: a geometry
     that is not finite or has no extent, values that are not finite or all the same."""
-    affine = np.asarray(volume.affine, dtype=float)
+    check_storable_geometry(volume.affine, name)
+    check_storable_range(*volume.value_range(), name)
+
+
+def check_storable_geometry(affine: np.ndarray, name: str) -> None:
+    """:func:`check_storable`'s refusal of a geometry that is not finite or has no extent."""
+    affine = np.asarray(affine, dtype=float)
     spacing = np.linalg.norm(affine[:3, :3], axis=0)
     if not np.isfinite(affine).all() or not (spacing > 0).all():
         steps = ", ".join(f"{s:g}" for s in spacing)
@@ -255,7 +277,6 @@ def check_storable(volume: Volume, name: str) -> None:
             f"{name}: the voxel geometry is unusable (voxel steps {steps} mm); fix the "
             "voxel spacing and orientation in its header."
         )
-    check_storable_range(*volume.value_range(), name)
 
 
 def check_storable_range(lo: float, hi: float, name: str) -> None:
