@@ -77,13 +77,20 @@ PROBE = """
   HTMLCanvasElement.prototype.getContext = function (type, attrs) {
     const gl = type === 'webgl2' || type === 'webgl';
     const ctx = getContext.call(this, type, gl ? { ...(attrs || {}), preserveDrawingBuffer: true } : attrs);
-    if (gl && ctx && !window.__probe) watch(this, ctx);
+    if (gl && ctx) contexts.push([this, ctx]);
+    if (gl && ctx && !window.__probe) watch();
     return ctx;
   };
-  function watch(canvas, gl) {
+  // Every WebGL context the page makes; the one read is the first whose canvas is in the
+  // page (the viewer's: a page may make others off the page, e.g. to ask what draws).
+  const contexts = [];
+  function watch() {
     const probe = window.__probe = { frames: [] };
     let last = -1, buffer = null, cleared = false;
     const tick = () => {
+      const found = contexts.find(([canvas, ctx]) => canvas.isConnected && !ctx.isContextLost());
+      if (!found) { requestAnimationFrame(tick); return; }
+      const gl = found[1];
       const w = gl.drawingBufferWidth, h = gl.drawingBufferHeight;
       const x = w >> 2, y = h >> 2, pw = w >> 1, ph = h >> 1;
       if (pw > 0 && ph > 0) {

@@ -22,12 +22,13 @@ from miss.errors import MissError
 
 #: Volumes with at least this many voxels (after sampling) run on a local Dask cluster when
 #: no scheduler is given; smaller ones on threads. Measured here (2 cores,
-#: benchmarks/results/scale_crossover.md and scale.md): threads won at every size tried,
-#: 7 M voxels 0.4 s against 9.1 s, 118 M 3.7 s against 8.2 s, 157 M 6.3 s against 8.2 s
-#: (the cluster's start, ~3 s, and shipping each block's mesh between processes cost more
-#: than a second process gains when VTK already runs a block on both cores). No crossover
-#: was seen, so the cluster is left to the volumes beyond what was measured (1 G voxels:
-#: the issue's 1024 x 1024 x 1200 and up); re-measure on a machine with more cores.
+#: benchmarks/results/scale*.md): threads are faster at every size tried, 1.15 s against
+#: 1.9-3.6 s on two workers at 157 M voxels, 7.4 s against 12.5-13.2 s at 1.26 G (a
+#: cluster's start, ~3 s, not counted), as the job's process receives and welds every
+#: block's mesh either way. The cluster is kept for the volumes past 1 G voxels for memory:
+#: a job that decimates its blocks where they were made holds the full-resolution blocks
+#: until the bound is known, in the job's process on threads (the surface of 1.26 G voxels took
+#: 1.9 GB there), spread over the workers on a cluster (829 MB at most in any process). Re-measure with more cores.
 CLUSTER_VOXELS = 1_000_000_000
 
 SCHEDULER_ENV = "MISS_DASK_SCHEDULER"
