@@ -142,7 +142,9 @@ def test_slices_window_threshold_and_bounds(client: TestClient, demo_id: str) ->
         r = client.get(f"{base}/{axis}/64.png", params={"window": 2000, "level": 0})
         assert r.status_code == 200 and r.headers["content-type"] == "image/png"
         assert Image.open(io.BytesIO(r.content)).size == (128, 128)
-    plain = np.asarray(Image.open(io.BytesIO(client.get(f"{base}/axial/64.png").content)))
+    grey = Image.open(io.BytesIO(client.get(f"{base}/axial/64.png").content))
+    assert grey.mode == "L"  # no tint asked for: one channel
+    plain = np.asarray(grey.convert("RGB"))
     tinted = np.asarray(
         Image.open(io.BytesIO(client.get(f"{base}/axial/64.png?threshold=300").content))
     )

@@ -89,11 +89,13 @@ def render(
     """PNG of a plane under window/level (units of the volume), voxels above ``threshold`` tinted."""
     low = level - window / 2.0
     grey = np.clip((plane - low) * (255.0 / window), 0.0, 255.0)
-    rgb = np.repeat(grey[:, :, None], 3, axis=2)
-    if threshold is not None:
+    if threshold is None:  # grey: one channel, a third of the work to scale and encode
+        image = Image.fromarray(np.ascontiguousarray(grey.astype(np.uint8)), "L")
+    else:
+        rgb = np.repeat(grey[:, :, None], 3, axis=2)
         above = plane > threshold
         rgb[above] = (1.0 - TINT_ALPHA) * rgb[above] + TINT_ALPHA * TINT
-    image = Image.fromarray(np.ascontiguousarray(rgb.astype(np.uint8)), "RGB")
+        image = Image.fromarray(np.ascontiguousarray(rgb.astype(np.uint8)), "RGB")
     if image.size != size:
         image = image.resize(size, Image.Resampling.BILINEAR)
     buf = io.BytesIO()
