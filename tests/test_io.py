@@ -420,3 +420,16 @@ def test_nifti_ct_is_recognised_as_hu(datasets: Path, tmp_path: Path) -> None:
     assert (ct.meta["modality"], ct.meta["units"]) == ("CT", "HU")
     mr = load_volume(datasets / "nifti" / "MR_Gd.nii.gz")
     assert mr.meta["units"] != "HU"
+
+
+def test_a_resource_warning_during_a_read_is_no_note_of_the_scan() -> None:
+    """The garbage collector's ResourceWarning about some unrelated object (a socket left
+    unclosed elsewhere) can come while a reader runs: it is passed on, not made a note."""
+    import warnings
+
+    from miss.io.common import recorded_warnings
+
+    with pytest.warns(ResourceWarning), recorded_warnings("pydicom") as notes:
+        warnings.warn("unclosed <socket.socket fd=15>", ResourceWarning, stacklevel=1)
+        warnings.warn("Invalid value for VR UI", UserWarning, stacklevel=1)
+    assert notes == ["pydicom: Invalid value for VR UI"]

@@ -285,7 +285,13 @@ def recorded_warnings(library: str) -> Iterator[list[str]]:
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         yield notes
-    distinct = dict.fromkeys(f"{library}: {w.message}" for w in caught)
+    # A ResourceWarning is the garbage collector's about any object that happened to go
+    # then (a socket of the server's, say), never the scan's: passed on, not a note.
+    for w in caught:
+        if issubclass(w.category, ResourceWarning):
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno, source=w.source)
+    said = (w for w in caught if not issubclass(w.category, ResourceWarning))
+    distinct = dict.fromkeys(f"{library}: {w.message}" for w in said)
     notes.extend(list(distinct)[:5])
 
 
