@@ -290,7 +290,8 @@ def _decimated_in_blocks(
     """
     wanted = BlockDecimation(decimation.method, decimation.reduce, decimation.error_bound)
     welded, stage = decimated_surface_of(volume, level, wanted, blocks)
-    left_mm = decimation.error_bound * stage.diagonal_mm - stage.max_mm
+    bound_mm = decimation.error_bound * stage.diagonal_mm  # of the full surface
+    left_mm = bound_mm - stage.max_mm
     target = (1.0 - decimation.reduce) * stage.triangles_in
     again = min(max(0.0, 1.0 - target / max(welded.n_triangles, 1)), 0.999)
     out, across = decimate(
@@ -303,8 +304,8 @@ def _decimated_in_blocks(
         error_bound=decimation.error_bound,
         triangles_in=stage.triangles_in,
         achieved_reduction=1.0 - across.triangles_out / max(stage.triangles_in, 1),
-        final_bound_mm=decimation.error_bound * stage.diagonal_mm,
-        bound_mm=decimation.error_bound * stage.diagonal_mm,
+        final_bound_mm=bound_mm,
+        bound_mm=bound_mm,
         max_error_mm=stage.max_mm + (across.max_error_mm or 0.0),
         mean_error_mm=stage.mean_mm + (across.mean_error_mm or 0.0),
         seconds=stage.seconds + across.seconds,
