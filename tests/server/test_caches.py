@@ -216,6 +216,49 @@ def test_the_event_loop_never_waits_for_the_database(
     assert rounds[0] > 0 and rounds[1] == 0, (rounds, selects)
 
 
+def test_slices_render_a_core_at_a_time_while_the_loop_answers(
+    done_model: tuple[TestClient, dict[str, Any]], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Many viewers asking for slices nobody rendered yet: at most ``RENDERS_AT_ONCE``
+    renders run at a time (the threadpool's 40 at once kept the GIL from the event loop),
+    and a cached model file is still answered meanwhile."""
+    import miss.server.deps as deps
+    from miss.server import imaging
+
+    client, model = done_model
+    monkeypatch.setattr(deps, "RENDERS_AT_ONCE", 2)
+    client.app.state.__dict__.pop("renders", None)  # made again, with the patched size
+    render, lock, state = imaging.render, threading.Lock(), {"now": 0, "most": 0}
+
+    def slow_render(*args: Any, **kwargs: Any) -> bytes:
+        with lock:
+            state["now"] += 1
+            state["most"] = max(state["most"], state["now"])
+        try:
+            time.sleep(0.05)
+            return render(*args, **kwargs)
+        finally:
+            with lock:
+                state["now"] -= 1
+
+    monkeypatch.setattr(imaging, "render", slow_render)
+    glb = f"/api/models/{model['id']}/model.glb"
+    assert client.get(glb).status_code == 200  # now in memory
+    urls = [f"/api/volumes/{model['volume']}/slices/axial/{i}.png" for i in range(12)]
+    codes: list[int] = []
+    threads = [
+        threading.Thread(target=lambda u=u: codes.append(client.get(u).status_code)) for u in urls
+    ]
+    for t in threads:
+        t.start()
+    time.sleep(0.05)
+    assert client.get(glb).status_code == 200  # while renders queue
+    for t in threads:
+        t.join()
+    assert codes == [200] * len(urls)
+    assert state["most"] == 2, state
+
+
 def test_a_range_request_still_gets_the_range(
     done_model: tuple[TestClient, dict[str, Any]],
 ) -> None:

@@ -92,6 +92,48 @@ def test_reads_from_the_chunk_files_equal_zarrs(tmp_path_factory, data) -> None:
     assert got.shape == want.shape and np.array_equal(got, want)
 
 
+@settings(max_examples=40, deadline=None)
+@given(data=st.data())
+def test_reads_through_a_chunk_cache_equal_reads_without(tmp_path_factory, data) -> None:
+    """A server's reads through its cache of decompressed chunks (a small one, so that
+    chunks come and go) answer what reads from the files answer."""
+    path = _random_store(tmp_path_factory)
+    cache = _CACHES.setdefault("small", chunked.ChunkCache(3 * 64**3 * 2))
+    plain, kept = chunked.open_array(path)[0], chunked.open_array(path, cache)[0]
+    for _ in range(3):
+        key = tuple(data.draw(_index(n)) for n in plain.shape)
+        want, got = plain[key], kept[key]
+        assert got.shape == want.shape and np.array_equal(got, want)
+    assert cache._bytes <= cache.max_bytes
+
+
+_CACHES: dict[str, chunked.ChunkCache] = {}
+
+
+def test_kept_chunks_are_read_from_memory_and_dropped_with_their_volume(tmp_path: Path) -> None:
+    """The second read of a slice opens no chunk file (they are gone: it still answers);
+    the least recently used chunk goes first once the bytes are spent; ``drop`` forgets
+    a volume's chunks."""
+    data = np.asfortranarray(np.arange(128 * 128 * 64, dtype=np.int16).reshape(128, 128, 64))
+    path = tmp_path / "data.zarr"
+    chunked.write_array(path, data, {"affine": AFFINE})
+    cache = chunked.ChunkCache(3 * 64**3 * 2)  # three of its four chunks
+    array = chunked.open_array(path, cache)[0]
+    assert np.array_equal(array[:, :, 5], data[:, :, 5])  # four chunks read, three kept
+    assert len(cache._items) == 3 and cache._bytes == 3 * 64**3 * 2
+    shutil.rmtree(path / "c")
+    kept = [k for k in cache._items]
+    again = chunked.open_array(path, cache)[0]
+    for key in kept:  # each kept chunk is answered from memory, read-only
+        index = tuple(int(p) for p in Path(key).relative_to(path / "c").parts[::-1])
+        chunk = again.chunk(index)
+        assert not chunk.flags.writeable
+        box = tuple(slice(i * 64, (i + 1) * 64) for i in index)
+        assert np.array_equal(chunk, data[box])
+    cache.drop(path)
+    assert cache._bytes == 0 and not cache._items
+
+
 def test_a_strided_read_holds_the_answer_not_the_box(tmp_path: Path) -> None:
     """Every 16th voxel of a stored 256³ volume (a preview's read): the chunks are read one
     at a time into the answer, never the 32 MB box they span."""

@@ -44,7 +44,7 @@ from miss.server.routes import audit, auth, models, pacs, pages, rooms, shares, 
 from miss.server.routes.pages import WEB
 from miss.server.settings import Settings
 from miss.server.storage.caches import ByteCaches
-from miss.server.storage.store import Store
+from miss.server.storage.store import CHUNK_CACHE, Store
 from miss.server.uploads import UploadSlots
 
 log = logging.getLogger("miss.server")
@@ -53,7 +53,9 @@ log = logging.getLogger("miss.server")
 def _open(settings: Settings, metrics: Metrics | None = None) -> tuple[Store, JobQueue]:
     """Prepare the data folder and database, make the first administrator, register the
     demo, start the job threads."""
-    store = Store(settings.data_dir, settings.database_url, settings.in_memory_max_bytes)
+    store = Store(
+        settings.data_dir, settings.database_url, settings.in_memory_max_bytes, CHUNK_CACHE
+    )
     store.init()
     if metrics is not None:
         metrics.start(alone=store.alone)

@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+import functools
+import os
 from collections.abc import Callable
 from typing import Annotated, ParamSpec, TypeVar
 
+import anyio.to_thread
+from anyio import CapacityLimiter
 from fastapi import Depends, Request
 from starlette.concurrency import run_in_threadpool
 
@@ -54,6 +58,25 @@ async def here_or_threadpool(
     if in_memory:
         return fn(*args, **kwargs)
     return await run_in_threadpool(fn, *args, **kwargs)
+
+
+#: Slices one server process renders at once: one a core. A render reads and
+#: decompresses chunks, holding the GIL part of the time; with the threadpool's 40 at once
+#: (50 viewers arriving together) the event loop waited its turn behind them and cached
+#: model fetches, answered on it, took 200-300 ms (benchmarks/load.py, PostgreSQL). The
+#: others wait for a turn without taking the GIL; the cores were busy anyway.
+RENDERS_AT_ONCE = max(1, os.cpu_count() or 1)
+
+
+async def rendering(request: Request, fn: Callable[P, T], *args: P.args, **kwargs: P.kwargs) -> T:
+    """``fn(...)`` in the threadpool, at most ``RENDERS_AT_ONCE`` of them at a time in
+    this process (the app's own limiter, made on first use inside its event loop)."""
+    state = request.app.state
+    limiter = getattr(state, "renders", None)
+    if limiter is None:
+        limiter = state.renders = CapacityLimiter(RENDERS_AT_ONCE)
+    call = functools.partial(fn, *args, **kwargs)
+    return await anyio.to_thread.run_sync(call, limiter=limiter)
 
 
 SettingsDep = Annotated[Settings, Depends(get_settings)]

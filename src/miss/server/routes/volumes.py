@@ -24,6 +24,7 @@ from miss.server.deps import (
     StoreDep,
     UserDep,
     VolumeDep,
+    rendering,
 )
 from miss.server.errors import Forbidden, NotFound
 from miss.server.ingest import ingest
@@ -248,6 +249,7 @@ def histogram(volume: VolumeDep, store: StoreDep) -> dict[str, Any]:
     responses={200: {"content": {"image/png": {}}}, 404: {"description": "no such slice"}},
 )
 async def slice_png(
+    request: Request,
     volume: VolumeDep,
     store: StoreDep,
     caches: BytesDep,
@@ -279,5 +281,5 @@ async def slice_png(
         return imaging.render(plane, size_px, window, level, threshold)
 
     key = (volume.id, axis.value, index, window, level, threshold, size)
-    png = caches.slices.peek(key) or await run_in_threadpool(caches.slices.get, key, make)
+    png = caches.slices.peek(key) or await rendering(request, caches.slices.get, key, make)
     return Response(png, media_type="image/png", headers={"Cache-Control": "private, max-age=3600"})

@@ -72,6 +72,9 @@ LOD_DIR = "lod"
 DATA, OLD_DATA = "data.zarr", "data.npy"
 #: Volumes up to this many bytes are read whole by ``open_volume`` (``MISS_IN_MEMORY_MAX_MB``).
 IN_MEMORY_MAX = 1 << 30
+#: Bytes of decompressed chunks a server process keeps for slices (``chunked.ChunkCache``):
+#: CThead's whole volume is 32 MB of them, a layer of a 512 x 512 CT's 32 MB.
+CHUNK_CACHE = 128 << 20
 
 
 def new_id() -> str:
@@ -97,10 +100,17 @@ class Store:
     """Database rows and data-folder files of volumes and models."""
 
     def __init__(
-        self, data_dir: Path, database_url: str, in_memory_max: int = IN_MEMORY_MAX
+        self,
+        data_dir: Path,
+        database_url: str,
+        in_memory_max: int = IN_MEMORY_MAX,
+        chunk_cache: int = 0,
     ) -> None:
         self.data_dir = Path(data_dir)
         self.in_memory_max = in_memory_max
+        #: Decompressed chunks kept for lazy reads (a server's slices; ``chunk_cache``
+        #: bytes, 0 for none: a job's worker reads each chunk once).
+        self.chunks = chunked.ChunkCache(chunk_cache) if chunk_cache > 0 else None
         self.database_url = database_url
         self.engine = make_engine(database_url)
         self.session = make_sessionmaker(self.engine)
@@ -333,6 +343,8 @@ class Store:
         for model_id in model_ids:
             _remove_tree(self.model_dir(model_id), self.data_dir)
         _remove_tree(self.volume_dir(volume_id), self.data_dir)
+        if self.chunks is not None:
+            self.chunks.drop(self.volume_dir(volume_id) / DATA)
         return model_ids
 
     def open_volume(self, volume_id: str, lazy: bool = False) -> Volume:
@@ -349,7 +361,9 @@ class Store:
         ``old``, a .npy memory-mapped, while another server has not migrated it yet."""
         if not path.exists() and old.exists():
             return np.load(old, mmap_mode="r")
-        return chunked.read(path, -1 if lazy else self.in_memory_max)
+        if lazy:
+            return chunked.read(path, -1, self.chunks)
+        return chunked.read(path, self.in_memory_max)
 
     def read_json(self, volume_id: str, name: str) -> Any:
         return json.loads((self.volume_dir(volume_id) / name).read_text())
