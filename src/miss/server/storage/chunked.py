@@ -37,8 +37,6 @@ import math
 import os
 import secrets
 import shutil
-import threading
-from collections import OrderedDict
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -47,6 +45,7 @@ from typing import Any
 import numpy as np
 
 from miss.errors import DiskFull, UnreadableVolume, is_disk_full
+from miss.server.storage.caches import BytesLRU
 
 #: Chunk shape, (X, Y, Z) voxels (see the module docstring for the measurements).
 CHUNK = (64, 64, 64)
@@ -139,7 +138,7 @@ def write_array(path: Path, data: np.ndarray, attributes: dict[str, Any]) -> Non
     write_planes(path, data.shape, data.dtype, planes, attributes)
 
 
-class ChunkCache:
+class ChunkCache(BytesLRU):
     """Decompressed chunks by file, up to ``max_bytes``, the least recently used dropped
     first; shared by the threads of a server process.
 
@@ -152,35 +151,12 @@ class ChunkCache:
     """
 
     def __init__(self, max_bytes: int) -> None:
-        self.max_bytes = max_bytes
-        self._items: OrderedDict[str, np.ndarray] = OrderedDict()
-        self._bytes = 0
-        self._lock = threading.Lock()
-
-    def get(self, key: str) -> np.ndarray | None:
-        with self._lock:
-            found = self._items.get(key)
-            if found is not None:
-                self._items.move_to_end(key)
-            return found
-
-    def put(self, key: str, chunk: np.ndarray) -> None:
-        if chunk.nbytes > self.max_bytes:
-            return
-        with self._lock:
-            if key in self._items:
-                return
-            self._items[key] = chunk
-            self._bytes += chunk.nbytes
-            while self._bytes > self.max_bytes:
-                self._bytes -= self._items.popitem(last=False)[1].nbytes
+        super().__init__(max_bytes, size=lambda chunk: chunk.nbytes)
 
     def drop(self, folder: Path) -> None:
         """Forget the chunks of the array at ``folder`` (a volume deleted)."""
         prefix = str(folder) + os.sep
-        with self._lock:
-            for key in [k for k in self._items if k.startswith(prefix)]:
-                self._bytes -= self._items.pop(key).nbytes
+        self.drop_if(lambda key: str(key).startswith(prefix))
 
 
 class Voxels:
@@ -312,7 +288,7 @@ class Voxels:
         size = math.prod(shape) * self.dtype.itemsize
         where = self.folder.joinpath("c", *(str(int(i)) for i in index[::-1]))
         if self.cache is not None:
-            kept = self.cache.get(str(where))
+            kept = self.cache.peek(str(where))
             if kept is not None:
                 return kept
         try:
