@@ -115,11 +115,14 @@ def read_points(grid: Grid, box: Box) -> np.ndarray:
 
 class ChunkCache:
     """Decompressed chunks of arrays on disk, the most recently used kept up to ``limit``
-    bytes; shared by the threads of a process (each Dask worker has its own).
+    bytes; shared by the threads of a process (each Dask worker has its own). Kept
+    chunks are read-only: readers copy out of them.
 
     Neighbouring blocks share a plane of points, and a block's box rarely ends on a chunk
     boundary, so without it a chunk on a seam is decompressed once for every block that
-    touches it (up to 8 times, 3.4x the work for blocks of two chunks a side)."""
+    touches it (up to 8 times, 3.4x the work for blocks of two chunks a side). A server
+    keeps one of its own for slices (``Store.chunks``): a slice crosses a layer of chunks
+    of 64 planes each, so scrubbing viewers read the same chunks over and over."""
 
     def __init__(self, limit: int) -> None:
         self.limit, self.held = limit, 0
@@ -132,6 +135,7 @@ class ChunkCache:
                 self.chunks.move_to_end(key)
                 return self.chunks[key]
         chunk = load()  # outside the lock: two threads may read one chunk, never wait
+        chunk.flags.writeable = False  # shared by every reader from now on
         with self.lock:
             if key not in self.chunks:
                 self.chunks[key] = chunk
@@ -140,6 +144,12 @@ class ChunkCache:
                 _, dropped = self.chunks.popitem(last=False)
                 self.held -= dropped.nbytes
         return chunk
+
+    def drop(self, test: Callable[[tuple[Any, ...]], bool]) -> None:
+        """Forget the chunks whose key passes ``test`` (an array deleted)."""
+        with self.lock:
+            for key in [k for k in self.chunks if test(k)]:
+                self.held -= self.chunks.pop(key).nbytes
 
 
 #: This process's chunk cache: 256 MB, a layer of 64-voxel chunks of a 1000 x 2000 grid.

@@ -10,12 +10,14 @@ import shutil
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from miss.blocks import ChunkCache
 from miss.errors import DiskFull, UnreadableVolume
 from miss.server import imaging
 from miss.server.storage import chunked
@@ -98,40 +100,59 @@ def test_reads_through_a_chunk_cache_equal_reads_without(tmp_path_factory, data)
     """A server's reads through its cache of decompressed chunks (a small one, so that
     chunks come and go) answer what reads from the files answer."""
     path = _random_store(tmp_path_factory)
-    cache = _CACHES.setdefault("small", chunked.ChunkCache(3 * 64**3 * 2))
+    cache = _CACHES.setdefault("small", ChunkCache(3 * 64**3 * 2))
     plain, kept = chunked.open_array(path)[0], chunked.open_array(path, cache)[0]
     for _ in range(3):
         key = tuple(data.draw(_index(n)) for n in plain.shape)
         want, got = plain[key], kept[key]
         assert got.shape == want.shape and np.array_equal(got, want)
-    assert cache._bytes <= cache.max_bytes
+    assert cache.held <= cache.limit
 
 
-_CACHES: dict[str, chunked.ChunkCache] = {}
+_CACHES: dict[str, ChunkCache] = {}
 
 
 def test_kept_chunks_are_read_from_memory_and_dropped_with_their_volume(tmp_path: Path) -> None:
     """The second read of a slice opens no chunk file (they are gone: it still answers);
-    the least recently used chunk goes first once the bytes are spent; ``drop`` forgets
-    a volume's chunks."""
+    the least recently used chunk goes first once the bytes are spent; a deleted
+    volume's chunks are forgotten."""
     data = np.asfortranarray(np.arange(128 * 128 * 64, dtype=np.int16).reshape(128, 128, 64))
     path = tmp_path / "data.zarr"
     chunked.write_array(path, data, {"affine": AFFINE})
-    cache = chunked.ChunkCache(3 * 64**3 * 2)  # three of its four chunks
+    cache = ChunkCache(3 * 64**3 * 2)  # three of its four chunks
     array = chunked.open_array(path, cache)[0]
     assert np.array_equal(array[:, :, 5], data[:, :, 5])  # four chunks read, three kept
-    assert len(cache._items) == 3 and cache._bytes == 3 * 64**3 * 2
+    assert len(cache.chunks) == 3 and cache.held == 3 * 64**3 * 2
     shutil.rmtree(path / "c")
-    kept = [k for k in cache._items]
+    kept = list(cache.chunks)
     again = chunked.open_array(path, cache)[0]
-    for key in kept:  # each kept chunk is answered from memory, read-only
+    for (key,) in kept:  # each kept chunk is answered from memory, read-only
         index = tuple(int(p) for p in Path(key).relative_to(path / "c").parts[::-1])
         chunk = again.chunk(index)
         assert not chunk.flags.writeable
         box = tuple(slice(i * 64, (i + 1) * 64) for i in index)
         assert np.array_equal(chunk, data[box])
-    cache.drop(path)
-    assert cache._bytes == 0 and not cache._items
+
+
+def test_deleting_a_volume_forgets_its_kept_chunks(
+    make_client: Any, small_nifti: bytes, upload_for: Any
+) -> None:
+    """A server keeps the chunks its slices read; deleting the volume drops them (the
+    other volumes' stay)."""
+    client = make_client()
+    headers = dict(client.headers)
+    ids = [upload_for(client, headers, small_nifti, f"ball{n}.nii.gz")["id"] for n in range(2)]
+    for volume_id in ids:
+        assert client.get(f"/api/volumes/{volume_id}/slices/axial/3.png").status_code == 200
+    store = client.app.state.store
+    assert store.chunks is not None
+
+    def held(volume_id: str) -> int:
+        return sum(volume_id in key[0] for key in store.chunks.chunks)
+
+    assert held(ids[0]) > 0 and held(ids[1]) > 0
+    assert client.delete(f"/api/volumes/{ids[0]}").status_code in (200, 204)
+    assert held(ids[0]) == 0 and held(ids[1]) > 0
 
 
 def test_a_strided_read_holds_the_answer_not_the_box(tmp_path: Path) -> None:

@@ -24,29 +24,26 @@ from typing import Any
 
 
 class BytesLRU:
-    """Values by key (rendered PNGs, model files; decompressed chunks, see
-    ``chunked.ChunkCache``), least recently used out first.
+    """Byte strings by key (rendered PNGs, model files), least recently used out first.
 
-    Bounded by total bytes, each value's counted by ``size`` (``len`` for byte strings);
-    a value larger than the whole budget is returned but not kept. Thread-safe: the
-    threadpool fills it while the event loop reads it.
+    Bounded by total bytes; a value larger than the whole budget is returned but not kept.
+    Thread-safe: the threadpool fills it while the event loop reads it.
     """
 
-    def __init__(self, max_bytes: int, size: Callable[[Any], int] = len) -> None:
+    def __init__(self, max_bytes: int) -> None:
         self.max_bytes = max_bytes
-        self._size = size
-        self._items: OrderedDict[Hashable, Any] = OrderedDict()
+        self._items: OrderedDict[Hashable, bytes] = OrderedDict()
         self._bytes = 0
         self._lock = threading.Lock()
 
-    def peek(self, key: Hashable) -> Any | None:
+    def peek(self, key: Hashable) -> bytes | None:
         with self._lock:
             value = self._items.get(key)
             if value is not None:
                 self._items.move_to_end(key)
             return value
 
-    def get(self, key: Hashable, make: Callable[[], Any]) -> Any:
+    def get(self, key: Hashable, make: Callable[[], bytes]) -> bytes:
         """The value of ``key``, made when missing."""
         value = self.peek(key)
         if value is not None:
@@ -55,21 +52,14 @@ class BytesLRU:
         self.put(key, value)
         return value
 
-    def put(self, key: Hashable, value: Any) -> None:
-        size = self._size(value)
+    def put(self, key: Hashable, value: bytes) -> None:
         with self._lock:
-            if key in self._items or size > self.max_bytes:
+            if key in self._items or len(value) > self.max_bytes:
                 return
             self._items[key] = value
-            self._bytes += size
+            self._bytes += len(value)
             while self._bytes > self.max_bytes:
-                self._bytes -= self._size(self._items.popitem(last=False)[1])
-
-    def drop_if(self, test: Callable[[Hashable], bool]) -> None:
-        """Forget the values whose key passes ``test``."""
-        with self._lock:
-            for key in [k for k in self._items if test(k)]:
-                self._bytes -= self._size(self._items.pop(key))
+                self._bytes -= len(self._items.popitem(last=False)[1])
 
 
 class RowCache:

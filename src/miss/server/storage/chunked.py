@@ -40,12 +40,14 @@ import shutil
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from miss.errors import DiskFull, UnreadableVolume, is_disk_full
-from miss.server.storage.caches import BytesLRU
+
+if TYPE_CHECKING:
+    from miss.blocks import ChunkCache
 
 #: Chunk shape, (X, Y, Z) voxels (see the module docstring for the measurements).
 CHUNK = (64, 64, 64)
@@ -138,33 +140,13 @@ def write_array(path: Path, data: np.ndarray, attributes: dict[str, Any]) -> Non
     write_planes(path, data.shape, data.dtype, planes, attributes)
 
 
-class ChunkCache(BytesLRU):
-    """Decompressed chunks by file, up to ``max_bytes``, the least recently used dropped
-    first; shared by the threads of a server process.
-
-    A slice crosses a layer of chunks and each chunk holds 64 planes, so a viewer
-    scrubbing through a volume, or fifty viewers of one volume, read the same chunks
-    over and over: kept, a slice is a copy out of memory instead of 16 chunk files read
-    and decompressed (8 MB for a sagittal slice of CThead). Stored volumes never change
-    (a new upload is a new folder), so nothing here is ever stale. The arrays are
-    read-only views of their buffers; readers copy out of them.
-    """
-
-    def __init__(self, max_bytes: int) -> None:
-        super().__init__(max_bytes, size=lambda chunk: chunk.nbytes)
-
-    def drop(self, folder: Path) -> None:
-        """Forget the chunks of the array at ``folder`` (a volume deleted)."""
-        prefix = str(folder) + os.sep
-        self.drop_if(lambda key: str(key).startswith(prefix))
-
-
 class Voxels:
     """A stored volume's (X, Y, Z) voxels, read lazily: numpy basic indexing (integers,
     slices with steps of 1 or more) reads and decompresses only the chunks the selection
     crosses and returns a numpy array; ``np.asarray`` reads everything. ``stored`` is
-    the ``zarr.Array`` itself, (Z, Y, X). ``cache``: chunks kept between reads (a
-    server's slices), else each read decompresses what it needs."""
+    the ``zarr.Array`` itself, (Z, Y, X). ``cache`` (a :class:`miss.blocks.ChunkCache`,
+    keyed by file): chunks kept between reads (a server's slices), else each read
+    decompresses what it needs."""
 
     ndim = 3
 
@@ -284,13 +266,15 @@ class Voxels:
         if self.folder is None:
             box = tuple(slice(i * c, (i + 1) * c) for i, c in zip(index, self.chunks, strict=True))
             return self[box]
-        shape = self.stored.chunks  # (Z, Y, X)
-        size = math.prod(shape) * self.dtype.itemsize
         where = self.folder.joinpath("c", *(str(int(i)) for i in index[::-1]))
         if self.cache is not None:
-            kept = self.cache.peek(str(where))
-            if kept is not None:
-                return kept
+            return self.cache.get((str(where),), lambda: self._from_file(where))
+        return self._from_file(where)
+
+    def _from_file(self, where: Path) -> np.ndarray:
+        """The chunk stored in the file ``where`` (the fill value when there is none)."""
+        shape = self.stored.chunks  # (Z, Y, X)
+        size = math.prod(shape) * self.dtype.itemsize
         try:
             raw = where.read_bytes()
         except FileNotFoundError:
@@ -307,11 +291,7 @@ class Voxels:
         from numcodecs import blosc
 
         flat = np.frombuffer(blosc.decompress(raw), dtype=self.dtype.newbyteorder("<"))
-        chunk = flat.reshape(shape).T
-        if self.cache is not None:
-            chunk.flags.writeable = False  # shared by every reader from now on
-            self.cache.put(str(where), chunk)
-        return chunk
+        return flat.reshape(shape).T
 
     def __array__(self, dtype: Any = None, copy: Any = None) -> np.ndarray:
         data = self[...]

@@ -31,7 +31,7 @@ import shutil
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
-from typing import IO, Any
+from typing import IO, TYPE_CHECKING, Any
 
 import numpy as np
 from sqlalchemy import delete, func, select, update
@@ -57,6 +57,9 @@ from miss.server.storage.db import (
 )
 from miss.types import Volume
 
+if TYPE_CHECKING:
+    from miss.blocks import ChunkCache
+
 
 class DataDirInUse(RuntimeError):
     """Another MISS server already uses this data folder."""
@@ -72,7 +75,7 @@ LOD_DIR = "lod"
 DATA, OLD_DATA = "data.zarr", "data.npy"
 #: Volumes up to this many bytes are read whole by ``open_volume`` (``MISS_IN_MEMORY_MAX_MB``).
 IN_MEMORY_MAX = 1 << 30
-#: Bytes of decompressed chunks a server process keeps for slices (``chunked.ChunkCache``):
+#: Bytes of decompressed chunks a server process keeps for slices (``Store.chunks``):
 #: CThead's whole volume is 32 MB of them, a layer of a 512 x 512 CT's 32 MB.
 CHUNK_CACHE = 128 << 20
 
@@ -110,7 +113,11 @@ class Store:
         self.in_memory_max = in_memory_max
         #: Decompressed chunks kept for lazy reads (a server's slices; ``chunk_cache``
         #: bytes, 0 for none: a job's worker reads each chunk once).
-        self.chunks = chunked.ChunkCache(chunk_cache) if chunk_cache > 0 else None
+        self.chunks: ChunkCache | None = None
+        if chunk_cache > 0:
+            from miss.blocks import ChunkCache
+
+            self.chunks = ChunkCache(chunk_cache)
         self.database_url = database_url
         self.engine = make_engine(database_url)
         self.session = make_sessionmaker(self.engine)
@@ -344,7 +351,8 @@ class Store:
             _remove_tree(self.model_dir(model_id), self.data_dir)
         _remove_tree(self.volume_dir(volume_id), self.data_dir)
         if self.chunks is not None:
-            self.chunks.drop(self.volume_dir(volume_id) / DATA)
+            gone = str(self.volume_dir(volume_id) / DATA) + os.sep
+            self.chunks.drop(lambda key: key[0].startswith(gone))
         return model_ids
 
     def open_volume(self, volume_id: str, lazy: bool = False) -> Volume:
