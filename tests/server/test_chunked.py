@@ -112,10 +112,10 @@ def test_reads_through_a_chunk_cache_equal_reads_without(tmp_path_factory, data)
 _CACHES: dict[str, ChunkCache] = {}
 
 
-def test_kept_chunks_are_read_from_memory_and_dropped_with_their_volume(tmp_path: Path) -> None:
-    """The second read of a slice opens no chunk file (they are gone: it still answers);
-    the least recently used chunk goes first once the bytes are spent; a deleted
-    volume's chunks are forgotten."""
+def test_kept_chunks_are_read_from_memory(tmp_path: Path) -> None:
+    """A cache with room for three of a slice's four chunks keeps three; the second read
+    of them opens no chunk file (the files are gone: it still answers the stored
+    voxels), and what it answers is read-only."""
     data = np.asfortranarray(np.arange(128 * 128 * 64, dtype=np.int16).reshape(128, 128, 64))
     path = tmp_path / "data.zarr"
     chunked.write_array(path, data, {"affine": AFFINE})
