@@ -129,3 +129,41 @@ def test_cap_bounds_the_search_and_a_kept_grid_gives_the_same_distances():
     within = exact <= 5.0
     np.testing.assert_allclose(capped[within], exact[within], rtol=1e-9, atol=1e-9)
     assert np.all(capped[~within] > 5.0)
+
+
+@settings(max_examples=15, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), keep=st.floats(0.2, 0.9))
+def test_bound_check_is_the_brute_force_figures(seed, keep):
+    # the check of a decimation (its output indexes the input's vertices): every input
+    # vertex the output dropped to the output, and the middles of the output's new edges
+    # and triangles to the input, each new edge once; kept triangles are not measured
+    from itertools import combinations
+
+    from miss.deviation import bound_check
+
+    before = pieces_mesh(seed, 3, 20.0, 0.0, np.float64)
+    rng = np.random.default_rng(seed)
+    n_new = max(1, int(keep * before.n_triangles))
+    old = before.faces[rng.random(before.n_triangles) < keep]
+    new = np.unique(rng.integers(0, before.n_vertices, (n_new, 3)), axis=0)
+    new = new[(new[:, 0] != new[:, 1]) & (new[:, 1] != new[:, 2]) & (new[:, 0] != new[:, 2])]
+    known = {tuple(sorted(f)) for f in before.faces.tolist()}
+    new = np.array([f for f in new.tolist() if tuple(sorted(f)) not in known], dtype=np.int32)
+    new = new.reshape(-1, 3)
+    faces = np.concatenate([old, new]).astype(np.int32)
+    got = bound_check(before, faces)
+
+    v = before.vertices
+    used = np.unique(before.faces)
+    dropped = np.setdiff1d(used, np.unique(faces))
+    to_output = brute(v[dropped], v, faces) if len(dropped) else np.zeros(0)
+    edges = sorted({tuple(sorted(e)) for f in new.tolist() for e in combinations(f, 2)})
+    mids = np.array([(v[a] + v[b]) / 2 for a, b in edges]).reshape(-1, 3)
+    cents = v[new].mean(axis=1) if len(new) else np.zeros((0, 3))
+    back = brute(np.concatenate([mids, cents]), v, before.faces)
+    everything = np.concatenate([np.zeros(len(used) - len(dropped)), to_output, back])
+    assert got.samples == len(everything)
+    np.testing.assert_allclose(got.max_mm, everything.max(), rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(got.mean_mm, everything.mean(), rtol=1e-9, atol=1e-12)
+    assert sorted(map(tuple, got.edges.tolist())) == edges
+    np.testing.assert_allclose(got.to_output[dropped], to_output, rtol=1e-9, atol=1e-12)

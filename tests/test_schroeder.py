@@ -339,6 +339,98 @@ def test_bad_faces_are_rejected():
         schroeder_decimate(vertices, faces, reduce=0.5, error_bound=0.1)
 
 
+# ----------------------------------------------------------------------------- slabs
+
+
+def bumpy_sphere(seed: int, level: int = 5, roughness: float = 0.05):
+    unit, faces = icosphere(level)
+    radius = 1.0 + roughness * np.random.default_rng(seed).random(len(unit))
+    return unit * radius[:, None], faces
+
+
+@pytest.mark.parametrize("count", [2, 3, 4, 8])
+def test_slabs_share_no_neighbour(count):
+    # what lets slabs be decimated side by side: a slab's vertices have neighbours in their
+    # own slab only (its own vertices or the guard's), so no two slabs share a neighbour
+    from miss._schroeder import _domains, _slabs
+
+    vertices, faces = bumpy_sphere(0)
+    slab = _slabs(vertices, faces, count)
+    alive = np.ones(len(faces), dtype=bool)
+    degree = np.bincount(faces.ravel(), minlength=len(vertices)).astype(np.int32)
+    order, starts = _domains(faces, alive, degree, slab, count)
+    assert sorted(order.tolist()) == list(range(len(vertices)))  # each vertex once
+    owner = np.full(len(vertices), -1)
+    for d in range(count):
+        owner[order[starts[d] : starts[d + 1]]] = d
+    guard = order[starts[count] :]
+    assert len(guard) < 0.05 * (count - 1) * len(vertices) and all(
+        starts[d + 1] > starts[d] for d in range(count)
+    )
+    near = np.full(len(vertices), -1)  # the slab whose vertex each vertex neighbours
+    for a, b in np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]):
+        for u, w in ((a, b), (b, a)):
+            if owner[u] >= 0:
+                assert owner[w] in (owner[u], -1) and slab[w] == owner[u]
+                assert near[w] in (-1, owner[u]), "two slabs share a neighbour"
+                near[w] = owner[u]
+
+
+def test_slabs_give_the_same_output_on_any_number_of_cores(monkeypatch):
+    # the slabs are set by the mesh, not the machine: one core or many, the same triangles;
+    # and the run keeps what the serial run keeps (closed, oriented, within the bound)
+    import miss._schroeder as kernel
+    from miss import Mesh
+    from miss.deviation import bound_check
+
+    vertices, faces = bumpy_sphere(1)
+    serial, _ = schroeder_decimate(vertices, faces, reduce=0.9, error_bound=0.002, max_error=0.02)
+    monkeypatch.setattr(kernel, "_SLAB_FACES", 2_000)  # 20 480 triangles: 4 slabs
+    assert kernel._slab_count(len(faces), 0) == 4
+    runs = []
+    for cores in (1, 2, 4):
+        monkeypatch.setattr(kernel.os, "cpu_count", lambda cores=cores: cores)
+        runs.append(
+            schroeder_decimate(vertices, faces, reduce=0.9, error_bound=0.002, max_error=0.02)
+        )
+    new, info = runs[0]
+    for other, other_info in runs[1:]:
+        assert np.array_equal(other, new) and other_info == info
+    assert not np.array_equal(new, serial)  # the slabs did run
+    assert_valid_mesh(vertices, faces, new)
+    assert boundary_edge_count(new) == 0 and euler_characteristic(new) == 2
+    assert abs(len(new) - len(serial)) <= 0.02 * len(serial)
+    check = bound_check(Mesh(vertices.astype(np.float32), faces), new)
+    assert check.max_mm <= info["final_bound_mm"] * 1.5  # accumulated error, checked by decimate
+
+
+@settings(max_examples=15, deadline=None)
+@given(
+    seed=st.integers(0, 2**31 - 1),
+    roughness=st.floats(0.0, 0.2),
+    reduce=st.floats(0.3, 0.99),
+    bound=st.floats(0.0, 0.05),
+    count=st.sampled_from([2, 4]),
+)
+def test_random_bumpy_spheres_in_slabs_stay_closed_and_oriented(
+    seed, roughness, reduce, bound, count
+):
+    import miss._schroeder as kernel
+
+    vertices, faces = bumpy_sphere(seed, level=4, roughness=roughness)
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(kernel, "_SLAB_FACES", len(faces) // count)
+        assert kernel._slab_count(len(faces), 0) == count
+        new, info = schroeder_decimate(
+            vertices, faces, reduce=reduce, error_bound=bound, max_error=0.5
+        )
+    assert_valid_mesh(vertices, faces, new)
+    assert boundary_edge_count(new) == 0
+    assert euler_characteristic(new) == 2
+    assert enclosed_volume(vertices, new) > 0
+    assert 0.0 <= info["reduction"] == 1 - len(new) / len(faces)
+
+
 # ----------------------------------------------------------------------------- CThead bone
 
 

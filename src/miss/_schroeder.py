@@ -37,6 +37,8 @@ that would overflow a row is refused, which plays the role of vtkDecimate's ``De
 from __future__ import annotations
 
 import math
+import os
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 from numba import njit
@@ -57,6 +59,9 @@ _ROUND_OFF = 1e-12
 # Bound schedule: multiply by this factor each pass; default max_error is this many initial bounds.
 _BOUND_STEP = 2.0
 _MAX_ERROR_FACTOR = 10.0
+# A run takes one slab (see _domains) per this many triangles, up to _MAX_SLABS slabs.
+_SLAB_FACES = 65_536
+_MAX_SLABS = 4
 
 
 # The per-vertex steps are inlined into the pass loop at Numba IR level (inline="always"):
@@ -693,14 +698,15 @@ def _try_delete(
     return n - ntri
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _decimate_pass(
-    pts, faces, alive, vf, vdeg, bound, feature_cos, n_alive, target, vmin, terr, locked
+    pts, faces, alive, vf, vdeg, bound, feature_cos, n_alive, target, vmin, terr, locked, visit
 ):
-    """One pass over all vertices in index order; stops once n_alive <= target.
+    """One pass over the vertices ``visit`` (in that order); stops once n_alive <= target.
 
     Vertices whose cached vmin (see _try_delete) exceeds the bound are skipped, so a pass with
-    a raised bound only looks again at the vertices it might now delete.
+    a raised bound only looks again at the vertices it might now delete. Without the GIL:
+    passes over vertex sets that share no neighbour run side by side (see _domains).
     Returns (n_alive, vertices removed in this pass).
     """
     cap = vf.shape[1]
@@ -716,9 +722,10 @@ def _decimate_pass(
     )
     scratch_f = (np.zeros((cap, 3)), np.zeros(3), np.zeros((cap + 1, 3)))
     removed = 0
-    for v in range(pts.shape[0]):
+    for i in range(len(visit)):
         if n_alive <= target:
             break
+        v = visit[i]
         if vdeg[v] == 0 or vmin[v] > bound or locked[v]:
             continue
         freed = _try_delete(
@@ -774,11 +781,74 @@ def _check_inputs(
         raise ValueError(f"max_error is a distance in mm and must be >= 0; got {max_error}")
 
 
+def _slabs(pts: np.ndarray, faces: np.ndarray, count: int) -> np.ndarray:
+    """(N,) int32: the slab of each vertex, ``count`` slabs across the mesh's longest axis
+    cut at quantiles of its vertices (see _domains)."""
+    used = np.zeros(len(pts), dtype=bool)
+    used[faces.ravel()] = True
+    axis = int(np.argmax(np.ptp(pts[used], axis=0)))
+    cuts = np.quantile(pts[used, axis], np.arange(1, count) / count)
+    return np.searchsorted(cuts, pts[:, axis], side="right").astype(np.int32)
+
+
+@njit(cache=True, nogil=True)
+def _domains(faces, alive, vdeg, slab, count):
+    """The vertices a pass may decimate side by side, slab by slab, and the rest (the guard:
+    the corners of every live triangle that spans two slabs), each in index order. Returns
+    (order, starts): slab d's vertices are order[starts[d]:starts[d + 1]], the guard's
+    order[starts[count]:].
+
+    A slab's vertices then have neighbours in their own slab only, and no two slabs share a
+    neighbour. Deleting a vertex joins its neighbours, so that stays true while the guard
+    stays (a slab's deletions join vertices of that slab): each slab's deletions read and
+    write only its own vertices' rows and the triangles that touch them, whatever the other
+    slabs do, and the result is the same however the slabs are run.
+    """
+    guard = np.zeros(len(slab), dtype=np.bool_)
+    for f in range(len(faces)):
+        if alive[f]:
+            a, b, c = slab[faces[f, 0]], slab[faces[f, 1]], slab[faces[f, 2]]
+            if a != b or b != c:
+                guard[faces[f, 0]] = guard[faces[f, 1]] = guard[faces[f, 2]] = True
+    starts = np.zeros(count + 2, dtype=np.int64)
+    for v in range(len(slab)):
+        if vdeg[v] > 0:
+            starts[(count if guard[v] else slab[v]) + 1] += 1
+    for d in range(1, count + 2):
+        starts[d] += starts[d - 1]
+    order = np.empty(starts[count + 1], dtype=np.int32)
+    fill = starts[:-1].copy()
+    for v in range(len(slab)):
+        if vdeg[v] > 0:
+            d = count if guard[v] else slab[v]
+            order[fill[d]] = v
+            fill[d] += 1
+    return order, starts
+
+
+def _slab_count(n_faces: int, whole_passes: int) -> int:
+    """Slabs for a run (see _domains): one per ``_SLAB_FACES`` triangles, a power of two up to
+    ``_MAX_SLABS``; one (the plain serial run) under the paper's whole passes, which must
+    visit every vertex in index order. Set by the mesh alone, not by the machine, so that the
+    output is the same on any machine."""
+    if whole_passes > 0:
+        return 1
+    count = 1
+    while count < _MAX_SLABS and n_faces >= 2 * count * _SLAB_FACES:
+        count *= 2
+    return count
+
+
 def _run_passes(
     pts, faces, target, error_bound, max_error, feature_cos, whole_passes, accumulate, locked
 ):
     """Passes with a rising bound until n_alive <= target or a pass at max_error removes
     nothing. Edits faces in place; returns (alive mask, passes, last bound, vertices removed).
+
+    A large mesh's passes run in slabs (see _domains), side by side on up to as many threads
+    as there are cores, each slab stopping at its share of the triangles to remove; then
+    the same pass, serially, over the guard between the slabs. The slabs are set again
+    before each pass, so every vertex meets every bound of the schedule.
 
     ``whole_passes`` > 0: the paper's schedule instead (vtkDecimate's iterations): at most that
     many passes at k x error_bound (k = 1, 2, ...), each run to its end; the target is
@@ -788,31 +858,60 @@ def _run_passes(
     vf, vdeg = _vertex_faces(faces, len(pts), _VALENCE_CAP)
     vmin = np.zeros(len(pts), dtype=np.float64)
     terr = np.zeros(len(faces) if accumulate else 0, dtype=np.float64)
+    everything = np.arange(len(pts), dtype=np.int32)
     # Distances within round-off of zero count as zero, so a flat region goes at bound 0.
     slack = _ROUND_OFF * float(np.linalg.norm(np.ptp(pts, axis=0))) if len(pts) else 0.0
     bound, n_alive, passes, removed_total = error_bound, len(faces), 0, 0
+
+    def one_pass(limit: float, n: int, stop: int, visit: np.ndarray) -> tuple[int, int]:
+        return _decimate_pass(
+            pts, faces, alive, vf, vdeg, limit, feature_cos, n, stop, vmin, terr, locked, visit
+        )
+
     if whole_passes > 0:
         for k in range(1, whole_passes + 1):
             bound = k * error_bound
-            n_alive, removed = _decimate_pass(
-                pts, faces, alive, vf, vdeg, bound + slack, feature_cos, n_alive, -1, vmin, terr,
-                locked,
-            )  # fmt: skip
+            n_alive, removed = one_pass(bound + slack, n_alive, -1, everything)
             passes, removed_total = passes + 1, removed_total + removed
             if n_alive <= target:
                 break
         return alive, passes, bound, removed_total
-    while True:
-        n_alive, removed = _decimate_pass(
-            pts, faces, alive, vf, vdeg, bound + slack, feature_cos, n_alive, target, vmin, terr,
-            locked,
-        )  # fmt: skip
-        passes += 1
-        removed_total += removed
-        if n_alive <= target or (bound >= max_error and removed == 0):
-            return alive, passes, bound, removed_total
-        # Doubling never leaves 0, so a zero bound steps to an eighth of max_error instead.
-        bound = min(bound * _BOUND_STEP if bound > 0 else max_error / 8, max_error)
+    count = _slab_count(len(faces), whole_passes)
+    slab = _slabs(pts, faces, count) if count > 1 else None
+    pool = (
+        ThreadPoolExecutor(min(count, os.cpu_count() or 1), thread_name_prefix="miss-slab")
+        if count > 1
+        else None
+    )
+    try:
+        while True:
+            removed, visit = 0, everything
+            if slab is not None and pool is not None:
+                order, starts = _domains(faces, alive, vdeg, slab, count)
+                sizes = np.diff(starts[: count + 1]).astype(np.float64)
+                # each slab stops at its share (by vertices) of the triangles to remove
+                share = (n_alive - target) / max(sizes.sum(), 1.0)
+                ends = [n_alive - math.floor(share * n) for n in sizes]
+                runs = [
+                    pool.submit(
+                        one_pass, bound + slack, n_alive, ends[d], order[starts[d] : starts[d + 1]]
+                    )
+                    for d in range(count)
+                ]
+                done = [r.result() for r in runs]
+                n_alive -= sum(n_alive - d[0] for d in done)
+                removed, visit = sum(d[1] for d in done), order[starts[count] :]
+            n_alive, more = one_pass(bound + slack, n_alive, target, visit)
+            passes += 1
+            removed += more
+            removed_total += removed
+            if n_alive <= target or (bound >= max_error and removed == 0):
+                return alive, passes, bound, removed_total
+            # Doubling never leaves 0, so a zero bound steps to an eighth of max_error instead.
+            bound = min(bound * _BOUND_STEP if bound > 0 else max_error / 8, max_error)
+    finally:
+        if pool is not None:
+            pool.shutdown()
 
 
 def schroeder_decimate(
