@@ -450,6 +450,30 @@ def deviation(a: Mesh, b: Mesh, samples: int = 100_000, seed: int = 0) -> Deviat
     return Deviation(max_mm=float(both.max()), mean_mm=float(both.mean()), samples=len(both))
 
 
+@njit(cache=True, nogil=True)
+def nearest_face(p, verts, faces):
+    """Index of the triangle of ``faces`` nearest to point p (brute force, boxes first):
+    for a few points, without a grid."""
+    px, py, pz = float(p[0]), float(p[1]), float(p[2])
+    best, found = np.inf, -1
+    for f in range(len(faces)):
+        a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
+        gap = 0.0
+        for k, q in ((0, px), (1, py), (2, pz)):
+            lo = min(verts[a, k], verts[b, k], verts[c, k])
+            hi = max(verts[a, k], verts[b, k], verts[c, k])
+            gap += _box_sq(q, lo, hi)
+        if gap >= best:
+            continue
+        d = _triangle_sq(
+            px, py, pz, verts[a, 0], verts[a, 1], verts[a, 2], verts[b, 0], verts[b, 1],
+            verts[b, 2], verts[c, 0], verts[c, 1], verts[c, 2],
+        )  # fmt: skip
+        if d < best:
+            best, found = d, f
+    return found
+
+
 @dataclass(frozen=True)
 class BoundCheck:
     """The deviation of a decimation whose vertices are a subset of its input's, both ways.
