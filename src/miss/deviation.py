@@ -482,7 +482,8 @@ class BoundCheck:
     vertices the output kept; NaN for vertices no input triangle uses). ``edges`` (E, 2) and
     ``edge_mm`` (E,): the output's edges and their midpoints' distance to the input surface;
     ``faces`` (G, 3) and ``face_mm`` (G,): the output's new triangles (not the input's) and
-    their centroids' distance to it; ``edges`` are the new triangles' edges. All mm.
+    their centroids' distance to it; ``edges`` are the new triangles' edges that are not
+    the input's. All mm.
     """
 
     max_mm: float
@@ -531,31 +532,61 @@ def _unique_edges(faces, n_vertices):
 
 
 @njit(cache=True, nogil=True)
-def _face_keys(faces):
-    """:func:`face_keys` without sorting rows: the three corners ordered in registers."""
-    out = np.empty(len(faces), dtype=np.int64)
+def _adjacency(faces, n_vertices):
+    """(start, items): the triangles around each vertex, CSR (vertex v's are
+    items[start[v]:start[v + 1]])."""
+    start = np.zeros(n_vertices + 1, dtype=np.int64)
     for f in range(len(faces)):
-        a, b, c = np.int64(faces[f, 0]), np.int64(faces[f, 1]), np.int64(faces[f, 2])
-        lo, hi = min(a, b, c), max(a, b, c)
-        out[f] = lo << 42 | (a + b + c - lo - hi) << 21 | hi
+        for k in range(3):
+            start[faces[f, k] + 1] += 1
+    for v in range(n_vertices):
+        start[v + 1] += start[v]
+    items = np.empty(start[n_vertices], dtype=np.int32)
+    fill = start[:-1].copy()
+    for f in range(len(faces)):
+        for k in range(3):
+            items[fill[faces[f, k]]] = f
+            fill[faces[f, k]] += 1
+    return start, items
+
+
+def surface_adjacency(mesh: Mesh) -> tuple[np.ndarray, np.ndarray]:
+    """The triangles around each vertex of ``mesh`` (see :func:`bound_check`): made once
+    for several checks against one input."""
+    return _adjacency(np.ascontiguousarray(mesh.faces), mesh.n_vertices)
+
+
+@njit(cache=True, inline="always")
+def _has_corner(faces, f, v):
+    return faces[f, 0] == v or faces[f, 1] == v or faces[f, 2] == v
+
+
+@njit(cache=True, nogil=True)
+def _input_faces(before, start, items, faces):
+    """(M,) bool: which of ``faces`` are triangles of ``before`` (whatever their corners'
+    order), found among the input triangles around their first corner."""
+    out = np.zeros(len(faces), dtype=np.bool_)
+    for g in range(len(faces)):
+        a, b, c = faces[g, 0], faces[g, 1], faces[g, 2]
+        for i in range(start[a], start[a + 1]):
+            f = items[i]
+            if _has_corner(before, f, b) and _has_corner(before, f, c):
+                out[g] = True
+                break
     return out
 
 
-def face_keys(faces: np.ndarray) -> np.ndarray:
-    """One int64 key per triangle of ``faces`` (F, 3) whatever its corners' order (vertex
-    indices below 2**21: larger meshes get no keys)."""
-    return _face_keys(np.ascontiguousarray(faces))
-
-
-def _new_faces(before: Mesh, faces: np.ndarray, known: np.ndarray | None) -> np.ndarray:
-    """The rows of ``faces`` that are not triangles of ``before`` (all of them when the
-    vertex count is too large for keys). ``known``: ``before``'s sorted face keys."""
-    if before.n_vertices >= 2**21:
-        return faces
-    known = np.sort(face_keys(before.faces)) if known is None else known
-    keys = face_keys(faces)
-    at = np.minimum(np.searchsorted(known, keys), len(known) - 1)
-    return faces[known[at] != keys]
+@njit(cache=True, nogil=True)
+def _input_edges(before, start, items, edges):
+    """(E,) bool: which of ``edges`` are edges of ``before``: on its surface already."""
+    out = np.zeros(len(edges), dtype=np.bool_)
+    for e in range(len(edges)):
+        a, b = edges[e, 0], edges[e, 1]
+        for i in range(start[a], start[a + 1]):
+            if _has_corner(before, items[i], b):
+                out[e] = True
+                break
+    return out
 
 
 @njit(cache=True, nogil=True)
@@ -603,7 +634,7 @@ def bound_check(
     faces: np.ndarray,
     cap: float = math.inf,
     grid: tuple | None = None,
-    known: np.ndarray | None = None,
+    adjacency: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> BoundCheck:
     """Two-sided deviation (mm) of the output ``faces`` (M, 3), which index ``before``'s
     vertices, from ``before``'s surface: every input vertex the output dropped to the output
@@ -612,10 +643,11 @@ def bound_check(
     The output's own vertices are input vertices (distance 0), so this covers every vertex
     both ways exactly, plus the points where a new triangle bulges from the input most
     (its edges' and interior's middles), not random samples. Distances above ``cap`` (mm)
-    are only known to exceed it (see :func:`distances_to`). A triangle the input has too
-    lies on it, and so do its edges: only the new triangles and their edges are measured.
-    ``grid`` (``before``'s :func:`surface_grid`) and ``known`` (its sorted
-    :func:`face_keys`): kept by a caller that checks several outputs of one input.
+    are only known to exceed it (see :func:`distances_to`). A triangle or an edge the input
+    has too lies on it: only the new triangles and their new edges are measured (found
+    among the input's triangles around their corners). ``grid`` (``before``'s
+    :func:`surface_grid`) and ``adjacency`` (its :func:`surface_adjacency`): kept by a
+    caller that checks several outputs of one input.
     """
     faces = np.ascontiguousarray(faces)
     used_in, dropped = _dropped(np.ascontiguousarray(before.faces), faces, before.n_vertices)
@@ -623,8 +655,11 @@ def bound_check(
     after = Mesh(vertices=before.vertices, faces=faces)
     if len(dropped):
         to_output[dropped] = distances_to(before.vertices[dropped], after, cap)
-    new = _new_faces(before, faces, known)
+    start, items = adjacency or surface_adjacency(before)
+    inputs = np.ascontiguousarray(before.faces)
+    new = faces[~_input_faces(inputs, start, items, faces)]
     edges = _unique_edges(new, before.n_vertices)
+    edges = edges[~_input_edges(inputs, start, items, edges)]
     points = _check_points(np.ascontiguousarray(before.vertices), edges, new)
     back = distances_to(points, before, cap, grid) if len(points) else np.zeros(0)
     edge_mm, face_mm = back[: len(edges)], back[len(edges) :]

@@ -308,11 +308,11 @@ def _held(
     run, the method that made the faces)."""
     import numpy as np
 
-    from miss.deviation import bound_check, face_keys, surface_grid
+    from miss.deviation import bound_check, surface_adjacency, surface_grid
 
     begin = time.perf_counter()
     grid = surface_grid(mesh)  # the input's cells, searched in every round's check
-    known = np.sort(face_keys(mesh.faces))  # its triangles, which need no measuring
+    around = surface_adjacency(mesh)  # its triangles, which need no measuring
     fixed = np.zeros(mesh.n_vertices, dtype=bool) if fixed is None else fixed.astype(bool)
     locked = fixed.copy()
     spent, last = time.perf_counter() - begin, ""
@@ -329,14 +329,16 @@ def _held(
             last = by
             continue
         # past twice the bound only "out of bound" matters, not by how much
-        check = bound_check(mesh, faces, cap=2.0 * bound_mm + slack, grid=grid, known=known)
+        check = bound_check(mesh, faces, cap=2.0 * bound_mm + slack, grid=grid, adjacency=around)
         spent += time.perf_counter() - begin
         if check.max_mm <= bound_mm + slack or round_ == rounds:
             return faces, bound_mm, (check, spent), round_, by
         begin = time.perf_counter()
         mended = _put_back(mesh, faces, check, bound_mm + slack)
         if mended is not None:
-            again = bound_check(mesh, mended, cap=2.0 * bound_mm + slack, grid=grid, known=known)
+            again = bound_check(
+                mesh, mended, cap=2.0 * bound_mm + slack, grid=grid, adjacency=around
+            )
             spent += time.perf_counter() - begin
             if again.max_mm <= bound_mm + slack:
                 return mended, bound_mm, (again, spent), round_, by
