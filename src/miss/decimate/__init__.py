@@ -335,13 +335,14 @@ def _held(
             return faces, bound_mm, (check, spent), round_, by
         begin = time.perf_counter()
         mended = _put_back(mesh, faces, check, bound_mm + slack)
+        again = None
         if mended is not None:
             again = bound_check(
                 mesh, mended, cap=2.0 * bound_mm + slack, grid=grid, adjacency=around
             )
-            spent += time.perf_counter() - begin
-            if again.max_mm <= bound_mm + slack:
-                return mended, bound_mm, (again, spent), round_, by
+        spent += time.perf_counter() - begin
+        if mended is not None and again is not None and again.max_mm <= bound_mm + slack:
+            return mended, bound_mm, (again, spent), round_, by
         if by != last and last:
             locked[:] = fixed
         locked |= _out_of_bound(mesh, check, bound_mm)
