@@ -23,10 +23,12 @@ Schedules
     The bound is a hard cap. Schroeder's triangles carry the error already spent on them
     (accumulated error); quadric's target error is the bound. Every run is checked
     (:func:`miss.deviation.bound_check`: every dropped input vertex to the output, every
-    output edge's and triangle's middle to the input); where a region is out of bound its
-    vertices are locked and the run repeated (quadric hands a bound it has not held in two
-    runs to schroeder, five under ``paper``; ``finished_with`` says which method made the model; after seven
-    runs the input is kept), so the bound reported as held was measured to hold.
+    new output edge's and triangle's middle to the input); a few input vertices out of
+    bound are put back (:func:`_put_back`) and the result checked again; otherwise the
+    region out of bound is locked and the run repeated (quadric hands a bound it has not
+    held in one run to schroeder, in five under ``paper``, screening that last run first;
+    ``finished_with`` says which method made the model; after seven runs the input is
+    kept), so the bound reported as held was measured to hold.
 ``paper``
     The 1998 pipeline's: the bound is raised up to ``max_error`` until ``reduce`` is met
     (or ``paper_passes`` whole passes at 1..N x the bound). The report gives the bound it
