@@ -608,14 +608,8 @@ def _check_points(verts, edges, faces):
 def _dropped(before_faces, after_faces, n_vertices):
     """(used, dropped): the vertices some input triangle uses (bool) and, in increasing
     order, those of them no output triangle does."""
-    used = np.zeros(n_vertices, dtype=np.bool_)
-    for f in range(len(before_faces)):
-        for k in range(3):
-            used[before_faces[f, k]] = True
-    kept = np.zeros(n_vertices, dtype=np.bool_)
-    for f in range(len(after_faces)):
-        for k in range(3):
-            kept[after_faces[f, k]] = True
+    used = _used(before_faces, n_vertices)
+    kept = _used(after_faces, n_vertices)
     n = 0
     for v in range(n_vertices):
         if used[v] and not kept[v]:
