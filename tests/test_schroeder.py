@@ -260,6 +260,11 @@ def test_random_bumpy_spheres_stay_closed_and_oriented(seed, roughness, reduce, 
     radius = 1.0 + roughness * np.random.default_rng(seed).random(len(unit))
     vertices = unit * radius[:, None]
     new, info = schroeder_decimate(vertices, faces, reduce=reduce, error_bound=bound, max_error=0.5)
+    assert_closed_sphere(vertices, faces, new, info)
+
+
+def assert_closed_sphere(vertices, faces, new, info) -> None:
+    """A decimated sphere: valid, closed, genus 0, outward, its reduction as reported."""
     assert_valid_mesh(vertices, faces, new)
     assert boundary_edge_count(new) == 0
     assert euler_characteristic(new) == 2
@@ -424,11 +429,7 @@ def test_random_bumpy_spheres_in_slabs_stay_closed_and_oriented(
         new, info = schroeder_decimate(
             vertices, faces, reduce=reduce, error_bound=bound, max_error=0.5
         )
-    assert_valid_mesh(vertices, faces, new)
-    assert boundary_edge_count(new) == 0
-    assert euler_characteristic(new) == 2
-    assert enclosed_volume(vertices, new) > 0
-    assert 0.0 <= info["reduction"] == 1 - len(new) / len(faces)
+    assert_closed_sphere(vertices, faces, new, info)
 
 
 # ----------------------------------------------------------------------------- CThead bone
