@@ -147,6 +147,29 @@ def test_blocks_decimated_on_the_workers_equal_the_local_run(cluster, cthead, tm
     assert _triangles_by_position(remote) == _triangles_by_position(local)
 
 
+def test_each_worker_runs_its_own_run_of_neighbouring_blocks(cluster) -> None:
+    """Neighbouring blocks share the chunks on their seam, which a worker decompresses once
+    for both when it makes both: each worker gets a run of consecutive blocks (the far
+    end of the other's run once its own is done), not every other one."""
+    from miss.runner import run_blocks
+
+    running, workers = cluster
+
+    def where(_: object, item: int) -> tuple[int, str]:
+        import time
+
+        from distributed import get_worker
+
+        time.sleep(0.005 * (1 + item % 3))  # uneven, as blocks are
+        return item, get_worker().address
+
+    ran = dict(run_blocks(where, None, list(range(60)), scheduler=running.address))
+    assert sorted(ran) == list(range(60))
+    assert set(ran.values()) == set(workers)
+    switches = sum(ran[i] != ran[i + 1] for i in range(59))
+    assert switches <= 8, [ran[i][-5:] for i in range(60)]
+
+
 def test_a_worker_killed_mid_job_leaves_the_job_to_the_other(cluster, cthead, tmp_path) -> None:
     running, workers = cluster
     lazy = zarr_copy(cthead, tmp_path, (32, 32, 16))
