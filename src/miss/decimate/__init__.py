@@ -265,16 +265,19 @@ def _runner(
             if round_ > runs:
                 # quadric's locks are not schroeder's: its first run starts free (bar ``fixed``)
                 free = fixed if round_ == runs + 1 else locked
-                return (*schroeder(mesh, reduce, bound_mm / 8, bound_mm, 0, free), "schroeder")
+                faces, ended = schroeder(mesh, reduce, bound_mm / 8, bound_mm, 0, free)
+                return faces, bound_mm if schedule == "guaranteed" else ended, "schroeder"
             target = bound_mm / extent * _QUADRIC_TIGHTER ** (round_ - 1)
             return quadric(mesh, reduce, target, locked)[0], bound_mm, "quadric"
 
         run_quadric.hands_over_after = runs  # type: ignore[attr-defined]
         return run_quadric
     if schedule == "guaranteed":
-        # a rising bound spends the budget on the cheapest deletions first: b/8, b/4, b/2, b
+        # a rising bound spends the budget on the cheapest deletions first: b/8, b/4, b/2, b;
+        # the run is held to b, the bound asked for, wherever the target stopped it
         return lambda locked, _: (
-            *schroeder(mesh, reduce, bound_mm / 8, bound_mm, 0, locked),
+            schroeder(mesh, reduce, bound_mm / 8, bound_mm, 0, locked)[0],
+            bound_mm,
             "schroeder",
         )
     return lambda locked, _: (
