@@ -177,6 +177,38 @@ def test_vertices_out_of_bound_are_put_back_on_the_surface(seed: int, noise: flo
     assert _put_back(mesh, faces, check, 0.0) is None  # edges out too: not for mending
 
 
+def _tent(top: tuple[float, float, float]) -> tuple[Mesh, np.ndarray]:
+    """A square fan around a raised vertex (the input), and the square's two triangles
+    across the diagonal a-c without it (the output)."""
+    verts = np.array([[0, 0, 0], [10, 0, 0], [10, 10, 0], [0, 10, 0], top], dtype=np.float32)
+    fan = np.array([[0, 1, 4], [1, 2, 4], [2, 3, 4], [3, 0, 4]], dtype=np.int32)
+    return Mesh(verts, fan), np.array([[0, 1, 2], [0, 2, 3]], dtype=np.int32)
+
+
+def test_a_vertex_beside_an_edge_splits_the_edge() -> None:
+    # its foot lies on the diagonal both triangles share: no triangle holds it for a split
+    # in three, so the edge is split and its two triangles become four that meet at it
+    from miss.decimate import _put_back
+    from miss.deviation import bound_check
+
+    mesh, square = _tent((5.0, 5.0, 1.0))
+    check = bound_check(mesh, square)
+    limit = max(check.edge_mm.max(), check.face_mm.max()) * 1.0001  # the vertex alone out
+    assert check.to_output[4] == pytest.approx(1.0) and limit < 1.0
+    mended = _put_back(mesh, square, check, limit)
+    assert mended is not None and len(mended) == 4
+    assert (mended == 4).any(axis=1).all()  # every triangle meets the vertex put back
+    assert bound_check(mesh, mended).max_mm == pytest.approx(0.0, abs=1e-6)
+    v = mesh.vertices.astype(np.float64)[mended]
+    normals = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
+    assert (normals[:, 2] > 0).all()  # none turned over
+    near_corner, square = _tent((0.05, 0.05, 1.0))
+    check = bound_check(near_corner, square)
+    limit = max(check.edge_mm.max(), check.face_mm.max()) * 1.0001
+    assert check.to_output[4] > limit
+    assert _put_back(near_corner, square, check, limit) is None
+
+
 def test_a_schroeder_run_a_little_out_is_mended_not_run_again(datasets) -> None:
     # CThead bone at 0.0005: the first run leaves one dropped vertex 6 % over the bound;
     # it is put back and the model is the first run's, held, in one round
