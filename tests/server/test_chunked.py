@@ -435,3 +435,18 @@ def test_a_volume_over_the_in_memory_size_is_read_lazily_and_still_meshed(
     assert model["stats"]["triangles"] > 100
     r = client.get(f"/api/volumes/{volume['id']}/slices/axial/12.png")
     assert r.status_code == 200
+
+
+def test_a_dask_worker_reads_chunks_without_loading_the_web_server() -> None:
+    # every block task brings a volume on disk (this module's class) to a Dask worker:
+    # unpickling it imported FastAPI, SQLAlchemy and the routes too (0.84 s in the
+    # cluster's first job)
+    code = (
+        "import sys, miss.server.storage.chunked; "
+        "print([m for m in ('fastapi', 'sqlalchemy', 'miss.server.app') if m in sys.modules])"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert done.stdout.strip() == "[]"
+    from miss.server import Settings, create_app  # still there, loaded when asked for
+
+    assert callable(create_app) and Settings.__name__ == "Settings"
