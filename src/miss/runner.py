@@ -16,6 +16,7 @@ import os
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from contextlib import contextmanager
+from functools import partial
 from typing import Any
 
 from miss.errors import MissError
@@ -136,35 +137,70 @@ def _on_dask(
 
     with _client(scheduler) as client:
         ref = client.scatter(shared, broadcast=True) if _in_memory(shared) else shared
-        futures: list[Any] = [None] * len(items)
+        size = _group_size(len(items), client)
+        groups = [list(items[i : i + size]) for i in range(0, len(items), size)]
+        futures: list[Any] = [None] * len(groups)
         if then is None:
-            yield from _results(f for _, f in _in_runs(client, task, ref, items, futures))
+            made = _in_runs(client, partial(_each, task), ref, groups, futures)
+            for group in _results(f for _, f in made):
+                yield from group
             return
         look, decide = then
-        looks: list[Any] = [None] * len(items)
+        looks: list[Any] = [None] * len(groups)
 
         def look_at(indices: list[int], batch: list[Any]) -> None:  # where the blocks are
             keys = [f"miss-look-{i}" for i in indices]
-            for i, f in zip(indices, client.map(look, batch, key=keys, pure=False), strict=True):
+            found = client.map(partial(_each_result, look), batch, key=keys, pure=False)
+            for i, f in zip(indices, found, strict=True):
                 looks[i] = f
 
-        for _, future in _in_runs(client, task, ref, items, futures, look_at):
+        made = _in_runs(client, partial(_each, task), ref, groups, futures, look_at)
+        for i, future in made:
             if future.status == "error":
                 yield from _results([future])  # raises BlockTaskFailed
-            yield _FIRST_WAVE
-        finish = decide(client.gather(looks))
+            yield from [_FIRST_WAVE] * len(groups[i])
+        finish = decide([seen for group in client.gather(looks) for seen in group])
         keys = [f"miss-finish-{i}" for i in range(len(futures))]
-        seconds = client.map(finish, futures, key=keys, pure=False, retries=2)
+        seconds = client.map(
+            partial(_each_result, finish), futures, key=keys, pure=False, retries=2
+        )
         # the first wave's results go once the second has used them
         looks.clear()
         futures.clear()
-        yield from _results(dask_completed(seconds))
+        for group in _results(dask_completed(seconds)):
+            yield from group
 
 
-#: Blocks handed to a worker at a time (:func:`_in_runs`): one message to the scheduler
-#: for them all (a task graph each is ~2 ms of the scheduler's time, which runs in the
-#: job's process for a local cluster: 640 blocks took 1.3 s of it).
-_BATCH = 4
+#: Blocks one Dask task makes, at most, one after the other (neighbours: they share
+#: chunks). A task costs the scheduler, the client and the worker some milliseconds
+#: whatever it does. 125 blocks of 512 x 512 x 600 on 1 / 2 workers (medians of 5): a
+#: block a task 1.63 / 1.34 s, the job's process spending 0.67 s of CPU; 8 a task 1.21 /
+#: 0.82 s and 0.22 s; 16 a task 1.27 / 1.05 s (too few tasks to even out the workers).
+_GROUP = 8
+
+
+def _group_size(blocks: int, client: Any) -> int:
+    """Blocks a task: :data:`_GROUP`, fewer where that would leave under 4 tasks a worker
+    thread (the last ones even out the workers' shares)."""
+    info = client.scheduler_info().get("workers", {})
+    threads = sum(int(w.get("nthreads", 1)) for w in info.values()) or 1
+    return max(1, min(_GROUP, blocks // (4 * threads)))
+
+
+def _each(task: Callable[..., Any], shared: Any, items: Sequence[Any]) -> list[Any]:
+    """``task(shared, item)`` for each of ``items``, in order (one Dask task's blocks)."""
+    return [task(shared, item) for item in items]
+
+
+def _each_result(function: Callable[[Any], Any], results: Sequence[Any]) -> list[Any]:
+    """``function(result)`` for each of one task's ``results``, in order."""
+    return [function(result) for result in results]
+
+
+#: Tasks handed to a worker at a time (:func:`_in_runs`), in one message to the scheduler
+#: (which runs in the job's process for a local cluster): few, so that a worker done
+#: with its own run finds some of the others' left to take.
+_BATCH = 2
 
 
 def _in_runs(
@@ -179,18 +215,18 @@ def _in_runs(
     run of the items, and yield (index, future) as each ends (``futures[index]`` is set
     as it is submitted; ``submitted(indices, futures)`` is called for each batch too).
 
-    The items are blocks in order (neighbours in space next to each other): neighbours
-    read the chunks on their seam, which a worker decompresses once for both when it
-    makes both (its chunk cache, :data:`miss.blocks.CHUNKS`). So each worker gets an
-    equal run of consecutive items, a few at a time (:data:`_BATCH` more once it has no
-    more than one a thread left); one that has finished its run takes the far end of the
-    longest run left. The work evens out without Dask's work stealing, which the blocks'
-    uneven cost defeated. Submitted all at once, 2 workers decompressed 1.7x the chunks
-    of one (a block's next one mostly went to the other worker); with one run each, one
-    worker had finished long before the other (512 x 512 x 600: 0.5 s against 1.15 s of
-    blocks).
+    The items are blocks (or groups of them) in order, neighbours in space next to each
+    other: neighbours read the chunks on their seam, which a worker decompresses once for
+    both when it makes both (its chunk cache, :data:`miss.blocks.CHUNKS`). So each worker
+    gets an equal run of consecutive items, a few at a time (:data:`_BATCH` more once it
+    has no more than one a thread left); one that has finished its run takes the far end
+    of the longest run left. The work evens out without Dask's work stealing, which the
+    blocks' uneven cost defeated. Submitted all at once (a block a task), 2 workers
+    decompressed 1.7x the chunks of one (a block's next one mostly went to the other
+    worker); with one run each, one worker had finished long before the other (512 x
+    512 x 600: 0.5 s against 1.15 s of blocks).
 
-    A worker is a preference, not a restriction: a block whose worker has gone runs on
+    A worker is a preference, not a restriction: an item whose worker has gone runs on
     another (and so do the next ones of its run).
     """
     from collections import deque
