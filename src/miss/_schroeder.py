@@ -44,6 +44,7 @@ import numpy as np
 from numba import njit
 
 from miss.deviation import _point_triangle_sq
+from miss.types import column_bounds
 
 SIMPLE, BOUNDARY, INTERIOR_EDGE, CORNER, COMPLEX = 0, 1, 2, 3, 4
 
@@ -786,7 +787,8 @@ def _slabs(pts: np.ndarray, faces: np.ndarray, count: int) -> np.ndarray:
     cut at quantiles of its vertices (see _domains)."""
     used = np.zeros(len(pts), dtype=bool)
     used[faces.ravel()] = True
-    axis = int(np.argmax(np.ptp(pts[used], axis=0)))
+    lo, hi = column_bounds(pts[used])  # np.ptp(axis=0) walks (N, 3) with a stride: 20x slower
+    axis = int(np.argmax(hi - lo))
     cuts = np.quantile(pts[used, axis], np.arange(1, count) / count)
     return np.searchsorted(cuts, pts[:, axis], side="right").astype(np.int32)
 
@@ -860,7 +862,11 @@ def _run_passes(
     terr = np.zeros(len(faces) if accumulate else 0, dtype=np.float64)
     everything = np.arange(len(pts), dtype=np.int32)
     # Distances within round-off of zero count as zero, so a flat region goes at bound 0.
-    slack = _ROUND_OFF * float(np.linalg.norm(np.ptp(pts, axis=0))) if len(pts) else 0.0
+    slack = (
+        _ROUND_OFF * float(np.linalg.norm(np.subtract(*column_bounds(pts)[::-1])))
+        if len(pts)
+        else 0.0
+    )
     bound, n_alive, passes, removed_total = error_bound, len(faces), 0, 0
 
     def one_pass(limit: float, n: int, stop: int, visit: np.ndarray) -> tuple[int, int]:

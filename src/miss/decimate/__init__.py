@@ -248,16 +248,16 @@ def _runner(
     """One run of ``method`` given the vertices locked: (faces kept, the bound it is held
     to, mm, the method that ran). Quadric runs after its first ``_QUADRIC_ROUNDS`` (per
     schedule) are schroeder's, held to the same bound."""
-    import numpy as np
-
     from miss.decimate.quadric import quadric
     from miss.decimate.schroeder import schroeder
+    from miss.types import column_bounds
 
     diag = mesh.diagonal()
     bound_mm = (error_bound if schedule == "guaranteed" else max_error) * diag
     if method == "quadric":
         # meshoptimizer's error is relative to the mesh's extent (its largest side)
-        extent = max(float(np.ptp(mesh.vertices, axis=0).max()), 1e-12)
+        lo, hi = column_bounds(mesh.vertices)
+        extent = max(float((hi - lo).max()), 1e-12)
 
         runs = _QUADRIC_ROUNDS[schedule]
 
