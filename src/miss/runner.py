@@ -182,9 +182,17 @@ _GROUP = 8
 def _group_size(blocks: int, client: Any) -> int:
     """Blocks a task: :data:`_GROUP`, fewer where that would leave under 4 tasks a worker
     thread (the last ones even out the workers' shares)."""
-    info = client.scheduler_info().get("workers", {})
-    threads = sum(int(w.get("nthreads", 1)) for w in info.values()) or 1
+    threads = sum(int(w.get("nthreads", 1)) for w in _workers(client).values()) or 1
     return max(1, min(_GROUP, blocks // (4 * threads)))
+
+
+def _workers(client: Any) -> dict[str, dict[str, Any]]:
+    """Every worker of the cluster: address -> what the scheduler knows of it."""
+    try:
+        info = client.scheduler_info(n_workers=-1)  # all, whatever the release's default
+    except TypeError:  # a release before the argument, which lists them all
+        info = client.scheduler_info()
+    return info.get("workers", {})
 
 
 def _each(task: Callable[..., Any], shared: Any, items: Sequence[Any]) -> list[Any]:
@@ -233,7 +241,7 @@ def _in_runs(
 
     from distributed import as_completed as dask_completed
 
-    info = client.scheduler_info().get("workers", {})
+    info = _workers(client)
     workers: list[str | None] = sorted(info) or [None]  # none yet: all at once, anywhere
     n, count = len(items), len(workers)
     threads = [int(info[w].get("nthreads", 1)) if w else n for w in workers]
