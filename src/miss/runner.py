@@ -174,8 +174,9 @@ def _on_dask(
 #: Blocks one Dask task makes, at most, one after the other (neighbours: they share
 #: chunks). A task costs the scheduler, the client and the worker some milliseconds
 #: whatever it does. 125 blocks of 512 x 512 x 600 on 1 / 2 workers (medians of 5): a
-#: block a task 1.63 / 1.34 s, the job's process spending 0.67 s of CPU; 8 a task 1.21 /
-#: 0.82 s and 0.22 s; 16 a task 1.27 / 1.05 s (too few tasks to even out the workers).
+#: block a task, all submitted at once as before, 1.63 / 1.34 s, the job's process
+#: spending 0.67 s of CPU; in runs (below), a block a task 1.57 / 1.16 s and 0.57 s, 8 a
+#: task 1.21 / 0.82 s and 0.22 s, 16 a task 1.27 / 1.05 s (too few tasks to even out).
 _GROUP = 8
 
 
