@@ -137,11 +137,12 @@ def _on_dask(
 
     with _client(scheduler) as client:
         ref = client.scatter(shared, broadcast=True) if _in_memory(shared) else shared
-        size = _group_size(len(items), client)
+        workers = _workers(client)
+        size = _group_size(len(items), workers)
         groups = [list(items[i : i + size]) for i in range(0, len(items), size)]
         futures: list[Any] = [None] * len(groups)
         if then is None:
-            made = _in_runs(client, partial(_each, task), ref, groups, futures)
+            made = _in_runs(client, workers, partial(_each, task), ref, groups, futures)
             for group in _results(f for _, f in made):
                 yield from group
             return
@@ -154,7 +155,7 @@ def _on_dask(
             for i, f in zip(indices, found, strict=True):
                 looks[i] = f
 
-        made = _in_runs(client, partial(_each, task), ref, groups, futures, look_at)
+        made = _in_runs(client, workers, partial(_each, task), ref, groups, futures, look_at)
         for i, future in made:
             if future.status == "error":
                 yield from _results([future])  # raises BlockTaskFailed
@@ -180,10 +181,10 @@ def _on_dask(
 _GROUP = 8
 
 
-def _group_size(blocks: int, client: Any) -> int:
+def _group_size(blocks: int, workers: dict[str, dict[str, Any]]) -> int:
     """Blocks a task: :data:`_GROUP`, fewer where that would leave under 4 tasks a worker
     thread (the last ones even out the workers' shares)."""
-    threads = sum(int(w.get("nthreads", 1)) for w in _workers(client).values()) or 1
+    threads = sum(int(w.get("nthreads", 1)) for w in workers.values()) or 1
     return max(1, min(_GROUP, blocks // (4 * threads)))
 
 
@@ -214,15 +215,17 @@ _BATCH = 2
 
 def _in_runs(
     client: Any,
+    info: dict[str, dict[str, Any]],
     task: Callable[..., Any],
     ref: Any,
     items: Sequence[Any],
     futures: list[Any],
     submitted: Callable[[list[int], list[Any]], None] | None = None,
 ) -> Iterator[tuple[int, Any]]:
-    """Run ``task(ref, item)`` for every item on the cluster, each worker along its own
-    run of the items, and yield (index, future) as each ends (``futures[index]`` is set
-    as it is submitted; ``submitted(indices, futures)`` is called for each batch too).
+    """Run ``task(ref, item)`` for every item on the cluster, each worker (``info``:
+    :func:`_workers`) along its own run of the items, and yield (index, future) as each
+    ends (``futures[index]`` is set as it is submitted; ``submitted(indices, futures)``
+    is called for each batch too).
 
     The items are blocks (or groups of them) in order, neighbours in space next to each
     other: neighbours read the chunks on their seam, which a worker decompresses once for
@@ -242,7 +245,6 @@ def _in_runs(
 
     from distributed import as_completed as dask_completed
 
-    info = _workers(client)
     workers: list[str | None] = sorted(info) or [None]  # none yet: all at once, anywhere
     n, count = len(items), len(workers)
     threads = [int(info[w].get("nthreads", 1)) if w else n for w in workers]
