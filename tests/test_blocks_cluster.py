@@ -4,6 +4,7 @@ address nobody answers."""
 
 from __future__ import annotations
 
+import errno
 import os
 import signal
 import socket
@@ -168,6 +169,73 @@ def test_each_worker_runs_its_own_run_of_neighbouring_blocks(cluster) -> None:
     assert set(ran.values()) == set(workers)
     switches = sum(ran[i] != ran[i + 1] for i in range(59))
     assert switches <= 8, [ran[i][-5:] for i in range(60)]
+
+
+def test_workers_on_this_machine_hand_meshes_over_through_shared_memory(cluster) -> None:
+    """The workers (here on loopback, as a local cluster's are) leave each task's results
+    in a file that the job's process maps: no copy over the socket. The arrays arrive
+    whole and read-only, and no file is left behind."""
+    import mmap
+
+    import numpy as np
+
+    from miss.runner import run_blocks
+
+    running, _ = cluster
+    folders_before = set(Path("/dev/shm").glob("miss-blocks-*"))
+
+    def block(_: object, item: int) -> tuple[int, np.ndarray, np.ndarray]:
+        rng = np.random.default_rng(item)
+        return (
+            item,
+            rng.random((1000 + item, 3)).astype(np.float32),
+            np.asfortranarray(rng.integers(0, 1000, (500, 3), dtype=np.int32)),
+        )
+
+    got = {
+        i: (v, f) for i, v, f in run_blocks(block, None, list(range(24)), scheduler=running.address)
+    }
+    assert sorted(got) == list(range(24))
+    for i, (verts, faces) in got.items():
+        _, want_v, want_f = block(None, i)
+        assert np.array_equal(verts, want_v) and np.array_equal(faces, want_f)
+        assert faces.flags.f_contiguous
+        base: object = verts
+        while isinstance(base, np.ndarray | memoryview):
+            base = base.obj if isinstance(base, memoryview) else base.base
+        assert isinstance(base, mmap.mmap), f"the mesh came over the socket ({base!r})"
+        assert not verts.flags.writeable
+    assert set(Path("/dev/shm").glob("miss-blocks-*")) == folders_before
+
+
+def test_results_travel_as_they_are_where_the_hand_over_folder_is_not_seen(
+    tmp_path, monkeypatch
+) -> None:
+    """A worker on another machine (the folder does not exist there) or a full folder:
+    the results go back over the socket, as before."""
+    import numpy as np
+
+    from miss import runner
+
+    results = [np.arange(10.0)]
+    assert runner._left(results, str(tmp_path / "elsewhere")) is results
+
+    def full(path: str, raws: list[memoryview]) -> None:
+        Path(path).write_bytes(bytes(raws[0])[:4])  # part of it, then the disk is full
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(runner, "_write_buffers", full)
+    assert runner._left(results, str(tmp_path)) is results
+    assert not any(tmp_path.iterdir())  # nothing half-written left
+    monkeypatch.undo()
+    scarce = os.statvfs_result((4096, 4096, 1000, 0, 0, 100, 10, 10, 0, 255))
+    monkeypatch.setattr(os, "statvfs", lambda _: scarce)  # none free
+    assert runner._left(results, str(tmp_path)) is results
+    monkeypatch.undo()
+    left = runner._left(results, str(tmp_path))
+    assert isinstance(left, runner._Left)
+    back = runner._taken(left)
+    assert np.array_equal(back[0], results[0]) and not any(tmp_path.glob("[0-9a-f]*"))
 
 
 def test_a_worker_killed_mid_job_leaves_the_job_to_the_other(cluster, cthead, tmp_path) -> None:

@@ -7,7 +7,8 @@
   (one single-threaded worker process per core); smaller ones run on a thread pool, where
   the cluster's start (about 3 s here) and the meshes' trips cost more than it saves.
 
-Results are handed to the caller as they arrive, so it can weld them and drop each one.
+Results are handed to the caller as they arrive, so it can weld them and drop each one;
+a Dask worker on the caller's machine leaves them in shared memory for it (:func:`_left`).
 """
 
 from __future__ import annotations
@@ -15,7 +16,8 @@ from __future__ import annotations
 import os
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor, as_completed
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
+from dataclasses import dataclass
 from functools import partial
 from typing import Any
 
@@ -135,14 +137,15 @@ def _on_dask(
 ) -> Iterator[Any]:
     from distributed import as_completed as dask_completed
 
-    with _client(scheduler) as client:
+    with _client(scheduler) as client, _hand_over() as folder:
         ref = client.scatter(shared, broadcast=True) if _in_memory(shared) else shared
         workers = _workers(client)
         size = _group_size(len(items), workers)
         groups = [list(items[i : i + size]) for i in range(0, len(items), size)]
         futures: list[Any] = [None] * len(groups)
         if then is None:
-            made = _in_runs(client, workers, partial(_each, task), ref, groups, futures)
+            each = partial(_each, task, folder=folder)
+            made = _in_runs(client, workers, each, ref, groups, futures)
             for group in _results(f for _, f in made):
                 yield from group
             return
@@ -163,7 +166,11 @@ def _on_dask(
         finish = decide([seen for group in client.gather(looks) for seen in group])
         keys = [f"miss-finish-{i}" for i in range(len(futures))]
         seconds = client.map(
-            partial(_each_result, finish), futures, key=keys, pure=False, retries=2
+            partial(_each_result, finish, folder=folder),
+            futures,
+            key=keys,
+            pure=False,
+            retries=2,
         )
         # the first wave's results go once the second has used them
         looks.clear()
@@ -197,14 +204,115 @@ def _workers(client: Any) -> dict[str, dict[str, Any]]:
     return info.get("workers", {})
 
 
-def _each(task: Callable[..., Any], shared: Any, items: Sequence[Any]) -> list[Any]:
-    """``task(shared, item)`` for each of ``items``, in order (one Dask task's blocks)."""
-    return [task(shared, item) for item in items]
+def _each(
+    task: Callable[..., Any], shared: Any, items: Sequence[Any], folder: str | None = None
+) -> Any:
+    """``task(shared, item)`` for each of ``items``, in order (one Dask task's blocks);
+    left in ``folder`` when this worker sees it (:func:`_left`)."""
+    return _left([task(shared, item) for item in items], folder)
 
 
-def _each_result(function: Callable[[Any], Any], results: Sequence[Any]) -> list[Any]:
-    """``function(result)`` for each of one task's ``results``, in order."""
-    return [function(result) for result in results]
+def _each_result(
+    function: Callable[[Any], Any], results: Sequence[Any], folder: str | None = None
+) -> Any:
+    """``function(result)`` for each of one task's ``results``, in order (as :func:`_each`)."""
+    return _left([function(result) for result in results], folder)
+
+
+@contextmanager
+def _hand_over() -> Iterator[str]:
+    """A new folder in shared memory (``/dev/shm``, else the temporary folder) where the
+    workers on this machine leave their results for the job's process (:func:`_left`),
+    removed on leaving with whatever is still in it."""
+    import tempfile
+
+    where = "/dev/shm" if os.path.isdir("/dev/shm") and os.access("/dev/shm", os.W_OK) else None
+    with tempfile.TemporaryDirectory(prefix="miss-blocks-", dir=where) as folder:
+        yield folder
+
+
+@dataclass(frozen=True)
+class _Left:
+    """A task's results left in a file (:func:`_left`): the pickle without its arrays'
+    memory, which lies in the file at ``offsets``."""
+
+    path: str
+    header: bytes
+    offsets: tuple[tuple[int, int], ...]
+
+
+#: Arrays start at multiples of this in a :class:`_Left` file.
+_ALIGN = 64
+
+
+def _left(results: Any, folder: str | None) -> Any:
+    """``results`` written to a new file in ``folder`` (their arrays' memory as it is,
+    after a pickle of the rest), a :class:`_Left` naming it returned instead; ``results``
+    themselves where this worker does not see ``folder`` (another machine), or they would
+    take more than a quarter of its free space, or it is full.
+
+    A worker on the job's machine thus hands its meshes over through shared memory: the
+    job's process maps the file (:func:`_taken`) instead of receiving them over a socket,
+    which cost it a copy and fresh zeroed pages for every mesh.
+    """
+    if folder is None or not os.path.isdir(folder):
+        return results
+    import pickle
+    import uuid
+
+    buffers: list[pickle.PickleBuffer] = []
+    header = pickle.dumps(results, protocol=5, buffer_callback=buffers.append)
+    raws = [buffer.raw() for buffer in buffers]
+    space = os.statvfs(folder)
+    if sum(raw.nbytes + _ALIGN for raw in raws) > space.f_bavail * space.f_frsize // 4:
+        return results  # shared memory is scarce (a container's 64 MB /dev/shm): leave it
+    path = os.path.join(folder, uuid.uuid4().hex)
+    try:
+        offsets = _write_buffers(path, raws)
+    except OSError:  # full: the results travel the usual way
+        with suppress(OSError):
+            os.unlink(path)
+        return results
+    return _Left(path, header, offsets)
+
+
+def _write_buffers(path: str, raws: list[memoryview]) -> tuple[tuple[int, int], ...]:
+    """``raws`` written to a new file one after the other, each at a multiple of
+    :data:`_ALIGN`; their (offset, size)."""
+    offsets, at = [], 0
+    with open(path, "xb") as file:
+        for raw in raws:
+            start = -(-at // _ALIGN) * _ALIGN
+            if start > at:
+                file.write(bytes(start - at))
+            file.write(raw)
+            offsets.append((start, raw.nbytes))
+            at = start + raw.nbytes
+    return tuple(offsets)
+
+
+def _taken(results: Any) -> Any:
+    """The results a task left (:func:`_left`), their arrays read-only views of the file
+    mapped here (the file is removed; the memory goes with the last view); any other
+    result as it is."""
+    if not isinstance(results, _Left):
+        return results
+    import mmap
+    import pickle
+
+    with open(results.path, "rb") as file:
+        size = os.fstat(file.fileno()).st_size
+        mapped = (
+            mmap.mmap(
+                file.fileno(), size, flags=mmap.MAP_SHARED | getattr(mmap, "MAP_POPULATE", 0),
+                prot=mmap.PROT_READ,
+            )
+            if size
+            else b""
+        )  # fmt: skip
+    os.unlink(results.path)
+    view = memoryview(mapped)
+    return pickle.loads(results.header, buffers=[view[a : a + n] for a, n in results.offsets])
 
 
 #: Tasks handed to a worker at a time (:func:`_in_runs`), in one message to the scheduler
@@ -292,7 +400,7 @@ def _results(futures: Iterator[Any], release: bool = True) -> Iterator[Any]:
     """Each future's result as it finishes; a failure as :class:`BlockTaskFailed`."""
     for future in futures:
         try:
-            yield future.result()
+            result = future.result()
         except Exception as exc:  # KilledWorker, a task's own error
             raise BlockTaskFailed(
                 f"a block task failed on the Dask cluster ({type(exc).__name__}: {exc}); "
@@ -301,6 +409,7 @@ def _results(futures: Iterator[Any], release: bool = True) -> Iterator[Any]:
         finally:
             if release:
                 future.release()
+        yield _taken(result)
 
 
 def _in_memory(shared: Any) -> bool:
