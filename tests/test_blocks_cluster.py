@@ -188,8 +188,8 @@ def test_workers_on_this_machine_hand_meshes_over_through_shared_memory(cluster)
         rng = np.random.default_rng(item)
         return (
             item,
-            rng.random((1000 + item, 3)).astype(np.float32),
-            np.asfortranarray(rng.integers(0, 1000, (500, 3), dtype=np.int32)),
+            rng.random((5000 + item, 3)).astype(np.float32),
+            np.asfortranarray(rng.integers(0, 5000, (6000, 3), dtype=np.int32)),
         )
 
     got = {
@@ -217,8 +217,10 @@ def test_results_travel_as_they_are_where_the_hand_over_folder_is_not_seen(
 
     from miss import runner
 
-    results = [np.arange(10.0)]
+    results = [np.arange(10_000.0)]
     assert runner._left(results, str(tmp_path / "elsewhere")) is results
+    small = [(0.0, 1.0), np.arange(10.0)]  # a block's range: not worth a file
+    assert runner._left(small, str(tmp_path)) is small
 
     def full(path: str, raws: list[memoryview]) -> None:
         Path(path).write_bytes(bytes(raws[0])[:4])  # part of it, then the disk is full

@@ -243,13 +243,16 @@ class _Left:
 
 #: Arrays start at multiples of this in a :class:`_Left` file.
 _ALIGN = 64
+#: Results whose arrays hold fewer bytes than this travel over the socket.
+_SMALL = 1 << 16
 
 
 def _left(results: Any, folder: str | None) -> Any:
     """``results`` written to a new file in ``folder`` (their arrays' memory as it is,
     after a pickle of the rest), a :class:`_Left` naming it returned instead; ``results``
-    themselves where this worker does not see ``folder`` (another machine), or they would
-    take more than a quarter of its free space, or it is full.
+    themselves where this worker does not see ``folder`` (another machine), where their
+    arrays are small (:data:`_SMALL`), or would take more than a quarter of its free
+    space, or it is full.
 
     A worker on the job's machine thus hands its meshes over through shared memory: the
     job's process maps the file (:func:`_taken`) instead of receiving them over a socket,
@@ -263,8 +266,11 @@ def _left(results: Any, folder: str | None) -> Any:
     buffers: list[pickle.PickleBuffer] = []
     header = pickle.dumps(results, protocol=5, buffer_callback=buffers.append)
     raws = [buffer.raw() for buffer in buffers]
+    size = sum(raw.nbytes + _ALIGN for raw in raws)
+    if size < _SMALL:
+        return results  # a file would cost more than the bytes (a block's value range)
     space = os.statvfs(folder)
-    if sum(raw.nbytes + _ALIGN for raw in raws) > space.f_bavail * space.f_frsize // 4:
+    if size > space.f_bavail * space.f_frsize // 4:
         return results  # shared memory is scarce (a container's 64 MB /dev/shm): leave it
     path = os.path.join(folder, uuid.uuid4().hex)
     try:
