@@ -220,15 +220,22 @@ def _each_result(
 
 
 @contextmanager
-def _hand_over() -> Iterator[str]:
-    """A new folder in shared memory (``/dev/shm``, else the temporary folder) where the
-    workers on this machine leave their results for the job's process (:func:`_left`),
-    removed on leaving with whatever is still in it."""
+def _hand_over() -> Iterator[str | None]:
+    """A new folder in shared memory (``/dev/shm``) where the workers on this machine
+    leave their results for the job's process (:func:`_left`), removed on leaving with
+    whatever is still in it; None where there is no such memory (the results travel over
+    the socket: a folder on disk would not be faster)."""
     import tempfile
 
-    where = "/dev/shm" if os.path.isdir("/dev/shm") and os.access("/dev/shm", os.W_OK) else None
-    with tempfile.TemporaryDirectory(prefix="miss-blocks-", dir=where) as folder:
+    if not (os.path.isdir(_SHM) and os.access(_SHM, os.W_OK)):
+        yield None
+        return
+    with tempfile.TemporaryDirectory(prefix="miss-blocks-", dir=_SHM) as folder:
         yield folder
+
+
+#: Linux's shared memory, a folder of files held in memory.
+_SHM = "/dev/shm"
 
 
 @dataclass(frozen=True)
