@@ -280,3 +280,66 @@ def test_a_label_map_on_disk_makes_the_model_it_makes_in_memory(tmp_path) -> Non
     for a, b in zip(got.scene.parts, want.scene.parts, strict=True):
         np.testing.assert_array_equal(a.mesh.vertices, b.mesh.vertices)
         np.testing.assert_array_equal(a.mesh.faces, b.mesh.faces)
+
+
+def _weld_at_the_end(parts: list) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The weld as it was done before blocks were welded as they came: every block kept,
+    then each edge id's first vertex (in arrival order) standing for all its copies."""
+    offsets = np.cumsum([0] + [len(p.vertices) for p in parts])
+    shared = np.concatenate([p.shared + o for p, o in zip(parts, offsets, strict=False)])
+    keys = np.concatenate([p.keys for p in parts])
+    _, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
+    to = shared[first][inverse]
+    copies = to != shared
+    keep = np.ones(offsets[-1], dtype=bool)
+    keep[shared[copies]] = False
+    number = np.cumsum(keep) - 1
+    number[shared[copies]] = number[to[copies]]
+    verts = np.concatenate([p.vertices for p in parts])[keep]
+    normals = np.concatenate([p.normals for p in parts])[keep]
+    faces = np.concatenate([number[p.faces + o] for p, o in zip(parts, offsets, strict=False)])
+    return verts, faces.astype(np.int32), normals
+
+
+def test_blocks_welded_as_they_come_equal_a_weld_at_the_end() -> None:
+    """Random blocks whose face vertices share edge ids with earlier blocks' (and, once,
+    with another vertex of their own block): the welder's mesh is the weld of all of them
+    at the end, vertex for vertex, whatever order they come in."""
+    from hypothesis import given, settings
+    from hypothesis import strategies as st
+
+    from miss.blocks import BlockMesh, Welder
+
+    def block(rng: np.random.Generator, width: int) -> BlockMesh:
+        n = int(rng.integers(0, 40)) if rng.random() < 0.9 else 0  # some blocks are empty
+        shared = rng.choice(n, size=int(rng.integers(0, n + 1)), replace=False)
+        keys = rng.integers(0, 25, size=len(shared)).astype(np.int64)  # few: they repeat
+        if len(keys) > 1 and rng.random() < 0.2:
+            keys[-1] = keys[0]  # a copy within the block itself
+        return BlockMesh(
+            vertices=rng.random((n, 3)).astype(np.float32),
+            faces=rng.integers(0, max(n, 1), size=(int(rng.integers(1, 60)) if n else 0, 3)).astype(
+                np.int32
+            ),
+            normals=rng.random((n, width)).astype(np.float32),
+            shared=shared.astype(np.int64),
+            keys=keys,
+        )
+
+    @settings(max_examples=60, deadline=None)
+    @given(st.integers(0, 2**32 - 1), st.integers(1, 30), st.sampled_from([0, 3]))
+    def check(seed: int, count: int, width: int) -> None:
+        rng = np.random.default_rng(seed)
+        parts = [block(rng, width) for _ in range(count)]
+        want = _weld_at_the_end(parts)
+        for as_they_come in (True, False):
+            welder = Welder(as_they_come)
+            for part in parts:
+                welder.add(part, part.vertices, part.normals)
+            verts, faces, normals = welder.result()
+            assert np.array_equal(verts, want[0]) and np.array_equal(normals, want[2])
+            assert np.array_equal(faces, want[1]) and faces.dtype == np.int32
+
+    check()
+    empty = Welder().result()
+    assert [a.shape for a in empty] == [(0, 3), (0, 3), (0, 3)]

@@ -221,7 +221,7 @@ def _blockwise(
     pad_dtype, pad = _pad_value(dtype, contour, hi - lo if not in_one_pass else 0.0)
     grid = Grid(grid.data, grid.start, grid.step, grid.shape, pad, np.dtype(pad_dtype).str)
     offset = np.array([b[0] for b in box], dtype=np.float64)
-    welder = Welder()
+    welder = Welder(as_they_come=address is not None or big)  # on threads: at the end
     # each task maps its own vertices to mm: float32 travels back, and the work is spread
     task = partial(
         _surface_task, level=contour, normals=normals, affine=volume.affine, steps=steps,
