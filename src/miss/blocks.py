@@ -444,58 +444,28 @@ class Welder:
             self.verts = _Rows(vertices.shape[1], vertices.dtype)
             self.normals = _Rows(normals.shape[1], normals.dtype)
         assert self.normals is not None
-        shared, keys = block.shared, block.keys.tolist()
-        if len(set(keys)) < len(keys):  # an edge id twice in one block: one at a time
-            number_of, kept = self._number_each(block, len(vertices))
-        else:  # the dictionary asked in C, not in a Python loop: 3x faster
-            ids = self.ids
-            earlier = np.fromiter(map(ids.get, keys, itertools.repeat(-1)), np.int64, len(keys))
-            seen = earlier >= 0
-            keep = np.ones(len(vertices), dtype=bool)
-            keep[shared[seen]] = False
-            kept = np.flatnonzero(keep)
-            number_of = np.empty(len(vertices), dtype=np.int32)
-            base = len(self.verts)
-            number_of[kept] = np.arange(base, base + len(kept), dtype=np.int32)
-            number_of[shared[seen]] = earlier[seen]
-            new = ~seen
-            ids.update(zip(block.keys[new].tolist(), number_of[shared[new]].tolist(), strict=True))
+        shared = block.shared
+        # each edge id once, its first vertex in the block, and which one each vertex has
+        keys, first, which = np.unique(block.keys, return_index=True, return_inverse=True)
+        earlier = np.fromiter(  # an earlier block's number for it, or -1
+            map(self.ids.get, keys.tolist(), itertools.repeat(-1)), np.int64, len(keys)
+        )
+        copy = (earlier[which] >= 0) | (first[which] != np.arange(len(which)))
+        keep = np.ones(len(vertices), dtype=bool)
+        keep[shared[copy]] = False
+        kept = np.flatnonzero(keep)
+        number_of = np.empty(len(vertices), dtype=np.int32)
+        base = len(self.verts)
+        number_of[kept] = np.arange(base, base + len(kept), dtype=np.int32)
+        number = np.where(earlier >= 0, earlier, number_of[shared[first]])  # each edge id's
+        number_of[shared] = number[which]
+        new = earlier < 0
+        self.ids.update(zip(keys[new].tolist(), number[new].tolist(), strict=True))
         for rows, of in ((self.verts, vertices), (self.normals, normals)):
             rows.extend(len(kept), partial(_take_rows, of, kept))
         self.faces.extend(
             len(block.faces), lambda out: np.take(number_of, block.faces, out=out, mode="clip")
         )
-
-    def _number_each(self, block: BlockMesh, n: int) -> tuple[np.ndarray, np.ndarray]:
-        """:meth:`add`'s numbering, vertex by vertex, for a block where an edge id comes
-        twice (its later copies take the first's number): each vertex's welded number,
-        and the vertices kept."""
-        keep = np.ones(n, dtype=bool)
-        known: list[int] = []  # local vertices an earlier vertex stands for ...
-        their: list[int] = []  # ... and its number (>= 0) or its local index (-1 - i)
-        mine: dict[int, int] = {}  # edge ids first seen in this block -> local index
-        for local, key in zip(block.shared.tolist(), block.keys.tolist(), strict=True):
-            number = self.ids.get(key)
-            if number is None:
-                first = mine.setdefault(key, local)
-                if first == local:
-                    continue
-                number = -1 - first
-            known.append(local)
-            their.append(number)
-        keep[known] = False
-        assert self.verts is not None
-        base = len(self.verts)
-        number_of = np.empty(n, dtype=np.int32)
-        kept = np.flatnonzero(keep)
-        number_of[kept] = np.arange(base, base + len(kept), dtype=np.int32)
-        if known:
-            numbers = np.asarray(their, dtype=np.int64)
-            inside = numbers < 0  # a copy within this block: its first one's number
-            numbers[inside] = number_of[-1 - numbers[inside]]
-            number_of[known] = numbers
-        self.ids.update(zip(mine, number_of[list(mine.values())].tolist(), strict=True))
-        return number_of, kept
 
     def result(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """vertices (N, 3), faces (F, 3) int32, normals of the welded mesh."""
