@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Callable, Iterator, Sequence
-from concurrent.futures import ThreadPoolExecutor, as_completed
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager, suppress
 from dataclasses import dataclass
 from functools import partial
@@ -111,20 +111,23 @@ def _on_threads(
 ) -> Iterator[Any]:
     workers = min(len(items), os.cpu_count() or 1) or 1
     with ThreadPoolExecutor(max_workers=workers) as pool:
-        futures = {pool.submit(task, shared, item): i for i, item in enumerate(items)}
+        # in the items' order, whichever ends first: a job welds its blocks in that order,
+        # and the same volume makes the same model every time (in the order they ended, a
+        # job decimated in blocks kept 139,124-139,164 triangles of CThead over five runs)
+        futures = [pool.submit(task, shared, item) for item in items]
         if then is None:
-            for future in as_completed(futures):
+            for future in futures:
                 yield future.result()
             return
-        results: list[Any] = [None] * len(items)
-        for future in as_completed(futures):
-            results[futures[future]] = future.result()
+        results: list[Any] = []
+        for future in futures:
+            results.append(future.result())
             yield _FIRST_WAVE
         look, decide = then
         finish = decide([look(r) for r in results])
         seconds = [pool.submit(finish, r) for r in results]
         results.clear()
-        for future in as_completed(seconds):
+        for future in seconds:
             yield future.result()
 
 
