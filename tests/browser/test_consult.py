@@ -154,7 +154,7 @@ def test_two_browsers_consult_on_one_model(
     guest.screenshot(path=artifacts / "consult-guest-after-reload.png")
     assert not guest_errors and not owner.errors, guest_errors + owner.errors
     revoked(owner, guest, server, artifacts)
-    replayed(owner, artifacts)
+    replayed(owner, model_id, artifacts)
 
 
 def following(owner: Any, guest: Any, artifacts: Any) -> None:
@@ -221,11 +221,19 @@ def revoked(owner: Any, guest: Any, server: Any, artifacts: Any) -> None:
     guest.screenshot(path=artifacts / "consult-link-revoked.png")
 
 
-def replayed(owner: Any, artifacts: Any) -> None:
-    """The owner replays the consultation: its events in order, the pin comes back."""
+def replayed(owner: Any, model_id: str, artifacts: Any) -> None:
+    """The owner replays the consultation: its events in order, the pin comes back.
+
+    The consultation is the session with the most events, not always the first: the
+    owner's first page (before ``open_viewer``) may have joined and left a room of its
+    own, as it does when its socket connects before the page moves on (under load)."""
     owner.reload()
     open_viewer(owner, owner.url)
-    owner.click("#sessions li[data-session='1'] button")
+    sessions = owner.evaluate(
+        "async (id) => (await fetch(`/api/models/${id}/room/sessions`)).json()", model_id
+    )
+    consultation = max(sessions, key=lambda s: s["events"])["session"]
+    owner.click(f"#sessions li[data-session='{consultation}'] button")
     owner.wait_for_function("() => window.__miss.replay.events > 0")
     owner.wait_for_function("() => !window.__miss.replay.playing", timeout=60_000)
     state = owner.evaluate("() => window.__miss.replay")
