@@ -7,7 +7,8 @@
   (one single-threaded worker process per core); smaller ones run on a thread pool, where
   the cluster's start (about 3 s here) and the meshes' trips cost more than it saves.
 
-Results are handed to the caller as they arrive, so it can weld them and drop each one;
+Results are handed to the caller as they arrive (from threads, in the items' order), so it
+can weld them and drop each one;
 a Dask worker on the caller's machine leaves them in shared memory for it (:func:`_left`).
 """
 
@@ -77,7 +78,8 @@ def run_blocks(
     progress: Callable[[int, int], None] | None = None,
     then: Then | None = None,
 ) -> Iterator[Any]:
-    """Yield ``task(shared, item)`` for every item, in the order they finish.
+    """Yield ``task(shared, item)`` for every item: in the order they finish on Dask, in
+    the items' order on threads (so that a job made there is the same every run).
 
     ``scheduler`` is a Dask address (``tcp://host:8786``); without one, ``cluster`` starts
     a LocalCluster sized to the machine, else a thread pool runs the tasks.
