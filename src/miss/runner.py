@@ -8,8 +8,8 @@
   the cluster's start (about 3 s here) and the meshes' trips cost more than it saves.
 
 Results are handed to the caller as they arrive (from threads, in the items' order), so it
-can weld them and drop each one;
-a Dask worker on the caller's machine leaves them in shared memory for it (:func:`_left`).
+can weld them and drop each one; a Dask worker on the caller's machine leaves them in
+shared memory for it (:func:`_left`).
 """
 
 from __future__ import annotations
