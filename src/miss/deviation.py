@@ -205,7 +205,7 @@ def _triangle_sq(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz):
     return _dot(qx, qy, qz, qx, qy, qz)
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def _point_triangle_sq(p, a, b, c):
     """Squared distance from p to triangle abc, each a (3,) array."""
     return _triangle_sq(p[0], p[1], p[2], a[0], a[1], a[2], b[0], b[1], b[2], c[0], c[1], c[2])
