@@ -345,6 +345,47 @@ def test_blocks_welded_as_they_come_equal_a_weld_at_the_end() -> None:
     assert [a.shape for a in empty] == [(0, 3), (0, 3), (0, 3)]
 
 
+def test_blocks_welded_as_they_come_in_order_equal_a_weld_in_the_blocks_order() -> None:
+    """Welded as they come in any order, but ``in_order``: the mesh a weld of the blocks in
+    their own order makes, vertex for vertex and triangle for triangle, each shared vertex
+    (and its normal) from the first block in that order that has it."""
+    from hypothesis import given, settings
+    from hypothesis import strategies as st
+
+    from miss.blocks import BlockMesh, Welder
+
+    @settings(max_examples=80, deadline=None)
+    @given(st.integers(0, 2**32 - 1), st.integers(1, 30), st.sampled_from([0, 3]))
+    def check(seed: int, count: int, width: int) -> None:
+        rng = np.random.default_rng(seed)
+        parts = []
+        for _ in range(count):
+            n = int(rng.integers(0, 40)) if rng.random() < 0.9 else 0
+            shared = rng.choice(n, size=int(rng.integers(0, n + 1)), replace=False)
+            keys = rng.integers(0, 25, size=len(shared)).astype(np.int64)
+            if len(keys) > 1 and rng.random() < 0.2:
+                keys[-1] = keys[0]
+            faces = rng.integers(0, max(n, 1), size=(int(rng.integers(1, 60)) if n else 0, 3))
+            parts.append(
+                BlockMesh(
+                    vertices=rng.random((n, 3)).astype(np.float32),
+                    faces=faces.astype(np.int32),
+                    normals=rng.random((n, width)).astype(np.float32),
+                    shared=shared.astype(np.int64),
+                    keys=keys,
+                )
+            )
+        want = _weld_at_the_end(parts)
+        welder = Welder(as_they_come=True, in_order=True)
+        for i in rng.permutation(count):
+            welder.add(parts[i], parts[i].vertices, parts[i].normals, int(i))
+        verts, faces, normals = welder.result()
+        assert np.array_equal(verts, want[0]) and np.array_equal(normals, want[2])
+        assert np.array_equal(faces, want[1]) and faces.dtype == np.int32
+
+    check()
+
+
 def test_the_same_volume_makes_the_same_mesh_every_time_on_threads(cthead) -> None:
     """Blocks made on threads are welded in the blocks' order, not in the order they end:
     the same vertices in the same order every run (the decimation after it, and so the

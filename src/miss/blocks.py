@@ -21,8 +21,8 @@ import itertools
 import mmap
 import threading
 from collections import OrderedDict
-from collections.abc import Callable
-from contextlib import suppress
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager, suppress
 from dataclasses import dataclass, replace
 from functools import partial
 from typing import Any
@@ -76,6 +76,8 @@ class BlockMesh:
     span: tuple[float, float] = (np.inf, -np.inf)
     #: what decimating it where it was made did (``miss.blockwise.blockwise_decimated``)
     decimated: Decimated | None = None
+    #: the block it is (its cells in the padded grid), for a weld in the blocks' order
+    box: Box | None = None
 
 
 @dataclass(frozen=True)
@@ -420,26 +422,45 @@ class Welder:
     surface took 4.9-5.3 s on 2 workers against 5.4-5.7 s, and 7.8-8.4 s on 1 against
     8.2-8.9 s (alternating, 3 jobs each). Blocks made on threads of this process wait for
     :meth:`result` (``as_they_come=False``): there the weld would hold the interpreter
-    while they run, and it was no faster (512 x 512 x 600, threads: 0.84-0.98 s either way)."""
+    while they run, and it was no faster (512 x 512 x 600, threads: 0.84-0.98 s either way).
 
-    def __init__(self, as_they_come: bool = True) -> None:
+    ``in_order``: :meth:`result` renumbers the mesh welded in arrival order to the one a
+    weld in the blocks' order makes (the order each block was given to :meth:`add`), for
+    a mesh decimated next, whose decimation depends on the numbering: a job on a cluster
+    then makes the model it makes on threads, every run. It costs a sort of the vertices'
+    places and a copy of the mesh, so the surface alone is left in arrival order."""
+
+    def __init__(self, as_they_come: bool = True, in_order: bool = False) -> None:
         #: False: blocks are kept as they come and welded in :meth:`result` (the same
         #: mesh), for blocks made on threads of this process, which the weld would slow
         self.as_they_come = as_they_come
-        self.waiting: list[tuple[BlockMesh, np.ndarray, np.ndarray]] = []
+        #: True (with ``as_they_come``): :meth:`result` gives the mesh a weld in the blocks'
+        #: order would have made (each block's ``order`` given to :meth:`add`), whatever
+        #: order they came in, vertex for vertex and triangle for triangle
+        self.in_order = in_order and as_they_come
+        self.waiting: list[tuple[BlockMesh, np.ndarray, np.ndarray, int]] = []
         self.ids: dict[int, int] = {}  # edge id -> welded vertex number
         self.verts: _Rows | None = None
         self.normals: _Rows | None = None
         self.faces = _Rows(3, np.dtype(np.int32))
+        # in_order: each welded vertex's place in that weld (block order, then its index in
+        # the block that would have had it first), and each block's run of triangles
+        self.places = _Rows(1, np.dtype(np.int64))
+        self.runs: list[tuple[int, int, int]] = []  # (order, first triangle, triangles)
 
-    def add(self, block: BlockMesh, vertices: np.ndarray, normals: np.ndarray) -> None:
-        """Weld in a block whose vertices were mapped already (e.g. to mm, float32)."""
+    def add(
+        self, block: BlockMesh, vertices: np.ndarray, normals: np.ndarray, order: int = 0
+    ) -> None:
+        """Weld in a block whose vertices were mapped already (e.g. to mm, float32);
+        ``order``: its place among the blocks (see ``in_order``)."""
         if not self.as_they_come:
-            self.waiting.append((block, vertices, normals))
+            self.waiting.append((block, vertices, normals, order))
             return
-        self._weld(block, vertices, normals)
+        self._weld(block, vertices, normals, order)
 
-    def _weld(self, block: BlockMesh, vertices: np.ndarray, normals: np.ndarray) -> None:
+    def _weld(
+        self, block: BlockMesh, vertices: np.ndarray, normals: np.ndarray, order: int
+    ) -> None:
         if self.verts is None:
             self.verts = _Rows(vertices.shape[1], vertices.dtype)
             self.normals = _Rows(normals.shape[1], normals.dtype)
@@ -461,11 +482,42 @@ class Welder:
         number_of[shared] = number[which]
         new = earlier < 0
         self.ids.update(zip(keys[new].tolist(), number[new].tolist(), strict=True))
+        if self.in_order:
+            self.runs.append((order, len(self.faces), len(block.faces)))
+            self._place(order, kept, earlier, shared[first], vertices, normals)
         for rows, of in ((self.verts, vertices), (self.normals, normals)):
             rows.extend(len(kept), partial(_take_rows, of, kept))
         self.faces.extend(
             len(block.faces), lambda out: np.take(number_of, block.faces, out=out, mode="clip")
         )
+
+    def _place(
+        self,
+        order: int,
+        kept: np.ndarray,
+        earlier: np.ndarray,
+        firsts: np.ndarray,
+        vertices: np.ndarray,
+        normals: np.ndarray,
+    ) -> None:
+        """Note where this block's vertices would be in a weld in the blocks' order: its
+        own new ones, and the shared ones an earlier-come but later-placed block has
+        (which take this block's place, and its vertex and normal, as that weld would)."""
+        assert self.verts is not None and self.normals is not None
+        top = np.int64(order) << 32
+        self.places.extend(len(kept), lambda out: np.add(kept[:, None], top, out=out))
+        had = np.flatnonzero(earlier >= 0)
+        if len(had) == 0:
+            return
+        numbers, mine = earlier[had], firsts[had] + top
+        with self.places.view() as places:
+            sooner = mine < places[numbers, 0]
+            numbers, mine = numbers[sooner], mine[sooner]
+            places[numbers, 0] = mine
+        local = firsts[had][sooner]
+        for rows, of in ((self.verts, vertices), (self.normals, normals)):
+            with rows.view() as view:
+                view[numbers] = of[local]
 
     def result(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """vertices (N, 3), faces (F, 3) int32, normals of the welded mesh."""
@@ -474,7 +526,18 @@ class Welder:
         self.waiting.clear()
         if self.verts is None or self.normals is None:
             return np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int32), np.zeros((0, 3))
-        return self.verts.rows(), self.faces.rows(), self.normals.rows()
+        verts, faces, normals = self.verts.rows(), self.faces.rows(), self.normals.rows()
+        if not self.in_order:
+            return verts, faces, normals
+        # the vertices in their places, the blocks' triangles in the blocks' order
+        move = np.argsort(self.places.rows()[:, 0], kind="stable")
+        runs = sorted(self.runs)
+        if np.array_equal(move, np.arange(len(move))) and runs == self.runs:
+            return verts, faces, normals  # they came in order
+        number = np.empty(len(move), dtype=np.int32)
+        number[move] = np.arange(len(move), dtype=np.int32)
+        faces = np.concatenate([faces[first : first + n] for _, first, n in runs] or [faces])
+        return verts[move], number[faces], normals[move]
 
 
 def _take_rows(source: np.ndarray, rows: np.ndarray, out: np.ndarray) -> None:
@@ -529,6 +592,18 @@ class _Rows:
         if hasattr(self.memory, "madvise") and hasattr(mmap, "MADV_HUGEPAGE"):
             self.memory.madvise(mmap.MADV_HUGEPAGE)  # as numpy asks for its large arrays
         self.capacity = capacity
+
+    @contextmanager
+    def view(self) -> Iterator[np.ndarray]:
+        """The rows so far, to read and write in place while nothing is appended."""
+        if self.memory is None or self.count == 0:
+            yield np.empty((self.count, self.width), dtype=self.dtype)
+            return
+        rows = np.frombuffer(self.memory, self.dtype, count=self.count * self.width)
+        try:
+            yield rows.reshape(self.count, self.width)
+        finally:
+            del rows  # no view may outlive a growth
 
     def rows(self) -> np.ndarray:
         """The rows (a view of this memory, trimmed to them); no more may be appended."""

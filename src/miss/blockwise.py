@@ -221,7 +221,12 @@ def _blockwise(
     pad_dtype, pad = _pad_value(dtype, contour, hi - lo if not in_one_pass else 0.0)
     grid = Grid(grid.data, grid.start, grid.step, grid.shape, pad, np.dtype(pad_dtype).str)
     offset = np.array([b[0] for b in box], dtype=np.float64)
-    welder = Welder(as_they_come=address is not None or big)  # on threads: at the end
+    # On threads the blocks come in their order and are welded at the end; from Dask, as
+    # they come, and where the model is decimated across the blocks next, renumbered to
+    # the blocks' order: the decimation depends on it, and the same volume then makes the
+    # same model every run, on threads or any cluster
+    welder = Welder(as_they_come=address is not None or big, in_order=decimation is not None)
+    order = {box: i for i, box in enumerate(blocks)}
     # each task maps its own vertices to mm: float32 travels back, and the work is spread
     task = partial(
         _surface_task, level=contour, normals=normals, affine=volume.affine, steps=steps,
@@ -233,7 +238,7 @@ def _blockwise(
     stages: list[Decimated] | None = None if decimation is None else []
     for part in run(task, grid, blocks, progress=done, then=then):
         lo, hi = min(lo, part.span[0]), max(hi, part.span[1])
-        welder.add(part, part.vertices, part.normals)
+        welder.add(part, part.vertices, part.normals, order.get(part.box, -1))
         if stages is not None and part.decimated is not None:
             stages.append(part.decimated)
     check_level(level, lo, hi)
@@ -278,7 +283,7 @@ def _surface_task(
     vectors = part.normals
     if normals and len(vectors):
         vectors = _normals_to_patient(vectors, affine[:3, :3], steps)
-    return replace(part, vertices=verts, normals=vectors)
+    return replace(part, vertices=verts, normals=vectors, box=box)
 
 
 class _Extent(NamedTuple):
