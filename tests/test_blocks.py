@@ -282,6 +282,26 @@ def test_a_label_map_on_disk_makes_the_model_it_makes_in_memory(tmp_path) -> Non
         np.testing.assert_array_equal(a.mesh.faces, b.mesh.faces)
 
 
+def _random_block(rng: np.random.Generator, width: int):
+    """A block of random vertices whose face vertices have few edge ids (so they repeat
+    across blocks, and once in a while within the block); some blocks are empty."""
+    from miss.blocks import BlockMesh
+
+    n = int(rng.integers(0, 40)) if rng.random() < 0.9 else 0
+    shared = rng.choice(n, size=int(rng.integers(0, n + 1)), replace=False)
+    keys = rng.integers(0, 25, size=len(shared)).astype(np.int64)
+    if len(keys) > 1 and rng.random() < 0.2:
+        keys[-1] = keys[0]  # a copy within the block itself
+    faces = rng.integers(0, max(n, 1), size=(int(rng.integers(1, 60)) if n else 0, 3))
+    return BlockMesh(
+        vertices=rng.random((n, 3)).astype(np.float32),
+        faces=faces.astype(np.int32),
+        normals=rng.random((n, width)).astype(np.float32),
+        shared=shared.astype(np.int64),
+        keys=keys,
+    )
+
+
 def _weld_at_the_end(parts: list) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The weld as it was done before blocks were welded as they came: every block kept,
     then each edge id's first vertex (in arrival order) standing for all its copies."""
@@ -308,29 +328,13 @@ def test_blocks_welded_as_they_come_equal_a_weld_at_the_end() -> None:
     from hypothesis import given, settings
     from hypothesis import strategies as st
 
-    from miss.blocks import BlockMesh, Welder
-
-    def block(rng: np.random.Generator, width: int) -> BlockMesh:
-        n = int(rng.integers(0, 40)) if rng.random() < 0.9 else 0  # some blocks are empty
-        shared = rng.choice(n, size=int(rng.integers(0, n + 1)), replace=False)
-        keys = rng.integers(0, 25, size=len(shared)).astype(np.int64)  # few: they repeat
-        if len(keys) > 1 and rng.random() < 0.2:
-            keys[-1] = keys[0]  # a copy within the block itself
-        return BlockMesh(
-            vertices=rng.random((n, 3)).astype(np.float32),
-            faces=rng.integers(0, max(n, 1), size=(int(rng.integers(1, 60)) if n else 0, 3)).astype(
-                np.int32
-            ),
-            normals=rng.random((n, width)).astype(np.float32),
-            shared=shared.astype(np.int64),
-            keys=keys,
-        )
+    from miss.blocks import Welder
 
     @settings(max_examples=60, deadline=None)
     @given(st.integers(0, 2**32 - 1), st.integers(1, 30), st.sampled_from([0, 3]))
     def check(seed: int, count: int, width: int) -> None:
         rng = np.random.default_rng(seed)
-        parts = [block(rng, width) for _ in range(count)]
+        parts = [_random_block(rng, width) for _ in range(count)]
         want = _weld_at_the_end(parts)
         for as_they_come in (True, False):
             welder = Welder(as_they_come)
@@ -352,29 +356,13 @@ def test_blocks_welded_as_they_come_in_order_equal_a_weld_in_the_blocks_order() 
     from hypothesis import given, settings
     from hypothesis import strategies as st
 
-    from miss.blocks import BlockMesh, Welder
+    from miss.blocks import Welder
 
     @settings(max_examples=80, deadline=None)
     @given(st.integers(0, 2**32 - 1), st.integers(1, 30), st.sampled_from([0, 3]))
     def check(seed: int, count: int, width: int) -> None:
         rng = np.random.default_rng(seed)
-        parts = []
-        for _ in range(count):
-            n = int(rng.integers(0, 40)) if rng.random() < 0.9 else 0
-            shared = rng.choice(n, size=int(rng.integers(0, n + 1)), replace=False)
-            keys = rng.integers(0, 25, size=len(shared)).astype(np.int64)
-            if len(keys) > 1 and rng.random() < 0.2:
-                keys[-1] = keys[0]
-            faces = rng.integers(0, max(n, 1), size=(int(rng.integers(1, 60)) if n else 0, 3))
-            parts.append(
-                BlockMesh(
-                    vertices=rng.random((n, 3)).astype(np.float32),
-                    faces=faces.astype(np.int32),
-                    normals=rng.random((n, width)).astype(np.float32),
-                    shared=shared.astype(np.int64),
-                    keys=keys,
-                )
-            )
+        parts = [_random_block(rng, width) for _ in range(count)]
         want = _weld_at_the_end(parts)
         welder = Welder(as_they_come=True, in_order=True)
         for i in rng.permutation(count):

@@ -43,7 +43,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 from numba import njit
 
-from miss.deviation import _point_triangle_sq
+from miss.deviation import NO_REFCOUNT, _point_triangle_sq
 from miss.types import column_bounds
 
 SIMPLE, BOUNDARY, INTERIOR_EDGE, CORNER, COMPLEX = 0, 1, 2, 3, 4
@@ -70,12 +70,13 @@ _MAX_SLABS = 4
 # saves about a fifth of the run time. The split search stays a call to keep compile time low.
 #
 # The pass loop and the helpers it calls are compiled without numba's reference counting
-# (``_nrt=False``): they allocate nothing, and every array they take, unpack or index as a
-# row (``pts[i]``) had its count raised and lowered with an atomic instruction each time; on
-# slabs run side by side (see _domains) both cores wrote those counts' cache lines. perf put
-# a fifth of a serial run in NRT_incref/NRT_decref. Without them: the same triangles,
-# 1.88 -> 1.50 s serial and 1.10 -> 0.92 s in slabs on 2 cores (the paper's volume, bone,
-# 0.002). ``_decimate_pass`` keeps counting: it allocates the scratch the loop uses.
+# (:data:`miss.deviation.NO_REFCOUNT`): they allocate nothing, and every array they take,
+# unpack or index as a row (``pts[i]``) had its count raised and lowered with an atomic
+# instruction each time; on slabs run side by side (see _domains) both cores wrote those
+# counts' cache lines. perf put a fifth of a serial run in NRT_incref/NRT_decref. Without
+# them: the same triangles, 1.88 -> 1.50 s serial and 1.10 -> 0.92 s in slabs on 2 cores
+# (the paper's volume, bone, 0.002). ``_decimate_pass`` keeps counting: it allocates the
+# scratch the loop uses.
 
 # --------------------------------------------------------------------------- small geometry
 
@@ -85,7 +86,7 @@ def _cross(ax, ay, az, bx, by, bz):
     return ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
 
 
-@njit(cache=True, _nrt=False)
+@njit(cache=True, **NO_REFCOUNT)
 def _edge_exists(faces, vf, vdeg, a, b):
     """True when some live triangle holds both vertices a and b."""
     for k in range(vdeg[a]):
@@ -95,7 +96,7 @@ def _edge_exists(faces, vf, vdeg, a, b):
     return False
 
 
-@njit(cache=True, _nrt=False)
+@njit(cache=True, **NO_REFCOUNT)
 def _edge_use(faces, vf, vdeg, a, b):
     """Number of live triangles holding both a and b."""
     count = 0
@@ -106,7 +107,7 @@ def _edge_use(faces, vf, vdeg, a, b):
     return count
 
 
-@njit(cache=True, _nrt=False)
+@njit(cache=True, **NO_REFCOUNT)
 def _face_exists(faces, vf, vdeg, a, b, c):
     """True when a live triangle has the corners a, b and c."""
     for k in range(vdeg[a]):
@@ -120,7 +121,7 @@ def _face_exists(faces, vf, vdeg, a, b, c):
     return False
 
 
-@njit(cache=True, _nrt=False)
+@njit(cache=True, **NO_REFCOUNT)
 def _line_distance(pts, p, a, b):
     """Distance (mm) of point p from the line through points a and b; -1 if a == b."""
     ux = pts[b, 0] - pts[a, 0]
@@ -224,7 +225,7 @@ def _fan_normals(pts, faces, fan, n, fn):
         )
 
 
-@njit(cache=True, _nrt=False)
+@njit(cache=True, **NO_REFCOUNT)
 def _is_feature(fn, i, j, feature_cos):
     """Dihedral angle between fan triangles i and j above the feature angle."""
     d = fn[i, 0] * fn[j, 0] + fn[i, 1] * fn[j, 1] + fn[i, 2] * fn[j, 2]
@@ -293,7 +294,7 @@ def _plane_distance(pts, faces, fan, n, fn, v):
 # --------------------------------------------------------------------------- loop splitting
 
 
-@njit(cache=True, _nrt=False)
+@njit(cache=True, **NO_REFCOUNT)
 def _project_loop(pts, loop, n_loop, nrm, xyh):
     """Coordinates of the loop vertices in the frame of the unit normal nrm: (x, y) in the
     average plane (right-handed about nrm, so the loop runs counter-clockwise) and the height
@@ -317,7 +318,7 @@ def _project_loop(pts, loop, n_loop, nrm, xyh):
         xyh[k, 2] = nx * pts[u, 0] + ny * pts[u, 1] + nz * pts[u, 2]
 
 
-@njit(cache=True, _nrt=False)
+@njit(cache=True, **NO_REFCOUNT)
 def _good_triangle(pts, a, b, c, nrm):
     """Non-degenerate and facing the same way as the average plane normal nrm."""
     ux, uy, uz = pts[b, 0] - pts[a, 0], pts[b, 1] - pts[a, 1], pts[b, 2] - pts[a, 2]
@@ -332,7 +333,7 @@ def _good_triangle(pts, a, b, c, nrm):
     return math.sqrt(cx * cx + cy * cy + cz * cz) > _DEGENERATE * longest
 
 
-@njit(cache=True, _nrt=False)
+@njit(cache=True, **NO_REFCOUNT)
 def _split_side(xyh, buf, s, first, last, ax, ay, dx, dy, sign, limit2, worst):
     """Smallest signed distance (times |d_plane|) of loop vertices first .. last-1 to the split
     plane, or -1 as soon as one is on the wrong side or no farther than sqrt(limit2)."""
@@ -345,7 +346,7 @@ def _split_side(xyh, buf, s, first, last, ax, ay, dx, dy, sign, limit2, worst):
     return worst
 
 
-@njit(cache=True, _nrt=False)
+@njit(cache=True, **NO_REFCOUNT)
 def _best_split(xyh, loop, faces, vf, vdeg, buf, s, m, check_edges):
     """Best split (i, j), i < j, of the loop buf[s:s+m] (positions into xyh and loop), or (-1, -1).
 
@@ -442,7 +443,7 @@ def _split_loop(pts, faces, vf, vdeg, loop, n_loop, buf, start, size, top, nrm, 
     return ntri, top
 
 
-@njit(cache=True, _nrt=False)
+@njit(cache=True, **NO_REFCOUNT)
 def _unit_normal_sum(fn, first, last, n, out):
     """Unit sum of fan normals first .. last-1 (indices taken modulo n) into out; False if zero."""
     out[0] = out[1] = out[2] = 0.0
@@ -514,7 +515,7 @@ def _retriangulate(pts, faces, vf, vdeg, loop, n_loop, fn, n, vtype, p, q, buf, 
 # --------------------------------------------------------------------------- accumulated error
 
 
-@njit(cache=True, _nrt=False)
+@njit(cache=True, **NO_REFCOUNT)
 def _fan_distance(pts, faces, fan, n, p, limit2):
     """Squared distance (mm^2) from point p to v's fan of n triangles; stops early once it is
     below limit2 (the caller only needs to know it is no larger than that)."""
@@ -529,7 +530,7 @@ def _fan_distance(pts, faces, fan, n, p, limit2):
     return best
 
 
-@njit(cache=True, _nrt=False)
+@njit(cache=True, **NO_REFCOUNT)
 def _patch_distance(pts, loop, tris, ntri, p, limit2):
     """Squared distance (mm^2) from point p to the ntri new triangles (loop positions in
     tris); stops early once it is below limit2."""
@@ -542,7 +543,7 @@ def _patch_distance(pts, loop, tris, ntri, p, limit2):
     return best
 
 
-@njit(cache=True, _nrt=False)
+@njit(cache=True, **NO_REFCOUNT)
 def _patch_gap(pts, faces, v, fan, n, loop, n_loop, tris, ntri, point, limit):
     """Deviation (mm) between v's fan and the triangles that fill its hole, both ways, at
     the points where two such surfaces part most: from the fan, v, its spokes' midpoints
@@ -737,7 +738,7 @@ def _decimate_pass(
     )  # fmt: skip
 
 
-@njit(cache=True, nogil=True, _nrt=False)
+@njit(cache=True, nogil=True, **NO_REFCOUNT)
 def _pass_loop(
     pts, faces, alive, vf, vdeg, bound, feature_cos, n_alive, target, vmin, terr, locked,
     visit, scratch_i, scratch_f,

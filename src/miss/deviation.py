@@ -30,6 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numba import njit, prange
+from numba.core.cpu import CPUTargetOptions
 
 from miss.types import Mesh, column_bounds
 
@@ -205,7 +206,14 @@ def _triangle_sq(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz):
     return _dot(qx, qy, qz, qx, qy, qz)
 
 
-@njit(cache=True, _nrt=False)
+#: njit options for kernels that allocate nothing: no reference counting of the arrays
+#: they take and index (numba's own option; a numba without it counts, as before). Each
+#: count is an atomic instruction on the array's shared header: in schroeder's pass loop
+#: they were a fifth of the run (see :mod:`miss._schroeder`).
+NO_REFCOUNT: dict[str, bool] = {"_nrt": False} if hasattr(CPUTargetOptions, "_nrt") else {}
+
+
+@njit(cache=True, **NO_REFCOUNT)
 def _point_triangle_sq(p, a, b, c):
     """Squared distance from p to triangle abc, each a (3,) array."""
     return _triangle_sq(p[0], p[1], p[2], a[0], a[1], a[2], b[0], b[1], b[2], c[0], c[1], c[2])
