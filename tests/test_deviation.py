@@ -8,7 +8,7 @@ error in Ericson's regions or in the search's pruning shows as a difference.
 from __future__ import annotations
 
 import numpy as np
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from miss import Mesh
@@ -86,6 +86,9 @@ def probes(mesh: Mesh, seed: int, spread: float) -> np.ndarray:
     broken=st.sampled_from([0.0, 0.3, 1.0]),
     dtype=st.sampled_from([np.float64, np.float32]),
 )
+# a sliver whose squared sine is 1.4e-24, which the region tests once measured 0.148 mm
+# from a point on it (found by this test in CI)
+@example(seed=1303, pieces=3, spread=1000.0, broken=1.0, dtype=np.float64)
 def test_search_equals_brute_force(seed, pieces, spread, broken, dtype):
     mesh = pieces_mesh(seed, pieces, spread, broken, dtype)
     points = probes(mesh, seed + 1, spread)

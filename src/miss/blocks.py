@@ -509,12 +509,11 @@ class Welder:
         had = np.flatnonzero(earlier >= 0)
         if len(had) == 0:
             return
-        numbers, mine = earlier[had], firsts[had] + top
+        numbers, local = earlier[had], firsts[had]
         with self.places.view() as places:
-            sooner = mine < places[numbers, 0]
-            numbers, mine = numbers[sooner], mine[sooner]
-            places[numbers, 0] = mine
-        local = firsts[had][sooner]
+            sooner = local + top < places[numbers, 0]
+            numbers, local = numbers[sooner], local[sooner]
+            places[numbers, 0] = local + top
         for rows, of in ((self.verts, vertices), (self.normals, normals)):
             with rows.view() as view:
                 view[numbers] = of[local]

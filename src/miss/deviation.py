@@ -163,6 +163,13 @@ def _segment_sq(px, py, pz, ax, ay, az, bx, by, bz):
     return _dot(qx, qy, qz, qx, qy, qz)
 
 
+#: A triangle whose squared sine (|ab x ac|^2 / (|ab|^2 |ac|^2)) is below this is measured as
+#: its three edges: the region tests' products cancel there. At 1e-24 a triangle of 1.4e-24
+#: (sides about 10 mm) gave 0.148 mm for a point on it (a random case of
+#: tests/test_deviation.py); at 1e-20 the edges stand for it within 1e-10 of its sides.
+_SLIVER = 1e-20
+
+
 @njit(cache=True, inline="always")
 def _triangle_sq(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz):
     """Squared distance from point p to triangle abc (Ericson, Real-Time Collision Detection
@@ -172,7 +179,7 @@ def _triangle_sq(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz):
     acx, acy, acz = cx - ax, cy - ay, cz - az
     nx, ny, nz = aby * acz - abz * acy, abz * acx - abx * acz, abx * acy - aby * acx
     scale = _dot(abx, aby, abz, abx, aby, abz) * _dot(acx, acy, acz, acx, acy, acz)
-    if _dot(nx, ny, nz, nx, ny, nz) <= 1e-24 * scale or scale == 0.0:
+    if _dot(nx, ny, nz, nx, ny, nz) <= _SLIVER * scale or scale == 0.0:
         # a sliver or a point: the region tests below would divide by zero
         return min(
             _segment_sq(px, py, pz, ax, ay, az, bx, by, bz),
