@@ -164,9 +164,10 @@ def _segment_sq(px, py, pz, ax, ay, az, bx, by, bz):
 
 
 #: A triangle whose squared sine (|ab x ac|^2 / (|ab|^2 |ac|^2)) is below this is measured as
-#: its three edges: the region tests' products cancel there. At 1e-24 a triangle of 1.4e-24
-#: (sides about 10 mm) gave 0.148 mm for a point on it (a random case of
-#: tests/test_deviation.py); at 1e-20 the edges stand for it within 1e-10 of its sides.
+#: its three edges: the region tests' products cancel there. With 1e-24 here, a triangle
+#: whose squared sine was 1.4e-24 (sides about 10 mm) gave 0.148 mm for a point on it (a
+#: random case of tests/test_deviation.py); at 1e-20 its edges stand for it within 1e-10 of
+#: its sides.
 _SLIVER = 1e-20
 
 
