@@ -324,35 +324,10 @@ def _weld_at_the_end(parts: list) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 def test_blocks_welded_as_they_come_equal_a_weld_at_the_end() -> None:
     """Random blocks whose face vertices share edge ids with earlier blocks' (and, once,
     with another vertex of their own block): the welder's mesh is the weld of all of them
-    at the end, vertex for vertex, whatever order they come in."""
-    from hypothesis import given, settings
-    from hypothesis import strategies as st
-
-    from miss.blocks import Welder
-
-    @settings(max_examples=60, deadline=None)
-    @given(st.integers(0, 2**32 - 1), st.integers(1, 30), st.sampled_from([0, 3]))
-    def check(seed: int, count: int, width: int) -> None:
-        rng = np.random.default_rng(seed)
-        parts = [_random_block(rng, width) for _ in range(count)]
-        want = _weld_at_the_end(parts)
-        for as_they_come in (True, False):
-            welder = Welder(as_they_come)
-            for part in parts:
-                welder.add(part, part.vertices, part.normals)
-            verts, faces, normals = welder.result()
-            assert np.array_equal(verts, want[0]) and np.array_equal(normals, want[2])
-            assert np.array_equal(faces, want[1]) and faces.dtype == np.int32
-
-    check()
-    empty = Welder().result()
-    assert [a.shape for a in empty] == [(0, 3), (0, 3), (0, 3)]
-
-
-def test_blocks_welded_as_they_come_in_order_equal_a_weld_in_the_blocks_order() -> None:
-    """Welded as they come in any order, but ``in_order``: the mesh a weld of the blocks in
-    their own order makes, vertex for vertex and triangle for triangle, each shared vertex
-    (and its normal) from the first block in that order that has it."""
+    at the end, vertex for vertex, whatever order they come in; and welded as they come in
+    a shuffled order but ``in_order``, the mesh of a weld in their own order, vertex for
+    vertex and triangle for triangle, each shared vertex (and its normal) from the first
+    block in that order that has it."""
     from hypothesis import given, settings
     from hypothesis import strategies as st
 
@@ -364,14 +339,22 @@ def test_blocks_welded_as_they_come_in_order_equal_a_weld_in_the_blocks_order() 
         rng = np.random.default_rng(seed)
         parts = [_random_block(rng, width) for _ in range(count)]
         want = _weld_at_the_end(parts)
-        welder = Welder(as_they_come=True, in_order=True)
+        welders = []
+        for as_they_come in (True, False):
+            welders.append(Welder(as_they_come))
+            for part in parts:
+                welders[-1].add(part, part.vertices, part.normals)
+        welders.append(Welder(as_they_come=True, in_order=True))
         for i in rng.permutation(count):
-            welder.add(parts[i], parts[i].vertices, parts[i].normals, int(i))
-        verts, faces, normals = welder.result()
-        assert np.array_equal(verts, want[0]) and np.array_equal(normals, want[2])
-        assert np.array_equal(faces, want[1]) and faces.dtype == np.int32
+            welders[-1].add(parts[i], parts[i].vertices, parts[i].normals, int(i))
+        for welder in welders:
+            verts, faces, normals = welder.result()
+            assert np.array_equal(verts, want[0]) and np.array_equal(normals, want[2])
+            assert np.array_equal(faces, want[1]) and faces.dtype == np.int32
 
     check()
+    empty = Welder().result()
+    assert [a.shape for a in empty] == [(0, 3), (0, 3), (0, 3)]
 
 
 def test_the_same_volume_makes_the_same_mesh_every_time_on_threads(cthead) -> None:
