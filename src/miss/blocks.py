@@ -21,8 +21,8 @@ import itertools
 import mmap
 import threading
 from collections import OrderedDict
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager, suppress
+from collections.abc import Callable
+from contextlib import suppress
 from dataclasses import dataclass, replace
 from functools import partial
 from typing import Any
@@ -510,13 +510,11 @@ class Welder:
         if len(had) == 0:
             return
         numbers, local = earlier[had], firsts[had]
-        with self.places.view() as places:
-            sooner = local + top < places[numbers, 0]
-            numbers, local = numbers[sooner], local[sooner]
-            places[numbers, 0] = local + top
+        sooner = local + top < self.places.take(numbers)[:, 0]
+        numbers, local = numbers[sooner], local[sooner]
+        self.places.put(numbers, (local + top)[:, None])
         for rows, of in ((self.verts, vertices), (self.normals, normals)):
-            with rows.view() as view:
-                view[numbers] = of[local]
+            rows.put(numbers, of[local])
 
     def result(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """vertices (N, 3), faces (F, 3) int32, normals of the welded mesh."""
@@ -592,17 +590,20 @@ class _Rows:
             self.memory.madvise(mmap.MADV_HUGEPAGE)  # as numpy asks for its large arrays
         self.capacity = capacity
 
-    @contextmanager
-    def view(self) -> Iterator[np.ndarray]:
-        """The rows so far, to read and write in place while nothing is appended."""
+    def take(self, index: np.ndarray) -> np.ndarray:
+        """A copy of the rows at ``index`` (no view of this memory leaves: it may move)."""
         if self.memory is None or self.count == 0:
-            yield np.empty((self.count, self.width), dtype=self.dtype)
-            return
+            return np.empty((len(index), self.width), dtype=self.dtype)
+        return self._current()[index]
+
+    def put(self, index: np.ndarray, values: np.ndarray) -> None:
+        """Overwrite the rows at ``index`` with ``values``."""
+        if self.memory is not None and self.count and len(index):
+            self._current()[index] = values
+
+    def _current(self) -> np.ndarray:
         rows = np.frombuffer(self.memory, self.dtype, count=self.count * self.width)
-        try:
-            yield rows.reshape(self.count, self.width)
-        finally:
-            del rows  # no view may outlive a growth
+        return rows.reshape(self.count, self.width)
 
     def rows(self) -> np.ndarray:
         """The rows (a view of this memory, trimmed to them); no more may be appended."""
@@ -612,5 +613,4 @@ class _Rows:
             with suppress(OSError, SystemError, ValueError, BufferError):  # else: spare room
                 self.memory.resize(self.count * self.row_bytes)
                 self.capacity = self.count
-        rows = np.frombuffer(self.memory, self.dtype, count=self.count * self.width)
-        return rows.reshape(self.count, self.width)
+        return self._current()
