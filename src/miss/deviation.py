@@ -291,10 +291,10 @@ def _build_grid(spans, dims):
     return offsets, items
 
 
-@njit(cache=True)
-def _gap(p, idx, lo, cell, axis):
-    """Distance from p to the slab of cells ``idx`` along ``axis`` (0 inside it)."""
-    return max(lo[axis] + idx * cell - p[axis], p[axis] - lo[axis] - (idx + 1) * cell, 0.0)
+@njit(cache=True, inline="always")
+def _gap(v, idx, lo, cell):
+    """Distance from coordinate v to the slab of cells ``idx`` that starts at lo (0 inside)."""
+    return max(lo + idx * cell - v, v - lo - (idx + 1) * cell, 0.0)
 
 
 @njit(cache=True, inline="always")
@@ -303,10 +303,9 @@ def _box_sq(p, low, high):
     return max(low - p, p - high, 0.0) ** 2
 
 
-@njit(cache=True)
-def _cell_sq(px, py, pz, c, best, grid):
+@njit(cache=True, **NO_REFCOUNT)
+def _cell_sq(px, py, pz, c, best, offsets, items, tri):
     """Smaller of ``best`` and the squared distance from p to the triangles listed in cell c."""
-    offsets, items, tri = grid[3], grid[4], grid[5]
     for n in range(offsets[c], offsets[c + 1]):
         f = items[n]
         ax, ay, az = tri[f, 0], tri[f, 1], tri[f, 2]
@@ -323,62 +322,58 @@ def _cell_sq(px, py, pz, c, best, grid):
     return best
 
 
-@njit(cache=True)
-def _margin(p, h, r, lo, cell, dims):
-    """Distance from p to the outside of the block of cells within r of cell h (inf when the
-    block holds the whole grid: there is nothing outside it)."""
-    m = np.inf
-    for axis in range(3):
-        if h[axis] - r > 0:
-            m = min(m, p[axis] - (lo[axis] + (h[axis] - r) * cell))
-        if h[axis] + r < dims[axis] - 1:
-            m = min(m, lo[axis] + (h[axis] + r + 1) * cell - p[axis])
+@njit(cache=True, inline="always")
+def _home(v, lo, cell, n):
+    """The cell holding coordinate v along one axis of n cells, or the nearest one when v
+    lies outside the grid."""
+    return max(0, min(int((v - lo) / cell), n - 1))
+
+
+@njit(cache=True, inline="always")
+def _margin(v, h, r, lo, cell, n, m):
+    """Smaller of m and the distance from coordinate v to the outside of the cells within r
+    of cell h along one axis of n cells (m when they reach both ends: nothing is outside)."""
+    if h - r > 0:
+        m = min(m, v - (lo + (h - r) * cell))
+    if h + r < n - 1:
+        m = min(m, lo + (h + r + 1) * cell - v)
     return m
 
 
-@njit(cache=True)
-def _home(p, lo, cell, dims):
-    """The cell holding p, or the nearest one when p lies outside the grid."""
-    return (
-        max(0, min(int((p[0] - lo[0]) / cell), dims[0] - 1)),
-        max(0, min(int((p[1] - lo[1]) / cell), dims[1] - 1)),
-        max(0, min(int((p[2] - lo[2]) / cell), dims[2] - 1)),
-    )
-
-
-@njit(cache=True)
-def _nearest_sq(p, grid, cap2):
+@njit(cache=True, **NO_REFCOUNT)
+def _nearest_sq(px, py, pz, lox, loy, loz, cell, nx, ny, nz, offsets, items, tri, cap2):
     """Squared distance from p to the nearest triangle: its own cell first, then rings of
     cells around it, skipping cells whose box is farther than the best triangle so far, until
     the best is nearer than anything outside the searched block, or that block reaches
     farther than sqrt(cap2) (then the answer is only known to be above it: the best so far,
-    inf if none)."""
-    lo, cell, dims = grid[0], grid[1], grid[2]
-    px, py, pz = p[0], p[1], p[2]
-    h = _home(p, lo, cell, dims)
-    best = _cell_sq(px, py, pz, (h[2] * dims[1] + h[1]) * dims[0] + h[0], np.inf, grid)
+    inf if none). On coordinates and arrays, not tuples and rows: no array is counted (an
+    atomic instruction on a header both threads share; 5 % of the search)."""
+    hx, hy, hz = _home(px, lox, cell, nx), _home(py, loy, cell, ny), _home(pz, loz, cell, nz)
+    best = _cell_sq(px, py, pz, (hz * ny + hy) * nx + hx, np.inf, offsets, items, tri)
     r = 0
     while True:
-        m = _margin(p, h, r, lo, cell, dims)
+        m = _margin(px, hx, r, lox, cell, nx, np.inf)
+        m = _margin(py, hy, r, loy, cell, ny, m)
+        m = _margin(pz, hz, r, loz, cell, nz, m)
         if m == np.inf or best <= m * m or m * m > cap2:
             return best
         r += 1
-        for k in range(max(h[2] - r, 0), min(h[2] + r, dims[2] - 1) + 1):
-            gk = _gap(p, k, lo, cell, 2) ** 2
+        for k in range(max(hz - r, 0), min(hz + r, nz - 1) + 1):
+            gk = _gap(pz, k, loz, cell) ** 2
             if gk >= best:
                 continue
-            for j in range(max(h[1] - r, 0), min(h[1] + r, dims[1] - 1) + 1):
-                gj = gk + _gap(p, j, lo, cell, 1) ** 2
+            for j in range(max(hy - r, 0), min(hy + r, ny - 1) + 1):
+                gj = gk + _gap(py, j, loy, cell) ** 2
                 if gj >= best:
                     continue
                 # inside the block's shell only its two end cells along x are new
-                step = 1 if abs(k - h[2]) == r or abs(j - h[1]) == r else 2 * r
-                for i in range(h[0] - r, h[0] + r + 1, step):
-                    if 0 <= i < dims[0]:
-                        g = gj + _gap(p, i, lo, cell, 0) ** 2
+                step = 1 if abs(k - hz) == r or abs(j - hy) == r else 2 * r
+                for i in range(hx - r, hx + r + 1, step):
+                    if 0 <= i < nx:
+                        g = gj + _gap(px, i, lox, cell) ** 2
                         if g < best:
-                            c = (k * dims[1] + j) * dims[0] + i
-                            best = _cell_sq(px, py, pz, c, best, grid)
+                            c = (k * ny + j) * nx + i
+                            best = _cell_sq(px, py, pz, c, best, offsets, items, tri)
 
 
 @njit(cache=True, nogil=True)
@@ -390,8 +385,10 @@ def _block_order(points, lo, cell, dims, side=2):
     keys = np.empty(len(points), dtype=np.int64)
     start = np.zeros(bx * by * bz + 1, dtype=np.int64)
     for n in range(len(points)):
-        h = _home(points[n], lo, cell, dims)
-        keys[n] = ((h[2] // side) * by + h[1] // side) * bx + h[0] // side
+        hx = _home(points[n, 0], lo[0], cell, dims[0])
+        hy = _home(points[n, 1], lo[1], cell, dims[1])
+        hz = _home(points[n, 2], lo[2], cell, dims[2])
+        keys[n] = ((hz // side) * by + hy // side) * bx + hx // side
         start[keys[n] + 1] += 1
     for c in range(1, len(start)):
         start[c] += start[c - 1]
@@ -406,12 +403,17 @@ def _block_order(points, lo, cell, dims, side=2):
 def _grid_distances(points, grid, cap2):
     """Exact distance from each point to the nearest triangle of the grid's mesh (see
     _nearest_sq for ``cap2``)."""
-    order = _block_order(points, grid[0], grid[1], grid[2])
+    lo, cell, dims, offsets, items, tri = grid
+    order = _block_order(points, lo, cell, dims)
+    lox, loy, loz, nx, ny, nz = lo[0], lo[1], lo[2], dims[0], dims[1], dims[2]
     found = np.empty(len(points))
     for n in prange(len(points)):
         # written in search order: threads writing all over ``out`` would contend for its
         # cache lines (4x slower for 10 000 points)
-        found[n] = math.sqrt(_nearest_sq(points[order[n]], grid, cap2))
+        q = order[n]
+        px, py, pz = points[q, 0], points[q, 1], points[q, 2]
+        d2 = _nearest_sq(px, py, pz, lox, loy, loz, cell, nx, ny, nz, offsets, items, tri, cap2)
+        found[n] = math.sqrt(d2)
     out = np.empty(len(points))
     out[order] = found
     return out
@@ -663,15 +665,20 @@ def bound_check(
     used_in, dropped = _dropped(np.ascontiguousarray(before.faces), faces, before.n_vertices)
     to_output = np.where(used_in, 0.0, np.nan)
     after = Mesh(vertices=before.vertices, faces=faces)
-    if len(dropped):
-        to_output[dropped] = distances_to(before.vertices[dropped], after, cap)
-    start, items = adjacency or surface_adjacency(before)
-    inputs = np.ascontiguousarray(before.faces)
-    new = faces[~_input_faces(inputs, start, items, faces)]
-    edges = _unique_edges(new, before.n_vertices)
-    edges = edges[~_input_edges(inputs, start, items, edges)]
-    points = _check_points(np.ascontiguousarray(before.vertices), edges, new)
-    back = distances_to(points, before, cap, grid) if len(points) else np.zeros(0)
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        # the output's cells are made on the second core while this one finds what is new
+        # (both serial; 35 ms of CThead bone's check were)
+        making = pool.submit(surface_grid, after) if len(dropped) and len(faces) else None
+        start, items = adjacency or surface_adjacency(before)
+        inputs = np.ascontiguousarray(before.faces)
+        new = faces[~_input_faces(inputs, start, items, faces)]
+        edges = _unique_edges(new, before.n_vertices)
+        edges = edges[~_input_edges(inputs, start, items, edges)]
+        points = _check_points(np.ascontiguousarray(before.vertices), edges, new)
+        back = distances_to(points, before, cap, grid) if len(points) else np.zeros(0)
+        if len(dropped):
+            out_grid = making.result() if making is not None else None
+            to_output[dropped] = distances_to(before.vertices[dropped], after, cap, out_grid)
     edge_mm, face_mm = back[: len(edges)], back[len(edges) :]
     # the mean over every input vertex (kept ones at 0) and every output point measured
     total = float(to_output[dropped].sum()) + float(back.sum())

@@ -40,6 +40,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import asdict, dataclass, replace
 from typing import TYPE_CHECKING, Any, Literal
 
@@ -311,16 +312,39 @@ def _held(
     start again, from ``fixed``, when another method takes over); the last round keeps the
     input as it is (0 mm). Returns (faces, bound mm, (check, seconds of checking), rounds
     run, the method that made the faces)."""
+    from miss.deviation import surface_adjacency, surface_grid
+
+    def prepare() -> tuple[tuple, tuple[np.ndarray, np.ndarray]]:
+        # the input's cells, searched in every round's check, and its triangles around each
+        # vertex (those need no measuring)
+        return surface_grid(mesh), surface_adjacency(mesh)
+
+    # Made while the first round runs: its kernels hold no lock, and the run leaves a core
+    # idle part of the time (its last, whole-mesh phase). Only the wait for them, if any,
+    # counts as checking.
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        making = pool.submit(prepare)
+        try:
+            return _rounds(mesh, run, rounds, fixed, making)
+        finally:
+            making.cancel()
+
+
+def _rounds(
+    mesh: Mesh,
+    run: Run,
+    rounds: int,
+    fixed: np.ndarray | None,
+    making: Future[tuple[tuple, tuple[np.ndarray, np.ndarray]]],
+) -> tuple[np.ndarray, float, tuple[BoundCheck, float], int, str]:
+    """:func:`_held`'s rounds, given the input's grid and adjacency on their way."""
     import numpy as np
 
-    from miss.deviation import bound_check, surface_adjacency, surface_grid
+    from miss.deviation import bound_check
 
-    begin = time.perf_counter()
-    grid = surface_grid(mesh)  # the input's cells, searched in every round's check
-    around = surface_adjacency(mesh)  # its triangles, which need no measuring
     fixed = np.zeros(mesh.n_vertices, dtype=bool) if fixed is None else fixed.astype(bool)
     locked = fixed.copy()
-    spent, last = time.perf_counter() - begin, ""
+    spent, last = 0.0, ""
     slack = _TOLERANCE * mesh.diagonal()
     for round_ in range(1, rounds + 1):
         if round_ < rounds:
@@ -333,6 +357,7 @@ def _held(
             spent += time.perf_counter() - begin
             last = by
             continue
+        grid, around = making.result()
         # past twice the bound only "out of bound" matters, not by how much
         check = bound_check(mesh, faces, cap=2.0 * bound_mm + slack, grid=grid, adjacency=around)
         spent += time.perf_counter() - begin
