@@ -400,21 +400,25 @@ def _block_order(points, lo, cell, dims, side=2):
 
 
 @njit(cache=True, parallel=True, nogil=True)
-def _grid_distances(points, grid, cap2):
+def _grid_distances(points, grid, cap2, ordered=False):
     """Exact distance from each point to the nearest triangle of the grid's mesh (see
-    _nearest_sq for ``cap2``)."""
+    _nearest_sq for ``cap2``), searched in order of blocks of cells, or (``ordered``) in
+    the points' own order when neighbours come together already."""
     lo, cell, dims, offsets, items, tri = grid
-    order = _block_order(points, lo, cell, dims)
+    n_points = len(points)
+    order = np.arange(n_points) if ordered else _block_order(points, lo, cell, dims)
     lox, loy, loz, nx, ny, nz = lo[0], lo[1], lo[2], dims[0], dims[1], dims[2]
-    found = np.empty(len(points))
-    for n in prange(len(points)):
+    found = np.empty(n_points)
+    for n in prange(n_points):
         # written in search order: threads writing all over ``out`` would contend for its
         # cache lines (4x slower for 10 000 points)
         q = order[n]
         px, py, pz = points[q, 0], points[q, 1], points[q, 2]
         d2 = _nearest_sq(px, py, pz, lox, loy, loz, cell, nx, ny, nz, offsets, items, tri, cap2)
         found[n] = math.sqrt(d2)
-    out = np.empty(len(points))
+    if ordered:
+        return found
+    out = np.empty(n_points)
     out[order] = found
     return out
 
@@ -433,19 +437,25 @@ def surface_grid(mesh: Mesh) -> tuple:
 
 
 def distances_to(
-    points: np.ndarray, mesh: Mesh, cap: float = math.inf, grid: tuple | None = None
+    points: np.ndarray,
+    mesh: Mesh,
+    cap: float = math.inf,
+    grid: tuple | None = None,
+    ordered: bool = False,
 ) -> np.ndarray:
     """Unsigned distance in mm from each of (P, 3) points to the surface of ``mesh``.
 
     Distances up to ``cap`` (mm) are exact; a larger one is only known to exceed it (a
     check against a bound needs no more, and a point far from every triangle, where a
     piece was lost, would otherwise search the whole grid). ``grid``: ``mesh``'s
-    :func:`surface_grid`, when the caller keeps it."""
+    :func:`surface_grid`, when the caller keeps it. ``ordered``: the points come with their
+    neighbours already (a mesh's vertices, edges or triangles in order), so they are
+    searched as they come rather than sorted by cell first (same answers)."""
     pts = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
     if mesh.n_triangles == 0:
         return np.full(len(pts), np.inf)
     grid = grid or surface_grid(mesh)
-    return _grid_distances(pts, grid, cap * cap)
+    return _grid_distances(pts, grid, cap * cap, ordered)
 
 
 def deviation(a: Mesh, b: Mesh, samples: int = 100_000, seed: int = 0) -> Deviation:
@@ -514,11 +524,27 @@ class BoundCheck:
     face_mm: np.ndarray
 
 
+@njit(cache=True, inline="always")
+def _has_corner(faces, f, v):
+    return faces[f, 0] == v or faces[f, 1] == v or faces[f, 2] == v
+
+
+@njit(cache=True, inline="always")
+def _input_edge(before, start, items, a, b):
+    """Whether ab is an edge of ``before``: on its surface already."""
+    for i in range(start[a], start[a + 1]):  # noqa: SIM110 (numba: no any() of a generator)
+        if _has_corner(before, items[i], b):
+            return True
+    return False
+
+
 @njit(cache=True, nogil=True)
-def _unique_edges(faces, n_vertices):
-    """(E, 2) int64: the edges of ``faces`` (F, 3), each once, smaller vertex first, in order
-    of that vertex (the larger ones of a vertex in the order met). Bucketed by the smaller
-    vertex, each bucket a few: linear, where sorting 3 F keys took 4x longer."""
+def _unique_edges(faces, n_vertices, before, start_in, items_in):
+    """(E, 2) int64: the edges of ``faces`` (F, 3) that are not edges of ``before`` (its
+    triangles around each vertex: ``start_in``, ``items_in``), each once, smaller vertex
+    first, in order of that vertex (the larger ones of a vertex in the order met). Bucketed
+    by the smaller vertex, each bucket a few: linear, where sorting 3 F keys took 4x
+    longer."""
     start = np.zeros(n_vertices + 1, dtype=np.int64)
     for f in range(len(faces)):
         for k in range(3):
@@ -543,7 +569,7 @@ def _unique_edges(faces, n_vertices):
                 if other[j] == other[i]:
                     seen = True
                     break
-            if not seen:
+            if not seen and not _input_edge(before, start_in, items_in, v, other[i]):
                 out[n, 0], out[n, 1] = v, other[i]
                 n += 1
     return out[:n]
@@ -574,51 +600,47 @@ def surface_adjacency(mesh: Mesh) -> tuple[np.ndarray, np.ndarray]:
     return _adjacency(np.ascontiguousarray(mesh.faces), mesh.n_vertices)
 
 
-@njit(cache=True, inline="always")
-def _has_corner(faces, f, v):
-    return faces[f, 0] == v or faces[f, 1] == v or faces[f, 2] == v
-
-
 @njit(cache=True, nogil=True)
-def _input_faces(before, start, items, faces):
-    """(M,) bool: which of ``faces`` are triangles of ``before`` (whatever their corners'
-    order), found among the input triangles around their first corner."""
-    out = np.zeros(len(faces), dtype=np.bool_)
+def _new_faces(before, start, items, faces):
+    """The rows of ``faces`` that are not triangles of ``before`` (whatever their corners'
+    order; looked for among the input triangles around their first corner), in order."""
+    new = np.empty(len(faces), dtype=np.bool_)
+    n = 0
     for g in range(len(faces)):
         a, b, c = faces[g, 0], faces[g, 1], faces[g, 2]
+        new[g] = True
         for i in range(start[a], start[a + 1]):
             f = items[i]
             if _has_corner(before, f, b) and _has_corner(before, f, c):
-                out[g] = True
+                new[g] = False
                 break
+        n += new[g]
+    out = np.empty((n, 3), dtype=faces.dtype)
+    n = 0
+    for g in range(len(faces)):
+        if new[g]:
+            out[n] = faces[g]
+            n += 1
     return out
 
 
 @njit(cache=True, nogil=True)
-def _input_edges(before, start, items, edges):
-    """(E,) bool: which of ``edges`` are edges of ``before``: on its surface already."""
-    out = np.zeros(len(edges), dtype=np.bool_)
-    for e in range(len(edges)):
-        a, b = edges[e, 0], edges[e, 1]
-        for i in range(start[a], start[a + 1]):
-            if _has_corner(before, items[i], b):
-                out[e] = True
-                break
-    return out
-
-
-@njit(cache=True, nogil=True)
-def _check_points(verts, edges, faces):
-    """Midpoints of ``edges`` then centroids of ``faces``, float64: what bound_check
-    measures of the output."""
-    out = np.empty((len(edges) + len(faces), 3))
+def _check_points(verts, dropped, edges, faces):
+    """The ``dropped`` vertices, then the midpoints of ``edges``, then the centroids of
+    ``faces``, float64: what bound_check measures (one array, no copies between)."""
+    out = np.empty((len(dropped) + len(edges) + len(faces), 3))
+    for n in range(len(dropped)):
+        for k in range(3):
+            out[n, k] = verts[dropped[n], k]
+    at = len(dropped)
     for e in range(len(edges)):
         for k in range(3):
-            out[e, k] = 0.5 * (float(verts[edges[e, 0], k]) + float(verts[edges[e, 1], k]))
+            out[at + e, k] = 0.5 * (float(verts[edges[e, 0], k]) + float(verts[edges[e, 1], k]))
+    at += len(edges)
     for f in range(len(faces)):
         for k in range(3):
             total = float(verts[faces[f, 0], k]) + float(verts[faces[f, 1], k])
-            out[len(edges) + f, k] = (total + float(verts[faces[f, 2], k])) / 3.0
+            out[at + f, k] = (total + float(verts[faces[f, 2], k])) / 3.0
     return out
 
 
@@ -671,14 +693,16 @@ def bound_check(
         making = pool.submit(surface_grid, after) if len(dropped) and len(faces) else None
         start, items = adjacency or surface_adjacency(before)
         inputs = np.ascontiguousarray(before.faces)
-        new = faces[~_input_faces(inputs, start, items, faces)]
-        edges = _unique_edges(new, before.n_vertices)
-        edges = edges[~_input_edges(inputs, start, items, edges)]
-        points = _check_points(np.ascontiguousarray(before.vertices), edges, new)
-        back = distances_to(points, before, cap, grid) if len(points) else np.zeros(0)
+        new = _new_faces(inputs, start, items, faces)
+        edges = _unique_edges(new, before.n_vertices, inputs, start, items)
+        verts = np.ascontiguousarray(before.vertices)
+        points = _check_points(verts, dropped, edges, new)
+        # in vertex, edge and triangle order: neighbours together already, no block sort
+        out, back = points[: len(dropped)], points[len(dropped) :]
+        back = distances_to(back, before, cap, grid, ordered=True) if len(back) else np.zeros(0)
         if len(dropped):
             out_grid = making.result() if making is not None else None
-            to_output[dropped] = distances_to(before.vertices[dropped], after, cap, out_grid)
+            to_output[dropped] = distances_to(out, after, cap, out_grid, ordered=True)
     edge_mm, face_mm = back[: len(edges)], back[len(edges) :]
     # the mean over every input vertex (kept ones at 0) and every output point measured
     total = float(to_output[dropped].sum()) + float(back.sum())
