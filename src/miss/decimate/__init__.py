@@ -37,6 +37,7 @@ Schedules
 
 from __future__ import annotations
 
+import contextlib
 import math
 import time
 from collections.abc import Callable
@@ -316,7 +317,9 @@ def _held(
 
     def prepare() -> tuple[tuple, tuple[np.ndarray, np.ndarray]]:
         # the input's cells, searched in every round's check, and its triangles around each
-        # vertex (those need no measuring)
+        # vertex (those need no measuring); at the lowest priority, so that they take a
+        # core the run leaves idle, not one it uses
+        _idle_priority()
         return surface_grid(mesh), surface_adjacency(mesh)
 
     # Made while the first round runs: its kernels hold no lock, and the run leaves a core
@@ -328,6 +331,15 @@ def _held(
             return _rounds(mesh, run, rounds, fixed, making)
         finally:
             making.cancel()
+
+
+def _idle_priority() -> None:
+    """This thread at nice 19, where the system allows it (Linux: a thread's own nice)."""
+    import os
+    import threading
+
+    with contextlib.suppress(AttributeError, OSError):
+        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 19)
 
 
 def _rounds(
