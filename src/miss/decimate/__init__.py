@@ -334,7 +334,9 @@ def _held(
 
 
 def _idle_priority() -> None:
-    """This thread at nice 19, where the system allows it (Linux: a thread's own nice)."""
+    """This thread at nice 19, where the system allows it (Linux: a thread's own nice).
+    Threads it starts after would inherit it: the work it does (numba kernels without
+    ``parallel``) starts none."""
     import os
     import threading
 
