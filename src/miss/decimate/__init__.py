@@ -41,7 +41,7 @@ import contextlib
 import math
 import time
 from collections.abc import Callable
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, replace
 from typing import TYPE_CHECKING, Any, Literal
 
@@ -315,22 +315,33 @@ def _held(
     run, the method that made the faces)."""
     from miss.deviation import surface_adjacency, surface_grid
 
-    def prepare() -> tuple[tuple, tuple[np.ndarray, np.ndarray]]:
+    def build() -> tuple[tuple, tuple[np.ndarray, np.ndarray]]:
         # the input's cells, searched in every round's check, and its triangles around each
-        # vertex (those need no measuring); at the lowest priority, so that they take a
-        # core the run leaves idle, not one it uses
-        _idle_priority()
+        # vertex (those need no measuring)
         return surface_grid(mesh), surface_adjacency(mesh)
 
-    # Made while the first round runs: its kernels hold no lock, and the run leaves a core
-    # idle part of the time (its last, whole-mesh phase). Only the wait for them, if any,
-    # counts as checking.
-    with ThreadPoolExecutor(max_workers=1) as pool:
-        making = pool.submit(prepare)
-        try:
-            return _rounds(mesh, run, rounds, fixed, making)
-        finally:
-            making.cancel()
+    def prepare() -> tuple[tuple, tuple[np.ndarray, np.ndarray]]:
+        # at the lowest priority, so that it takes a core the run leaves idle (its last,
+        # whole-mesh phase), not one the run uses; its kernels hold no lock
+        _idle_priority()
+        return build()
+
+    # Made while the first round runs; only the wait for it, if any, counts as checking.
+    pool = ThreadPoolExecutor(max_workers=1)
+    making = pool.submit(prepare)
+    made: list[tuple[tuple, tuple[np.ndarray, np.ndarray]]] = []
+
+    def inputs() -> tuple[tuple, tuple[np.ndarray, np.ndarray]]:
+        # the thread's, if it is done; else made here and now: on a machine busy with other
+        # work a thread at nice 19 may not get a core for a long while
+        if not made:
+            made.append(making.result() if making.done() else build())
+        return made[0]
+
+    try:
+        return _rounds(mesh, run, rounds, fixed, inputs)
+    finally:
+        pool.shutdown(wait=False, cancel_futures=True)
 
 
 def _idle_priority() -> None:
@@ -349,9 +360,9 @@ def _rounds(
     run: Run,
     rounds: int,
     fixed: np.ndarray | None,
-    making: Future[tuple[tuple, tuple[np.ndarray, np.ndarray]]],
+    inputs: Callable[[], tuple[tuple, tuple[np.ndarray, np.ndarray]]],
 ) -> tuple[np.ndarray, float, tuple[BoundCheck, float], int, str]:
-    """:func:`_held`'s rounds, given the input's grid and adjacency on their way."""
+    """:func:`_held`'s rounds; ``inputs()``: the input's grid and adjacency."""
     import numpy as np
 
     from miss.deviation import bound_check
@@ -371,7 +382,7 @@ def _rounds(
             spent += time.perf_counter() - begin
             last = by
             continue
-        grid, around = making.result()
+        grid, around = inputs()
         # past twice the bound only "out of bound" matters, not by how much
         check = bound_check(mesh, faces, cap=2.0 * bound_mm + slack, grid=grid, adjacency=around)
         spent += time.perf_counter() - begin
