@@ -10,8 +10,10 @@ Each query looks in its own cell first, then in rings of cells around it, skippi
 triangles whose box is farther than the best triangle so far, and stops once the best is
 nearer than the outside of the searched block (Ericson's closest-point-on-triangle for each
 candidate). Queries run in parallel (numba) grouped by blocks of cells, so neighbouring
-queries share cached triangles, and write their answers in that order. Zero-area triangles
-count by their edges; checked against brute force in tests/test_deviation.py.
+queries share cached triangles, and write their answers in that order (points that come
+in a mesh's order, as :func:`bound_check`'s do, are neighbours already and go as they
+come). Zero-area triangles count by their edges; checked against brute force in
+tests/test_deviation.py.
 
 :func:`deviation` draws the same samples as :func:`sample_surface` (so the same figures) but
 keeps them in vertex and triangle order, and makes the larger surface's grid in a second
