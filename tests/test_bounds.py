@@ -124,6 +124,32 @@ def test_the_report_says_what_the_contract_asks() -> None:
     assert summary["schedule"] == "guaranteed"
 
 
+def test_the_check_does_not_wait_for_a_starved_thread(monkeypatch) -> None:
+    # the input's grid is made on a thread at nice 19 while the run goes on; where that
+    # thread gets no core (a busy machine), the check makes the grid itself rather than
+    # wait, and the job ends with the thread still held
+    import importlib
+    import threading
+
+    module = importlib.import_module("miss.decimate")
+    held, finished = threading.Event(), threading.Event()
+
+    def starved() -> None:
+        held.wait(60)
+        finished.set()
+
+    mesh = scene("box", 0, 0.02, 1)
+    _, free = decimate(mesh, "schroeder", reduce=0.9, error_bound=0.001)
+    monkeypatch.setattr(module, "_idle_priority", starved)
+    try:
+        out, report = decimate(mesh, "schroeder", reduce=0.9, error_bound=0.001)
+        assert not finished.is_set()  # the job did not wait for the thread
+    finally:
+        held.set()
+    assert report.bound_held and report.max_error_mm == free.max_error_mm
+    assert out.n_triangles == free.triangles_out
+
+
 def test_a_run_far_out_is_screened_and_the_next_method_holds_the_bound() -> None:
     # a quadric run that strays is known out of bound from a few of its dropped vertices;
     # schroeder then takes over and holds the bound, measured by the whole check
