@@ -700,11 +700,13 @@ def bound_check(
         verts = np.ascontiguousarray(before.vertices)
         points = _check_points(verts, dropped, edges, new)
         # in vertex, edge and triangle order: neighbours together already, no block sort
-        out, back = points[: len(dropped)], points[len(dropped) :]
-        back = distances_to(back, before, cap, grid, ordered=True) if len(back) else np.zeros(0)
+        of_input, of_output = points[: len(dropped)], points[len(dropped) :]
+        back = np.zeros(0)
+        if len(of_output):
+            back = distances_to(of_output, before, cap, grid, ordered=True)
         if len(dropped):
             out_grid = making.result() if making is not None else None
-            to_output[dropped] = distances_to(out, after, cap, out_grid, ordered=True)
+            to_output[dropped] = distances_to(of_input, after, cap, out_grid, ordered=True)
     edge_mm, face_mm = back[: len(edges)], back[len(edges) :]
     # the mean over every input vertex (kept ones at 0) and every output point measured
     total = float(to_output[dropped].sum()) + float(back.sum())
