@@ -94,6 +94,8 @@ def _planes(data: np.ndarray, count: int) -> Iterator[np.ndarray]:
 
 
 def _variant(name: str, zarr_path: str, block: int) -> dict[str, Any]:
+    if name.startswith("spin"):  # the control: no volume, no MISS
+        return _spin_at_once(int(name.removeprefix("spin")))
     import miss.blockwise  # noqa: F401  (the same imports as the baseline)
     from miss.server.storage import chunked
     from miss.types import Volume
@@ -116,6 +118,21 @@ def _variant(name: str, zarr_path: str, block: int) -> dict[str, Any]:
         return _job(Volume(array, np.eye(4)), two_stage=name == "job")
     workers = int(name.removeprefix("blocks"))
     return _blocks(Volume(array, np.eye(4)), workers, block)
+
+
+#: The control's work: a loop of pure Python arithmetic, which stays in the core's own
+#: caches (about 3 s on this machine). It shows what two processes at once get from the
+#: machine when neither touches memory nor waits for the other.
+SPIN = "s = 0\nfor i in range(20_000_000):\n    s += i * i\n"
+
+
+def _spin_at_once(count: int) -> dict[str, Any]:
+    """``count`` processes of :data:`SPIN` started together; seconds until the last ends."""
+    start = time.perf_counter()
+    procs = [subprocess.Popen([sys.executable, "-S", "-c", SPIN]) for _ in range(count)]
+    for proc in procs:
+        proc.wait()
+    return {"seconds": time.perf_counter() - start, "triangles": 0}
 
 
 def _single(array: Any) -> dict[str, Any]:
@@ -282,11 +299,15 @@ def main_table(size: tuple[int, int, int], runs: int, block: int, folder: Path) 
         ("MISS blockwise, 2 workers", "blocks2", _env()),
         ("MISS blockwise, threads in the job (VTK on 2 threads)", "threads", _env("STDThread")),
     ]
+    # the control: the same work once in one process and in each of two at once
+    controls = [("spin1", _env()), ("spin2", _env())]
     # round by round, every variant in each: a slow spell of the machine meets them all
-    rounds = [
-        [watch(["--variant", name, "--zarr", path, "--block", str(block)], env) for _, name, env in variants]
-        for _ in range(runs)
-    ]  # fmt: skip
+    rounds, spins = [], []
+    for _ in range(runs):
+        rounds.append(
+            [watch(["--variant", name, "--zarr", path, "--block", str(block)], env) for _, name, env in variants]
+        )  # fmt: skip
+        spins.append([watch(["--variant", name], env)["seconds"] for name, env in controls])
     rows = []
     for k, (label, _, _) in enumerate(variants):
         done = [one[k] for one in rounds]
@@ -312,6 +333,9 @@ def main_table(size: tuple[int, int, int], runs: int, block: int, folder: Path) 
         for key in ("seconds", "next_job")
     }  # 1 worker against 2, round by round
     ratios["vtk"] = statistics.median(one[0]["seconds"] / one[1]["seconds"] for one in rounds)
+    # two processes' work in the time of ... : 2 x one's time / the pair's
+    ratios["spin"] = statistics.median(2 * one / two for one, two in spins)
+    ratios["spins"] = sorted(2 * one / two for one, two in spins)
     return _markdown(size, block, runs, base, rows, ratios) + _job_markdown(base, jobs)
 
 
@@ -393,7 +417,11 @@ def _markdown(
         f"2 workers against 1: {ratios['seconds']:.2f}x faster on a new cluster's first "
         f"job, {ratios['next_job']:.2f}x on the next (medians of the rounds' ratios: each "
         "round runs every variant once, in the table's order). The machine's own ceiling "
-        f"for two at once: VTK's single pass on 2 threads against 1, {ratios['vtk']:.2f}x.",
+        f"for two at once: VTK's single pass on 2 threads against 1, {ratios['vtk']:.2f}x; "
+        "two processes of pure arithmetic that touch no memory (the control, "
+        "`scale.py --variant spin1|spin2`, once a round), started together, did twice one's "
+        f"work {ratios['spin']:.2f}x as fast as one did it once (rounds: "
+        f"{', '.join(f'{r:.2f}' for r in ratios['spins'])}x).",
     ]
     return "\n".join(lines) + "\n"
 
