@@ -88,3 +88,34 @@ def test_a_job_that_does_not_measure_loads_no_numba() -> None:
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
+
+
+NUMBA_START = """
+import sys
+import numpy as np
+from numba import njit
+from miss.deviation import deviation
+from miss.demo import phantom
+from miss.surface import extract_surface
+
+mesh = extract_surface(phantom(), 300.0, sample_rate=4)
+assert deviation(mesh, mesh, samples=500).max_mm < 1e-3
+print("scipy.linalg" in sys.modules)
+
+@njit
+def dot(a, b):
+    return np.dot(a, b)
+
+a = np.arange(6.0).reshape(2, 3)
+print(np.array_equal(dot(a, a.T), a @ a.T))
+"""
+
+
+def test_numba_starts_without_importing_scipy_for_a_blas_check() -> None:
+    # MISS's kernels run in a fresh process without numba importing scipy.linalg (a BLAS
+    # check they never need); a jitted np.dot still finds the BLAS when it is compiled
+    done = subprocess.run(
+        [sys.executable, "-c", NUMBA_START], capture_output=True, text=True, timeout=300
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.split() == ["False", "True"]

@@ -13,7 +13,8 @@ numpy versions beside their callers, which give the same results bit for bit
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+
+from miss._numba import njit
 
 
 @njit(cache=True)

@@ -41,8 +41,8 @@ import os
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
-from numba import njit
 
+from miss._numba import njit
 from miss.deviation import NO_REFCOUNT, _point_triangle_sq
 from miss.types import column_bounds
 

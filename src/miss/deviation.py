@@ -31,9 +31,9 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit, prange
 from numba.core.cpu import CPUTargetOptions
 
+from miss._numba import njit, prange
 from miss.types import Mesh, column_bounds
 
 
@@ -460,10 +460,47 @@ def distances_to(
     return _grid_distances(pts, grid, cap * cap, ordered)
 
 
-def deviation(a: Mesh, b: Mesh, samples: int = 100_000, seed: int = 0) -> Deviation:
-    """Two-sided (symmetric Hausdorff-style) deviation between surfaces ``a`` and ``b``."""
+@dataclass(frozen=True)
+class Side:
+    """Surface ``a``'s half of a :func:`deviation`, made before ``b`` exists (e.g. while
+    ``b`` is being decimated from it): its sample points, its grid, and the random state
+    that ``b``'s sampling goes on from, so that the figures are the same."""
+
+    points: np.ndarray
+    grid: tuple
+    state: dict
+
+
+def side_of(a: Mesh, samples: int = 100_000, seed: int = 0) -> Side:
+    """``a``'s :class:`Side` of a :func:`deviation` with ``samples`` and ``seed``."""
+    rng = np.random.default_rng(seed)
+    points = _sample(a, samples, rng, drawn=False)
+    return Side(points, surface_grid(a), rng.bit_generator.state)
+
+
+def deviation(
+    a: Mesh, b: Mesh, samples: int = 100_000, seed: int = 0, side: Side | None = None
+) -> Deviation:
+    """Two-sided (symmetric Hausdorff-style) deviation between surfaces ``a`` and ``b``;
+    ``side``: ``a``'s half made already (:func:`side_of`, the same ``samples`` and ``seed``)."""
     if a.n_triangles == 0 or b.n_triangles == 0:
         return Deviation(0.0, 0.0, 0)
+    if side is not None:
+        rng = np.random.default_rng()
+        rng.bit_generator.state = side.state
+        points_a, grid_a = side.points, side.grid
+        points_b = _sample(b, samples, rng, drawn=False)
+        grid_b = surface_grid(b)
+    else:
+        points_a, points_b, grid_a, grid_b = _both_sides(a, b, samples, seed)
+    d_ab = distances_to(points_a, b, grid=grid_b)
+    d_ba = distances_to(points_b, a, grid=grid_a)
+    both = np.concatenate([d_ab, d_ba])
+    return Deviation(max_mm=float(both.max()), mean_mm=float(both.mean()), samples=len(both))
+
+
+def _both_sides(a: Mesh, b: Mesh, samples: int, seed: int) -> tuple:
+    """Points on ``a`` and on ``b``, and their grids, for :func:`deviation`."""
     rng = np.random.default_rng(seed)
     with ThreadPoolExecutor(max_workers=1) as pool:
         # a's cells (a is the larger surface, as a rule) are made on the second core while
@@ -473,11 +510,7 @@ def deviation(a: Mesh, b: Mesh, samples: int = 100_000, seed: int = 0) -> Deviat
         points_a = _sample(a, samples, rng, drawn=False)
         points_b = _sample(b, samples, rng, drawn=False)
         grid_b = surface_grid(b)
-        grid_a = making.result()
-    d_ab = distances_to(points_a, b, grid=grid_b)
-    d_ba = distances_to(points_b, a, grid=grid_a)
-    both = np.concatenate([d_ab, d_ba])
-    return Deviation(max_mm=float(both.max()), mean_mm=float(both.mean()), samples=len(both))
+        return points_a, points_b, making.result(), grid_b
 
 
 @njit(cache=True, nogil=True)
