@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import pytest
 
 from miss import BadParameter
 from miss.demo import phantom
 from miss.pipeline import run
 from miss.spec import JobSpec
+from miss.structures.build import build_scene
 
 
 def test_run_produces_every_requested_format() -> None:
@@ -31,6 +34,29 @@ def test_the_papers_schedule_meets_reduce_within_the_bound_it_ended_at() -> None
     decimation = run(phantom(), spec).stats()["decimation"]
     assert decimation["achieved_reduction"] >= 0.85 and decimation["stopped_by"] == "reduce"
     assert 0 < decimation["max_error_mm"] <= decimation["bound_mm"]
+
+
+def test_a_job_measured_after_starts_the_measurement_while_it_decimates() -> None:
+    spec = JobSpec.of(level=300.0, sample_rate=2, formats=("glb",), schedule="paper")
+    built = build_scene(phantom(), spec, measure=False, measure_later=True)
+    (source,) = built.sources
+    assert source.side is not None  # the undecimated surface's half, started before decimating
+    source.side.result()
+    ahead = built.measured()
+    # the same build measured with nothing made ahead: the same figures, to the bit
+    alone = replace(built, sources=(replace(source, side=None),)).measured()
+    assert ahead.reports == tuple(
+        replace(r, measure_seconds=a.measure_seconds)
+        for r, a in zip(alone.reports, ahead.reports, strict=True)
+    )
+    assert ahead.reports[0].max_error_mm > 0
+    # nothing is started for a build that is not measured after, nor for a guaranteed bound
+    assert build_scene(phantom(), spec, measure=False).sources[0].side is None
+    guaranteed = JobSpec.of(level=300.0, sample_rate=2, formats=("glb",))
+    assert (
+        build_scene(phantom(), guaranteed, measure=False, measure_later=True).sources[0].side
+        is None
+    )
 
 
 def test_key_ignores_formats_and_normalises_sample_rate() -> None:

@@ -117,7 +117,7 @@ def run(
         blocks = replace(blocks or BlockRun(), progress=report)
     built = build_scene(
         volume, spec, label_map=label_map, table=table, title=title, measure=False,
-        blocks=blocks,
+        blocks=blocks, measure_later=measure,
     )  # fmt: skip
     seconds |= built.seconds
     if sink is not None:  # a viewer draws these rather than a GLB too large to draw

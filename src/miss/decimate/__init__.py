@@ -41,7 +41,7 @@ import contextlib
 import math
 import time
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import asdict, dataclass, replace
 from typing import TYPE_CHECKING, Any, Literal
 
@@ -51,7 +51,7 @@ from miss.spec import METHODS, SCHEDULES
 if TYPE_CHECKING:
     import numpy as np
 
-    from miss.deviation import BoundCheck
+    from miss.deviation import BoundCheck, Side
     from miss.types import Mesh
 
 Method = Literal["none", "quadric", "schroeder"]
@@ -344,6 +344,26 @@ def _held(
         pool.shutdown(wait=False, cancel_futures=True)
 
 
+def measuring_later(before: Mesh, samples: int = SAMPLES) -> Future[Side]:
+    """Start the half of :func:`measured` that needs only ``before`` (its sample points and
+    grid, :func:`miss.deviation.side_of`) on a thread of its own at the lowest priority,
+    for a job that decimates ``before`` unmeasured and measures the result after: it is
+    made meanwhile, on the core a quadric decimation (one thread) leaves idle, and the
+    measurement's kernels load there too."""
+    pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="miss-side")
+
+    def make() -> Side:
+        _idle_priority()
+        from miss.deviation import side_of
+
+        return side_of(before, samples)
+
+    try:
+        return pool.submit(make)
+    finally:
+        pool.shutdown(wait=False)  # the thread ends with its one task
+
+
 def _idle_priority() -> None:
     """This thread at nice 19, where the system allows it (Linux: a thread's own nice).
     Threads it starts after would inherit it: the work it does (numba kernels without
@@ -528,20 +548,27 @@ def _out_of_bound(
 
 
 def measured(
-    report: DecimationReport, before: Mesh, after: Mesh, samples: int = SAMPLES
+    report: DecimationReport,
+    before: Mesh,
+    after: Mesh,
+    samples: int = SAMPLES,
+    side: Future[Side] | None = None,
 ) -> DecimationReport:
     """``report`` with the two-sided deviation of ``after`` from ``before`` measured (mm),
     from ``samples`` points on each surface; a report already measured is returned as is.
 
     A job measures after its files are written (the viewer draws the model meanwhile):
-    ``decimate(..., measure=False)`` now, this later.
+    ``decimate(..., measure=False)`` now, this later. ``side``: :func:`measuring_later`'s
+    for ``before`` and ``samples``, started before the decimation; used if it is done, else
+    the measurement makes that half itself (same figures either way).
     """
     if report.max_error_mm is not None:
         return report
     from miss.deviation import deviation
 
     start = time.perf_counter()
-    dev = deviation(before, after, samples=samples)
+    ready = side.result() if side is not None and side.done() else None
+    dev = deviation(before, after, samples=samples, side=ready)
     return replace(
         report,
         max_error_mm=dev.max_mm,

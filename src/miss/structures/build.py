@@ -18,8 +18,9 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
+from concurrent.futures import Future
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -31,7 +32,7 @@ from miss.blockwise import (
     in_memory,
     surface_of,
 )
-from miss.decimate import SAMPLES, DecimationReport, decimate, measured
+from miss.decimate import SAMPLES, DecimationReport, decimate, measured, measuring_later
 from miss.errors import BadParameter, EmptySurface
 from miss.scene import DEFAULT_SCENE_TITLE, Part, Scene
 from miss.smooth import VOLUME_TOLERANCE, smooth_mesh
@@ -58,6 +59,9 @@ from miss.structures.labels import (
 from miss.surface import extract_surface
 from miss.types import Mesh, Volume
 
+if TYPE_CHECKING:
+    from miss.deviation import Side
+
 #: Windowed-sinc iterations when none are asked for: label maps come out of surface
 #: nets as voxel blocks, threshold surfaces are already interpolated.
 LABEL_SMOOTHING = 20
@@ -66,17 +70,28 @@ TRANSLUCENT = 0.35
 
 
 @dataclass(frozen=True)
+class Source:
+    """A part's surface before decimation, the samples a side its measurement takes, and
+    (when it was started) that measurement's half on this surface, being made meanwhile
+    (:func:`miss.decimate.measuring_later`)."""
+
+    mesh: Mesh
+    samples: int
+    side: Future[Side] | None = None
+
+
+@dataclass(frozen=True)
 class SceneBuild:
     """A scene with what it took: one decimation report per part, seconds per stage.
 
-    Built with ``measure=False``, it keeps each part's surface before decimation (and the
-    samples a side its measurement takes) in ``sources``, for :meth:`measured` to use later.
+    Built with ``measure=False``, it keeps each part's :class:`Source` in ``sources``, for
+    :meth:`measured` to use later.
     """
 
     scene: Scene
     reports: tuple[DecimationReport, ...]
     seconds: dict[str, float] = field(default_factory=dict)
-    sources: tuple[tuple[Mesh, int], ...] = ()
+    sources: tuple[Source, ...] = ()
 
     def measured(self) -> SceneBuild:
         """This build with each part's deviation from its undecimated surface measured (mm);
@@ -85,14 +100,16 @@ class SceneBuild:
             return self
         start = time.perf_counter()
         parts = zip(self.reports, self.scene.parts, self.sources, strict=True)
-        reports = tuple(measured(r, mesh, part.mesh, n) for r, part, (mesh, n) in parts)
+        reports = tuple(
+            measured(r, source.mesh, part.mesh, source.samples, source.side)
+            for r, part, source in parts
+        )
         seconds = {**self.seconds, "measure": time.perf_counter() - start}
         return replace(self, reports=reports, seconds=seconds, sources=())
 
 
-#: A built part: the part, its decimation report, its surface before decimation and the
-#: samples a side that measuring the two takes.
-Built = tuple[Part, DecimationReport, Mesh, int]
+#: A built part: the part, its decimation report, its :class:`Source`.
+Built = tuple[Part, DecimationReport, Source]
 
 
 def extract_scene(
@@ -169,10 +186,14 @@ def build_scene(
     title: str | None = None,
     measure: bool = True,
     blocks: BlockRun | None = None,
+    measure_later: bool = False,
 ) -> SceneBuild:
     """The scene ``spec`` asks for, with the per-part reports and timings: every
     threshold part of the region, then the label parts (built together). ``blocks``
-    runs the threshold surfaces block by block (:mod:`miss.blockwise`)."""
+    runs the threshold surfaces block by block (:mod:`miss.blockwise`).
+    ``measure_later`` (with ``measure`` False): the caller measures the build after
+    (:meth:`SceneBuild.measured`), so the half of a measurement that needs only a part's
+    surface before decimation is started as soon as that surface exists."""
     start = time.perf_counter()
     items = spec.structures.items
     label_items = [p for p in items if p.labels is not None]
@@ -188,7 +209,10 @@ def build_scene(
             style = level_style(
                 item.level, ranked.index(item.level), len(ranked), volume.meta.get("units", "")
             )
-            built += _level_parts(region, item, style, spec.decimation, measure, notes, blocks)
+            built += _level_parts(
+                region, item, style, spec.decimation, measure, notes, blocks,
+                later=measure_later and not measure,
+            )  # fmt: skip
     if labels_volume is not None:
         labels_region = in_memory(spec.region.apply(labels_volume))  # not blockwise yet
         built += _label_parts(
@@ -198,7 +222,7 @@ def build_scene(
     scene = Scene(tuple(b[0] for b in built), title or DEFAULT_SCENE_TITLE, tuple(notes))
     total = time.perf_counter() - start
     seconds = {"surface": total - decimating, "decimate": decimating}
-    sources = () if measure else tuple((b[2], b[3]) for b in built)
+    sources = () if measure else tuple(b[2] for b in built)
     return SceneBuild(scene, tuple(b[1] for b in built), seconds, sources)
 
 
@@ -230,9 +254,11 @@ def _level_parts(
     measure: bool,
     notes: list[str],
     blocks: BlockRun | None = None,
+    later: bool = False,
 ) -> list[Built]:
     """One iso-level: the whole surface, its largest piece, or one part per piece.
-    The part's own name, colour and opacity win over the level's style."""
+    The part's own name, colour and opacity win over the level's style. ``later``: the
+    parts are measured after (see :func:`build_scene`'s ``measure_later``)."""
     assert item.level is not None
     name = item.name or style[0]
     color = item.color or style[1]
@@ -242,7 +268,7 @@ def _level_parts(
             made, report, welded = _decimated_in_blocks(
                 volume, item.level, decimation, blocks, name, notes
             )
-            return [(Part(name, made, color, opacity), report, welded, SAMPLES)]
+            return [(Part(name, made, color, opacity), report, Source(welded, SAMPLES))]
         # A decimated mesh gets new normals from its faces: gradients only for "none".
         normals = decimation.method == "none"
         meshes = [surface_of(volume, item.level, normals=normals, blocks=blocks)]
@@ -255,13 +281,16 @@ def _level_parts(
         part_color = PALETTE[rank % len(PALETTE)] if split and item.color is None else color
         smoothed = _smoothed(mesh, item.smooth or 0, item.passband, part_name, notes)
         # a guaranteed bound is checked (and held) while decimating, whatever ``measure`` says
+        checked = measure or decimation.schedule == "guaranteed"
+        unchanged = decimation.method == "none" or smoothed.n_triangles == 0
+        side = None if checked or unchanged or not later else measuring_later(smoothed, SAMPLES)
         decimated, report = decimate(
             smoothed, decimation.method, decimation.reduce, decimation.error_bound,
             max_error=decimation.max_error, schedule=decimation.schedule,
-            measure=measure or decimation.schedule == "guaranteed",
+            measure=checked,
         )  # fmt: skip
         part = Part(part_name, decimated, part_color, opacity)
-        out.append((part, report, smoothed, SAMPLES))
+        out.append((part, report, Source(smoothed, SAMPLES, side)))
     return out
 
 
@@ -426,7 +455,7 @@ def _label_parts(
     styles = {p.labels[0]: p for p in items if isinstance(p.labels, tuple) and len(p.labels) == 1}
     parts = _named_parts(surfaces, origin, table, label_counts(work) or {}, work, notes)
     return [
-        (_restyled(p, styles.get(p.label or 0), table), r, surface.full, MEASURE_SAMPLES)
+        (_restyled(p, styles.get(p.label or 0), table), r, Source(surface.full, MEASURE_SAMPLES))
         for (p, r), surface in zip(parts, surfaces, strict=True)
     ]
 
