@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from concurrent.futures import Future
 from dataclasses import replace
 
 import pytest
@@ -50,6 +51,14 @@ def test_a_job_measured_after_starts_the_measurement_while_it_decimates() -> Non
         for r, a in zip(alone.reports, ahead.reports, strict=True)
     )
     assert ahead.reports[0].max_error_mm > 0
+    # a side whose thread failed (or has not finished) is made again by the measurement
+    failed: Future = Future()
+    failed.set_exception(MemoryError("no room on the side thread"))
+    pending: Future = Future()
+    for side in (failed, pending):
+        again = replace(built, sources=(replace(source, side=side),)).measured()
+        assert again.reports[0].max_error_mm == alone.reports[0].max_error_mm
+        assert again.reports[0].mean_error_mm == alone.reports[0].mean_error_mm
     # nothing is started for a build that is not measured after, nor for a guaranteed bound
     assert build_scene(phantom(), spec, measure=False).sources[0].side is None
     guaranteed = JobSpec.of(level=300.0, sample_rate=2, formats=("glb",))

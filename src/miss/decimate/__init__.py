@@ -559,15 +559,17 @@ def measured(
 
     A job measures after its files are written (the viewer draws the model meanwhile):
     ``decimate(..., measure=False)`` now, this later. ``side``: :func:`measuring_later`'s
-    for ``before`` and ``samples``, started before the decimation; used if it is done, else
-    the measurement makes that half itself (same figures either way).
+    for ``before`` and ``samples``, started before the decimation; used if it is done (and
+    did not fail), else the measurement makes that half itself (same figures either way).
     """
     if report.max_error_mm is not None:
         return report
     from miss.deviation import deviation
 
     start = time.perf_counter()
-    ready = side.result() if side is not None and side.done() else None
+    # a side that failed (e.g. out of memory on its thread) is made again here, as one not done
+    done = side is not None and side.done() and side.exception() is None
+    ready = side.result() if done else None  # type: ignore[union-attr]
     dev = deviation(before, after, samples=samples, side=ready)
     return replace(
         report,
