@@ -11,6 +11,7 @@ from miss import BadParameter
 from miss.demo import phantom
 from miss.pipeline import run
 from miss.spec import JobSpec
+from miss.structures import build
 from miss.structures.build import build_scene
 
 
@@ -66,6 +67,21 @@ def test_a_job_measured_after_starts_the_measurement_while_it_decimates() -> Non
         build_scene(phantom(), guaranteed, measure=False, measure_later=True).sources[0].side
         is None
     )
+
+
+def test_a_build_starts_its_first_parts_measurements_only(monkeypatch) -> None:
+    # a split surface may have 100 parts: only the first SIDES_AHEAD are started ahead
+    monkeypatch.setattr(build, "SIDES_AHEAD", 1)
+    spec = JobSpec.of(
+        level=300.0, sample_rate=2, formats=("glb",), schedule="paper", components="split"
+    )
+    built = build_scene(phantom(), spec, measure=False, measure_later=True)
+    assert [s.side is not None for s in built.sources] == [True, False]
+    ahead = built.measured()
+    alone = replace(built, sources=tuple(replace(s, side=None) for s in built.sources))
+    assert [r.max_error_mm for r in ahead.reports] == [
+        r.max_error_mm for r in alone.measured().reports
+    ]
 
 
 def test_key_ignores_formats_and_normalises_sample_rate() -> None:

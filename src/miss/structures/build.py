@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
-from concurrent.futures import Future
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any
 
@@ -106,6 +106,31 @@ class SceneBuild:
         )
         seconds = {**self.seconds, "measure": time.perf_counter() - start}
         return replace(self, reports=reports, seconds=seconds, sources=())
+
+
+#: Parts of one build whose measurement is started while it decimates (see
+#: :class:`_Ahead`); a split surface may have 100 parts, each measured with 100,000 samples a
+#: side, and the rest are measured after as before.
+SIDES_AHEAD = 8
+
+
+class _Ahead:
+    """The measurements' halves a build starts while it decimates
+    (:func:`miss.decimate.measuring_later`): on one thread for the build, one after
+    another, for its first :data:`SIDES_AHEAD` parts (the largest, as parts come)."""
+
+    def __init__(self) -> None:
+        self.pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="miss-side")
+        self.left = SIDES_AHEAD
+
+    def start(self, mesh: Mesh, samples: int) -> Future[Side] | None:
+        if self.left <= 0:
+            return None
+        self.left -= 1
+        return measuring_later(mesh, samples, self.pool)
+
+    def close(self) -> None:
+        self.pool.shutdown(wait=False)  # what was started is still made
 
 
 #: A built part: the part, its decimation report, its :class:`Source`.
@@ -204,15 +229,19 @@ def build_scene(
     built: list[Built] = []
     notes: list[str] = []
     ranked = sorted(p.level for p in items if p.level is not None)
-    for item in items:
-        if item.level is not None:
-            style = level_style(
-                item.level, ranked.index(item.level), len(ranked), volume.meta.get("units", "")
-            )
-            built += _level_parts(
-                region, item, style, spec.decimation, measure, notes, blocks,
-                later=measure_later and not measure,
-            )  # fmt: skip
+    ahead = _Ahead() if measure_later and not measure else None
+    try:
+        for item in items:
+            if item.level is not None:
+                style = level_style(
+                    item.level, ranked.index(item.level), len(ranked), volume.meta.get("units", "")
+                )
+                built += _level_parts(
+                    region, item, style, spec.decimation, measure, notes, blocks, ahead
+                )
+    finally:
+        if ahead is not None:
+            ahead.close()
     if labels_volume is not None:
         labels_region = in_memory(spec.region.apply(labels_volume))  # not blockwise yet
         built += _label_parts(
@@ -254,11 +283,12 @@ def _level_parts(
     measure: bool,
     notes: list[str],
     blocks: BlockRun | None = None,
-    later: bool = False,
+    ahead: _Ahead | None = None,
 ) -> list[Built]:
     """One iso-level: the whole surface, its largest piece, or one part per piece.
-    The part's own name, colour and opacity win over the level's style. ``later``: the
-    parts are measured after (see :func:`build_scene`'s ``measure_later``)."""
+    The part's own name, colour and opacity win over the level's style. ``ahead``: the
+    parts are measured after, their measurements started there (see :func:`build_scene`'s
+    ``measure_later``)."""
     assert item.level is not None
     name = item.name or style[0]
     color = item.color or style[1]
@@ -283,7 +313,7 @@ def _level_parts(
         # a guaranteed bound is checked (and held) while decimating, whatever ``measure`` says
         checked = measure or decimation.schedule == "guaranteed"
         unchanged = decimation.method == "none" or smoothed.n_triangles == 0
-        side = None if checked or unchanged or not later else measuring_later(smoothed, SAMPLES)
+        side = None if checked or unchanged or ahead is None else ahead.start(smoothed, SAMPLES)
         decimated, report = decimate(
             smoothed, decimation.method, decimation.reduce, decimation.error_bound,
             max_error=decimation.max_error, schedule=decimation.schedule,
