@@ -32,10 +32,10 @@ counted in the job).
 **The measuring job as MISS runs it** (a third table): the first table's job (quadric to
 10 %, the paper's schedule, GLB and VRML) through :func:`miss.pipeline.run`, which
 ``miss convert --measure`` and the server's workers call, measured and not; the share is
-the time measuring adds to the whole job: (measured - unmeasured) / measured. There the
-measurement's half that needs only the undecimated surface is made while the job decimates
-(:func:`miss.decimate.measuring_later`), and the rest while the files after the GLB are
-written. Warm: both round-robin in one process, medians; fresh: a new interpreter each,
+the time measuring adds to the whole job: (measured - unmeasured) / measured. Warm (numba
+loaded, as in a server's worker), the measurement's half that needs only the undecimated
+surface is made while the job decimates (:func:`miss.decimate.measuring_later`); the rest,
+and in a fresh process all of it, while the files after the GLB are written. Warm: both round-robin in one process, medians; fresh: a new interpreter each,
 alternately, the whole process timed from outside (its imports and start included).
 
 Writes ``results/measure.{json,md}``.
@@ -491,9 +491,9 @@ def main(argv: list[str] | None = None) -> int:
         + markdown_table(DEFAULT_HEADER, default)
         + "\n"
         + "\nThe first table's job as MISS runs it (`miss.pipeline.run`, as `miss convert "
-        "--measure` and the server's workers do: the undecimated surface's half of the "
-        "measurement made while it decimates, the rest while the files after the GLB are "
-        "written), measured and not; added = (measured - unmeasured) / measured. Warm: "
+        "--measure` and the server's workers do: warm, the undecimated surface's half of "
+        "the measurement made while it decimates; the rest, and fresh all of it, while the "
+        "files after the GLB are written), measured and not; added = (measured - unmeasured) / measured. Warm: "
         f"medians of {args.repeats} round-robin runs in one process; fresh: medians of "
         f"{args.fresh_repeats} new interpreters each, alternately, timed from outside:\n\n"
         + markdown_table(PIPELINE_HEADER, piped)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 from concurrent.futures import Future
 from dataclasses import replace
 
@@ -38,7 +39,9 @@ def test_the_papers_schedule_meets_reduce_within_the_bound_it_ended_at() -> None
     assert 0 < decimation["max_error_mm"] <= decimation["bound_mm"]
 
 
-def test_a_job_measured_after_starts_the_measurement_while_it_decimates() -> None:
+def test_a_job_measured_after_starts_the_measurement_while_it_decimates(monkeypatch) -> None:
+    import numba  # noqa: F401  (loaded, as in a server's warmed-up worker)
+
     spec = JobSpec.of(level=300.0, sample_rate=2, formats=("glb",), schedule="paper")
     built = build_scene(phantom(), spec, measure=False, measure_later=True)
     (source,) = built.sources
@@ -60,6 +63,12 @@ def test_a_job_measured_after_starts_the_measurement_while_it_decimates() -> Non
         again = replace(built, sources=(replace(source, side=side),)).measured()
         assert again.reports[0].max_error_mm == alone.reports[0].max_error_mm
         assert again.reports[0].mean_error_mm == alone.reports[0].mean_error_mm
+    # nothing is started in a process without numba yet (a fresh `miss convert --measure`)
+    with monkeypatch.context() as m:
+        m.delitem(sys.modules, "numba")
+        assert (
+            build_scene(phantom(), spec, measure=False, measure_later=True).sources[0].side is None
+        )
     # nothing is started for a build that is not measured after, nor for a guaranteed bound
     assert build_scene(phantom(), spec, measure=False).sources[0].side is None
     guaranteed = JobSpec.of(level=300.0, sample_rate=2, formats=("glb",))
@@ -70,6 +79,8 @@ def test_a_job_measured_after_starts_the_measurement_while_it_decimates() -> Non
 
 
 def test_a_build_starts_its_first_parts_measurements_only(monkeypatch) -> None:
+    import numba  # noqa: F401
+
     # a split surface may have 100 parts: only the first SIDES_AHEAD are started ahead
     monkeypatch.setattr(build, "SIDES_AHEAD", 1)
     spec = JobSpec.of(
