@@ -344,17 +344,11 @@ def _held(
         pool.shutdown(wait=False, cancel_futures=True)
 
 
-def measuring_later(
-    before: Mesh, samples: int = SAMPLES, pool: ThreadPoolExecutor | None = None
-) -> Future[Side]:
+def measuring_later(before: Mesh, samples: int, pool: ThreadPoolExecutor) -> Future[Side]:
     """Start the half of :func:`measured` that needs only ``before`` (its sample points and
-    grid, :func:`miss.deviation.side_of`) on a thread at the lowest priority, for a job
-    that decimates ``before`` unmeasured and measures the result after: it is made
-    meanwhile, on the core a quadric decimation (one thread) leaves idle, and the
-    measurement's kernels load there too. ``pool``: the one-thread executor of a job
-    that starts several (they are made one after another); else a thread of its own."""
-    own = pool is None
-    pool = pool or ThreadPoolExecutor(max_workers=1, thread_name_prefix="miss-side")
+    grid, :func:`miss.deviation.side_of`) on ``pool``'s thread at the lowest priority, for
+    a job that decimates ``before`` unmeasured and measures the result after: it is made
+    meanwhile, on the core a quadric decimation (one thread) leaves idle."""
 
     def make() -> Side:
         _idle_priority()
@@ -362,11 +356,7 @@ def measuring_later(
 
         return side_of(before, samples)
 
-    try:
-        return pool.submit(make)
-    finally:
-        if own:
-            pool.shutdown(wait=False)  # the thread ends with its one task
+    return pool.submit(make)
 
 
 def _idle_priority() -> None:
