@@ -54,7 +54,7 @@ import os  # noqa: E402
 import statistics  # noqa: E402
 import subprocess  # noqa: E402
 import sys  # noqa: E402
-from collections.abc import Callable  # noqa: E402
+from collections.abc import Callable, Iterator  # noqa: E402
 from functools import partial  # noqa: E402
 from pathlib import Path  # noqa: E402
 from types import ModuleType  # noqa: E402
@@ -145,15 +145,20 @@ def run_pipeline(path: Path, what: dict[str, Any], measure: bool) -> dict[str, A
     }
 
 
+def threshold_cases(names: list[str]) -> Iterator[tuple[str, Path, dict[str, Any]]]:
+    """(name, file, what to extract) of each case of ``names`` that is an iso-level."""
+    for case in names:
+        path, what = cases()[case]
+        if "level" in what:
+            yield case, path, what
+
+
 def pipeline_rows(names: list[str], repeats: int, fresh_repeats: int) -> list[list[Any]]:
     """One row per threshold case: the measuring job's added time, warm and fresh."""
     from common import median, round_robin
 
     rows = []
-    for case in names:
-        path, what = cases()[case]
-        if "level" not in what:
-            continue
+    for case, path, what in threshold_cases(names):
         candidates = {
             "measured": partial(run_pipeline, path, what, True),
             "plain": partial(run_pipeline, path, what, False),
@@ -205,10 +210,7 @@ def default_rows(names: list[str], repeats: int, fresh_repeats: int) -> list[lis
     from common import median
 
     rows = []
-    for case in names:
-        path, what = cases()[case]
-        if "level" not in what:
-            continue
+    for case, path, what in threshold_cases(names):
         run_default(path, what)  # untimed: kernels loaded
         warm_runs = [run_default(path, what) for _ in range(repeats)]
         fresh_runs = [fresh(case, "default", "") for _ in range(fresh_repeats)]

@@ -221,6 +221,10 @@ def test_measure_benchmark_writes_its_table(tmp_path, capsys) -> None:
         assert new_max == pytest.approx(old_max, rel=0.01)
         assert new_mean == pytest.approx(old_mean, rel=0.01)
     assert "share % (fresh)" in (tmp_path / "measure.md").read_text()
+    # the measuring job as MISS runs it: its figures are the measurement's own
+    (piped,) = data["pipeline"]
+    assert piped[0] == case and piped[8:10] == pytest.approx(row[10:14:2])
+    assert "added % (fresh)" in (tmp_path / "measure.md").read_text()
     assert "| MR headsq skin |" in capsys.readouterr().out
 
 
