@@ -60,6 +60,28 @@ def test_miss_help_loads_not_even_numpy() -> None:
     assert not _imported_by("--help") & {"numpy", *HEAVY}
 
 
+def test_miss_help_loads_no_command_and_no_job_declaration() -> None:
+    """``miss --help`` lists the commands from their one-line helps: no command's module,
+    no job declaration (``miss.spec``, which ``convert``'s options are made from), no
+    thread pool (the decimation's, loaded only when a check runs)."""
+    loaded = _imported_by("--help")
+    assert not loaded & {"miss.spec", "miss.cli.convert", "miss.cli.options", "concurrent.futures"}
+
+
+def test_each_command_still_has_its_whole_help() -> None:
+    """A command's own ``--help`` is built with its options (only that command's)."""
+    proc = subprocess.run(
+        [sys.executable, "-m", "miss.cli", "convert", "--help"],
+        capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+    assert proc.returncode == 0 and "--error-bound" in proc.stdout and "--level" in proc.stdout
+    proc = subprocess.run(
+        [sys.executable, "-m", "miss.cli", "user", "add", "--help"],
+        capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+    assert proc.returncode == 0 and "--pacs" in proc.stdout
+
+
 def test_python_dash_m_miss_is_the_command() -> None:
     proc = subprocess.run(
         [sys.executable, "-m", "miss", "--help"], capture_output=True, text=True, timeout=600

@@ -7,13 +7,49 @@ Bad input ends with one line on stderr naming the problem and the fix, exit code
 from __future__ import annotations
 
 import argparse
+import importlib
 import sys
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from typing import NoReturn
 
-from miss.cli import admin, convert, demo, info, ingest, pacs
-
 EXIT_BAD_INPUT = 2
+
+#: Each command: its one-line help, and the module with its ``arguments`` (adds them to
+#: its parser) and ``run`` (does it) functions. A command's module loads only when that
+#: command runs (``convert``'s options load the job's declaration): ``miss --help`` and
+#: ``miss info`` start without the others.
+COMMANDS: dict[str, tuple[str, str, str, str]] = {
+    "info": (
+        "describe a volume (DICOM folder/zip, NIfTI, NRRD, MetaImage)",
+        "miss.cli.info", "add_arguments", "cmd_info",
+    ),
+    "convert": ("volume -> surface model(s)", "miss.cli.convert", "add_arguments", "cmd_convert"),
+    "ingest": (
+        "store a volume in the server's data folder (big NIfTI files read slice by slice)",
+        "miss.cli.ingest", "add_arguments", "cmd_ingest",
+    ),
+    "demo": (
+        "write the synthetic CT head phantom as NIfTI",
+        "miss.cli.demo", "add_arguments", "cmd_demo",
+    ),
+    "serve": ("start the web system", "miss.cli.admin", "serve_arguments", "cmd_serve"),
+    "user": ("manage the web system's accounts", "miss.cli.admin", "user_arguments", "cmd_user"),
+    "backup": (
+        "copy the database and the data folder, also while the server runs",
+        "miss.cli.admin", "backup_arguments", "cmd_backup",
+    ),
+    "restore": (
+        "make an empty data folder from a backup",
+        "miss.cli.admin", "restore_arguments", "cmd_restore",
+    ),
+    "audit": (
+        "print the web system's audit log", "miss.cli.admin", "audit_arguments", "cmd_audit",
+    ),
+    "pacs": (
+        "search the PACS, fetch a series, send a model back",
+        "miss.cli.pacs", "add_arguments", "cmd_pacs",
+    ),
+}  # fmt: skip
 
 
 class _Parser(argparse.ArgumentParser):
@@ -23,39 +59,31 @@ class _Parser(argparse.ArgumentParser):
         self.exit(EXIT_BAD_INPUT, f"miss: {message} (see 'miss {self.prog.split()[-1]} --help')\n")
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(only: str | None = None) -> argparse.ArgumentParser:
+    """The ``miss`` parser; ``only``: the one command given its arguments (the others are
+    listed with their help and parse nothing), None: every command."""
     parser = _Parser(prog="miss", description="MISS - CT/MRI volumes to shared 3-D surface models.")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
-    info.add_parser(sub)
-    convert.add_parser(sub)
-    ingest.add_parser(sub)
-    demo.add_parser(sub)
-    admin.add_serve_parser(sub)
-    admin.add_parsers(sub)
-    pacs.add_parser(sub)
+    for name, (text, module, arguments, _) in COMMANDS.items():
+        command = sub.add_parser(name, help=text, description=text)
+        if only is None or name == only:
+            getattr(importlib.import_module(module), arguments)(command)
     return parser
 
 
-COMMANDS: dict[str, Callable[[argparse.Namespace], int]] = {
-    "info": info.cmd_info,
-    "convert": convert.cmd_convert,
-    "ingest": ingest.cmd_ingest,
-    "demo": demo.cmd_demo,
-    "serve": admin.cmd_serve,
-    "user": admin.cmd_user,
-    "audit": admin.cmd_audit,
-    "backup": admin.cmd_backup,
-    "restore": admin.cmd_restore,
-    "pacs": pacs.cmd_pacs,
-}
+def _command_in(argv: Sequence[str]) -> str:
+    """The command ``argv`` names ("" if none): the top level takes no option but ``-h``."""
+    return next((word for word in argv if not word.startswith("-")), "")
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     from miss.errors import MissError
 
-    args = build_parser().parse_args(argv)
+    argv = sys.argv[1:] if argv is None else list(argv)
+    args = build_parser(_command_in(argv)).parse_args(argv)
+    _, module, _, run = COMMANDS[args.command]
     try:
-        return COMMANDS[args.command](args)
+        return getattr(importlib.import_module(module), run)(args)
     except MissError as exc:
         print(f"miss: {exc}", file=sys.stderr)
     except MemoryError:

@@ -6,11 +6,9 @@ import argparse
 import json
 import os
 import sys
-from typing import Any
 
 
-def add_serve_parser(sub: Any) -> None:
-    serve = sub.add_parser("serve", help="start the web system")
+def serve_arguments(serve: argparse.ArgumentParser) -> None:
     serve.add_argument("--host", default=None)
     serve.add_argument("--port", type=int, default=None)
     serve.add_argument("--data-dir", default=None)
@@ -23,12 +21,9 @@ def add_serve_parser(sub: Any) -> None:
     )
 
 
-def add_parsers(sub: Any) -> None:
-    """``miss user add`` and ``miss audit``: the server's accounts and audit log, offline."""
-    user = sub.add_parser("user", help="manage the web system's accounts")
-    user_sub = user.add_subparsers(
-        dest="user_command", required=True, parser_class=sub._parser_class
-    )
+def user_arguments(user: argparse.ArgumentParser) -> None:
+    """``miss user add|passwd|...``: the server's accounts, offline."""
+    user_sub = user.add_subparsers(dest="user_command", required=True, parser_class=type(user))
     add = user_sub.add_parser("add", help="create an account; the password is read from stdin")
     add.add_argument("name")
     add.add_argument("--admin", action="store_true", help="may see everything and read the audit")
@@ -49,15 +44,20 @@ def add_parsers(sub: Any) -> None:
         change.add_argument(
             "--data-dir", default=None, help="default: MISS_DATA_DIR or ./miss-data"
         )
-    backup = sub.add_parser(
-        "backup", help="copy the database and the data folder, also while the server runs"
-    )
+
+
+def backup_arguments(backup: argparse.ArgumentParser) -> None:
     backup.add_argument("dest", help="a new or empty folder for the backup")
     backup.add_argument("--data-dir", default=None)
-    restore = sub.add_parser("restore", help="make an empty data folder from a backup")
+
+
+def restore_arguments(restore: argparse.ArgumentParser) -> None:
     restore.add_argument("src", help="a folder made by 'miss backup'")
     restore.add_argument("--data-dir", default=None)
-    audit = sub.add_parser("audit", help="print the web system's audit log")
+
+
+def audit_arguments(audit: argparse.ArgumentParser) -> None:
+    """``miss audit``: the server's audit log, offline."""
     audit.add_argument("--data-dir", default=None, help="default: MISS_DATA_DIR or ./miss-data")
     audit.add_argument("--limit", type=int, default=500, help="newest entries (default 500)")
     audit.add_argument("--action", default=None, help="only this action (login, share ...)")

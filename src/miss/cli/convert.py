@@ -12,8 +12,7 @@ from typing import Any
 from miss.cli.options import add_job_options, add_source_options, job_form, source_of, whole_numbers
 
 
-def add_parser(sub: Any) -> None:
-    conv = sub.add_parser("convert", help="volume -> surface model(s)")
+def add_arguments(conv: argparse.ArgumentParser) -> None:
     add_source_options(conv)
     conv.add_argument(
         "-o", "--output", action="append", required=True, metavar="OUT",

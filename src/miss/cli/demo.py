@@ -3,11 +3,9 @@
 from __future__ import annotations
 
 import argparse
-from typing import Any
 
 
-def add_parser(sub: Any) -> None:
-    demo = sub.add_parser("demo", help="write the synthetic CT head phantom as NIfTI")
+def add_arguments(demo: argparse.ArgumentParser) -> None:
     demo.add_argument("output", help="e.g. demo-head.nii.gz")
 
 

@@ -6,13 +6,10 @@ import argparse
 import json
 from typing import Any
 
-from miss.cli.options import add_source_options
 
+def add_arguments(info: argparse.ArgumentParser) -> None:
+    from miss.cli.options import add_source_options
 
-def add_parser(sub: Any) -> None:
-    info = sub.add_parser(
-        "info", help="describe a volume (DICOM folder/zip, NIfTI, NRRD, MetaImage)"
-    )
     add_source_options(info, "path", "series")
     info.add_argument("--json", action="store_true", help="print one JSON object")
 

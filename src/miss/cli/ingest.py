@@ -9,14 +9,9 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
-from typing import Any
 
 
-def add_parser(sub: Any) -> None:
-    ingest = sub.add_parser(
-        "ingest",
-        help="store a volume in the server's data folder (big NIfTI files read slice by slice)",
-    )
+def add_arguments(ingest: argparse.ArgumentParser) -> None:
     ingest.add_argument("path", help="DICOM folder/zip, NIfTI, NRRD or MetaImage file")
     ingest.add_argument("--name", default="", help="name to list (default: the file name)")
     ingest.add_argument("--data-dir", default=None, help="default: MISS_DATA_DIR or ./miss-data")

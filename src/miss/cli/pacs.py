@@ -14,11 +14,8 @@ from pathlib import Path
 from typing import Any
 
 
-def add_parser(sub: Any) -> None:
-    pacs = sub.add_parser("pacs", help="search the PACS, fetch a series, send a model back")
-    pacs_sub = pacs.add_subparsers(
-        dest="pacs_command", required=True, parser_class=sub._parser_class
-    )
+def add_arguments(pacs: argparse.ArgumentParser) -> None:
+    pacs_sub = pacs.add_subparsers(dest="pacs_command", required=True, parser_class=type(pacs))
     search = pacs_sub.add_parser("search", help="find studies (QIDO-RS)")
     for flag, text in (
         ("--patient-id", "patient ID"),

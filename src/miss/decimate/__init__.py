@@ -41,14 +41,14 @@ import contextlib
 import math
 import time
 from collections.abc import Callable
-from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import asdict, dataclass, replace
 from typing import TYPE_CHECKING, Any, Literal
 
 from miss.errors import BadParameter
-from miss.spec import METHODS, SCHEDULES
 
 if TYPE_CHECKING:
+    from concurrent.futures import Future, ThreadPoolExecutor
+
     import numpy as np
 
     from miss.deviation import BoundCheck, Side
@@ -124,6 +124,9 @@ class DecimationReport:
 
 
 def _check(method: str, reduce: float, error_bound: float, max_error: float, schedule: str) -> None:
+    # here, not at the top: ``import miss`` (every ``miss`` command) needs no job declaration
+    from miss.spec import METHODS, SCHEDULES
+
     if schedule not in SCHEDULES:
         raise BadParameter(f"unknown schedule {schedule!r}; choose one of {', '.join(SCHEDULES)}.")
     if method not in METHODS:
@@ -325,6 +328,8 @@ def _held(
         # whole-mesh phase), not one the run uses; its kernels hold no lock
         _idle_priority()
         return build()
+
+    from concurrent.futures import ThreadPoolExecutor
 
     # Made while the first round runs; only the wait for it, if any, counts as checking.
     pool = ThreadPoolExecutor(max_workers=1)

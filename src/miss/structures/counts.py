@@ -26,11 +26,12 @@ def label_counts(volume: Volume, max_labels: int = MAX_LABELS) -> dict[int, int]
     lo, hi = int(data.min()), int(data.max())
     if lo < 0 or hi > 65535:
         return None
-    # Slice by slice: bincount casts to int64, and a whole-volume cast is 10x slower.
+    # Slice by slice: bincount casts to int64, and a whole-volume cast is 10x slower. An
+    # image is known as one at its first slices with more values than a label map has.
     counts = np.zeros(hi + 1, dtype=np.int64)
     for k in range(data.shape[2]):
         counts += np.bincount(data[:, :, k].ravel(order="K"), minlength=hi + 1)
+        if np.count_nonzero(counts) > max_labels + 1:
+            return None
     present = np.flatnonzero(counts)
-    if len(present) > max_labels + 1:
-        return None
     return {int(label): int(counts[label]) for label in present if label != 0}
