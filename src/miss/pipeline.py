@@ -27,6 +27,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from miss import measurer
 from miss.blockwise import BlockRun
 from miss.decimate import DecimationReport
 from miss.errors import BadParameter, EmptySurface
@@ -298,6 +299,7 @@ def execute(
     if spec.source is None:
         raise BadParameter("the job has no source: say which volume to read.")
     start = time.perf_counter()
+    measurer.prestart(spec, measure)  # its numba starts while the volume is read
     (progress or _no_progress)("read", 0.0)
     loaded = spec.source.load(labels=spec.structures.labels_used is not None)
     read = time.perf_counter() - start

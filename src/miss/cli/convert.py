@@ -100,7 +100,6 @@ def _outputs(names: list[str]) -> dict[str, tuple[Path, ...]]:
 
 
 def cmd_convert(args: argparse.Namespace) -> int:
-    from miss.pipeline import Files, execute
     from miss.spec import JobSpec
 
     paths = _outputs(args.output)
@@ -110,6 +109,11 @@ def cmd_convert(args: argparse.Namespace) -> int:
     ):
         form["labels"] = "all"  # a label map's labels; a scan is refused, naming --level
     spec = JobSpec.from_dict({**form, "formats": list(paths)}, source_of(args))
+    from miss.measurer import prestart
+
+    prestart(spec, args.measure)  # before VTK loads here: see miss.measurer
+    from miss.pipeline import Files, execute
+
     result, written = execute(
         spec, Files(paths), _Bar(), measure=args.measure, blocks=_blocks(args)
     )

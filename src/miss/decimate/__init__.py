@@ -52,6 +52,7 @@ if TYPE_CHECKING:
     import numpy as np
 
     from miss.deviation import BoundCheck, Side
+    from miss.measurer import RemoteSide
     from miss.types import Mesh
 
 Method = Literal["none", "quadric", "schroeder"]
@@ -552,7 +553,7 @@ def measured(
     before: Mesh,
     after: Mesh,
     samples: int = SAMPLES,
-    side: Future[Side] | None = None,
+    side: Future[Side] | RemoteSide | None = None,
 ) -> DecimationReport:
     """``report`` with the two-sided deviation of ``after`` from ``before`` measured (mm),
     from ``samples`` points on each surface; a report already measured is returned as is.
@@ -560,20 +561,32 @@ def measured(
     A job measures after its files are written (the viewer draws the model meanwhile):
     ``decimate(..., measure=False)`` now, this later. ``side``: :func:`measuring_later`'s
     for ``before`` and ``samples``, started before the decimation; used if it is done (and
-    did not fail), else the measurement makes that half itself (same figures either way).
+    did not fail), else the measurement makes that half itself (same figures either way);
+    or a :class:`miss.measurer.RemoteSide`: the measuring process measures (made here if
+    it cannot).
     """
     if report.max_error_mm is not None:
         return report
-    from miss.deviation import deviation
+    from miss.measurer import MeasurerGone, RemoteSide
 
     start = time.perf_counter()
-    # a side that failed (e.g. out of memory on its thread) is made again here, as one not done
-    done = side is not None and side.done() and side.exception() is None
-    ready = side.result() if done else None  # type: ignore[union-attr]
-    dev = deviation(before, after, samples=samples, side=ready)
+    figures = None
+    if isinstance(side, RemoteSide):  # made in the measuring process: it measures there
+        with contextlib.suppress(MeasurerGone):
+            figures = side.deviation(after)
+        side = None
+    if figures is None:
+        from miss.deviation import deviation  # numba: loaded here only when measured here
+
+        # a side that failed (e.g. out of memory on its thread) is made again here, as one
+        # not done
+        done = side is not None and side.done() and side.exception() is None
+        ready = side.result() if done else None  # type: ignore[union-attr]
+        dev = deviation(before, after, samples=samples, side=ready)
+        figures = dev.max_mm, dev.mean_mm
     return replace(
         report,
-        max_error_mm=dev.max_mm,
-        mean_error_mm=dev.mean_mm,
+        max_error_mm=figures[0],
+        mean_error_mm=figures[1],
         measure_seconds=time.perf_counter() - start,
     )

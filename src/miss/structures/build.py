@@ -25,6 +25,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from miss import measurer
 from miss.blockwise import (
     BlockDecimation,
     BlockRun,
@@ -62,6 +63,7 @@ from miss.types import Mesh, Volume
 
 if TYPE_CHECKING:
     from miss.deviation import Side
+    from miss.measurer import RemoteSide
 
 #: Windowed-sinc iterations when none are asked for: label maps come out of surface
 #: nets as voxel blocks, threshold surfaces are already interpolated.
@@ -74,11 +76,11 @@ TRANSLUCENT = 0.35
 class Source:
     """A part's surface before decimation, the samples a side its measurement takes, and
     (when it was started) that measurement's half on this surface, being made meanwhile
-    (:func:`miss.decimate.measuring_later`)."""
+    (:func:`miss.decimate.measuring_later`, or in :mod:`miss.measurer`'s process)."""
 
     mesh: Mesh
     samples: int
-    side: Future[Side] | None = None
+    side: Future[Side] | RemoteSide | None = None
 
 
 @dataclass(frozen=True)
@@ -116,25 +118,30 @@ SIDES_AHEAD = 8
 
 
 class _Ahead:
-    """The measurements' halves a build starts while it decimates
-    (:func:`miss.decimate.measuring_later`): on one thread for the build, one after
-    another, for its first :data:`SIDES_AHEAD` parts (the largest, as parts come).
+    """The measurements' halves a build starts while it decimates, for its first
+    :data:`SIDES_AHEAD` parts (the largest, as parts come).
 
-    Only in a process that has numba loaded already (a server's worker, warmed up): in a
-    fresh one (``miss convert --measure``) the thread would import numba while the
+    In a process that has numba loaded already (a server's worker, warmed up), on one
+    thread for the build, one after another (:func:`miss.decimate.measuring_later`). In a
+    fresh one (``miss convert --measure``) a thread would import numba while the
     decimation runs, and the decimation's own loops, which take numba once it is there,
-    would wait for that import; measured, the job as a whole was no sooner (2.80 against
-    2.78 s), so there the measurement starts after the GLB, as before."""
+    would wait for that import (measured: the job as a whole was no sooner, 2.80 against
+    2.78 s); there the parts go to a measuring process (:mod:`miss.measurer`), which
+    starts numba on the other core and measures them, or, where none starts, are measured
+    after the GLB, as before."""
 
     def __init__(self) -> None:
         self.pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="miss-side")
-        self.left = SIDES_AHEAD if "numba" in sys.modules else 0
+        self.left = SIDES_AHEAD
 
-    def start(self, mesh: Mesh, samples: int) -> Future[Side] | None:
+    def start(self, mesh: Mesh, samples: int) -> Future[Side] | RemoteSide | None:
         if self.left <= 0:
             return None
         self.left -= 1
-        return measuring_later(mesh, samples, self.pool)
+        if "numba" in sys.modules:
+            return measuring_later(mesh, samples, self.pool)
+        child = measurer.shared()
+        return None if child is None else child.side(mesh, samples)
 
     def close(self) -> None:
         self.pool.shutdown(wait=False)  # what was started is still made
