@@ -224,6 +224,7 @@ def test_measure_benchmark_writes_its_table(tmp_path, capsys) -> None:
     # the measuring job as MISS runs it: its figures are the measurement's own
     (piped,) = data["pipeline"]
     assert piped[0] == case and piped[8:10] == pytest.approx(row[10:14:2])
+    assert piped[10] == "yes"  # `miss convert --measure`, fresh, measured the same
     assert "added % (fresh)" in (tmp_path / "measure.md").read_text()
     assert "| MR headsq skin |" in capsys.readouterr().out
 

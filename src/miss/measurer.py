@@ -168,9 +168,10 @@ def prestart(spec: JobSpec, measure: bool) -> None:
 
 # ------------------------------------------------------------------------------ the child
 
-#: Surfaces the child keeps waiting for their decimated parts: a job sends at most
-#: :data:`miss.structures.build.SIDES_AHEAD`; older ones belong to jobs that failed.
-KEPT = 64
+#: Surfaces the child keeps waiting for their decimated parts, the newest: a job sends at
+#: most :data:`miss.structures.build.SIDES_AHEAD` (8) before it asks for their figures;
+#: older ones belong to jobs that failed.
+KEPT = 16
 
 
 def serve(stdin: BinaryIO, stdout: BinaryIO) -> None:

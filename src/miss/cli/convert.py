@@ -22,7 +22,8 @@ def add_arguments(conv: argparse.ArgumentParser) -> None:
     conv.add_argument(
         "--measure", action="store_true",
         help="measure the decimated surface's deviation from the undecimated one, mm, "
-        "with --schedule paper (about a second more: it loads numba); the default "
+        "with --schedule paper (numba's start, about a second, runs in a second process "
+        "meanwhile); the default "
         "schedule, guaranteed, always measures: a bound is held only if it is checked",
     )  # fmt: skip
     run = conv.add_argument_group("run", "where the surfaces are computed (not part of the job)")
