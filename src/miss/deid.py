@@ -19,8 +19,6 @@ What the profile asks and what MISS does with it:
 
 from __future__ import annotations
 
-import hashlib
-import hmac
 import re
 from collections.abc import Callable
 from dataclasses import dataclass, replace
@@ -122,6 +120,9 @@ def remap_uid(uid: str, key: bytes) -> str:
     (at most 44 characters, within DICOM's 64)."""
     if not uid:
         return ""
+    import hashlib  # here: reading a scan (``miss info``) remaps nothing
+    import hmac
+
     digest = hmac.new(key, uid.encode("ascii", "replace"), hashlib.sha256).digest()
     return f"2.25.{int.from_bytes(digest[:16], 'big')}"
 

@@ -19,7 +19,6 @@ database keeps.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import math
 import numbers
@@ -678,6 +677,8 @@ class JobSpec:
         for name in STRUCTURE_DEFAULTS:
             if d[name] == STRUCTURE_DEFAULTS[name]:
                 del d[name]
+        import hashlib  # here: a command line that is only parsed needs no key
+
         return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:32]
 
     def with_formats(self, formats: Sequence[str]) -> JobSpec:

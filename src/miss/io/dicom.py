@@ -8,7 +8,6 @@ order, gantry tilt and uneven gaps are handled in :mod:`miss.io.dicom_stack`.
 
 from __future__ import annotations
 
-import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -225,6 +224,8 @@ def _describe(uid: str, headers: list[Header]) -> dict[str, Any]:
 
 
 def _no_images(path: Path, scanned: int) -> MissError:
+    import zipfile
+
     if not path.is_dir() and not zipfile.is_zipfile(path):
         # A weak sniff (extension or two magic bytes): let the other readers try.
         return UnsupportedFormat(f"{path.name} is not a DICOM image")

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import os
 import re
-import xml.etree.ElementTree as ET
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -173,6 +172,8 @@ def _has_extensions(path: Path) -> bool:
 
 def _caret_table(xml: bytes) -> LabelTable | None:
     """Parse ``<Label Key=.. Red=.. Green=.. Blue=.. Alpha=..>name</Label>`` (fractions)."""
+    import xml.etree.ElementTree as ET  # here: ``miss info`` on a plain scan needs none
+
     try:
         root = ET.fromstring(xml.decode("utf-8", "replace").strip().strip("\0"))
     except ET.ParseError:
