@@ -130,17 +130,18 @@ _SHARED: list[Measurer] = []
 _LOCK = threading.Lock()
 
 
-def shared(start: bool = True) -> Measurer | None:
-    """This process's measurer: started on the first call (``start``), None where it
-    cannot start; one per process, ended at exit."""
+def shared() -> Measurer | None:
+    """This process's measurer: started on the first call; one per process, ended at
+    exit. None where it cannot start, or once it has failed (its parts are measured here
+    then)."""
     with _LOCK:
-        if not _SHARED and start:
+        if not _SHARED:
             try:
                 _SHARED.append(Measurer())
             except OSError:
                 return None
             atexit.register(_SHARED[0].close)
-        return _SHARED[0] if _SHARED else None
+        return None if _SHARED[0]._failed else _SHARED[0]
 
 
 def wanted(spec: JobSpec, measure: bool) -> bool:
