@@ -70,14 +70,15 @@ def test_miss_help_loads_no_command_and_no_job_declaration() -> None:
 
 def test_each_command_still_has_its_whole_help() -> None:
     """A command's own ``--help`` is built with its options (only that command's)."""
+    # UTF-8 whatever the locale: the help has "mm³", and CI's locale is ASCII
     proc = subprocess.run(
         [sys.executable, "-m", "miss.cli", "convert", "--help"],
-        capture_output=True, text=True, timeout=600,
+        capture_output=True, encoding="utf-8", timeout=600,
     )  # fmt: skip
     assert proc.returncode == 0 and "--error-bound" in proc.stdout and "--level" in proc.stdout
     proc = subprocess.run(
         [sys.executable, "-m", "miss.cli", "user", "add", "--help"],
-        capture_output=True, text=True, timeout=600,
+        capture_output=True, encoding="utf-8", timeout=600,
     )  # fmt: skip
     assert proc.returncode == 0 and "--pacs" in proc.stdout
 
