@@ -83,6 +83,20 @@ def test_each_command_still_has_its_whole_help() -> None:
     assert proc.returncode == 0 and "--pacs" in proc.stdout
 
 
+def test_help_on_an_ascii_terminal_does_not_crash() -> None:
+    """A locale that cannot spell "mm³" (ASCII, Python's UTF-8 coercion off): the help is
+    still printed, that character escaped."""
+    import os
+
+    env = {**os.environ, "LC_ALL": "C", "LANG": "C", "PYTHONCOERCECLOCALE": "0", "PYTHONUTF8": "0"}
+    proc = subprocess.run(
+        [sys.executable, "-m", "miss.cli", "convert", "--help"],
+        capture_output=True, timeout=600, env=env,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr.decode("utf-8", "replace")
+    assert b"--error-bound" in proc.stdout and b"mm\\xb3" in proc.stdout
+
+
 def test_python_dash_m_miss_is_the_command() -> None:
     proc = subprocess.run(
         [sys.executable, "-m", "miss", "--help"], capture_output=True, text=True, timeout=600

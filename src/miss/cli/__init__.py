@@ -80,6 +80,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     from miss.errors import MissError
 
     argv = sys.argv[1:] if argv is None else list(argv)
+    # On a terminal whose locale cannot spell "mm³" (ASCII, no UTF-8 coercion) a character
+    # it lacks is written escaped, not a crash of the whole command (stderr already does).
+    if hasattr(sys.stdout, "reconfigure"):
+        sys.stdout.reconfigure(errors="backslashreplace")
     args = build_parser(_command_in(argv)).parse_args(argv)
     _, module, _, run = COMMANDS[args.command]
     try:
