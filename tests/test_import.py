@@ -97,6 +97,22 @@ def test_help_on_an_ascii_terminal_does_not_crash() -> None:
     assert b"--error-bound" in proc.stdout and b"mm\\xb3" in proc.stdout
 
 
+@pytest.mark.parametrize(
+    ("words", "hint"),
+    [
+        (["nope"], "(see 'miss --help')"),
+        (["convert"], "(see 'miss convert --help')"),
+        (["user", "add"], "(see 'miss user add --help')"),
+    ],
+)
+def test_a_usage_error_names_the_help_of_the_command_typed(words: list[str], hint: str) -> None:
+    proc = subprocess.run(
+        [sys.executable, "-m", "miss.cli", *words], capture_output=True, text=True, timeout=600
+    )
+    assert proc.returncode == 2 and proc.stderr.count("\n") == 1
+    assert proc.stderr.startswith("miss: ") and proc.stderr.rstrip().endswith(hint)
+
+
 def test_python_dash_m_miss_is_the_command() -> None:
     proc = subprocess.run(
         [sys.executable, "-m", "miss", "--help"], capture_output=True, text=True, timeout=600

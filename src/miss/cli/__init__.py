@@ -56,7 +56,8 @@ class _Parser(argparse.ArgumentParser):
     """argparse that reports a usage error on one line."""
 
     def error(self, message: str) -> NoReturn:
-        self.exit(EXIT_BAD_INPUT, f"miss: {message} (see 'miss {self.prog.split()[-1]} --help')\n")
+        # prog is the command as typed so far: "miss", "miss convert", "miss user add"
+        self.exit(EXIT_BAD_INPUT, f"miss: {message} (see '{self.prog} --help')\n")
 
 
 def build_parser(only: str | None = None) -> argparse.ArgumentParser:
