@@ -305,18 +305,32 @@ def test_bounds_rows_on_the_phantom() -> None:
     import bounds
 
     mesh = extract_surface(phantom(48, spacing=4.0), 200.0)
-    case = bounds.bench_case(mesh, (0.001, 0.01), peers=True, log=lambda line: None)
+    case = bounds.bench_case(mesh, (0.001, 0.01), peers=True, log=lambda line: None, samples=20_000)
     assert case["unbounded_quadric_seconds"] > 0
     for entry in case["bounds"].values():
         rows = {r["method"]: r for r in entry["rows"]}
         assert set(rows) == {"MISS quadric", "MISS schroeder", *bounds.PEERS}
         for name in ("MISS quadric", "MISS schroeder"):
             assert rows[name]["holds"] and rows[name]["max_mm"] <= entry["bound_mm"] * 1.000001
+        for row in rows.values():  # the dense measure adds points: never less than the checked
+            assert row["dense_max_mm"] >= row["max_mm"]
+            assert row["holds_densely"] == (
+                row["dense_max_mm"] <= entry["bound_mm"] + 1e-6 * mesh.diagonal()
+            )
         best = min(rows["MISS quadric"]["triangles"], rows["MISS schroeder"]["triangles"])
         assert abs(rows["pyfqmr"]["triangles"] - best) <= 0.02 * best + 2
     assert len(bounds.verdict(case)) == 2
+    import report
+
+    (line,) = report.bounds_targets({"cases": {"phantom": case}})
+    dense = sum(
+        min((r for r in e["rows"] if r["method"].startswith("MISS") and r["holds"]),
+            key=lambda r: (r["triangles"], r["seconds"]))["holds_densely"]
+        for e in case["bounds"].values()
+    )  # fmt: skip
+    assert f"held between the checked points too (dense max) at {dense} of 2" in line
     table = bounds.markdown({"cases": {"phantom": case}})
-    assert "| 0.001 |" in table and "MISS schroeder" in table and "holds" in table
+    assert "| 0.001 |" in table and "MISS schroeder" in table and "holds densely" in table
 
 
 def test_bounds_rejects_bad_bounds_and_cases(capsys) -> None:
