@@ -43,7 +43,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from miss._numba import njit
-from miss.deviation import NO_REFCOUNT, _point_triangle_sq
+from miss.deviation import NO_REFCOUNT, _segment_sq
 from miss.types import column_bounds
 
 SIMPLE, BOUNDARY, INTERIOR_EDGE, CORNER, COMPLEX = 0, 1, 2, 3, 4
@@ -294,14 +294,10 @@ def _plane_distance(pts, faces, fan, n, fn, v):
 # --------------------------------------------------------------------------- loop splitting
 
 
-@njit(cache=True, **NO_REFCOUNT)
-def _project_loop(pts, loop, n_loop, nrm, xyh):
-    """Coordinates of the loop vertices in the frame of the unit normal nrm: (x, y) in the
-    average plane (right-handed about nrm, so the loop runs counter-clockwise) and the height
-    h along nrm, into xyh (n_loop, 3). Split planes are perpendicular to the average plane, so
-    every side test becomes a 2-D cross product on (x, y)."""
-    nx, ny, nz = nrm[0], nrm[1], nrm[2]
-    # e1: any unit vector perpendicular to nrm, built from the axis nrm is least aligned with.
+@njit(cache=True, inline="always")
+def _frame(nx, ny, nz):
+    """Unit vectors e, f with (e, f, n) right-handed, for the unit normal n: e built from the
+    axis n is least aligned with."""
     if abs(nx) <= abs(ny) and abs(nx) <= abs(nz):
         ex, ey, ez = 0.0, nz, -ny
     elif abs(ny) <= abs(nz):
@@ -311,6 +307,17 @@ def _project_loop(pts, loop, n_loop, nrm, xyh):
     el = math.sqrt(ex * ex + ey * ey + ez * ez)
     ex, ey, ez = ex / el, ey / el, ez / el
     fx, fy, fz = _cross(nx, ny, nz, ex, ey, ez)
+    return ex, ey, ez, fx, fy, fz
+
+
+@njit(cache=True, **NO_REFCOUNT)
+def _project_loop(pts, loop, n_loop, nrm, xyh):
+    """Coordinates of the loop vertices in the frame of the unit normal nrm: (x, y) in the
+    average plane (right-handed about nrm, so the loop runs counter-clockwise) and the height
+    h along nrm, into xyh (n_loop, 3). Split planes are perpendicular to the average plane, so
+    every side test becomes a 2-D cross product on (x, y)."""
+    nx, ny, nz = nrm[0], nrm[1], nrm[2]
+    ex, ey, ez, fx, fy, fz = _frame(nx, ny, nz)
     for k in range(n_loop):
         u = loop[k]
         xyh[k, 0] = ex * pts[u, 0] + ey * pts[u, 1] + ez * pts[u, 2]
@@ -515,78 +522,129 @@ def _retriangulate(pts, faces, vf, vdeg, loop, n_loop, fn, n, vtype, p, q, buf, 
 # --------------------------------------------------------------------------- accumulated error
 
 
-@njit(cache=True, **NO_REFCOUNT)
-def _fan_distance(pts, faces, fan, n, p, limit2):
-    """Squared distance (mm^2) from point p to v's fan of n triangles; stops early once it is
-    below limit2 (the caller only needs to know it is no larger than that)."""
-    best = np.inf
-    for k in range(n):
-        f = fan[k]
-        best = min(
-            best, _point_triangle_sq(p, pts[faces[f, 0]], pts[faces[f, 1]], pts[faces[f, 2]])
-        )
-        if best <= limit2:
-            break
-    return best
+@njit(cache=True, inline="always")
+def _cross2(ax, ay, bx, by):
+    return ax * by - ay * bx
 
 
 @njit(cache=True, **NO_REFCOUNT)
-def _patch_distance(pts, loop, tris, ntri, p, limit2):
-    """Squared distance (mm^2) from point p to the ntri new triangles (loop positions in
-    tris); stops early once it is below limit2."""
-    best = np.inf
-    for t in range(ntri):
-        a, b, c = pts[loop[tris[t, 0]]], pts[loop[tris[t, 1]]], pts[loop[tris[t, 2]]]
-        best = min(best, _point_triangle_sq(p, a, b, c))
-        if best <= limit2:
-            break
-    return best
+def _overlay_gap(pts, v, fn, n, loop, n_loop, tris, ntri, xyh, limit):
+    """A bound (mm) on the two-sided distance between v's fan and the ntri triangles that
+    fill its hole (loop positions in tris), or inf where this bound does not apply (the
+    deletion is then refused).
 
+    Both surfaces are seen along the fan's mean normal N. Where every fan triangle and every
+    new triangle faces along N, and each covers the loop's outline once, both are graphs
+    of a height over that outline: a point of one lies straight above (or below) a point of
+    the other, so their distance, either way, is at most the difference of the two heights
+    there (xyh: scratch of n_loop rows for the loop's coordinates). That difference is
+    linear where a fan triangle and a new triangle overlap, so it is largest at a corner of
+    such an overlap: v itself, or where a spoke (v to a loop vertex) crosses a new chord;
+    the loop vertices and edges lie on both (0). An open fan
+    (a boundary vertex) reaches past the chord that closes its loop: there the fan's
+    distance to that chord, largest at v or where a spoke crosses it, bounds it.
 
-@njit(cache=True, **NO_REFCOUNT)
-def _patch_gap(pts, faces, v, fan, n, loop, n_loop, tris, ntri, point, limit):
-    """Deviation (mm) between v's fan and the triangles that fill its hole, both ways, at
-    the points where two such surfaces part most: from the fan, v, its spokes' midpoints
-    and its triangles' centroids; from the patch, its chords' midpoints and its triangles'
-    centroids. The loop vertices and loop edges lie on both. The decimation's own check
-    (:func:`miss.deviation.bound_check`) measures the result exactly afterwards.
-
-    Returns as soon as the deviation passes ``limit`` (mm): the caller refuses the
-    deletion then, and a smaller figure than the whole still tells it so.
+    A bound, not a sample: with the error each triangle already carries (see _try_delete)
+    the whole surface stays within it however deletions chain. The points measured before
+    this (v, the spokes' and chords' midpoints, the triangles' centroids) missed the most
+    where the surfaces part between them: 21-69 % over the bound on CThead and the MR head
+    (benchmarks/bounds.py's "dense max", 2026-11-27). Returns as soon as it passes limit.
     """
-    limit2 = limit * limit
-    worst2 = _patch_distance(pts, loop, tris, ntri, pts[v], 0.0)
-    for k in range(n_loop):
-        if worst2 > limit2:
-            return math.sqrt(worst2)
-        for c in range(3):
-            point[c] = 0.5 * (pts[v, c] + pts[loop[k], c])
-        worst2 = max(worst2, _patch_distance(pts, loop, tris, ntri, point, worst2))
+    nx = ny = nz = 0.0
     for k in range(n):
-        if worst2 > limit2:
-            return math.sqrt(worst2)
-        f = fan[k]
-        for c in range(3):
-            point[c] = (pts[faces[f, 0], c] + pts[faces[f, 1], c] + pts[faces[f, 2], c]) / 3.0
-        worst2 = max(worst2, _patch_distance(pts, loop, tris, ntri, point, worst2))
+        nx += fn[k, 0]
+        ny += fn[k, 1]
+        nz += fn[k, 2]
+    length = math.sqrt(nx * nx + ny * ny + nz * nz)
+    if length == 0.0:
+        return np.inf
+    nx, ny, nz = nx / length, ny / length, nz / length
+    for k in range(n):
+        if fn[k, 0] * nx + fn[k, 1] * ny + fn[k, 2] * nz <= 0.0:
+            return np.inf  # a fan triangle folded back: no height over the outline
+    ex, ey, ez, fx, fy, fz = _frame(nx, ny, nz)
+    # v relative: coordinates stay small, so the areas below keep their digits
+    ox, oy, oz = pts[v, 0], pts[v, 1], pts[v, 2]
     closed = n_loop == n
+    # loop vertices' (x, y, h); v is (0, 0, 0)
+    xs, ys, hs = xyh[:, 0], xyh[:, 1], xyh[:, 2]
+    for k in range(n_loop):
+        u = loop[k]
+        dx, dy, dz = pts[u, 0] - ox, pts[u, 1] - oy, pts[u, 2] - oz
+        xs[k] = ex * dx + ey * dy + ez * dz
+        ys[k] = fx * dx + fy * dy + fz * dz
+        hs[k] = nx * dx + ny * dy + nz * dz
+    outline = 0.0  # twice the loop polygon's area (closed by the chord from its last to first)
+    scale = 0.0
+    for k in range(n_loop):
+        j = (k + 1) % n_loop
+        outline += _cross2(xs[k], ys[k], xs[j], ys[j])
+        scale += xs[k] * xs[k] + ys[k] * ys[k]
+    fan = 0.0
+    for k in range(n if closed else n_loop - 1):
+        j = (k + 1) % n_loop
+        fan += _cross2(xs[k], ys[k], xs[j], ys[j])
+    patch = 0.0
     for t in range(ntri):
-        if worst2 > limit2:
-            return math.sqrt(worst2)
-        for e in range(3):
-            x, y = tris[t, e], tris[t, (e + 1) % 3]
-            lo, hi = min(x, y), max(x, y)
-            if hi - lo == 1 or (closed and lo == 0 and hi == n_loop - 1):
-                continue  # a loop edge: on the fan too
-            for c in range(3):
-                point[c] = 0.5 * (pts[loop[x], c] + pts[loop[y], c])
-            worst2 = max(worst2, _fan_distance(pts, faces, fan, n, point, worst2))
-        for c in range(3):
-            point[c] = (
-                pts[loop[tris[t, 0]], c] + pts[loop[tris[t, 1]], c] + pts[loop[tris[t, 2]], c]
-            ) / 3.0
-        worst2 = max(worst2, _fan_distance(pts, faces, fan, n, point, worst2))
-    return math.sqrt(worst2)
+        a, b, c = tris[t, 0], tris[t, 1], tris[t, 2]
+        area = _cross2(xs[b] - xs[a], ys[b] - ys[a], xs[c] - xs[a], ys[c] - ys[a])
+        if area <= 0.0:
+            return np.inf  # a new triangle folded back
+        patch += area
+    tol = 1e-9 * scale
+    if abs(patch - outline) > tol:
+        return np.inf
+    gap = 0.0
+    if closed:
+        if abs(fan - outline) > tol:
+            return np.inf  # the fan winds round v more than once
+        # v's height over the new triangle beneath it (the one it lies in most)
+        best, height = -np.inf, 0.0
+        for t in range(ntri):
+            a, b, c = tris[t, 0], tris[t, 1], tris[t, 2]
+            area = _cross2(xs[b] - xs[a], ys[b] - ys[a], xs[c] - xs[a], ys[c] - ys[a])
+            la = _cross2(xs[b], ys[b], xs[c], ys[c]) / area
+            lb = _cross2(xs[c], ys[c], xs[a], ys[a]) / area
+            lc = 1.0 - la - lb
+            inside = min(la, lb, lc)
+            if inside > best:
+                best, height = inside, la * hs[a] + lb * hs[b] + lc * hs[c]
+        gap = abs(height)
+    else:
+        # past the closing chord: v, beyond it or on it (a straight border; else the
+        # outlines differ), to that chord
+        a, b = n_loop - 1, 0
+        beyond = _cross2(xs[b] - xs[a], ys[b] - ys[a], -xs[a], -ys[a])
+        if beyond < -tol or abs(fan - outline - beyond) > tol:
+            return np.inf
+        ax, ay, az = pts[loop[a], 0] - ox, pts[loop[a], 1] - oy, pts[loop[a], 2] - oz
+        bx, by, bz = pts[loop[b], 0] - ox, pts[loop[b], 1] - oy, pts[loop[b], 2] - oz
+        gap = math.sqrt(_segment_sq(0.0, 0.0, 0.0, ax, ay, az, bx, by, bz))
+    if gap > limit:
+        return gap
+    for i in range(n_loop):
+        for t in range(ntri):
+            for e in range(3):
+                a, b = tris[t, e], tris[t, (e + 1) % 3]
+                if a == i or b == i:
+                    continue
+                lo, hi = min(a, b), max(a, b)
+                if hi - lo == 1 or (closed and lo == 0 and hi == n_loop - 1):
+                    continue  # a loop edge: on the fan too
+                # spoke 0 -> i against chord a -> b, in the plane
+                sx, sy = xs[b] - xs[a], ys[b] - ys[a]
+                d = _cross2(xs[i], ys[i], sx, sy)
+                if d == 0.0:
+                    # parallel: no crossing, or (the chord through v) an overlap whose ends,
+                    # v and loop vertices, are measured already
+                    continue
+                s = _cross2(xs[a], ys[a], sx, sy) / d  # along the spoke
+                r = _cross2(xs[a], ys[a], xs[i], ys[i]) / d  # along the chord
+                if 0.0 <= s <= 1.0 and 0.0 <= r <= 1.0:
+                    gap = max(gap, abs(s * hs[i] - (hs[a] + r * (hs[b] - hs[a]))))
+                    if gap > limit:
+                        return gap
+    return gap
 
 
 # --------------------------------------------------------------------------- mesh update
@@ -691,9 +749,9 @@ def _try_delete(
         return -1
     spent = 0.0
     if len(terr) > 0:
-        # nrm is free once the hole is filled: scratch for the points measured
-        spent = carried + _patch_gap(
-            pts, faces, v, fan, n, loop, n_loop, tris, ntri, nrm, bound - carried
+        # xyh, the loop's projection for the split, is free once the hole is filled
+        spent = carried + _overlay_gap(
+            pts, v, fn, n, loop, n_loop, tris, ntri, xyh, bound - carried
         )
         if spent > bound:
             vmin[v] = spent

@@ -20,19 +20,24 @@ which (``stopped_by``).
 Schedules
 ---------
 ``guaranteed`` (default)
-    The bound is a hard cap. Schroeder's triangles carry the error already spent on them
-    (accumulated error); quadric's target error is the bound. Every run is checked
+    The bound is a hard cap, and schroeder makes the model whichever method was asked for
+    (``finished_with`` says so): its triangles carry the error already spent on them
+    (accumulated error), and each deletion's share is a bound on the distance between the
+    triangles it removes and those that replace it, everywhere on them
+    (:func:`miss._schroeder._overlay_gap`), so the output is within the bound everywhere,
+    not only where it is measured. quadric's target error is an estimate no check at
+    points can turn into a bound. Every run is also checked
     (:func:`miss.deviation.bound_check`: every dropped input vertex to the output, every
     new output edge's and triangle's middle to the input); a few input vertices out of
     bound are put back (:func:`_put_back`) and the result checked again; otherwise the
-    region out of bound is locked and the run repeated (quadric hands a bound it has not
-    held in one run to schroeder, in five under ``paper``, screening that last run first;
-    ``finished_with`` says which method made the model; after seven runs the input is
-    kept), so the bound reported as held was measured to hold.
+    region out of bound is locked and the run repeated (after seven runs the input is
+    kept), so the bound reported as held was measured to hold as well.
 ``paper``
     The 1998 pipeline's: the bound is raised up to ``max_error`` until ``reduce`` is met
     (or ``paper_passes`` whole passes at 1..N x the bound). The report gives the bound it
-    ended at, and the same check holds the output within that.
+    ended at, and the same check holds the output within that: schroeder's everywhere, as
+    above; quadric's (five runs, each screened, before schroeder takes over) at the
+    checked points only.
 """
 
 from __future__ import annotations
@@ -65,13 +70,14 @@ ROUNDS = 8
 # Each repeated quadric run aims this much lower: meshoptimizer's error is an estimate, and
 # locking the regions out of bound alone moves the excess next door (measured on CThead).
 _QUADRIC_TIGHTER = 0.7
-# Quadric runs before a bound still not held is left to schroeder (whose accumulated error
-# holds it in one or two runs), per schedule: at tight bounds (CThead bone at 0.0002) seven
-# quadric runs did not converge and the input came back whole, and where they did, with
-# more triangles than schroeder's; the paper's loose raised bound took quadric five. A
-# second guaranteed run held none of benchmarks/bounds.py's 15 bounds (CThead bone and
-# skin, MR head skin; the tighter run was 2.4-3.5x over on CThead): it cost 0.35-0.45 s.
-_QUADRIC_ROUNDS = {"guaranteed": 1, "paper": 5}
+# Quadric runs under the paper's schedule before a bound still not held is left to
+# schroeder (whose accumulated error holds it): at tight bounds (CThead bone at 0.0002)
+# seven quadric runs did not converge and the input came back whole, and where they did,
+# with more triangles than schroeder's; the paper's loose raised bound took quadric five.
+# Under the guaranteed schedule quadric does not run at all (see _runner): a first run
+# there held none of benchmarks/bounds.py's 15 bounds at the checked points (2.4-3.5x over
+# on CThead), and one that did would still be held only at those points.
+_QUADRIC_ROUNDS = {"paper": 5}
 # Input vertices out of bound that may be put back into an output (see _put_back), and
 # how far inside its triangle (barycentric) each one's foot must fall.
 _PUT_BACK = 64
@@ -198,7 +204,9 @@ def decimate(
     if method == "none" or mesh.n_triangles == 0:
         faces, bound_mm, check, rounds, by = mesh.faces, 0.0, None, 0, "none"
     else:
-        run = _runner(mesh, method, reduce, error_bound, max_error, paper_passes, schedule)
+        run = _runner(
+            mesh, method, reduce, error_bound, max_error, paper_passes, schedule, checked=measure
+        )
         if measure:
             faces, bound_mm, check, rounds, by = _held(mesh, run)
         else:
@@ -250,37 +258,43 @@ def _runner(
     paper_passes: int,
     schedule: str,
     fixed: np.ndarray | None = None,
+    checked: bool = True,
 ) -> Run:
     """One run of ``method`` given the vertices locked: (faces kept, the bound it is held
-    to, mm, the method that ran). Quadric runs after its first ``_QUADRIC_ROUNDS`` (per
-    schedule) are schroeder's, held to the same bound."""
+    to, mm, the method that ran). Quadric runs after its first ``_QUADRIC_ROUNDS`` under
+    the paper's schedule are schroeder's, held to the same bound; under the guaranteed
+    schedule every run is schroeder's, but for ``checked`` False (a quick preview, held to
+    nothing: one quadric run, as asked)."""
     from miss.decimate.quadric import quadric
     from miss.decimate.schroeder import schroeder
     from miss.types import column_bounds
 
     diag = mesh.diagonal()
     bound_mm = (error_bound if schedule == "guaranteed" else max_error) * diag
-    if method == "quadric":
+    if method == "quadric" and (schedule != "guaranteed" or not checked):
         # meshoptimizer's error is relative to the mesh's extent (its largest side)
         lo, hi = column_bounds(mesh.vertices)
         extent = max(float((hi - lo).max()), 1e-12)
 
-        runs = _QUADRIC_ROUNDS[schedule]
+        runs = _QUADRIC_ROUNDS.get(schedule, 1)
 
         def run_quadric(locked: np.ndarray | None, round_: int) -> tuple[np.ndarray, float, str]:
             if round_ > runs:
                 # quadric's locks are not schroeder's: its first run starts free (bar ``fixed``)
                 free = fixed if round_ == runs + 1 else locked
                 faces, ended = schroeder(mesh, reduce, bound_mm / 8, bound_mm, 0, free)
-                return faces, bound_mm if schedule == "guaranteed" else ended, "schroeder"
+                return faces, ended, "schroeder"
             target = bound_mm / extent * _QUADRIC_TIGHTER ** (round_ - 1)
             return quadric(mesh, reduce, target, locked)[0], bound_mm, "quadric"
 
         run_quadric.hands_over_after = runs  # type: ignore[attr-defined]
         return run_quadric
     if schedule == "guaranteed":
-        # a rising bound spends the budget on the cheapest deletions first: b/8, b/4, b/2, b;
-        # the run is held to b, the bound asked for, wherever the target stopped it
+        # Whatever the method asked for: schroeder's accumulated error is a bound (see
+        # miss._schroeder._overlay_gap), quadric's error an estimate that a check at points
+        # cannot make one (it held none of benchmarks/bounds.py's 15 bounds even there).
+        # A rising bound spends the budget on the cheapest deletions first: b/8, b/4, b/2,
+        # b; the run is held to b, the bound asked for, wherever the target stopped it.
         return lambda locked, _: (
             schroeder(mesh, reduce, bound_mm / 8, bound_mm, 0, locked)[0],
             bound_mm,
