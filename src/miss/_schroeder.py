@@ -528,7 +528,7 @@ def _cross2(ax, ay, bx, by):
 
 
 @njit(cache=True, **NO_REFCOUNT)
-def _overlay_gap(pts, v, fn, n, loop, n_loop, tris, ntri, xyh, limit):
+def _overlay_gap(pts, v, fn, n, loop, n_loop, tris, ntri, nrm, xyh, limit):
     """A bound (mm) on the two-sided distance between v's fan and the ntri triangles that
     fill its hole (loop positions in tris), or inf where this bound does not apply (the
     deletion is then refused).
@@ -537,7 +537,7 @@ def _overlay_gap(pts, v, fn, n, loop, n_loop, tris, ntri, xyh, limit):
     new triangle faces along N, and each covers the loop's outline once, both are graphs
     of a height over that outline: a point of one lies straight above (or below) a point of
     the other, so their distance, either way, is at most the difference of the two heights
-    there (xyh: scratch of n_loop rows for the loop's coordinates). That difference is
+    there (nrm, xyh: scratch for N and the loop's coordinates). That difference is
     linear where a fan triangle and a new triangle overlap, so it is largest at a corner of
     such an overlap: v itself, or where a spoke (v to a loop vertex) crosses a new chord;
     the loop vertices and edges lie on both (0). An open fan
@@ -550,15 +550,9 @@ def _overlay_gap(pts, v, fn, n, loop, n_loop, tris, ntri, xyh, limit):
     where the surfaces part between them: 21-69 % over the bound on CThead and the MR head
     (benchmarks/bounds.py's "dense max", 2026-11-27). Returns as soon as it passes limit.
     """
-    nx = ny = nz = 0.0
-    for k in range(n):
-        nx += fn[k, 0]
-        ny += fn[k, 1]
-        nz += fn[k, 2]
-    length = math.sqrt(nx * nx + ny * ny + nz * nz)
-    if length == 0.0:
+    if not _unit_normal_sum(fn, 0, n, n, nrm):
         return np.inf
-    nx, ny, nz = nx / length, ny / length, nz / length
+    nx, ny, nz = nrm[0], nrm[1], nrm[2]
     for k in range(n):
         if fn[k, 0] * nx + fn[k, 1] * ny + fn[k, 2] * nz <= 0.0:
             return np.inf  # a fan triangle folded back: no height over the outline
@@ -749,9 +743,9 @@ def _try_delete(
         return -1
     spent = 0.0
     if len(terr) > 0:
-        # xyh, the loop's projection for the split, is free once the hole is filled
+        # nrm and xyh, the split's, are free once the hole is filled
         spent = carried + _overlay_gap(
-            pts, v, fn, n, loop, n_loop, tris, ntri, xyh, bound - carried
+            pts, v, fn, n, loop, n_loop, tris, ntri, nrm, xyh, bound - carried
         )
         if spent > bound:
             vmin[v] = spent
