@@ -147,13 +147,13 @@ def _print(summary: dict[str, Any]) -> None:
     )
     if d.get("bound_held"):
         # where it was measured: between those points the surfaces can part further (README)
-        error += (
-            f" within the bound {d['bound_mm']:.3f} mm at every vertex and new edge's and "
-            f"triangle's middle; stopped by {d['stopped_by']}"
-        )
+        error += f" within the bound {d['bound_mm']:.3f} mm; stopped by {d['stopped_by']}"
+    method = d["method"]
+    if d["schedule"] == "guaranteed" and d.get("bound_held") and method != "none":
+        method = "schroeder"  # a held bound is schroeder's model, whatever was asked for
     print(
         f"{summary['triangles']} triangles, {summary['vertices']} vertices in {len(parts)} "
-        f"part(s) ({d['triangles_before']} before {d['method']} decimation; {error})"
+        f"part(s) ({d['triangles_before']} before {method} decimation; {error})"
     )
     print("seconds   " + "  ".join(f"{k} {v:.2f}" for k, v in summary["seconds"].items()))
     for o in summary["outputs"]:
