@@ -35,7 +35,7 @@ from paper import machine
 
 import miss
 from miss.demo import phantom
-from miss.deviation import distances_to
+from miss.deviation import between, distances_to
 from miss.types import Mesh
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -71,32 +71,11 @@ def two_sided(before: Mesh, after: Mesh) -> tuple[float, float]:
     return float(both.max()), float(both.mean())
 
 
-def _edges(faces: np.ndarray) -> np.ndarray:
-    """(E, 2) unique undirected edges of ``faces``."""
-    both = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-    return np.unique(np.sort(both, axis=1), axis=0)
-
-
 def dense(before: Mesh, after: Mesh, samples: int = DENSE_SAMPLES) -> float:
-    """Max mm between the points :func:`two_sided` measures: every output edge at each
-    eighth of its length and every input edge's midpoint to the other surface, and
-    ``samples`` random points inside each surface's triangles (area-weighted, seed 5), both
-    ways; with :func:`two_sided`'s points, the most found anywhere."""
-    from miss.deviation import sample_surface
-
-    rng = np.random.default_rng(5)
-    v, e = after.vertices.astype(np.float64), _edges(after.faces)
-    steps = np.arange(1, 8) / 8.0
-    along = v[e[:, 0], None, :] * (1.0 - steps)[:, None] + v[e[:, 1], None, :] * steps[:, None]
-    back = distances_to(
-        np.concatenate([along.reshape(-1, 3), sample_surface(after, samples, rng)]), before
-    )
-    w, g = before.vertices.astype(np.float64), _edges(before.faces)
-    there = distances_to(
-        np.concatenate([0.5 * (w[g[:, 0]] + w[g[:, 1]]), sample_surface(before, samples, rng)]),
-        after,
-    )
-    return max(float(back.max()), float(there.max()), two_sided(before, after)[0])
+    """Max mm found anywhere: :func:`two_sided`'s points and, between them,
+    :func:`miss.deviation.between`'s (every output edge at each eighth, every input edge's
+    midpoint, ``samples`` random points inside each surface, both ways; seed 5)."""
+    return max(between(before, after, samples, seed=5), two_sided(before, after)[0])
 
 
 def _timed(fn: Callable[[], Mesh]) -> tuple[Mesh, float]:

@@ -146,7 +146,6 @@ def _print(summary: dict[str, Any]) -> None:
         else f"max error {d['max_error_mm']:.3f} mm, mean {d['mean_error_mm']:.4f} mm"
     )
     if d.get("bound_held"):
-        # where it was measured: between those points the surfaces can part further (README)
         error += f" within the bound {d['bound_mm']:.3f} mm; stopped by {d['stopped_by']}"
     method = d["method"]
     if d["schedule"] == "guaranteed" and d.get("bound_held") and method != "none":
