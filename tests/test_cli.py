@@ -62,6 +62,11 @@ def test_start_and_end_slice_cut_the_model(demo_file: Path, tmp_path: Path) -> N
     ("args", "message"),
     [
         (["info", "/no/such/scan"], "no such file"),
+        (["convert", "/no/such/scan", "--level", "300", "-o", "{tmp}/x.stl"], "no such file"),
+        (
+            ["convert", "{demo}", "--label-map", "/no/such.nii", "-o", "{tmp}/x.stl"],
+            "/no/such.nii: no such file or folder; check the path.",
+        ),
         (["convert", "{demo}", "--level", "300", "-o", "{tmp}/x.dxf"], "unknown output extension"),
         (["convert", "{demo}", "--level", "99999", "-o", "{tmp}/x.stl"], "no surface at level"),
         (
@@ -141,12 +146,15 @@ def test_json_keeps_its_keys(demo_file: Path, tmp_path: Path) -> None:
     decimation = stats["decimation"]
     assert decimation["bound_held"] and decimation["max_error_mm"] <= decimation["bound_mm"]
     assert decimation["stopped_by"] in ("bound", "reduce")
+    # quadric asked for, the held model schroeder's: the report names the one that made it
+    assert decimation["finished_with"] == "schroeder"
     paper = [*args, "--schedule", "paper", "-o", str(tmp_path / "p.glb")]
-    assert json.loads(miss(*paper).stdout)["decimation"]["max_error_mm"] is None
-    assert (
-        "error not measured: add --measure"
-        in miss(*args[:-1], "--schedule", "paper", "-o", str(tmp_path / "c.glb")).stdout
-    )
+    unmeasured = json.loads(miss(*paper).stdout)["decimation"]
+    assert unmeasured["max_error_mm"] is None and unmeasured["finished_with"] == "quadric"
+    text = miss(*args[:-1], "--schedule", "paper", "-o", str(tmp_path / "c.glb")).stdout
+    assert "before quadric decimation; error not measured: add --measure" in text
+    held = miss(*args[:-1], "-o", str(tmp_path / "d.glb")).stdout
+    assert "before schroeder decimation; max error" in held
 
 
 def _convert_stderr(demo_file: Path, out: Path, terminal: bool) -> str:
@@ -179,3 +187,15 @@ def test_progress_bar_on_a_terminal_and_nothing_on_a_pipe(demo_file: Path, tmp_p
     drawn = _convert_stderr(demo_file, tmp_path / "a.stl", terminal=True)
     assert "[" + "#" * 30 + "] 100%" in drawn and "surface" in drawn
     assert _convert_stderr(demo_file, tmp_path / "b.stl", terminal=False) == ""
+
+
+def test_a_path_that_is_not_there_is_said_before_the_job_loads() -> None:
+    """A mistyped path is answered at once: before numpy, VTK or the job's code load."""
+    code = (
+        "import sys; from miss.cli import main; "
+        "rc = main(['convert', '/no/such/scan', '--level', '300', '-o', 'x.glb']); "
+        "print(rc, [m for m in ('numpy', 'vtk', 'miss.pipeline') if m in sys.modules])"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert proc.stdout.split("\n")[0] == "2 []"
+    assert proc.stderr.strip() == "miss: /no/such/scan: no such file or folder; check the path."

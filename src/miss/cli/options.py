@@ -10,8 +10,10 @@ from __future__ import annotations
 import argparse
 from collections.abc import Callable
 from dataclasses import MISSING, Field, fields
+from pathlib import Path
 from typing import Any
 
+from miss.errors import UnreadableVolume
 from miss.spec import FileSource, Source, Structure, default_of, form_fields, form_name
 
 
@@ -139,4 +141,7 @@ def source_of(args: argparse.Namespace) -> Source:
         study, series = parse(args.path)  # type: ignore[misc]
         return PacsSeries(pick_server(), study, series)
     given = {f.name: getattr(args, f.name) for f in fields(FileSource)}
+    for name in ("path", "label_map"):  # said at once, before the job's libraries load
+        if given.get(name) and not Path(given[name]).exists():
+            raise UnreadableVolume(f"{Path(given[name])}: no such file or folder; check the path.")
     return FileSource(**{k: v for k, v in given.items() if v is not None})
