@@ -99,7 +99,7 @@ def report(rows: list[dict[str, Any]]) -> str:
                 round(mvox, 1),
                 m["read"],
                 m["surface"],
-                m["decimate"] - m["measure"],
+                m["decimate"],
                 m["measure"],
                 m["write"],
                 m["total"],

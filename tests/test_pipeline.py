@@ -31,6 +31,11 @@ def test_run_produces_every_requested_format() -> None:
     assert decimation["schedule"] == "guaranteed" and decimation["bound_held"]
     assert 0 < decimation["max_error_mm"] <= decimation["bound_mm"]
     assert decimation["stopped_by"] == "bound" and decimation["achieved_reduction"] > 0
+    # quadric was asked for (the default); the held model is schroeder's, and says so
+    assert decimation["method"] == "quadric" and decimation["finished_with"] == "schroeder"
+    # its check is the measurement, timed as one (not inside "decimate", not a 0 s stage)
+    checked = result.report.measure_seconds
+    assert checked > 0 and checked <= result.seconds["measure"] <= checked + 0.05
 
 
 def test_the_papers_schedule_meets_reduce_within_the_bound_it_ended_at() -> None:

@@ -495,3 +495,22 @@ def test_run_builds_a_scene_from_levels() -> None:
     assert [p["name"] for p in stats["parts"]] == ["skin (-500 HU)", "bone (300 HU)"]
     assert stats["triangles"] == result.scene.n_triangles
     assert result.artifacts["wrl"].count(b" Shape {") == 2
+
+
+def test_a_scenes_report_names_the_methods_that_made_its_parts() -> None:
+    from miss.decimate import DecimationReport
+    from miss.structures.build import combined_report
+
+    def part(finished_with: str | None, method: str = "quadric") -> DecimationReport:
+        return DecimationReport(
+            method=method, reduce=0.9, error_bound=0.002, triangles_in=100, triangles_out=20,
+            achieved_reduction=0.8, final_bound_mm=1.0, max_error_mm=0.5, mean_error_mm=0.1,
+            seconds=0.1, measure_seconds=0.0, finished_with=finished_with,
+        )  # fmt: skip
+
+    assert combined_report([part("schroeder"), part("schroeder")]).finished_with == "schroeder"
+    # a part kept whole was not decimated: the others' method made the scene
+    assert combined_report([part("schroeder"), part("none")]).finished_with == "schroeder"
+    mixed = combined_report([part("schroeder"), part("quadric"), part(None)])
+    assert mixed.finished_with == "quadric/schroeder"
+    assert combined_report([part("none", "none")]).summary()["finished_with"] == "none"

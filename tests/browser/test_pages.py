@@ -213,6 +213,11 @@ def test_generate_view_and_download(
 
     glb = wait_drawn(page, "glb")
     assert glb["triangles"] == triangles
+    # what made the model and whether it is within its bound, as the physician reads it
+    decimation = model["stats"]["decimation"]
+    stats, params = page.inner_text("#stats"), page.inner_text("#params")
+    assert "quadric asked; made by schroeder" in params
+    assert f"yes: within {decimation['bound_mm']:.3f} mm; stopped by the" in stats
     shot = page.locator("#stage canvas").screenshot()
     page.screenshot(path=artifacts / "viewer-glb.png")
     assert non_background(shot, glb["backgroundColor"]) > 0.05

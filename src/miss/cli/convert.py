@@ -147,9 +147,8 @@ def _print(summary: dict[str, Any]) -> None:
     )
     if d.get("bound_held"):
         error += f" within the bound {d['bound_mm']:.3f} mm; stopped by {d['stopped_by']}"
-    method = d["method"]
-    if d["schedule"] == "guaranteed" and d.get("bound_held") and method != "none":
-        method = "schroeder"  # a held bound is schroeder's model, whatever was asked for
+    # the method that made the model (a held bound is schroeder's, whatever was asked for)
+    method = d.get("finished_with") or d["method"]
     print(
         f"{summary['triangles']} triangles, {summary['vertices']} vertices in {len(parts)} "
         f"part(s) ({d['triangles_before']} before {method} decimation; {error})"

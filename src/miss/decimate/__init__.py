@@ -127,6 +127,9 @@ class DecimationReport:
             "bound_mm": self.bound_mm,
             "stopped_by": self.stopped_by,
             "bound_held": self.bound_held,
+            # the method that made the model: under the guaranteed schedule schroeder's,
+            # whatever was asked for; "none" when the input was kept whole
+            "finished_with": self.finished_with or self.method,
         }
 
 

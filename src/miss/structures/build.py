@@ -98,7 +98,8 @@ class SceneBuild:
 
     def measured(self) -> SceneBuild:
         """This build with each part's deviation from its undecimated surface measured (mm);
-        ``seconds["measure"]`` says how long that took."""
+        ``seconds["measure"]`` says how long that took (with a held bound's check, made
+        while decimating)."""
         if not self.sources:
             return self
         start = time.perf_counter()
@@ -107,7 +108,8 @@ class SceneBuild:
             measured(r, source.mesh, part.mesh, source.samples, source.side)
             for r, part, source in parts
         )
-        seconds = {**self.seconds, "measure": time.perf_counter() - start}
+        spent = self.seconds.get("measure", 0.0) + time.perf_counter() - start  # a check's too
+        seconds = {**self.seconds, "measure": spent}
         return replace(self, reports=reports, seconds=seconds, sources=())
 
 
@@ -261,10 +263,13 @@ def build_scene(
         built += _label_parts(
             labels_region, label_items, spec.decimation, measure, resolve_table(table), notes
         )
-    decimating = sum(b[1].seconds + b[1].measure_seconds for b in built)
+    decimating = sum(b[1].seconds for b in built)
+    checking = sum(b[1].measure_seconds for b in built)  # a held bound's check, measured
     scene = Scene(tuple(b[0] for b in built), title or DEFAULT_SCENE_TITLE, tuple(notes))
     total = time.perf_counter() - start
-    seconds = {"surface": total - decimating, "decimate": decimating}
+    seconds = {"surface": total - decimating - checking, "decimate": decimating}
+    if checking:
+        seconds["measure"] = checking
     sources = () if measure else tuple(b[2] for b in built)
     return SceneBuild(scene, tuple(b[1] for b in built), seconds, sources)
 
@@ -604,4 +609,12 @@ def combined_report(reports: Sequence[DecimationReport]) -> DecimationReport:
         if any(r.bound_held is None for r in reports)
         else all(r.bound_held for r in reports),
         rounds=max(r.rounds for r in reports),
+        finished_with=_made_by(reports),
     )
+
+
+def _made_by(reports: Sequence[DecimationReport]) -> str:
+    """The methods that made a scene's parts, "/"-joined ("schroeder", "quadric/schroeder");
+    a part kept whole ("none") counts only when every part was."""
+    made = {r.finished_with or r.method for r in reports}
+    return "/".join(sorted(made - {"none"} or made))

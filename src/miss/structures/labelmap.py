@@ -274,6 +274,7 @@ def _shared_result(
         mean_error_mm=None,
         seconds=seconds,
         measure_seconds=0.0,
+        finished_with="quadric",
     )
     if measure:
         report = measured(report, full, mesh, MEASURE_SAMPLES)

@@ -41,6 +41,7 @@ export function fillStats( model ) {
 		d.triangles_before != null ? row( 'Before decimation', formatCount( d.triangles_before ) ) : null,
 		row( 'Max error', formatMm( d.max_error_mm ) ),
 		row( 'Mean error', formatMm( d.mean_error_mm, 4 ) ),
+		d.bound_mm ? row( 'Error bound held', boundHeld( d ) ) : null,
 		...Object.entries( seconds ).filter( ( [ k ] ) => k !== 'total' ).map( ( [ k, v ] ) => row( `Time: ${k}`, formatSeconds( v ) ) ),
 		row( 'Time: total', formatSeconds( total ) ),
 		row( 'Drawn now', el( 'span', { id: 'drawn' }, '–' ) ),
@@ -53,11 +54,28 @@ export function fillStats( model ) {
 		s.parts ? row( 'Parts', s.parts.length ) : null,
 		row( 'Sample rate', Array.isArray( p.sample_rate ) ? p.sample_rate.join( ', ' ) : p.sample_rate ),
 		row( 'Slices', slices ),
-		row( 'Decimation', p.decimate ),
+		row( 'Decimation', madeBy( p.decimate, d.finished_with ) ),
 		row( 'Error bound', p.error_bound ),
 		row( 'Reduce', p.reduce ),
 	);
 	$( 'model-meta' ).textContent = `${formatCount( s.triangles )} triangles`;
+}
+
+// Whether the model is within the bound it was given, and what stopped the decimation.
+function boundHeld( d ) {
+	if ( d.bound_held == null ) return `not checked (bound ${formatMm( d.bound_mm )})`;
+	if ( ! d.bound_held ) return `no: over ${formatMm( d.bound_mm )}`;
+	// quadric's own runs (the paper's schedule) are held where they are measured only
+	const where = d.finished_with === 'quadric' ? ' at the measured points' : '';
+	const stop = d.stopped_by === 'bound' ? 'the bound' : 'the reduce target';
+	return `yes: within ${formatMm( d.bound_mm )}${where}; stopped by ${stop}`;
+}
+
+// The method asked for, and the one that made the model when they differ (a held bound
+// is schroeder's model whatever was asked for; a model kept whole was not decimated).
+function madeBy( asked, made ) {
+	if ( ! made || made === asked ) return asked;
+	return made === 'none' ? `${asked} (kept whole)` : `${asked} asked; made by ${made}`;
 }
 
 // files: {fmt: {url, bytes}} -- every format for the owner, what a link allows for a guest.
