@@ -4,7 +4,8 @@ The bound (a fraction of the diagonal) is the most the output may deviate from t
 surface, two-sided, in mm, measured at the points the contract names: every input vertex
 to the output surface, every output vertex, edge midpoint and triangle centroid to the
 input surface. The decimation checks itself (``miss.deviation.bound_check``, on the new
-edges and triangles only); these tests measure those points again, on every edge and
+edges and triangles only; a schroeder model, within its bound by construction, without
+the triangles' centroids); these tests measure all those points again, on every edge and
 triangle of the output, with nothing of the check's bookkeeping.
 
 Between those points two surfaces can part further (a new edge along a wavy input surface,
@@ -287,3 +288,35 @@ def miss_surface(datasets) -> Mesh:
 
     volume = load_volume(datasets / "ct_head_stanford_cthead" / "CThead.nhdr")
     return extract_surface(volume, 1500.0, normals=False)
+
+
+def test_a_schroeder_model_is_checked_at_the_contracts_points(monkeypatch) -> None:
+    """A model schroeder made is within its bound by construction: its check measures the
+    contract's points (every input vertex, every new edge's midpoint), not the new
+    triangles' centroids too; a quadric model (the paper's schedule) is held only where it
+    is measured, so its check keeps them. The max is the same either way here."""
+    import miss.deviation as deviation
+
+    asked: list[bool] = []
+    real = deviation.bound_check
+
+    def spy(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+        asked.append(args[5] if len(args) > 5 else kwargs.get("centroids", True))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(deviation, "bound_check", spy)
+    mesh = scene("sphere", 0, 0.2, 0)
+    out, report = decimate(mesh, "quadric", reduce=0.9, error_bound=0.002)
+    assert report.finished_with == "schroeder" and asked == [False]
+    asked.clear()
+    _, paper = decimate(mesh, "quadric", reduce=0.9, error_bound=0.002, schedule="paper")
+    assert paper.finished_with == "quadric" and asked[0] is True
+
+    from miss.decimate.schroeder import schroeder
+
+    bound_mm = report.bound_mm
+    faces, _ = schroeder(mesh, 0.9, bound_mm / 8, bound_mm)  # what decimate ran, uncompacted
+    full, lean = real(mesh, faces), real(mesh, faces, centroids=False)
+    assert len(lean.faces) == len(lean.face_mm) == 0 < len(full.face_mm)
+    assert np.array_equal(lean.edges, full.edges) and np.array_equal(lean.edge_mm, full.edge_mm)
+    assert lean.max_mm == full.max_mm == report.max_error_mm
