@@ -300,7 +300,7 @@ def test_a_schroeder_model_is_checked_at_the_contracts_points(monkeypatch) -> No
     asked: list[bool] = []
     real = deviation.bound_check
 
-    def spy(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+    def spy(*args: object, **kwargs: object) -> deviation.BoundCheck:
         asked.append(args[5] if len(args) > 5 else kwargs.get("centroids", True))
         return real(*args, **kwargs)
 
