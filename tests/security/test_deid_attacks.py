@@ -65,9 +65,17 @@ RANDOM = re.compile(
 )
 
 
+#: Words of the API itself that spell a test's secret: the decimation method that made a
+#: model (``"finished_with": "schroeder"`` holds "roe"), as a whole JSON string only.
+VOCABULARY = ('"schroeder"',)
+
+
 def without_random(text: str, token: str) -> str:
-    """``text`` with the share token (random base64, which once held "roe") and the other
-    random strings above replaced by placeholders."""
+    """``text`` with the share token (random base64, which once held "roe"), the other
+    random strings above and the API's own words that spell a secret replaced by
+    placeholders."""
+    for word in VOCABULARY:
+        text = text.replace(word, '"WORD"')
     return RANDOM.sub("#", text.replace(token, "TOKEN"))
 
 
