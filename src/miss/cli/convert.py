@@ -148,7 +148,7 @@ def _print(summary: dict[str, Any]) -> None:
     if d.get("bound_held"):
         error += f" within the bound {d['bound_mm']:.3f} mm; stopped by {d['stopped_by']}"
     # the method that made the model (a held bound is schroeder's, whatever was asked for)
-    method = d.get("finished_with") or d["method"]
+    method = d["finished_with"]
     print(
         f"{summary['triangles']} triangles, {summary['vertices']} vertices in {len(parts)} "
         f"part(s) ({d['triangles_before']} before {method} decimation; {error})"
