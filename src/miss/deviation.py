@@ -506,13 +506,13 @@ def between(before: Mesh, after: Mesh, samples: int, seed: int) -> float:
     random points inside its triangles to ``after`` (area-weighted, ``seed``). For tests
     and benchmarks that check a bound is held everywhere, not only where it is checked."""
     rng = np.random.default_rng(seed)
-    v, e = after.vertices.astype(np.float64), _edge_list(after.faces)
+    v, e = after.vertices.astype(np.float64), _edge_list(after)
     steps = np.arange(1, 8) / 8.0
     along = v[e[:, 0], None, :] * (1.0 - steps)[:, None] + v[e[:, 1], None, :] * steps[:, None]
     back = distances_to(
         np.concatenate([along.reshape(-1, 3), sample_surface(after, samples, rng)]), before
     )
-    w, g = before.vertices.astype(np.float64), _edge_list(before.faces)
+    w, g = before.vertices.astype(np.float64), _edge_list(before)
     there = distances_to(
         np.concatenate([0.5 * (w[g[:, 0]] + w[g[:, 1]]), sample_surface(before, samples, rng)]),
         after,
@@ -520,10 +520,11 @@ def between(before: Mesh, after: Mesh, samples: int, seed: int) -> float:
     return max(float(back.max()), float(there.max()))
 
 
-def _edge_list(faces: np.ndarray) -> np.ndarray:
-    """(E, 2) unique undirected edges of ``faces``."""
-    both = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-    return np.unique(np.sort(both, axis=1), axis=0)
+def _edge_list(mesh: Mesh) -> np.ndarray:
+    """(E, 2) the edges of ``mesh``, each once: :func:`_unique_edges` against no input."""
+    n = mesh.n_vertices
+    none = np.empty((0, 3), dtype=np.int32), np.zeros(n + 1, np.int64), np.empty(0, np.int32)
+    return _unique_edges(np.ascontiguousarray(mesh.faces), n, *none)
 
 
 def _both_sides(a: Mesh, b: Mesh, samples: int, seed: int) -> tuple:

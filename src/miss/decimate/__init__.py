@@ -28,7 +28,8 @@ Schedules
     not only where it is measured. quadric's target error is an estimate no check at
     points can turn into a bound. Every run is also checked
     (:func:`miss.deviation.bound_check`: every dropped input vertex to the output, every
-    new output edge's and triangle's middle to the input); a few input vertices out of
+    new output edge's middle to the input, and for quadric's models every new triangle's
+    centroid too); a few input vertices out of
     bound are put back (:func:`_put_back`) and the result checked again; otherwise the
     region out of bound is locked and the run repeated (after seven runs the input is
     kept), so the bound reported as held was measured to hold as well.
