@@ -11,16 +11,18 @@ triangles whose box is farther than the best triangle so far, and stops once the
 nearer than the outside of the searched block (Ericson's closest-point-on-triangle for each
 candidate). Queries run in parallel (numba) grouped by blocks of cells, so neighbouring
 queries share cached triangles, and write their answers in that order (points that come
-in a mesh's order, as :func:`bound_check`'s do, are neighbours already and go as they
-come). Zero-area triangles count by their edges; checked against brute force in
-tests/test_deviation.py.
+in a mesh's order, as :func:`bound_check`'s and a deviation's on the undecimated surface
+do, are neighbours already and go as they come). Zero-area triangles count by their edges;
+checked against brute force in tests/test_deviation.py.
 
 :func:`deviation` draws the same samples as :func:`sample_surface` (so the same figures) but
-keeps them in vertex and triangle order, and makes the larger surface's grid in a second
-thread while it samples and searches the other. On CThead's bone (545 796 triangles against
+keeps them in vertex and triangle order, and makes one surface's grid in a second thread
+while it samples the other (the decimated one's, when the undecimated one's half was made
+while it was decimated: :func:`side_of`). On CThead's bone (545 796 triangles against
 its 10 % decimation, 100 000 samples a side, 2 shared cores), medians right after the job:
 0.10 s against 0.18 s before these changes (5858f1f), with the same samples and distances
-(``benchmarks/measure.py``, results/measure.md). ``vtkImplicitPolyDataDistance``, used
+(``benchmarks/measure.py``, results/measure.md); with that half made: 0.090 s against
+0.101 s before the grid and the order above (25 alternating runs, the same figures). ``vtkImplicitPolyDataDistance``, used
 before the grid, took 0.57 s for the 100 000 points of one side alone, serially.
 """
 
@@ -485,15 +487,11 @@ def deviation(
     ``side``: ``a``'s half made already (:func:`side_of`, the same ``samples`` and ``seed``)."""
     if a.n_triangles == 0 or b.n_triangles == 0:
         return Deviation(0.0, 0.0, 0)
-    if side is not None:
-        rng = np.random.default_rng()
-        rng.bit_generator.state = side.state
-        points_a, grid_a = side.points, side.grid
-        points_b = _sample(b, samples, rng, drawn=False)
-        grid_b = surface_grid(b)
-    else:
-        points_a, points_b, grid_a, grid_b = _both_sides(a, b, samples, seed)
-    d_ab = distances_to(points_a, b, grid=grid_b)
+    points_a, points_b, grid_a, grid_b = _both_sides(a, b, samples, seed, side)
+    # a's points come in a's own order (corners by vertex, the others by triangle): for an
+    # extracted surface, neighbours together, searched as they come (a fifth faster on
+    # CThead than sorting them by cell first); b's (a decimation's order) are sorted
+    d_ab = distances_to(points_a, b, grid=grid_b, ordered=True)
     d_ba = distances_to(points_b, a, grid=grid_a)
     both = np.concatenate([d_ab, d_ba])
     return Deviation(max_mm=float(both.max()), mean_mm=float(both.mean()), samples=len(both))
@@ -527,18 +525,24 @@ def _edge_list(mesh: Mesh) -> np.ndarray:
     return _unique_edges(np.ascontiguousarray(mesh.faces), n, *none)
 
 
-def _both_sides(a: Mesh, b: Mesh, samples: int, seed: int) -> tuple:
-    """Points on ``a`` and on ``b``, and their grids, for :func:`deviation`."""
-    rng = np.random.default_rng(seed)
+def _both_sides(a: Mesh, b: Mesh, samples: int, seed: int, side: Side | None) -> tuple:
+    """Points on ``a`` and on ``b``, and their grids, for :func:`deviation` (``a``'s from
+    ``side`` when it is made already). The same points as :func:`sample_surface`'s,
+    neighbours together: max and mean are the same."""
     with ThreadPoolExecutor(max_workers=1) as pool:
-        # a's cells (a is the larger surface, as a rule) are made on the second core while
-        # this one samples both and makes b's; the searches, on both cores, come after
-        making = pool.submit(surface_grid, a)
-        # the same points as sample_surface's, neighbours together: max and mean are the same
-        points_a = _sample(a, samples, rng, drawn=False)
+        if side is None:
+            rng = np.random.default_rng(seed)
+            # a's cells (a is the larger surface, as a rule) are made on the second core
+            # while this one samples both and makes b's; the searches, on both cores, after
+            making = pool.submit(surface_grid, a)
+            points_a = _sample(a, samples, rng, drawn=False)
+            points_b = _sample(b, samples, rng, drawn=False)
+            return points_a, points_b, making.result(), surface_grid(b)
+        rng = np.random.default_rng()
+        rng.bit_generator.state = side.state
+        making = pool.submit(surface_grid, b)  # b's cells on the second core while it samples
         points_b = _sample(b, samples, rng, drawn=False)
-        grid_b = surface_grid(b)
-        return points_a, points_b, making.result(), grid_b
+        return side.points, points_b, side.grid, making.result()
 
 
 @njit(cache=True, nogil=True)
