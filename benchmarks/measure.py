@@ -538,27 +538,8 @@ def main(argv: list[str] | None = None) -> int:
         "ones:\n\n" + markdown_table(PIPELINE_HEADER, piped) + "\n"
     )
     print(table + note)
-    out = args.out or RESULTS
-    if out == RESULTS:
-        save(
-            "measure",
-            {
-                "cases": data,
-                "header": HEADER,
-                "rows": rows,
-                "default": default,
-                "pipeline": piped,
-            },  # fmt: skip
-            table + note,
-        )
-    else:
-        out.mkdir(parents=True, exist_ok=True)
-        (out / "measure.json").write_text(
-            json.dumps(
-                {"cases": data, "rows": rows, "default": default, "pipeline": piped}, indent=1
-            )
-        )
-        (out / "measure.md").write_text(table + note)
+    result = {"cases": data, "header": HEADER, "rows": rows, "default": default, "pipeline": piped}
+    save("measure", result, table + note, args.out or RESULTS)
     return 0
 
 

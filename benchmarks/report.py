@@ -214,6 +214,33 @@ def cli_targets(cli: dict[str, Any]) -> list[str]:
     return lines
 
 
+def measure_targets(result: dict[str, Any]) -> list[str]:
+    """The error measurement's share of the job it measures (benchmarks/measure.py): the
+    default job's check, and the sampled measurement of a paper-schedule job after its
+    files, warm and as a fresh process (target <= 15 % each)."""
+    from measure import DEFAULT_HEADER, PIPELINE_HEADER
+
+    def shares(rows: list[list[Any]], header: list[str], column: str) -> list[float]:
+        return [float(r[header.index(column)]) for r in rows]
+
+    def said(values: list[float]) -> str:
+        return " / ".join(f"{v:.1f}" for v in values)
+
+    names = ", ".join(r[0] for r in result["default"])
+    check = [shares(result["default"], DEFAULT_HEADER, f"share % ({k})") for k in ("warm", "fresh")]
+    added = [
+        shares(result["pipeline"], PIPELINE_HEADER, f"added % ({k})") for k in ("warm", "fresh")
+    ]
+    return [
+        f"- Error measurement, the default job's check ({names}): {said(check[0])} % of the "
+        f"warm job, {said(check[1])} % fresh (target <= 15 %): "
+        f"{_yes(max(check[0] + check[1]) <= 15.0)}.",
+        f"- Error measurement, a paper-schedule job measured after its files (100 000 sampled "
+        f"points a side, the figures before issue 14): adds {said(added[0])} % warm, "
+        f"{said(added[1])} % fresh (target <= 15 %): {_yes(max(added[0] + added[1]) <= 15.0)}.",
+    ]
+
+
 def first_pixels_targets(result: dict[str, Any]) -> list[str]:
     """Generate -> pixels in chromium (benchmarks/first_pixels.py), this tree's server."""
     runs = next(iter(result["runs"].values()))
@@ -251,6 +278,7 @@ SECTIONS: tuple[tuple[str, str, Callable[[dict[str, Any]], list[str]]], ...] = (
     ("bounds", "Error bounds that hold (`benchmarks/bounds.py`)", bounds_targets),
     ("peers", "Beside the peers (`benchmarks/peers.py`)", peer_targets),
     ("cli", "Commands as a person feels them (`benchmarks/cli.py`)", cli_targets),
+    ("measure", "The error measurement's share (`benchmarks/measure.py`)", measure_targets),
     ("first_pixels", "Generate to pixels (`benchmarks/first_pixels.py`)", first_pixels_targets),
     ("scaling", "Scaling (`benchmarks/scaling.py`)", scaling_targets),
     ("robustness", "Bad input (`benchmarks/robustness.py`)", robustness_targets),

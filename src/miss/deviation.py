@@ -22,8 +22,9 @@ while it was decimated: :func:`side_of`). On CThead's bone (545 796 triangles ag
 its 10 % decimation, 100 000 samples a side, 2 shared cores), medians right after the job:
 0.10 s against 0.18 s before these changes (5858f1f), with the same samples and distances
 (``benchmarks/measure.py``, results/measure.md); with that half made: 0.090 s against
-0.101 s before the grid and the order above (25 alternating runs, the same figures). ``vtkImplicitPolyDataDistance``, used
-before the grid, took 0.57 s for the 100 000 points of one side alone, serially.
+0.101 s before the grid and the order above (25 alternating runs, the same figures).
+``vtkImplicitPolyDataDistance``, used before the grid, took 0.57 s for the 100 000 points of
+one side alone, serially.
 """
 
 from __future__ import annotations
