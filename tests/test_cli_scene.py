@@ -79,6 +79,21 @@ def test_info_lists_the_labels_of_a_label_map_with_names(datasets: Path) -> None
     assert info["label_table"].startswith("NIfTI header label table")
 
 
+def test_info_sums_up_an_8_bit_image_that_passes_for_a_label_map(datasets: Path) -> None:
+    # a windowed CT stored as uint8: every value 1..255 would be a "label" line of its own
+    path = datasets / "nifti" / "CT_pitch.nii.gz"
+    lines = miss("info", str(path)).stdout.splitlines()
+    assert len(lines) < 10
+    (summary,) = [line for line in lines if line.startswith("label")]
+    assert summary.startswith("labels    253 values besides 0 (1 .. 255), none named")
+    assert len(json.loads(miss("info", str(path), "--json").stdout)["labels"]) == 253
+
+
+def test_info_lists_each_label_of_a_small_label_map(datasets: Path) -> None:
+    lines = miss("info", str(datasets / "labels_frogtissue" / "frogtissue.mhd")).stdout
+    assert sum(line.startswith("label     ") for line in lines.splitlines()) == 25
+
+
 def test_info_of_a_scan_lists_no_labels(demo_file: Path) -> None:
     assert "labels" not in json.loads(miss("info", str(demo_file), "--json").stdout)
 

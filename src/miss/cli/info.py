@@ -49,9 +49,23 @@ def cmd_info(args: argparse.Namespace) -> int:
         print(f"series    {s.get('uid')}  {s.get('slices')} slices  {s.get('description', '')}")
     for note in desc["notes"]:
         print(f"note      {note}")
-    for item in desc.get("labels", []):
+    labels = desc.get("labels", [])
+    if len(labels) > LISTED and desc.get("label_table") is None:
+        # an 8-bit image (a windowed CT, a scout) passes for a label map of every value it
+        # holds: a line for each of them tells the reader nothing
+        print(
+            f"labels    {len(labels)} values besides 0 ({labels[0]['label']} .. "
+            f"{labels[-1]['label']}), none named: an image, or a label map of that many "
+            "labels (--json lists each)"
+        )
+        return 0
+    for item in labels:
         print(f"label     {item['label']:<5} {item['voxels']:>10} voxels  {item['name'] or ''}")
     return 0
+
+
+#: More labels than this, none of them named, are summed up in one line, not listed.
+LISTED = 64
 
 
 def label_listing(volume: Any, path: str) -> dict[str, Any]:
