@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import Protocol
 
 from miss.server.jobs.state import JobState
-from miss.server.storage.db import ModelRow
+from miss.server.storage.db import RUNNING, ModelRow
 from miss.server.storage.store import Store
 
 log = logging.getLogger("miss.server.jobs")
@@ -36,6 +36,9 @@ MAX_ATTEMPTS = 2
 #: Seconds an idle thread sleeps before looking at the database again (jobs queued by
 #: another process, or a wake-up missed).
 POLL_SECONDS = 2.0
+#: How often a job's thread looks whether its model can be drawn yet (then the next spare
+#: worker starts warming up).
+DRAWABLE_POLL_SECONDS = 0.25
 #: Seconds between looks for jobs of server processes that are gone (PostgreSQL only).
 REAP_SECONDS = 5.0
 
@@ -139,8 +142,9 @@ class Running(Protocol):
 class Runner(Protocol):
     """Where a queued job runs: ``start`` it and hand back its :class:`Running`. The job
     itself (``miss.server.jobs.worker.run_job``) records its outcome in the database; an exit
-    code other than 0 without one is a crash the queue records. ``prepare`` (called by each
-    queue thread before it waits for work) may get workers ready ahead; ``close`` ends them."""
+    code other than 0 without one is a crash the queue records. ``prepare`` (called by a
+    queue thread before it waits for work while no job runs, and by a job's thread once
+    its model can be drawn) may get workers ready ahead; ``close`` ends them."""
 
     def start(self, model_id: str) -> Running: ...
 
@@ -228,7 +232,8 @@ class JobQueue:
     def _loop(self) -> None:
         while not self._stopping.is_set():
             try:
-                self.runner.prepare()
+                if not self._running:  # a running job's thread does it once it is drawn
+                    self.runner.prepare()
                 row = self.state.claim_next()
                 if row is None:
                     with self._wake:
@@ -267,7 +272,7 @@ class JobQueue:
         self.state.set_pid(model_id, proc.pid)
         log.info("job %s started in process %d", model_id, proc.pid)
         try:
-            code = proc.wait()
+            code = self._wait(model_id, proc)
         finally:
             self._running.pop(model_id, None)
         log.info("job %s: worker ended with code %d", model_id, code)
@@ -288,6 +293,27 @@ class JobQueue:
                 model_id, "worker ended without recording a result; see its worker.log."
             )
 
+    def _wait(self, model_id: str, proc: Running) -> int:
+        """The worker's exit code. Meanwhile, once the job's model can be drawn (its GLB, or
+        its levels of detail, in place: the rest is the other formats and the error), the
+        runner gets its next worker ready, not before: a spare warming up beside the job,
+        at the job's own priority, had slowed its first seconds (the read, the preview)
+        while the browser loaded the viewer."""
+        while proc.poll() is None and not self._stopping.is_set():
+            if self._drawable(model_id):
+                self.runner.prepare()
+                break
+            self._stopping.wait(DRAWABLE_POLL_SECONDS)
+        return proc.wait()
+
+    def _drawable(self, model_id: str) -> bool:
+        """Whether the job's model can be drawn, or the job has ended."""
+        with self.store.session() as s:
+            row = s.get(ModelRow, model_id)
+        if row is None or row.status != RUNNING:
+            return True
+        return "glb" in (row.files or {}) or "lod" in (row.stats or {})
+
     def _record(self, model_id: str, seconds: float) -> None:
         if self._stopping.is_set():
             self.on_finished("requeued", seconds)
@@ -306,7 +332,9 @@ class WorkerProcess:
 
     ``spares`` processes are started ahead: each imports and warms up everything a job
     uses (``worker.warm_up``), then waits on its stdin for a model id, so a job starts
-    computing at once instead of a second later. Still one job a process, with the same
+    computing at once instead of seconds later. The one that replaces a spare given a job
+    is started once that job's model can be drawn (:meth:`JobQueue._wait`), not beside
+    its first seconds. Still one job a process, with the same
     memory cap and the same log. Spares are started by the queue's own threads, which live
     as long as the server: Linux sends a worker's death signal when the *thread* that
     started it ends (``PR_SET_PDEATHSIG``).
@@ -326,7 +354,6 @@ class WorkerProcess:
         proc = self._spare_for(model_id)
         if proc is None:
             proc = self._spawn(model_id, folder / "worker.log")
-        self.prepare()
         return proc
 
     def prepare(self) -> None:
