@@ -10,6 +10,7 @@ import signal
 import struct
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -20,6 +21,7 @@ from fastapi.testclient import TestClient
 from miss.demo import phantom
 from miss.export import FORMATS
 from miss.pipeline import PREVIEW, JobResult, run
+from miss.server.jobs import JobQueue
 from miss.server.jobs.state import JobState
 from miss.server.jobs.worker import DataFolder
 from miss.server.schemas import model_out
@@ -213,3 +215,63 @@ def test_a_spare_worker_has_loaded_what_reading_a_stored_volume_needs(tmp_path: 
     )
     out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]"
+
+
+class _Runner:
+    """Counts how often the queue asks for workers to be got ready."""
+
+    def __init__(self) -> None:
+        self.prepared = 0
+
+    def start(self, model_id: str) -> Any:
+        raise AssertionError("not used")
+
+    def prepare(self) -> None:
+        self.prepared += 1
+
+    def close(self) -> None:
+        return None
+
+
+class _Worker:
+    """A job's worker that ends when the test says so."""
+
+    pid = 0
+
+    def __init__(self) -> None:
+        self.code: int | None = None
+
+    def poll(self) -> int | None:
+        return self.code
+
+    def wait(self) -> int:
+        while self.code is None:
+            time.sleep(0.01)
+        return self.code
+
+
+def test_the_next_spare_starts_once_the_running_jobs_model_can_be_drawn(
+    client: TestClient, demo_id: str
+) -> None:
+    """Not beside the job's first seconds (a spare's warm-up runs at the job's priority),
+    not after the job (a job queued behind it would find no spare): at its GLB."""
+    store: Store = client.app.state.store
+    model_id = _running_row(store, demo_id)
+    runner, worker, ended = _Runner(), _Worker(), []
+    queue = JobQueue(store, runner=runner)
+    waiting = threading.Thread(target=lambda: ended.append(queue._wait(model_id, worker)))
+    waiting.start()
+    folder = DataFolder(store.model_dir(model_id), JobState(store), model_id)
+    time.sleep(0.6)
+    assert runner.prepared == 0  # computing: nothing to draw yet
+    folder.put(PREVIEW, b"glTF preview bytes")
+    time.sleep(0.6)
+    assert runner.prepared == 0  # a preview is not the model
+    folder.put("glb", b"glTF model bytes")
+    deadline = time.monotonic() + 10
+    while runner.prepared == 0 and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert runner.prepared == 1
+    worker.code = 0
+    waiting.join(timeout=10)
+    assert ended == [0] and runner.prepared == 1
