@@ -300,8 +300,12 @@ class JobQueue:
         at the job's own priority, had slowed its first seconds (the read, the preview)
         while the browser loaded the viewer."""
         while proc.poll() is None and not self._stopping.is_set():
-            if self._drawable(model_id):
-                self.runner.prepare()
+            try:
+                if self._drawable(model_id):
+                    self.runner.prepare()
+                    break
+            except Exception:  # never costs the job its supervision: the loop does it after
+                log.exception("job %s: getting the next worker ready", model_id)
                 break
             self._stopping.wait(DRAWABLE_POLL_SECONDS)
         return proc.wait()
