@@ -275,3 +275,25 @@ def test_the_next_spare_starts_once_the_running_jobs_model_can_be_drawn(
     worker.code = 0
     waiting.join(timeout=10)
     assert ended == [0] and runner.prepared == 1
+
+
+def test_a_job_is_still_waited_for_when_the_next_spare_cannot_start(
+    client: TestClient, demo_id: str
+) -> None:
+    class Failing(_Runner):
+        def prepare(self) -> None:
+            raise OSError("Resource temporarily unavailable (fork)")
+
+    store: Store = client.app.state.store
+    model_id = _running_row(store, demo_id)
+    DataFolder(store.model_dir(model_id), JobState(store), model_id).put("glb", b"glTF")
+    worker, ended = _Worker(), []
+    waiting = threading.Thread(
+        target=lambda: ended.append(JobQueue(store, runner=Failing())._wait(model_id, worker))
+    )
+    waiting.start()
+    time.sleep(0.5)
+    assert waiting.is_alive()  # still waiting for the worker
+    worker.code = 0
+    waiting.join(timeout=10)
+    assert ended == [0]
