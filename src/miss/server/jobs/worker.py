@@ -375,7 +375,9 @@ def warm_up() -> None:
     from miss.types import Volume
 
     head = phantom(40, spacing=5.0)
-    with tempfile.TemporaryDirectory(prefix="miss-warm-") as tmp:
+    # best effort: a temporary folder that cannot be written (full, read-only) leaves the
+    # read to load on the first job, not a spare that dies
+    with contextlib.suppress(OSError, MissError), tempfile.TemporaryDirectory() as tmp:
         stored = Path(tmp) / "voxels"
         chunked.write_array(stored, head.data, {"affine": head.affine.tolist()})
         chunked.read(stored, in_memory_max=head.data.nbytes)
