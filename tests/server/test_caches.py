@@ -193,6 +193,8 @@ def test_the_event_loop_never_waits_for_the_database(
     selects: list[str] = []
 
     def seen(_conn: Any, _cursor: Any, statement: str, *_: Any) -> None:
+        if threading.current_thread().name.startswith("miss-jobs-"):
+            return  # the job queue's own bookkeeping of the job just done: no viewer's
         try:
             asyncio.get_running_loop()
             on_loop.append(statement)
