@@ -135,7 +135,11 @@ def test_upload_from_library_lists_the_volume(page: Any, uploaded: dict[str, Any
     assert "128 × 128 × 128" in card.inner_text()
     thumb = card.locator("img")
     thumb.wait_for()
-    assert page.evaluate("img => img.naturalWidth > 0", thumb.element_handle())
+    # The thumbnail loads lazily: wait until the browser has finished with it (loaded or
+    # broken), then ask whether it decoded to an image.
+    handle = thumb.element_handle()
+    page.wait_for_function("img => img.complete", arg=handle)
+    assert page.evaluate("img => img.naturalWidth > 0", handle)
 
 
 def test_threshold_drag_retints_the_slices(
