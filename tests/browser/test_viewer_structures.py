@@ -87,6 +87,8 @@ def test_structures_in_the_viewer(page: Any, server: Any, artifacts: Path) -> No
     assert parts[1]["color"] == "#d9a07f"  # chosen on the volume page
     assert parts[0]["color"] != "#d9a07f"  # untouched: the server's bone colour
     assert all(p["volume_ml"] > 0 and p["area_cm2"] > 0 for p in parts)
+    # The opaque bone bounds a solid: its front faces alone; the translucent skin: both sides.
+    assert page.evaluate("() => window.__miss.sides") == ["front", "double"]
     names = page.locator("#structure-list .part-name").all_inner_texts()
     assert names == ["bone", "skin"]
 
@@ -126,6 +128,7 @@ def test_structures_in_the_viewer(page: Any, server: Any, artifacts: Path) -> No
         "axis": "axial",
         "fraction": 0.3,
     }
+    assert page.evaluate("() => window.__miss.sides") == ["double", "double"]  # cut open
 
     # Click the lower middle (what the cut leaves): a part is selected and its measures shown.
     box = page.locator("#stage canvas").bounding_box()
@@ -262,3 +265,107 @@ def test_one_model_page_for_its_owner_and_a_links_guests(
         finally:
             context.close()
         assert not errors, errors
+
+
+def test_a_closed_surface_draws_its_front_faces_and_looks_the_same(
+    page: Any, server: Any, artifacts: Path
+) -> None:
+    """The demo's head at a bone level is a closed surface: the viewer draws its front
+    faces only (about 40 % of a software-WebGL frame saved), which must not change the
+    picture; a clipping plane, which opens it, brings both sides back."""
+    volume = demo_volume(server)
+    job = server.post("/api/models", {"volume": volume["id"], "level": 300, "sample_rate": 2})
+    assert server.wait_model(job["id"], timeout=180)["status"] == "done"
+    page.goto(f"/models/{job['id']}")
+    page.wait_for_function("() => window.__miss.ready && window.__miss.mode === 'glb'")
+    assert page.evaluate("() => window.__miss.sides") == ["front"]
+    front = canvas(page, artifacts / "sides-front.png")
+
+    # A clipping plane at the model's far end cuts nothing: both sides are drawn, and the
+    # picture is the one drawn with the front faces alone (but for a few silhouette pixels,
+    # where a back face at the same depth may win).
+    page.select_option("#clip-axis", "axial")
+    page.evaluate(SET_RANGE, ["#clip-position", 1])
+    assert page.evaluate("() => window.__miss.sides") == ["double"]
+    both = canvas(page, artifacts / "sides-double.png")
+    assert changed(front, both) < 0.002
+
+    # Halfway, the cut shows the inside (back faces): the picture changes.
+    page.evaluate(SET_RANGE, ["#clip-position", 0.5])
+    assert changed(front, canvas(page, artifacts / "sides-cut.png")) > 0.01
+    page.select_option("#clip-axis", "")
+    assert page.evaluate("() => window.__miss.sides") == ["front"]
+    assert changed(front, canvas(page)) < 0.002
+
+
+#: Builds a geometry from positions and triangles (or none: not indexed), optionally
+#: stored as the server's quantised GLB stores it (uint16 xyz + pad, 8-byte stride).
+OUTWARD_CLOSED = """async ([positions, triangles, quantised]) => {
+    const THREE = await import('/vendor/three/build/three.module.js');
+    const { outwardClosed } = await import('/static/js/viewer/closed.js');
+    const g = new THREE.BufferGeometry();
+    if (quantised) {
+        const data = new Uint16Array(positions.length / 3 * 4);
+        positions.forEach((v, i) => { data[Math.floor(i / 3) * 4 + i % 3] = v; });
+        const buffer = new THREE.InterleavedBuffer(data, 4);
+        g.setAttribute('position', new THREE.InterleavedBufferAttribute(buffer, 3, 0));
+    } else {
+        g.setAttribute('position', new THREE.Float32BufferAttribute(positions, 3));
+    }
+    if (triangles) g.setIndex(triangles);
+    return outwardClosed(g);
+}"""
+
+CUBE = [0, 0, 0, 1, 0, 0, 1, 1, 0, 0, 1, 0, 0, 0, 1, 1, 0, 1, 1, 1, 1, 0, 1, 1]
+#: Counter-clockwise seen from outside (normals out).
+CUBE_FACES = [
+    *(0, 2, 1, 0, 3, 2),  # z = 0, facing -z
+    *(4, 5, 6, 4, 6, 7),  # z = 1
+    *(0, 1, 5, 0, 5, 4),  # y = 0
+    *(3, 7, 6, 3, 6, 2),  # y = 1
+    *(0, 4, 7, 0, 7, 3),  # x = 0
+    *(1, 2, 6, 1, 6, 5),  # x = 1
+]
+
+
+def _reversed(faces: list[int]) -> list[int]:
+    return [v for t in range(0, len(faces), 3) for v in (faces[t], faces[t + 2], faces[t + 1])]
+
+
+@pytest.mark.parametrize(
+    ("name", "positions", "faces", "quantised", "expected"),
+    [
+        ("closed cube, wound outward", CUBE, CUBE_FACES, False, True),
+        (
+            "the same, quantised as the server's GLB",
+            [v * 65535 for v in CUBE],
+            CUBE_FACES,
+            True,
+            True,
+        ),
+        ("turned inside out", CUBE, _reversed(CUBE_FACES), False, False),
+        ("one face missing", CUBE, CUBE_FACES[:-6], False, False),
+        (
+            "one triangle wound the other way",
+            CUBE,
+            _reversed(CUBE_FACES[:3]) + CUBE_FACES[3:],
+            False,
+            False,
+        ),
+        ("a triangle twice (three on its edges)", CUBE, CUBE_FACES + CUBE_FACES[:3], False, False),
+        ("a degenerate triangle", CUBE, CUBE_FACES + [0, 0, 1], False, False),
+        (
+            "not indexed",
+            [CUBE[3 * v + k] for v in CUBE_FACES for k in range(3)],
+            None,
+            False,
+            False,
+        ),
+    ],
+)
+def test_outward_closed_only_for_a_closed_surface_facing_out(
+    page: Any, name: str, positions: list[float], faces: list[int] | None, quantised: bool,
+    expected: bool,
+) -> None:  # fmt: skip
+    page.goto("/login")
+    assert page.evaluate(OUTWARD_CLOSED, [positions, faces, quantised]) is expected, name

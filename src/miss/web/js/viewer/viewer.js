@@ -10,6 +10,7 @@ import { VRMLLoader } from 'three/addons/loaders/VRMLLoader.js';
 import { MeshoptDecoder } from 'three/addons/libs/meshopt_decoder.module.js';
 import { OrientationGizmo } from './gizmo.js';
 import { TiledModel } from './tiles.js';
+import { outwardClosed } from './closed.js';
 import { status } from '../test-hooks.js';
 
 // Patient LPS millimetres to glTF's Y-up metres: Left -> +X, Superior -> +Y,
@@ -23,7 +24,8 @@ const LPS_TO_GLTF = new THREE.Matrix4().set(
 
 export const BACKGROUNDS = { dark: '#1b2128', light: '#f3f5f7' };
 
-// A bone-ivory surface; both sides lit because a cut (start/end slice) opens the skull.
+// A bone-ivory surface, both sides lit where its inside can show (the clipping plane, an
+// open surface): updateSides draws a closed one's front faces only.
 function boneMaterial() {
 	return new THREE.MeshStandardMaterial( { color: 0xe9dfc8, roughness: 0.6, metalness: 0, side: THREE.DoubleSide } );
 }
@@ -263,9 +265,12 @@ export class ModelViewer {
 			const extras = { ...o.userData };
 			// A tile's measures are its own fragment's: the panel takes the model's from its stats.
 			if ( tiles ) for ( const key of [ 'volume_ml', 'area_cm2' ] ) delete extras[ key ];
-			return { name: o.name || `part ${i + 1}`, mesh: o, material: o.material, extras };
+			// A tile is a piece of the surface: open where it meets the others.
+			const closed = ! tiles && outwardClosed( o.geometry );
+			return { name: o.name || `part ${i + 1}`, mesh: o, material: o.material, extras, closed };
 		} );
 		for ( const p of this.parts ) p.material.clippingPlanes = this.clipping ? [ this.clipPlane ] : null;
+		this.updateSides();
 		this.clear();
 		this.model = object;
 		this.tiles = tiles;
@@ -349,6 +354,21 @@ export class ModelViewer {
 		this.selected = null;
 	}
 
+	// Which faces each part draws: its front faces only when it bounds a solid, is opaque
+	// and is not cut by the clipping plane (then, from anywhere outside the solid, a back
+	// face is always behind a front one); both sides otherwise, so that a cut, an open
+	// surface or a translucent shell shows its inside. A frame of a closed skull costs
+	// about 40 % less in software WebGL.
+	updateSides() {
+		for ( const p of this.parts ) {
+			const side = p.closed && ! this.clipping && p.material.opacity >= 1 ? THREE.FrontSide : THREE.DoubleSide;
+			if ( p.material.side === side ) continue;
+			p.material.side = side;
+			p.material.needsUpdate = true;
+		}
+		status.sides = this.parts.map( ( p ) => ( p.material.side === THREE.FrontSide ? 'front' : 'double' ) );
+	}
+
 	// --- structures: visibility, colour, opacity, selection, clipping ---
 
 	setPartVisible( index, visible ) {
@@ -372,6 +392,7 @@ export class ModelViewer {
 		p.material.transparent = opacity < 1;
 		p.material.depthWrite = opacity >= 1;
 		p.material.needsUpdate = true;
+		this.updateSides();
 		this.requestRender();
 	}
 
@@ -417,6 +438,7 @@ export class ModelViewer {
 			m.clippingPlanes = planes;
 			m.needsUpdate = true;
 		}
+		this.updateSides();
 		this.requestRender();
 	}
 
