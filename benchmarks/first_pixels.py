@@ -18,7 +18,10 @@ click's time is the event's own timestamp, kept across the move to the viewer pa
   preview draws the full model first);
 - job: the seconds the job itself computed before the full model's GLB existed (read,
   preview, surface, decimation, GLB), from the model's stats; "full - job" is what the
-  waiting, the page and the browser add (the median of each run's own difference).
+  waiting, the page and the browser add (the median of each run's own difference);
+- turn: once the job is done, a drag on the model (the mouse moved 40 px with its button
+  down) -> the first frame with the turned model, the median of 5 drags: what a physician
+  waits for at each step of turning it.
 
 Runs are 5 s apart after each job is done. The first round is not counted (it fills the
 browser's cache, as a user's earlier visits have).
@@ -64,6 +67,8 @@ DRAWN = 0.005
 #: Seconds between one run's finished job and the next click, as a physician looks at a
 #: model before asking for another (a server's spare worker warms up meanwhile).
 LOOK = 5.0
+#: Drags measured on each run's finished model.
+TURNS = 5
 
 #: Put in every page before its own scripts: keeps WebGL's drawing buffer and reads the
 #: middle of the canvas once a frame; records the click on Generate.
@@ -72,6 +77,10 @@ PROBE = """
   document.addEventListener('click', (e) => {
     if (e.target.closest && e.target.closest('#generate'))
       sessionStorage.setItem('clickAt', String(performance.timeOrigin + e.timeStamp));
+  }, true);
+  // A drag on the model (turning it): the last move's time.
+  document.addEventListener('pointermove', (e) => {
+    if (e.buttons) window.__turnAt = performance.timeOrigin + e.timeStamp;
   }, true);
   const getContext = HTMLCanvasElement.prototype.getContext;
   HTMLCanvasElement.prototype.getContext = function (type, attrs) {
@@ -198,11 +207,12 @@ def one_run(browser: Any, target: Target, level: int) -> dict[str, Any]:
         click = float(page.evaluate("() => sessionStorage.getItem('clickAt')"))
         frames = page.evaluate("() => window.__probe.frames")
         model_id = page.url.rstrip("/").split("/")[-1].split("?")[0]
+        model = wait_done(target, model_id)
+        turns = turn(page)
     finally:
         context.close()
     drawn = [f for f in frames if f["share"] > DRAWN]
     full = next(f for f in drawn if f["drawn"] != "preview")
-    model = wait_done(target, model_id)
     time.sleep(LOOK)
     seconds = model["stats"]["seconds"]
     # The job's time until the model's GLB existed: reported as such, or (a server that
@@ -218,7 +228,26 @@ def one_run(browser: Any, target: Target, level: int) -> dict[str, Any]:
         "job_s": job,
         "triangles": model["stats"]["triangles"],
         "seconds": seconds,
+        "turn_s": statistics.median(turns),
     }
+
+
+def turn(page: Any) -> list[float]:
+    """Seconds from a drag's move on the drawn model (the job done) until the turned model's
+    pixels, ``TURNS`` times: what a physician waits for at each step of turning it."""
+    box = page.locator("#stage canvas").bounding_box()
+    x, y = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
+    seconds = []
+    for _ in range(TURNS):
+        time.sleep(0.3)
+        page.mouse.move(x, y)
+        page.mouse.down()
+        page.mouse.move(x + 40, y, steps=1)
+        page.wait_for_function("() => window.__probe.frames.some((f) => f.t > window.__turnAt)")
+        at, frames = page.evaluate("() => [window.__turnAt, window.__probe.frames]")
+        page.mouse.up()
+        seconds.append((next(f["t"] for f in frames if f["t"] > at) - at) / 1000)
+    return seconds
 
 
 def wait_done(target: Target, model_id: str, timeout: float = 300) -> dict[str, Any]:
@@ -234,7 +263,9 @@ def wait_done(target: Target, model_id: str, timeout: float = 300) -> dict[str, 
 
 def summary(target: Target) -> list[Any]:
     runs = target.runs
-    med = {k: statistics.median(r[k] for r in runs) for k in ("first_s", "full_s", "job_s")}
+    med = {
+        k: statistics.median(r[k] for r in runs) for k in ("first_s", "full_s", "job_s", "turn_s")
+    }
     kinds = sorted({r["first_kind"] for r in runs})
     return [
         target.name,
@@ -247,6 +278,7 @@ def summary(target: Target) -> list[Any]:
         # difference of the two medians pairs figures from different runs
         statistics.median(r["full_s"] - r["job_s"] for r in runs),
         int(statistics.median(r["triangles"] for r in runs)),
+        med["turn_s"],
     ]
 
 
@@ -273,21 +305,24 @@ def main(argv: list[str] | None = None) -> int:
                     run = one_run(browser, target, BONE + i)
                     if i:
                         target.runs.append(run)
-                    print(target.name, {k: run[k] for k in ("first_s", "full_s", "job_s")})
+                    print(
+                        target.name, {k: run[k] for k in ("first_s", "full_s", "job_s", "turn_s")}
+                    )
             browser.close()
     finally:
         for target in targets:
             target.stop()
         shutil.rmtree(work, ignore_errors=True)
     header = ["server", "runs", "first pixels s", "first drawn", "full model s", "job s",
-              "full - job s", "triangles"]  # fmt: skip
+              "full - job s", "triangles", "turn s"]  # fmt: skip
     rows = [summary(t) for t in targets]
     table = markdown_table(header, rows)
     if len(targets) == 2:
         a, b = rows
         table += (
             f"\nbaseline / this tree: first pixels {b[2] / a[2]:.2f}x, "
-            f"full model {b[4] / a[4]:.2f}x (medians of {args.runs} alternating runs)\n"
+            f"full model {b[4] / a[4]:.2f}x, a turn {b[8] / a[8]:.2f}x "
+            f"(medians of {args.runs} alternating runs)\n"
         )
     print(table)
     save("first_pixels", {"runs": {t.name: t.runs for t in targets}}, table)

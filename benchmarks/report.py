@@ -247,11 +247,17 @@ def first_pixels_targets(result: dict[str, Any]) -> list[str]:
     first = statistics.median(r["first_s"] for r in runs)
     full = statistics.median(r["full_s"] for r in runs)
     job = statistics.median(r["job_s"] for r in runs)
-    return [
+    # each run's own difference, then their median (as the benchmark's table)
+    extra = statistics.median(r["full_s"] - r["job_s"] for r in runs)
+    lines = [
         f"- Generate -> first pixels {first:.2f} s (target <= 1.0 s): {_yes(first <= 1.0)}.",
         f"- Generate -> full model drawn {full:.2f} s, the job's own {job:.2f} s + "
-        f"{full - job:.2f} s (target <= job + 0.5 s): {_yes(full <= job + 0.5)}.",
+        f"{extra:.2f} s (target <= job + 0.5 s): {_yes(extra <= 0.5)}.",
     ]
+    if all("turn_s" in r for r in runs):
+        turn = statistics.median(r["turn_s"] for r in runs)
+        lines.append(f"- A drag on the finished model -> its turned pixels {turn:.2f} s.")
+    return lines
 
 
 def bounds_targets(result: dict[str, Any]) -> list[str]:
