@@ -19,6 +19,9 @@ click's time is the event's own timestamp, kept across the move to the viewer pa
 - job: the seconds the job itself computed before the full model's GLB existed (read,
   preview, surface, decimation, GLB), from the model's stats; "full - job" is what the
   waiting, the page and the browser add (the median of each run's own difference);
+- held: the seconds the job waited, its GLB in place, for the page to say it had drawn
+  the model (``miss.server.jobs.turn``; 0 for a server that does not wait); done: the
+  job's whole time from submission to done, which that wait lengthens;
 - turn: once the job is done, a drag on the model (the mouse moved 40 px with its button
   down) -> the first frame with the turned model, the median of 5 drags: what a physician
   waits for at each step of turning it.
@@ -41,6 +44,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from datetime import datetime
 from pathlib import Path
 from typing import Any
 
@@ -229,6 +233,12 @@ def one_run(browser: Any, target: Target, level: int) -> dict[str, Any]:
         "triangles": model["stats"]["triangles"],
         "seconds": seconds,
         "turn_s": statistics.median(turns),
+        # the job's wait for the page to draw its model (miss.server.jobs.turn), and its
+        # whole time from submission to done
+        "held_s": seconds.get("viewer", 0.0),
+        "done_s": (
+            datetime.fromisoformat(model["finished"]) - datetime.fromisoformat(model["created"])
+        ).total_seconds(),
     }
 
 
@@ -264,7 +274,8 @@ def wait_done(target: Target, model_id: str, timeout: float = 300) -> dict[str, 
 def summary(target: Target) -> list[Any]:
     runs = target.runs
     med = {
-        k: statistics.median(r[k] for r in runs) for k in ("first_s", "full_s", "job_s", "turn_s")
+        k: statistics.median(r.get(k, 0.0) for r in runs)
+        for k in ("first_s", "full_s", "job_s", "turn_s", "held_s", "done_s")
     }
     kinds = sorted({r["first_kind"] for r in runs})
     return [
@@ -279,6 +290,8 @@ def summary(target: Target) -> list[Any]:
         statistics.median(r["full_s"] - r["job_s"] for r in runs),
         int(statistics.median(r["triangles"] for r in runs)),
         med["turn_s"],
+        med["held_s"],
+        med["done_s"],
     ]
 
 
@@ -306,7 +319,8 @@ def main(argv: list[str] | None = None) -> int:
                     if i:
                         target.runs.append(run)
                     print(
-                        target.name, {k: run[k] for k in ("first_s", "full_s", "job_s", "turn_s")}
+                        target.name,
+                        {k: run[k] for k in ("first_s", "full_s", "job_s", "turn_s", "held_s")},
                     )
             browser.close()
     finally:
@@ -314,7 +328,7 @@ def main(argv: list[str] | None = None) -> int:
             target.stop()
         shutil.rmtree(work, ignore_errors=True)
     header = ["server", "runs", "first pixels s", "first drawn", "full model s", "job s",
-              "full - job s", "triangles", "turn s"]  # fmt: skip
+              "full - job s", "triangles", "turn s", "held s", "done s"]  # fmt: skip
     rows = [summary(t) for t in targets]
     table = markdown_table(header, rows)
     if len(targets) == 2:

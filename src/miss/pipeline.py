@@ -7,9 +7,9 @@ the files (to paths on the command line, to the data folder in the server; back 
 PACS next). No web, no globals.
 
 The order is the one a waiting physician needs: a coarse preview first when the sink
-asks for one, then a large model's levels of detail, then the model's GLB, then the
-other formats, the error measured meanwhile
-on a second thread; the job is done once both are.
+asks for one, then a large model's levels of detail, then the model's GLB, then (once the
+sink's viewer has drawn it, when it has one) the other formats, the error measured
+meanwhile on a second thread; the job is done once both are.
 """
 
 from __future__ import annotations
@@ -123,6 +123,8 @@ def run(
     seconds |= built.seconds
     if sink is not None:  # a viewer draws these rather than a GLB too large to draw
         seconds |= _levels_of_detail(built.scene, sink, title, metadata)
+        if "lod" in seconds:
+            seconds |= _viewer_turn(sink)
     start = time.perf_counter()
     artifacts: dict[str, bytes] = {}
     formats = sorted(spec.outputs.formats, key=lambda f: f != "glb")  # what viewers load first
@@ -136,6 +138,8 @@ def run(
             artifacts[fmt] = export(built.scene, fmt, title=title, metadata=metadata, **options)
             if sink is not None:
                 sink.put(fmt, artifacts[fmt])
+                if fmt == "glb" and "lod" not in seconds:
+                    seconds |= _viewer_turn(sink)
             if measure:
                 measuring = measuring or pool.submit(built.measured)
         seconds["write"] = time.perf_counter() - start
@@ -215,6 +219,14 @@ def _levels_of_detail(
     return {"lod": time.perf_counter() - start}
 
 
+def _viewer_turn(sink: Sink) -> dict[str, float]:
+    """The sink's ``wait_for_viewer`` (sinks that have none go on at once), as seconds
+    ``viewer`` when it waited."""
+    wait = getattr(sink, "wait_for_viewer", None)
+    waited = wait() if wait is not None else 0.0
+    return {"viewer": waited} if waited > 0 else {}
+
+
 #: A tile holds an eighth of the budget's triangles, within these bounds.
 LOD_TILE_MIN, LOD_TILE_MAX = 4096, 65_536
 
@@ -223,7 +235,11 @@ class Sink(Protocol):
     """Where a job's files go: ``put`` gets each one once it is encoded (GLB first; a
     ``preview`` before the model when ``wants_preview``), ``deliver`` the finished result
     (every file put, the error measured). A scene of more than ``lod_triangles`` (None:
-    never) also goes to ``put_lod`` as levels of detail ({name: bytes}, one tileset)."""
+    never) also goes to ``put_lod`` as levels of detail ({name: bytes}, one tileset).
+    A sink may also have ``wait_for_viewer() -> seconds``, called once what a viewer
+    draws (the levels of detail, else the GLB) is put, before the other files and the
+    error: the server's waits while a viewer draws the model on the same machine
+    (:mod:`miss.server.jobs.turn`)."""
 
     wants_preview: bool
     lod_triangles: int | None

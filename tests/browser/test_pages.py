@@ -206,6 +206,8 @@ def test_generate_view_and_download(
     assert nz * 0.65 < end < nz * 0.85, end
     page.screenshot(path=artifacts / "volume-page.png")
 
+    said: list[str] = []  # the page's word that it drew the running job's model
+    page.on("request", lambda r: said.append(r.url) if r.url.endswith("/shown") else None)
     page.click("#generate")
     page.wait_for_url("**/models/*")  # at once: the model's page follows the job
     model_id = page.url.rstrip("/").split("/")[-1].split("?")[0]
@@ -215,8 +217,16 @@ def test_generate_view_and_download(
     assert model["params"]["level"] == 300
     triangles = model["stats"]["triangles"]
 
-    glb = wait_drawn(page, "glb")
+    glb = wait_drawn(page, "glb")  # (Playwright calls also deliver the page's requests)
     assert glb["triangles"] == triangles
+    # The job held back its other work for the page (miss.server.jobs.turn): the page's
+    # word ended the wait when it came before the second was up, and came only for a
+    # model drawn while the job ran, that is while the job waited.
+    held = model["stats"]["seconds"].get("viewer")
+    if held is not None and held < 0.9:
+        assert said == [f"{server.url}/api/models/{model_id}/shown"], (held, said)
+    if said:
+        assert held is not None, said
     # what made the model and whether it is within its bound, as the physician reads it
     decimation = model["stats"]["decimation"]
     stats, params = page.inner_text("#stats"), page.inner_text("#params")

@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pytest
 from fastapi.testclient import TestClient
 
 from miss.demo import phantom
@@ -24,6 +25,7 @@ from miss.pipeline import PREVIEW, JobResult, run
 from miss.server.jobs import JobQueue
 from miss.server.jobs.state import JobState
 from miss.server.jobs.worker import DataFolder
+from miss.server.routes import models as model_routes
 from miss.server.schemas import model_out
 from miss.server.settings import Settings
 from miss.server.storage import chunked
@@ -120,6 +122,43 @@ def test_a_running_jobs_preview_and_glb_are_served_before_it_is_done(
     assert state.finish(model_id, {"triangles": 1}, {"glb": folder.files["glb"]})
     body = client.get(f"/api/models/{model_id}").json()
     assert body["status"] == "done" and body["preview"] is None
+
+
+def test_the_events_tell_a_file_put_in_place_before_the_next_read_of_the_row(
+    client: TestClient, demo_id: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Between its reads of the job's row the stream looks at the model's folder (a stat):
+    a GLB renamed into place is told at once. The row's reads are a minute apart here, so
+    only the folder can tell it in time."""
+    monkeypatch.setattr(model_routes, "EVENT_POLL", 60.0)
+    store: Store = client.app.state.store
+    model_id = _running_row(store, demo_id)
+    folder = DataFolder(store.model_dir(model_id), JobState(store), model_id)
+    events: list[dict[str, Any]] = []
+
+    def follow() -> None:
+        with client.stream("GET", f"/api/models/{model_id}/events") as stream:
+            for line in stream.iter_lines():
+                if line.startswith("data:"):
+                    events.append(json.loads(line[5:]))
+
+    reader = threading.Thread(target=follow, daemon=True)
+    reader.start()
+    _until(lambda: len(events) >= 1)
+    assert events[0]["status"] == "running" and events[0]["files"] is None
+    folder.put("glb", b"glTF model bytes")
+    _until(lambda: len(events) >= 2)
+    assert list(events[1]["files"]) == ["glb"]
+    assert client.delete(f"/api/models/{model_id}").status_code == 204  # the stream ends
+    reader.join(timeout=20)
+    assert not reader.is_alive() and events[-1]["status"] == "failed"
+
+
+def _until(condition: Any, timeout: float = 20.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not condition() and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert condition(), "not within 20 s"
 
 
 def test_a_job_run_again_shows_nothing_of_its_earlier_attempt(data_dir: Path) -> None:

@@ -26,9 +26,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Protocol
 
+from miss.server.jobs import turn
 from miss.server.jobs.state import JobState
 from miss.server.storage.db import RUNNING, ModelRow
-from miss.server.storage.store import Store
+from miss.server.storage.store import LOD_DIR, Store
 
 log = logging.getLogger("miss.server.jobs")
 
@@ -295,10 +296,12 @@ class JobQueue:
 
     def _wait(self, model_id: str, proc: Running) -> int:
         """The worker's exit code. Meanwhile, once the job's model can be drawn (its GLB, or
-        its levels of detail, in place: the rest is the other formats and the error), the
+        its levels of detail, in place: the rest is the other formats and the error) and a
+        viewer that follows the job has drawn it (:mod:`miss.server.jobs.turn`), the
         runner gets its next worker ready, not before: a spare warming up beside the job,
         at the job's own priority, had slowed its first seconds (the read, the preview)
-        while the browser loaded the viewer."""
+        while the browser loaded the viewer, and the model's first frame in a browser on
+        the same machine."""
         while proc.poll() is None and not self._stopping.is_set():
             try:
                 if self._drawable(model_id):
@@ -311,12 +314,24 @@ class JobQueue:
         return proc.wait()
 
     def _drawable(self, model_id: str) -> bool:
-        """Whether the job's model can be drawn, or the job has ended."""
+        """Whether the job's model can be drawn and a viewer that follows the job has drawn
+        it (or waited long enough: :func:`turn.held`), or the job has ended."""
         with self.store.session() as s:
             row = s.get(ModelRow, model_id)
         if row is None or row.status != RUNNING:
             return True
-        return "glb" in (row.files or {}) or "lod" in (row.stats or {})
+        folder = self.store.model_dir(model_id)
+        if "lod" in (row.stats or {}):
+            drawn = folder / LOD_DIR
+        elif "glb" in (row.files or {}):
+            drawn = folder / "model.glb"
+        else:
+            return False
+        try:
+            since = drawn.stat().st_mtime
+        except OSError:  # gone meanwhile (the job failed): nothing to wait for
+            return True
+        return not turn.held(folder, since)
 
     def _record(self, model_id: str, seconds: float) -> None:
         if self._stopping.is_set():

@@ -47,6 +47,7 @@ from miss.export import FORMATS, WRITERS
 from miss.export.tiles import etag
 from miss.pipeline import PREVIEW, JobResult, execute
 from miss.server import labelmaps
+from miss.server.jobs import turn
 from miss.server.jobs.state import JobState
 from miss.server.settings import Settings
 from miss.server.storage import chunked
@@ -260,6 +261,11 @@ class DataFolder:
         if not self.state.set_files(self.model_id, self.files):
             raise Stop
 
+    def wait_for_viewer(self) -> float:
+        """Hold back the rest of the job while a viewer that follows it draws the model
+        (:mod:`miss.server.jobs.turn`); the seconds waited."""
+        return turn.wait_turn(self.folder, time.time())
+
     def put_lod(self, files: Mapping[str, bytes]) -> None:
         write_tree_atomic(self.folder / LOD_DIR, files)
         tiles = sum(1 for name in files if name.endswith(".glb"))
@@ -308,6 +314,7 @@ def run_job(store: Store, model_id: str, parent: int) -> None:
         store.model_dir(model_id), state, model_id, lod_triangles=lod_budget(os.environ),
         started=started,
     )  # fmt: skip
+    turn.forget(folder.folder)
     result, files = execute(spec, folder, reporter, export_options=EXPORT_OPTIONS)
     reporter("store", 1.0)
     if not state.finish(model_id, summarize(result, folder.ready_seconds, folder.lod), files):

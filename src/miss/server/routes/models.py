@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import re
 from collections.abc import AsyncIterator
+from pathlib import Path
 from typing import Annotated, Any
 
 import anyio
@@ -26,6 +27,7 @@ from miss.server.deps import (
     visible_volume,
 )
 from miss.server.errors import NotFound, NotReady
+from miss.server.jobs import turn
 from miss.server.schemas import (
     JSONRoute,
     ModelOut,
@@ -43,9 +45,16 @@ from miss.structures.labelmap import label_counts
 
 router = APIRouter(prefix="/api/models", tags=["models"], route_class=JSONRoute)
 
-#: Seconds between looks at a job's row while streaming its progress: a preview or the
-#: model's GLB is drawn at most this much later than it was written.
+#: Seconds between looks at a job's row while streaming its progress (its stage and
+#: progress bar).
 EVENT_POLL = 0.1
+#: Seconds between looks at the model's folder meanwhile (a stat, no database): a file
+#: renamed into place there (the preview, the GLB, the levels of detail) is told this
+#: soon, not up to ``EVENT_POLL`` later; the row is then read every ``FOLDER_POLL`` until
+#: it lists the file (the worker records each file just after renaming it), at most
+#: ``FOLLOW_READS`` times.
+FOLDER_POLL = 0.02
+FOLLOW_READS = 10
 
 
 def check_against_volume(spec: JobSpec, volume: VolumeRow, store: Store) -> None:
@@ -175,12 +184,19 @@ def delete_model(model: ModelDep, store: StoreDep, queue: QueueDep, request: Req
 
 
 @router.get("/{model_id}/events", response_class=EventSourceResponse)
-async def model_events(model: ModelDep, store: StoreDep) -> AsyncIterator[ServerSentEvent]:
+async def model_events(
+    model: ModelDep,
+    store: StoreDep,
+    draws: Annotated[bool, Query(description="the caller draws the model and says so")] = False,
+) -> AsyncIterator[ServerSentEvent]:
     """Server-Sent Events: the model (as GET /api/models/{id}) each time its status,
     stage, progress, preview or files change, until it is done or failed; then the
-    stream ends."""
+    stream ends. ``draws=1`` (the model page): the caller draws the model once it can
+    and posts ``/shown`` when it has; meanwhile, for a second at most, the job holds back
+    its other formats and its error (:mod:`miss.server.jobs.turn`)."""
     volume = await run_in_threadpool(store.get_volume, model.volume_id)
-    row, last = model, None
+    folder = store.model_dir(model.id)
+    row, last, seen, follow = model, None, _mtime(folder), 0
     while True:
         preview = (row.stats or {}).get("preview")
         lod = (row.stats or {}).get("lod")
@@ -193,16 +209,54 @@ async def model_events(model: ModelDep, store: StoreDep) -> AsyncIterator[Server
             str(row.files),
         )
         if state != last:
-            last = state
+            last, follow = state, 0
             yield ServerSentEvent(data=model_out(row, volume).model_dump(mode="json"))
         if row.status in (DONE, FAILED):
             return
-        await anyio.sleep(EVENT_POLL)
+        if draws:  # a viewer follows the job: the job waits for its word
+            turn.watching(folder)
+        if follow:  # the folder changed; the row will list what came
+            follow -= 1
+            await anyio.sleep(FOLDER_POLL)
+        else:
+            now = await _folder_change(folder, seen, EVENT_POLL)
+            if now != seen:
+                seen, follow = now, FOLLOW_READS
         try:
             row = await run_in_threadpool(store.get_model, model.id)
         except NotFound:
             yield ServerSentEvent(data={"id": model.id, "status": FAILED, "error": "model deleted"})
             return
+
+
+def _mtime(folder: Path) -> int | None:
+    """The folder's modification time, ns (a file created, renamed or removed in it
+    changes it; appending to one does not); None while it does not exist."""
+    try:
+        return folder.stat().st_mtime_ns
+    except OSError:
+        return None
+
+
+async def _folder_change(folder: Path, seen: int | None, timeout: float) -> int | None:
+    """Wait until ``folder``'s modification time is no longer ``seen``, at most ``timeout``
+    seconds; returns it then."""
+    deadline = anyio.current_time() + timeout
+    while True:
+        await anyio.sleep(min(FOLDER_POLL, max(0.0, deadline - anyio.current_time())))
+        now = _mtime(folder)
+        if now != seen or anyio.current_time() >= deadline:
+            return now
+
+
+@router.post("/{model_id}/shown", status_code=204)
+def model_shown(model: ModelDep, store: StoreDep) -> Response:
+    """The viewer has drawn the running job's model (its GLB or levels of detail): the
+    job goes on with its other formats and the error, which it held back meanwhile
+    (:mod:`miss.server.jobs.turn`). Nothing for a model that is not running."""
+    if model.status == RUNNING:
+        turn.shown(store.model_dir(model.id))
+    return Response(status_code=204)
 
 
 @router.get(

@@ -98,6 +98,8 @@ export const api = {
 	pacsSeries: ( study ) => request( 'GET', `/api/pacs/studies/${enc( study )}/series` ),
 	pacsImport: ( study, series ) => request( 'POST', '/api/pacs/import', { study, series, segmentation: 'auto' } ),
 	pacsImportStatus: ( id ) => request( 'GET', `/api/pacs/imports/${enc( id )}` ),
+	// The viewer has drawn a running job's model: the job goes on with its other work.
+	modelShown: ( id ) => request( 'POST', `/api/models/${enc( id )}/shown` ),
 	sendToPacs: ( modelId ) => request( 'POST', `/api/models/${enc( modelId )}/pacs`, {} ),
 };
 
@@ -121,8 +123,9 @@ const FINAL = new Set( [ 'done', 'failed' ] );
 // Follows a model job until it is done or failed, calling onUpdate with each
 // status JSON. Server-Sent Events give live stages; if the stream breaks (a
 // proxy that buffers, a server restart) it falls back to polling, so the page
-// never hangs on a finished job.
-export function watchModel( id, onUpdate ) {
+// never hangs on a finished job. draws: this page draws the model once it can, and says
+// so (api.modelShown); the job holds back its other work until then.
+export function watchModel( id, onUpdate, { draws = false } = {} ) {
 	return new Promise( ( resolve, reject ) => {
 		let finished = false;
 		const finish = ( model ) => {
@@ -148,7 +151,7 @@ export function watchModel( id, onUpdate ) {
 		};
 
 		if ( typeof EventSource === 'undefined' ) return void poll();
-		const source = new EventSource( urls.events( id ) );
+		const source = new EventSource( urls.events( id ) + ( draws ? '?draws=1' : '' ) );
 		const onMessage = ( event ) => {
 			try {
 				handle( JSON.parse( event.data ) );

@@ -36,6 +36,11 @@ async function follow( viewer, model ) {
 			if ( kind === 'full' ) viewer.setCoarse( false ); // before the frame that draws it
 			Object.assign( status, { drawn: kind, triangles } );
 			$( 'overlay' ).hidden = true;
+			// The job holds back its other formats and its error until the model is drawn
+			// here (the server may share this machine's cores): tell it once it is.
+			if ( kind === 'full' && m.status === 'running' ) {
+				viewer.whenDrawn().then( () => api.modelShown( modelId ) ).catch( () => {} );
+			}
 		} ).catch( ( err ) => {
 			if ( kind === 'full' ) {
 				drawn = 'preview'; // the finished model draws it again
@@ -56,7 +61,7 @@ async function follow( viewer, model ) {
 	};
 	update( model );
 	try {
-		model = await watchModel( modelId, update );
+		model = await watchModel( modelId, update, { draws: true } );
 	} finally {
 		$( 'building' ).hidden = true;
 	}

@@ -94,6 +94,8 @@ export class ModelViewer {
 		this.tiles = null;
 		// A scene's named parts ({name, mesh, material, extras}); one entry for a plain surface.
 		this.parts = [];
+		// Called once after the next render (whenDrawn).
+		this.afterRender = [];
 		this.selected = null;
 		// The clipping plane (world space), shared by every part's material; off until set.
 		this.clipPlane = new THREE.Plane( new THREE.Vector3( 0, - 1, 0 ), 0 );
@@ -218,6 +220,29 @@ export class ModelViewer {
 			this.onDrawn?.( status.drawnTriangles );
 		}
 		this.gizmo.render( r, this.camera );
+		for ( const then of this.afterRender.splice( 0 ) ) then();
+	}
+
+	// Resolves once the GPU has finished the next frame: a fence put after it, looked at
+	// every few milliseconds without blocking the page (the pixels are there, not only
+	// asked for; a browser without fences resolves once the frame is asked for).
+	whenDrawn() {
+		return new Promise( ( resolve ) => {
+			this.afterRender.push( () => {
+				const gl = this.renderer.getContext();
+				const sync = gl.fenceSync ? gl.fenceSync( gl.SYNC_GPU_COMMANDS_COMPLETE, 0 ) : null;
+				if ( ! sync ) return resolve();
+				gl.flush();
+				const look = () => {
+					if ( gl.isContextLost() || gl.getSyncParameter( sync, gl.SYNC_STATUS ) === gl.SIGNALED ) {
+						if ( ! gl.isContextLost() ) gl.deleteSync( sync );
+						resolve();
+					} else setTimeout( look, 4 );
+				};
+				look();
+			} );
+			this.requestRender();
+		} );
 	}
 
 	// A coarse look (a running job's preview) is drawn at half the pixels a side: a

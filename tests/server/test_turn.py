@@ -1,0 +1,122 @@
+"""The viewer's turn (``miss.server.jobs.turn``): a job whose model can be drawn holds back
+its other work while a viewer that follows it has not drawn it yet, at most ``HOLD``."""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+from fastapi.testclient import TestClient
+
+from miss.server.jobs import JobQueue, turn
+from miss.server.jobs.state import JobState
+from miss.server.jobs.worker import DataFolder
+from miss.server.storage.db import RUNNING, ModelRow
+from miss.server.storage.store import Store, new_id
+from miss.spec import JobSpec
+
+
+def test_held_only_while_a_viewer_follows_and_has_not_drawn_it(tmp_path: Path) -> None:
+    now = time.time()
+    assert not turn.held(tmp_path, now, now)  # nobody follows the job
+    turn.watching(tmp_path)
+    assert turn.held(tmp_path, now, now + 0.1)
+    assert not turn.held(tmp_path, now, now + turn.HOLD)  # waited long enough
+    watched = tmp_path / turn.WATCHED
+    os.utime(watched, (now - turn.FRESH - 1, now - turn.FRESH - 1))
+    assert not turn.held(tmp_path, now, now + 0.1)  # the viewer went away
+    turn.watching(tmp_path)
+    turn.shown(tmp_path)
+    assert not turn.held(tmp_path, now, now + 0.1)  # drawn
+    turn.forget(tmp_path)  # a new attempt at the job
+    assert turn.held(tmp_path, now, now + 0.1)
+
+
+def test_watching_never_makes_a_deleted_models_folder_again(tmp_path: Path) -> None:
+    turn.watching(tmp_path / "gone")
+    turn.shown(tmp_path / "gone")
+    assert not (tmp_path / "gone").exists()
+
+
+def _running_row(store: Store, volume_id: str) -> str:
+    model_id = new_id()
+    with store.session.begin() as s:
+        s.add(ModelRow(id=model_id, volume_id=volume_id, key=model_id, status=RUNNING,
+                       spec=JobSpec.of(level=300).to_dict(), stage="surface"))  # fmt: skip
+    return model_id
+
+
+def test_a_job_holds_back_until_the_viewer_following_it_says_it_drew_the_model(
+    client: TestClient, demo_id: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The page's event stream says a viewer follows the job; the job, its GLB in place,
+    waits (a minute at most here) until the page posts that it drew the model; the queue
+    starts no spare meanwhile."""
+    monkeypatch.setattr(turn, "HOLD", 60.0)
+    store: Store = client.app.state.store
+    model_id = _running_row(store, demo_id)
+    folder = DataFolder(store.model_dir(model_id), JobState(store), model_id)
+    folder.put("preview", b"glTF preview")  # the runner would have made the folder
+    events: list[str] = []
+
+    def follow() -> None:
+        with client.stream("GET", f"/api/models/{model_id}/events?draws=1") as stream:
+            events.extend(line for line in stream.iter_lines() if line.startswith("data:"))
+
+    threading.Thread(target=follow, daemon=True).start()
+    deadline = time.monotonic() + 20
+    while not (folder.folder / turn.WATCHED).exists() and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert (folder.folder / turn.WATCHED).exists()
+
+    folder.put("glb", b"glTF model")
+    waited: list[float] = []
+    job = threading.Thread(target=lambda: waited.append(folder.wait_for_viewer()))
+    job.start()
+    job.join(timeout=1.0)
+    assert job.is_alive()  # held: the viewer has not drawn it
+    assert not JobQueue(store)._drawable(model_id)  # nor does a spare warm up meanwhile
+
+    assert client.post(f"/api/models/{model_id}/shown").status_code == 204
+    job.join(timeout=20)
+    assert not job.is_alive() and 1.0 <= waited[0] < 20
+    assert JobQueue(store)._drawable(model_id)
+    assert client.delete(f"/api/models/{model_id}").status_code == 204
+
+
+def test_nobody_drawing_the_model_holds_nothing(client: TestClient, demo_id: str) -> None:
+    """A follower that does not draw the model (a script: no ``draws=1``) holds no job."""
+    store: Store = client.app.state.store
+    model_id = _running_row(store, demo_id)
+    folder = DataFolder(store.model_dir(model_id), JobState(store), model_id)
+    folder.put("preview", b"glTF preview")
+    events: list[str] = []
+
+    def follow() -> None:
+        with client.stream("GET", f"/api/models/{model_id}/events") as stream:
+            events.extend(line for line in stream.iter_lines() if line.startswith("data:"))
+
+    threading.Thread(target=follow, daemon=True).start()
+    deadline = time.monotonic() + 20
+    while not events and time.monotonic() < deadline:
+        time.sleep(0.02)
+    time.sleep(0.5)  # several looks at the job since
+    assert events and not (folder.folder / turn.WATCHED).exists()
+    folder.put("glb", b"glTF model")
+    assert folder.wait_for_viewer() == 0.0
+    assert JobQueue(store)._drawable(model_id)
+    # a word for a model that is not running changes nothing
+    other = client.post(f"/api/models/{model_id}/shown")
+    assert other.status_code == 204
+    assert client.delete(f"/api/models/{model_id}").status_code == 204
+    assert client.post(f"/api/models/{model_id}/shown").status_code == 404
+
+
+def test_someone_elses_model_cannot_be_said_drawn(client: TestClient, demo_id: str) -> None:
+    anonymous: Any = TestClient(client.app)
+    r = anonymous.post(f"/api/models/{new_id()}/shown")
+    assert r.status_code in (401, 403, 404) and "detail" in r.json()
