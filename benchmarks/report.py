@@ -257,6 +257,13 @@ def first_pixels_targets(result: dict[str, Any]) -> list[str]:
     if all("turn_s" in r for r in runs):
         turn = statistics.median(r["turn_s"] for r in runs)
         lines.append(f"- A drag on the finished model -> its turned pixels {turn:.2f} s.")
+    if all("held_s" in r for r in runs):
+        held = statistics.median(r["held_s"] for r in runs)
+        done = statistics.median(r["done_s"] for r in runs)
+        lines.append(
+            f"- The job held back its other work {held:.2f} s for the page to draw its model; "
+            f"done {done:.2f} s after it was submitted."
+        )
     return lines
 
 
