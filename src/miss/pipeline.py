@@ -140,6 +140,7 @@ def run(
                 sink.put(fmt, artifacts[fmt])
                 if fmt == "glb" and "lod" not in seconds:
                     seconds |= _viewer_turn(sink)
+                    start += seconds.get("viewer", 0.0)  # waiting is not writing
             if measure:
                 measuring = measuring or pool.submit(built.measured)
         seconds["write"] = time.perf_counter() - start

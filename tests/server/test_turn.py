@@ -12,6 +12,9 @@ from typing import Any
 import pytest
 from fastapi.testclient import TestClient
 
+from miss.demo import phantom
+from miss.export import FORMATS
+from miss.pipeline import run
 from miss.server.jobs import JobQueue, turn
 from miss.server.jobs.state import JobState
 from miss.server.jobs.worker import DataFolder
@@ -120,3 +123,34 @@ def test_someone_elses_model_cannot_be_said_drawn(client: TestClient, demo_id: s
     anonymous: Any = TestClient(client.app)
     r = anonymous.post(f"/api/models/{new_id()}/shown")
     assert r.status_code in (401, 403, 404) and "detail" in r.json()
+
+
+class _Waiting:
+    """A sink whose viewer takes a second to draw the model; notes what came when."""
+
+    wants_preview, lod_triangles = False, None
+
+    def __init__(self) -> None:
+        self.order: list[str] = []
+
+    def put(self, fmt: str, data: bytes) -> None:
+        self.order.append(fmt)
+
+    def put_lod(self, files: Any) -> None:
+        raise AssertionError("not used")
+
+    def wait_for_viewer(self) -> float:
+        self.order.append("viewer")
+        time.sleep(1.0)
+        return 1.0
+
+    def deliver(self, result: Any) -> None:
+        return None
+
+
+def test_the_job_waits_for_the_viewer_after_its_glb_and_before_the_rest() -> None:
+    sink = _Waiting()
+    result = run(phantom(48, spacing=4.0), JobSpec.of(level=300, formats=FORMATS), sink=sink)
+    assert sink.order == ["glb", "viewer", *(f for f in FORMATS if f != "glb")]
+    # the wait is told as such, not as writing (a small phantom's files take milliseconds)
+    assert result.seconds["viewer"] == 1.0 and result.seconds["write"] < 0.9

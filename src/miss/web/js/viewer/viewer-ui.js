@@ -30,6 +30,9 @@ function row( label, value ) {
 	return el( 'tr', {}, el( 'th', {}, label ), el( 'td', {}, value ) );
 }
 
+// The stages' seconds under their own names, but those a physician would not guess.
+const TIME_LABELS = { viewer: 'waiting for the viewer to draw' };
+
 export function fillStats( model ) {
 	const s = model.stats || {};
 	const d = s.decimation || {};
@@ -42,7 +45,7 @@ export function fillStats( model ) {
 		row( 'Max error', formatMm( d.max_error_mm ) ),
 		row( 'Mean error', formatMm( d.mean_error_mm, 4 ) ),
 		d.bound_mm ? row( 'Error bound held', boundHeld( d ) ) : null,
-		...Object.entries( seconds ).filter( ( [ k ] ) => k !== 'total' ).map( ( [ k, v ] ) => row( `Time: ${k}`, formatSeconds( v ) ) ),
+		...Object.entries( seconds ).filter( ( [ k ] ) => k !== 'total' ).map( ( [ k, v ] ) => row( `Time: ${TIME_LABELS[ k ] || k}`, formatSeconds( v ) ) ),
 		row( 'Time: total', formatSeconds( total ) ),
 		row( 'Drawn now', el( 'span', { id: 'drawn' }, '–' ) ),
 	);
