@@ -24,7 +24,9 @@ from pg import copy_seed, database_url, settings_for
 from miss.server.app import create_app
 from miss.server.ingest import register_demo
 from miss.server.settings import Settings
-from miss.server.storage.store import Store
+from miss.server.storage.db import RUNNING, ModelRow
+from miss.server.storage.store import Store, new_id
+from miss.spec import JobSpec
 
 JOB_TIMEOUT = 120.0
 ADMIN_PASSWORD = "admin-password-for-tests"
@@ -117,6 +119,15 @@ def make_client(tmp_path: Path) -> Iterator[Callable[..., TestClient]]:
 def demo_id(client: TestClient) -> str:
     volumes = client.get("/api/volumes").json()
     return next(v["id"] for v in volumes if v["name"] == "Demo head phantom (synthetic CT)")
+
+
+def running_row(store: Store, volume_id: str) -> str:
+    """A model row a test drives by hand: running, never claimed by an app's queue."""
+    model_id = new_id()
+    with store.session.begin() as s:
+        s.add(ModelRow(id=model_id, volume_id=volume_id, key=model_id, status=RUNNING,
+                       spec=JobSpec.of(level=300).to_dict(), stage="surface"))  # fmt: skip
+    return model_id
 
 
 def wait_for_model(

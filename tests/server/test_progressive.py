@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
+from server.conftest import running_row
 
 from miss.demo import phantom
 from miss.export import FORMATS
@@ -29,8 +30,7 @@ from miss.server.routes import models as model_routes
 from miss.server.schemas import model_out
 from miss.server.settings import Settings
 from miss.server.storage import chunked
-from miss.server.storage.db import RUNNING, ModelRow
-from miss.server.storage.store import Store, new_id
+from miss.server.storage.store import Store
 from miss.spec import JobSpec
 
 
@@ -84,20 +84,11 @@ def test_no_preview_for_a_small_region_or_a_sink_that_wants_none() -> None:
     assert big.put_order == ["glb"]
 
 
-def _running_row(store: Store, volume_id: str) -> str:
-    """A model row a test drives by hand: running, never claimed by the app's queue."""
-    model_id = new_id()
-    with store.session.begin() as s:
-        s.add(ModelRow(id=model_id, volume_id=volume_id, key=model_id, status=RUNNING,
-                       spec=JobSpec.of(level=300).to_dict(), stage="surface"))  # fmt: skip
-    return model_id
-
-
 def test_a_running_jobs_preview_and_glb_are_served_before_it_is_done(
     client: TestClient, demo_id: str
 ) -> None:
     store: Store = client.app.state.store
-    model_id = _running_row(store, demo_id)
+    model_id = running_row(store, demo_id)
     state = JobState(store)
     folder = DataFolder(store.model_dir(model_id), state, model_id)
     assert client.get(f"/api/models/{model_id}").json()["preview"] is None
@@ -132,7 +123,7 @@ def test_the_events_tell_a_file_put_in_place_before_the_next_read_of_the_row(
     only the folder can tell it in time."""
     monkeypatch.setattr(model_routes, "EVENT_POLL", 60.0)
     store: Store = client.app.state.store
-    model_id = _running_row(store, demo_id)
+    model_id = running_row(store, demo_id)
     folder = DataFolder(store.model_dir(model_id), JobState(store), model_id)
     events: list[dict[str, Any]] = []
 
@@ -164,7 +155,7 @@ def _until(condition: Any, timeout: float = 20.0) -> None:
 def test_a_job_run_again_shows_nothing_of_its_earlier_attempt(data_dir: Path) -> None:
     store = Store(data_dir, Settings(data_dir=data_dir).database_url)  # no app, no queue
     try:
-        model_id = _running_row(store, store.list_volumes()[0].id)
+        model_id = running_row(store, store.list_volumes()[0].id)
         folder = DataFolder(store.model_dir(model_id), JobState(store), model_id)
         folder.put(PREVIEW, b"old preview")
         folder.put("glb", b"old model")
@@ -295,7 +286,7 @@ def test_the_next_spare_starts_once_the_running_jobs_model_can_be_drawn(
     """Not beside the job's first seconds (a spare's warm-up runs at the job's priority),
     not after the job (a job queued behind it would find no spare): at its GLB."""
     store: Store = client.app.state.store
-    model_id = _running_row(store, demo_id)
+    model_id = running_row(store, demo_id)
     runner, worker, ended = _Runner(), _Worker(), []
     queue = JobQueue(store, runner=runner)
     waiting = threading.Thread(target=lambda: ended.append(queue._wait(model_id, worker)))
@@ -324,7 +315,7 @@ def test_a_job_is_still_waited_for_when_the_next_spare_cannot_start(
             raise OSError("Resource temporarily unavailable (fork)")
 
     store: Store = client.app.state.store
-    model_id = _running_row(store, demo_id)
+    model_id = running_row(store, demo_id)
     DataFolder(store.model_dir(model_id), JobState(store), model_id).put("glb", b"glTF")
     worker, ended = _Worker(), []
     waiting = threading.Thread(

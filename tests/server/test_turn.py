@@ -11,6 +11,7 @@ from typing import Any
 
 import pytest
 from fastapi.testclient import TestClient
+from server.conftest import running_row
 
 from miss.demo import phantom
 from miss.export import FORMATS
@@ -18,7 +19,6 @@ from miss.pipeline import run
 from miss.server.jobs import JobQueue, turn
 from miss.server.jobs.state import JobState
 from miss.server.jobs.worker import DataFolder
-from miss.server.storage.db import RUNNING, ModelRow
 from miss.server.storage.store import Store, new_id
 from miss.spec import JobSpec
 
@@ -45,14 +45,6 @@ def test_watching_never_makes_a_deleted_models_folder_again(tmp_path: Path) -> N
     assert not (tmp_path / "gone").exists()
 
 
-def _running_row(store: Store, volume_id: str) -> str:
-    model_id = new_id()
-    with store.session.begin() as s:
-        s.add(ModelRow(id=model_id, volume_id=volume_id, key=model_id, status=RUNNING,
-                       spec=JobSpec.of(level=300).to_dict(), stage="surface"))  # fmt: skip
-    return model_id
-
-
 def test_a_job_holds_back_until_the_viewer_following_it_says_it_drew_the_model(
     client: TestClient, demo_id: str, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -61,7 +53,7 @@ def test_a_job_holds_back_until_the_viewer_following_it_says_it_drew_the_model(
     starts no spare meanwhile."""
     monkeypatch.setattr(turn, "HOLD", 60.0)
     store: Store = client.app.state.store
-    model_id = _running_row(store, demo_id)
+    model_id = running_row(store, demo_id)
     folder = DataFolder(store.model_dir(model_id), JobState(store), model_id)
     folder.put("preview", b"glTF preview")  # the runner would have made the folder
     events: list[str] = []
@@ -94,7 +86,7 @@ def test_a_job_holds_back_until_the_viewer_following_it_says_it_drew_the_model(
 def test_nobody_drawing_the_model_holds_nothing(client: TestClient, demo_id: str) -> None:
     """A follower that does not draw the model (a script: no ``draws=1``) holds no job."""
     store: Store = client.app.state.store
-    model_id = _running_row(store, demo_id)
+    model_id = running_row(store, demo_id)
     folder = DataFolder(store.model_dir(model_id), JobState(store), model_id)
     folder.put("preview", b"glTF preview")
     events: list[str] = []
