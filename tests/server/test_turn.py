@@ -45,6 +45,18 @@ def test_watching_never_makes_a_deleted_models_folder_again(tmp_path: Path) -> N
     assert not (tmp_path / "gone").exists()
 
 
+def _follow(client: TestClient, url: str) -> list[str]:
+    """Read the event stream at ``url`` in a thread; its data lines, as they come."""
+    events: list[str] = []
+
+    def follow() -> None:
+        with client.stream("GET", url) as stream:
+            events.extend(line for line in stream.iter_lines() if line.startswith("data:"))
+
+    threading.Thread(target=follow, daemon=True).start()
+    return events
+
+
 def test_a_job_holds_back_until_the_viewer_following_it_says_it_drew_the_model(
     client: TestClient, demo_id: str, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -56,13 +68,7 @@ def test_a_job_holds_back_until_the_viewer_following_it_says_it_drew_the_model(
     model_id = running_row(store, demo_id)
     folder = DataFolder(store.model_dir(model_id), JobState(store), model_id)
     folder.put("preview", b"glTF preview")  # the runner would have made the folder
-    events: list[str] = []
-
-    def follow() -> None:
-        with client.stream("GET", f"/api/models/{model_id}/events?draws=1") as stream:
-            events.extend(line for line in stream.iter_lines() if line.startswith("data:"))
-
-    threading.Thread(target=follow, daemon=True).start()
+    _follow(client, f"/api/models/{model_id}/events?draws=1")
     deadline = time.monotonic() + 20
     while not (folder.folder / turn.WATCHED).exists() and time.monotonic() < deadline:
         time.sleep(0.02)
@@ -89,13 +95,7 @@ def test_nobody_drawing_the_model_holds_nothing(client: TestClient, demo_id: str
     model_id = running_row(store, demo_id)
     folder = DataFolder(store.model_dir(model_id), JobState(store), model_id)
     folder.put("preview", b"glTF preview")
-    events: list[str] = []
-
-    def follow() -> None:
-        with client.stream("GET", f"/api/models/{model_id}/events") as stream:
-            events.extend(line for line in stream.iter_lines() if line.startswith("data:"))
-
-    threading.Thread(target=follow, daemon=True).start()
+    events = _follow(client, f"/api/models/{model_id}/events")
     deadline = time.monotonic() + 20
     while not events and time.monotonic() < deadline:
         time.sleep(0.02)
