@@ -21,7 +21,7 @@ from pg import settings_for
 from PIL import Image
 
 from miss.server.app import create_app
-from miss.server.routes.pages import THREE, WEB
+from miss.server.assets import MODULES, WEB
 from miss.server.storage import chunked
 
 DEMO = "Demo head phantom (synthetic CT)"
@@ -421,7 +421,7 @@ def test_pages_static_and_docs(client: TestClient) -> None:
     assert client.get("/static/../server/app.py").status_code == 404
     assert client.get("/static/node_modules/three/package.json").status_code == 404
     three = client.get("/vendor/three/package.json")
-    assert three.status_code == (200 if THREE.is_dir() else 404)
+    assert three.status_code == (200 if (MODULES / "three").is_dir() else 404)
     assert client.get("/vendor/three/../../package.json").status_code == 404
     assert client.get("/docs").status_code == 200
     assert "/api/models/{model_id}/model.{fmt}" in client.get("/openapi.json").json()["paths"]

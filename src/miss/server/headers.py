@@ -2,7 +2,9 @@
 handler, the rate limiter, Starlette's own 404 and 405).
 
 The Content-Security-Policy lets a page run only MISS's own files: no inline script
-(the pages' import maps are allowed by their SHA-256, computed from the HTML at start),
+(a page's import map is allowed by its SHA-256: the page sets the policy for the map it
+sends, :func:`miss.server.assets.page`; other responses get the hashes of the pages' maps
+as they are on disk),
 no other origin for anything, no plug-ins, no framing (``frame-ancestors 'none'``: MISS
 is never embedded; a share link opens in a tab of its own). ``'wasm-unsafe-eval'`` lets
 three.js's meshopt decoder compile its WebAssembly (the glTF files use
@@ -23,13 +25,20 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 _IMPORT_MAP = re.compile(r'<script type="importmap">(.*?)</script>', re.DOTALL)
 
 
+def import_map_hashes(html: str) -> list[str]:
+    """``'sha256-...'`` sources for the import maps of the page ``html``."""
+    found = set()
+    for block in _IMPORT_MAP.findall(html):
+        digest = hashlib.sha256(block.encode("utf-8")).digest()
+        found.add(f"'sha256-{base64.b64encode(digest).decode()}'")
+    return sorted(found)
+
+
 def inline_script_hashes(pages: Path) -> list[str]:
     """``'sha256-...'`` sources for the import maps of the HTML pages in ``pages``."""
     found = set()
     for page in sorted(pages.glob("*.html")):
-        for block in _IMPORT_MAP.findall(page.read_text(encoding="utf-8")):
-            digest = hashlib.sha256(block.encode("utf-8")).digest()
-            found.add(f"'sha256-{base64.b64encode(digest).decode()}'")
+        found.update(import_map_hashes(page.read_text(encoding="utf-8")))
     return sorted(found)
 
 
@@ -59,6 +68,7 @@ def policy(script_hashes: list[str], inline_styles: bool = False) -> str:
 INLINE_STYLE_PATHS = ("/redoc",)
 PERMISSIONS = "camera=(), microphone=(), geolocation=(), payment=(), usb=()"
 HSTS = "max-age=31536000; includeSubDomains"
+CSP = b"content-security-policy"
 
 
 class SecurityHeaders:
@@ -75,8 +85,8 @@ class SecurityHeaders:
             await self.app(scope, receive, send)
             return
         relaxed = scope["path"] in INLINE_STYLE_PATHS
+        csp = (CSP, self.relaxed if relaxed else self.strict)
         extra = [
-            (b"content-security-policy", self.relaxed if relaxed else self.strict),
             (b"x-content-type-options", b"nosniff"),
             (b"referrer-policy", b"no-referrer"),
             (b"x-frame-options", b"DENY"),
@@ -91,7 +101,9 @@ class SecurityHeaders:
         async def send_with_headers(message: Message) -> None:
             if message["type"] == "http.response.start":
                 kept = [(k, v) for k, v in message.get("headers", []) if k.lower() not in names]
-                message = {**message, "headers": kept + extra}
+                # a page's own policy (miss.server.assets.page: its import map as sent)
+                own = any(k.lower() == CSP for k, _ in kept)
+                message = {**message, "headers": kept + extra + ([] if own else [csp])}
             await send(message)
 
         await self.app(scope, receive, send_with_headers)

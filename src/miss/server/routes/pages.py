@@ -11,22 +11,15 @@ from urllib.parse import quote
 from fastapi import APIRouter, Request
 from fastapi.responses import FileResponse, RedirectResponse, Response
 
-import miss
-from miss.server import audit
+from miss.server import assets, audit
 from miss.server.accounts import User
 from miss.server.auth import page_user
 from miss.server.deps import StoreDep, visible_model
 from miss.server.errors import NotFound
 from miss.server.storage.store import Store
 
-WEB = Path(miss.__file__).parent / "web"
-THREE = WEB / "node_modules" / "three"
-#: npm packages served under /vendor/NAME/ (only the files they ship for browsers).
-VENDOR = {
-    "three": THREE,
-    "swagger-ui": WEB / "node_modules" / "swagger-ui-dist",
-    "redoc": WEB / "node_modules" / "redoc" / "bundles",
-}
+WEB = assets.WEB
+
 #: Types the stdlib may not know (or knows differently per platform): ES modules must
 #: come as JavaScript or the browser refuses to run them.
 TYPES = {
@@ -55,18 +48,30 @@ def safe_file(root: Path, relative: str, forbid: tuple[str, ...] = ("node_module
     return path
 
 
-def _page(name: str) -> FileResponse:
-    path = WEB / name
-    if not path.is_file():
+def _page(name: str, inline_styles: bool = False) -> Response:
+    if not (WEB / name).is_file():
         raise NotFound(f"page {name} is not installed (src/miss/web/{name}).")
-    return FileResponse(path, media_type="text/html", headers={"Cache-Control": "no-cache"})
+    return assets.page(name, inline_styles=inline_styles)
 
 
-def _asset(path: Path) -> FileResponse:
-    # no-cache: the browser revalidates (ETag), so an edited module is picked up at once.
-    return FileResponse(
-        path, media_type=TYPES.get(path.suffix.lower()), headers={"Cache-Control": "no-cache"}
+def _asset(path: Path, request: Request, version: str | None = None) -> Response:
+    """``path`` as a static file: kept a year under the current ``version``
+    (:mod:`miss.server.assets`), else ``no-cache`` (asked for each time, so an edited
+    module is picked up at once), and a copy the browser holds already (its ETag in
+    ``If-None-Match``) answered 304 without the file."""
+    keep = version is not None and version == assets.version()
+    cache = {"Cache-Control": assets.KEEP if keep else "no-cache"}
+    response = FileResponse(
+        path,
+        media_type=TYPES.get(path.suffix.lower()),
+        headers=cache,
+        stat_result=path.stat(),  # its ETag now, not when it is sent
     )
+    etag = response.headers["etag"]
+    held = request.headers.get("if-none-match", "")
+    if etag in (tag.strip().removeprefix("W/") for tag in held.split(",")):
+        return Response(status_code=304, headers={"ETag": etag, **cache})
+    return response
 
 
 def _login_first(request: Request) -> RedirectResponse:
@@ -94,15 +99,15 @@ def login_page(request: Request) -> Response:
 
 
 @router.get("/docs")
-def swagger_page() -> FileResponse:
+def swagger_page() -> Response:
     """Swagger UI for /openapi.json, from npm and served here (no CDN)."""
     return _page("docs.html")
 
 
 @router.get("/redoc")
-def redoc_page() -> FileResponse:
+def redoc_page() -> Response:
     """ReDoc for /openapi.json, from npm and served here (no CDN)."""
-    return _page("redoc.html")
+    return _page("redoc.html", inline_styles=True)
 
 
 @router.get("/")
@@ -134,16 +139,32 @@ def _audit_view(store: Store, request: Request, user: User, model_id: str) -> No
 
 
 @router.get("/static/{path:path}")
-def static_file(path: str) -> FileResponse:
-    return _asset(safe_file(WEB, path))
+def static_file(path: str, request: Request) -> Response:
+    return _asset(safe_file(WEB, path), request)
 
 
 @router.get("/vendor/{package}/{path:path}")
-def vendor_file(package: str, path: str) -> FileResponse:
+def vendor_file(package: str, path: str, request: Request) -> Response:
     """A file of three.js, Swagger UI or ReDoc, installed from npm by ``make``."""
-    root = VENDOR.get(package)
-    if root is None:
+    return _asset(_vendor(package, path), request)
+
+
+@router.get("/v/{version}/static/{path:path}")
+def versioned_static_file(version: str, path: str, request: Request) -> Response:
+    """``/static/{path}`` as a page of that ``version`` asks for it (:mod:`..assets`)."""
+    return _asset(safe_file(WEB, path), request, version)
+
+
+@router.get("/v/{version}/vendor/{package}/{path:path}")
+def versioned_vendor_file(version: str, package: str, path: str, request: Request) -> Response:
+    """``/vendor/{package}/{path}`` as a page of that ``version`` asks for it."""
+    return _asset(_vendor(package, path), request, version)
+
+
+def _vendor(package: str, path: str) -> Path:
+    if package not in assets.VENDOR:
         raise NotFound(f"no package {package!r} is served.")
+    root = assets.VENDOR[package][0]
     if not root.is_dir():
         raise NotFound(f"{package} is not installed; run `make` (npm install in src/miss/web).")
-    return _asset(safe_file(root, path, forbid=()))
+    return safe_file(root, path, forbid=())

@@ -13,14 +13,14 @@ from string import Template
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Query, Request, Response
-from fastapi.responses import FileResponse, HTMLResponse, JSONResponse
+from fastapi.responses import HTMLResponse, JSONResponse
 from pydantic import BaseModel, ConfigDict, Field
 from starlette.concurrency import run_in_threadpool
 
 from miss import __version__
 from miss.errors import BadParameter
 from miss.export import WRITERS
-from miss.server import audit, shares
+from miss.server import assets, audit, shares
 from miss.server.accounts import User
 from miss.server.deps import StoreDep, UserDep, visible_model, visible_volume
 from miss.server.errors import Forbidden, Gone, MissError, NotFound, status_of
@@ -130,7 +130,7 @@ def share_page(token: str, store: StoreDep, request: Request) -> Response:
         return gone_page(exc)
     target = share.model_id or share.volume_id or ""
     audit.record(store, "view", f"link:{share.id}", target, audit.address(request))
-    return FileResponse(WEB / "model.html", media_type="text/html", headers=PRIVATE)
+    return assets.page("model.html", headers=PRIVATE)
 
 
 def provenance(model: ModelRow, volume: VolumeRow) -> dict[str, Any]:
