@@ -219,7 +219,11 @@ export class ModelViewer {
 			status.lod = this.tiles.state();
 			this.onDrawn?.( status.drawnTriangles );
 		}
-		this.gizmo.render( r, this.camera );
+		// The gizmo once there is a model to turn. Before, a frame is the background alone:
+		// quick where WebGL runs in software, where the gizmo's first frame took 0.15-0.2 s,
+		// and the page (its compositor reads the canvas back) waited for it before it could
+		// even hear of the job's preview.
+		if ( this.model ) this.gizmo.render( r, this.camera );
 		for ( const then of this.afterRender.splice( 0 ) ) then();
 	}
 
