@@ -6,7 +6,6 @@
 import * as THREE from 'three';
 import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
 import { GLTFLoader } from 'three/addons/loaders/GLTFLoader.js';
-import { VRMLLoader } from 'three/addons/loaders/VRMLLoader.js';
 import { MeshoptDecoder } from 'three/addons/libs/meshopt_decoder.module.js';
 import { OrientationGizmo } from './gizmo.js';
 import { TiledModel } from './tiles.js';
@@ -219,11 +218,15 @@ export class ModelViewer {
 			status.lod = this.tiles.state();
 			this.onDrawn?.( status.drawnTriangles );
 		}
-		// The gizmo once there is a model to turn. Before, a frame is the background alone:
-		// quick where WebGL runs in software, where the gizmo's first frame took 0.15-0.2 s,
-		// and the page (its compositor reads the canvas back) waited for it before it could
-		// even hear of the job's preview.
-		if ( this.model ) this.gizmo.render( r, this.camera );
+		// The gizmo from the frame after the first with a model. Its first frame is slow where
+		// WebGL runs in software (0.1 s of this page's time, and more of the GPU's: its
+		// shaders, its labels' textures): drawn with the empty stage, it held the page before
+		// it could hear of the job's preview; drawn with the first model, it held the model.
+		if ( this.model && this.gizmoDue ) this.gizmo.render( r, this.camera );
+		else if ( this.model ) {
+			this.gizmoDue = true;
+			this.requestRender();
+		}
 		for ( const then of this.afterRender.splice( 0 ) ) then();
 	}
 
@@ -351,6 +354,8 @@ export class ModelViewer {
 	}
 
 	async loadVRML( url, onProgress ) {
+		// Asked for only here: the VRML loader and its parser are a tenth of the page's code.
+		const { VRMLLoader } = await import( 'three/addons/loaders/VRMLLoader.js' );
 		const vrml = await new VRMLLoader().loadAsync( url, onProgress );
 		vrml.updateMatrixWorld( true );
 		// Keep the geometry only: a Background, Viewpoint or light in the file
