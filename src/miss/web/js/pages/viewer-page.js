@@ -17,11 +17,29 @@ import { ModelViewer } from '../viewer/viewer.js';
 const $ = ( id ) => document.getElementById( id );
 const modelId = decodeURIComponent( location.pathname.split( '/' ).filter( Boolean ).pop() );
 
+// The job's events (api.watchModel), asked for as the page starts, with its row: a
+// preview written while the page starts up is heard of as soon as the viewer can draw it.
+// The page listens from then on (listen); the last event is kept until it does. A finished
+// model's stream says so once and ends.
+function events( id ) {
+	const heard = { last: null, listener: null };
+	heard.done = watchModel( id, ( m ) => {
+		heard.last = m;
+		heard.listener?.( m );
+	}, { draws: true } );
+	heard.done.catch( () => {} ); // awaited by follow
+	heard.listen = ( listener ) => {
+		heard.listener = listener;
+		if ( heard.last ) listener( heard.last );
+	};
+	return heard;
+}
+
 // While the job runs: its progress, then its preview (a coarse GLB) as soon as there is
 // one, then the model's own GLB as soon as it is written (a large model's levels of
 // detail instead, written before it), the view kept as the user turned it; resolves
 // with the finished model and whether the model is drawn already.
-async function follow( viewer, model ) {
+async function follow( viewer, model, heard ) {
 	let drawn = null; // 'preview' | 'full': what is drawn or on its way
 	let queue = Promise.resolve();
 	const draw = ( m ) => {
@@ -60,8 +78,9 @@ async function follow( viewer, model ) {
 		draw( m );
 	};
 	update( model );
+	heard.listen( update );
 	try {
-		model = await watchModel( modelId, update, { draws: true } );
+		model = await heard.done;
 	} finally {
 		$( 'building' ).hidden = true;
 	}
@@ -108,6 +127,7 @@ function offerPacs( me, volume ) {
 export async function start() {
 	const asked = api.model( modelId ); // on its way while the viewer starts up
 	asked.catch( () => {} ); // awaited below
+	const heard = events( modelId );
 	const me = showSession();
 	const viewer = new ModelViewer( $( 'stage' ) );
 	let consult = null;
@@ -124,7 +144,7 @@ export async function start() {
 		const volume = api.volume( model.volume );
 		volume.then( showVolume ).catch( () => {} );
 		let drawn = false;
-		if ( model.status !== 'done' ) ( { model, drawn } = await follow( viewer, model ) );
+		if ( model.status !== 'done' ) ( { model, drawn } = await follow( viewer, model, heard ) );
 		lod = model.lod;
 		fillStats( model );
 		structures.setStats( model.stats );
