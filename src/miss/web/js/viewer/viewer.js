@@ -222,10 +222,12 @@ export class ModelViewer {
 		// WebGL runs in software (0.1 s of this page's time, and more of the GPU's: its
 		// shaders, its labels' textures): drawn with the empty stage, it held the page before
 		// it could hear of the job's preview; drawn with the first model, it held the model.
-		if ( this.model && this.gizmoDue ) this.gizmo.render( r, this.camera );
-		else if ( this.model ) {
-			this.gizmoDue = true;
-			this.requestRender();
+		if ( this.model ) {
+			if ( this.gizmoDue ) this.gizmo.render( r, this.camera );
+			else {
+				this.gizmoDue = true;
+				this.requestRender();
+			}
 		}
 		for ( const then of this.afterRender.splice( 0 ) ) then();
 	}
