@@ -263,6 +263,44 @@ def test_generate_view_and_download(
     assert Path(info.value.path()).read_bytes().startswith(b"#VRML V2.0 utf8")
 
 
+def test_generate_shows_the_model_page_in_the_same_document(
+    page: Any, server: Any, uploaded: dict[str, Any], artifacts: Path
+) -> None:
+    """Generate shows the model's page without loading a new one: its modules were loaded
+    while the user chose, its markup is the server's (whose request records the view, as
+    opening the page does), and it works as when opened from its address. Back goes to
+    the volume's page, loaded anew."""
+    page.goto(f"/volumes/{uploaded['id']}")
+    page.wait_for_selector("body[data-ready='1']")
+    page.fill("#threshold", "300")
+    page.fill("#sample-rate", "2")
+    page.wait_for_function(
+        """() => performance.getEntriesByType('resource')
+            .some((e) => e.name.endsWith('/static/js/pages/viewer-page.js'))"""
+    )
+    page.evaluate("() => { window.__sameDocument = true; }")
+    page.click("#generate")
+    page.wait_for_url("**/models/*")
+    model_id = page.url.rstrip("/").split("/")[-1]
+    assert server.wait_model(model_id, timeout=150)["status"] == "done"
+    glb = wait_drawn(page, "glb")
+    assert page.evaluate("() => window.__sameDocument") is True
+    assert glb["triangles"] > 0
+    assert page.evaluate("() => document.body.className") == "owner"
+    assert page.title() == f"MISS · {uploaded['name']}"
+    assert page.locator("#downloads a").count() == 7
+    assert page.is_visible("#volume-link") and not page.is_visible("#generate")
+    page.screenshot(path=artifacts / "viewer-same-document.png")
+    views = server.get("/api/audit?action=view")
+    assert [e["target"] for e in views].count(model_id) == 1
+
+    page.go_back()
+    page.wait_for_selector("body[data-ready='1']")
+    assert page.url.endswith(f"/volumes/{uploaded['id']}")
+    assert page.evaluate("() => window.__sameDocument") is None
+    assert page.is_visible("#generate")
+
+
 def _finished_model(server: Any, volume_id: str) -> str:
     """A done model of the volume: the one the generate test made, else a fresh one."""
     listed = server.get(f"/api/models?volume={volume_id}")

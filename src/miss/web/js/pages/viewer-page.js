@@ -15,7 +15,9 @@ import { status } from '../test-hooks.js';
 import { ModelViewer } from '../viewer/viewer.js';
 
 const $ = ( id ) => document.getElementById( id );
-const modelId = decodeURIComponent( location.pathname.split( '/' ).filter( Boolean ).pop() );
+// The page's model, from its address when the page starts (the volume page may load this
+// module before it shows the page: pages/volume-page.js).
+let modelId = null;
 
 // The job's events (api.watchModel), asked for as the page starts, with its row: a
 // preview written while the page starts up is heard of as soon as the viewer can draw it.
@@ -125,6 +127,7 @@ function offerPacs( me, volume ) {
 }
 
 export async function start() {
+	modelId = decodeURIComponent( location.pathname.split( '/' ).filter( Boolean ).pop() );
 	const asked = api.model( modelId ); // on its way while the viewer starts up
 	asked.catch( () => {} ); // awaited below
 	const heard = events( modelId );
