@@ -262,8 +262,11 @@ async function showModel( id ) {
 	const path = urls.viewerPage( id );
 	const page = new URL( './model-page.js', import.meta.url ).href;
 	try {
-		const [ loaded, response ] = await Promise.all( [ modelPage, fetch( path ) ] );
-		if ( ! loaded || ! response.ok || new URL( response.url ).pathname !== path ) return false;
+		// The modules before the markup: without them the view is recorded once, by the
+		// page the caller goes to.
+		if ( ! modelPage || ! await modelPage ) return false;
+		const response = await fetch( path );
+		if ( ! response.ok || new URL( response.url ).pathname !== path ) return false;
 		const doc = new DOMParser().parseFromString( await response.text(), 'text/html' );
 		const script = doc.querySelector( 'body script[type=module]' );
 		if ( ! script || new URL( script.getAttribute( 'src' ), location.href ).href !== page ) return false;
