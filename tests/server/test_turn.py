@@ -45,6 +45,16 @@ def test_watching_never_makes_a_deleted_models_folder_again(tmp_path: Path) -> N
     assert not (tmp_path / "gone").exists()
 
 
+def test_done_leaves_neither_file(tmp_path: Path) -> None:
+    turn.watching(tmp_path)
+    turn.shown(tmp_path)
+    turn.done(tmp_path)
+    assert list(tmp_path.iterdir()) == []
+    turn.done(tmp_path)  # nothing there: nothing to do
+    turn.done(tmp_path / "gone")
+    assert not (tmp_path / "gone").exists()
+
+
 def _follow(client: TestClient, url: str) -> list[str]:
     """Read the event stream at ``url`` in a thread; its data lines, as they come."""
     events: list[str] = []
@@ -57,6 +67,23 @@ def _follow(client: TestClient, url: str) -> list[str]:
     return events
 
 
+def _followed_job(
+    client: TestClient, demo_id: str, draws: bool
+) -> tuple[Store, str, DataFolder, list[str]]:
+    """A running job with its preview, followed by an event stream (a viewer's, drawing
+    the model, with ``draws``; then once the stream says so by ``.watched``)."""
+    store: Store = client.app.state.store
+    model_id = running_row(store, demo_id)
+    folder = DataFolder(store.model_dir(model_id), JobState(store), model_id)
+    folder.put("preview", b"glTF preview")  # the runner would have made the folder
+    events = _follow(client, f"/api/models/{model_id}/events{'?draws=1' if draws else ''}")
+    deadline = time.monotonic() + 20
+    while not (folder.folder / turn.WATCHED).exists() if draws else not events:
+        assert time.monotonic() < deadline
+        time.sleep(0.02)
+    return store, model_id, folder, events
+
+
 def test_a_job_holds_back_until_the_viewer_following_it_says_it_drew_the_model(
     client: TestClient, demo_id: str, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -64,14 +91,7 @@ def test_a_job_holds_back_until_the_viewer_following_it_says_it_drew_the_model(
     waits (a minute at most here) until the page posts that it drew the model; the queue
     starts no spare meanwhile."""
     monkeypatch.setattr(turn, "HOLD", 60.0)
-    store: Store = client.app.state.store
-    model_id = running_row(store, demo_id)
-    folder = DataFolder(store.model_dir(model_id), JobState(store), model_id)
-    folder.put("preview", b"glTF preview")  # the runner would have made the folder
-    _follow(client, f"/api/models/{model_id}/events?draws=1")
-    deadline = time.monotonic() + 20
-    while not (folder.folder / turn.WATCHED).exists() and time.monotonic() < deadline:
-        time.sleep(0.02)
+    store, model_id, folder, _ = _followed_job(client, demo_id, draws=True)
     assert (folder.folder / turn.WATCHED).exists()
 
     folder.put("glb", b"glTF model")
@@ -91,14 +111,7 @@ def test_a_job_holds_back_until_the_viewer_following_it_says_it_drew_the_model(
 
 def test_nobody_drawing_the_model_holds_nothing(client: TestClient, demo_id: str) -> None:
     """A follower that does not draw the model (a script: no ``draws=1``) holds no job."""
-    store: Store = client.app.state.store
-    model_id = running_row(store, demo_id)
-    folder = DataFolder(store.model_dir(model_id), JobState(store), model_id)
-    folder.put("preview", b"glTF preview")
-    events = _follow(client, f"/api/models/{model_id}/events")
-    deadline = time.monotonic() + 20
-    while not events and time.monotonic() < deadline:
-        time.sleep(0.02)
+    store, model_id, folder, events = _followed_job(client, demo_id, draws=False)
     time.sleep(0.5)  # several looks at the job since
     assert events and not (folder.folder / turn.WATCHED).exists()
     folder.put("glb", b"glTF model")
@@ -146,3 +159,29 @@ def test_the_job_waits_for_the_viewer_after_its_glb_and_before_the_rest() -> Non
     assert sink.order == ["glb", "viewer", *(f for f in FORMATS if f != "glb")]
     # the wait is told as such, not as writing (a small phantom's files take milliseconds)
     assert result.seconds["viewer"] == 1.0 and result.seconds["write"] < 0.9
+
+
+@pytest.mark.parametrize("end", ["finish", "fail"])
+def test_an_ended_jobs_folder_keeps_no_viewers_word(
+    client: TestClient, demo_id: str, end: str
+) -> None:
+    """A job followed and drawn by its viewer ends (done or failed): its folder keeps
+    neither ``.watched`` nor ``.shown``, once the row says so and once the viewer's event
+    stream has ended."""
+    store, model_id, folder, events = _followed_job(client, demo_id, draws=True)
+    folder.put("glb", b"glTF model")
+    assert client.post(f"/api/models/{model_id}/shown").status_code == 204
+    assert (folder.folder / turn.WATCHED).exists() and (folder.folder / turn.SHOWN).exists()
+
+    state = JobState(store)
+    assert state.finish(model_id, {}, {}) if end == "finish" else state.fail(model_id, "no")
+    assert not (folder.folder / turn.WATCHED).exists()
+    assert not (folder.folder / turn.SHOWN).exists()
+    status = "done" if end == "finish" else "failed"
+    deadline = time.monotonic() + 20
+    while not any(f'"status":"{status}"' in e.replace(" ", "") for e in events):
+        assert time.monotonic() < deadline, events
+        time.sleep(0.02)
+    time.sleep(0.3)  # the stream's own end, after its last word
+    assert sorted(p.name for p in folder.folder.iterdir()) == ["model.glb", "preview.glb"]
+    assert client.delete(f"/api/models/{model_id}").status_code == 204

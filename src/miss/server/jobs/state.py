@@ -15,6 +15,7 @@ from typing import Any
 
 from sqlalchemy import select, update
 
+from miss.server.jobs import turn
 from miss.server.storage.db import DONE, FAILED, QUEUED, RUNNING, ModelRow, utcnow
 from miss.server.storage.store import Store
 
@@ -94,9 +95,8 @@ class JobState:
         return self.store.update_model(model_id, ModelRow.status == RUNNING, files=files)
 
     def finish(self, model_id: str, stats: dict[str, Any], files: dict[str, Any]) -> bool:
-        return self.store.update_model(
+        return self._ended(
             model_id,
-            ModelRow.status == RUNNING,
             status=DONE,
             progress=1.0,
             stage="done",
@@ -109,14 +109,14 @@ class JobState:
 
     def fail(self, model_id: str, reason: str) -> bool:
         """Mark a running job failed with a reason a physician can act on."""
-        return self.store.update_model(
-            model_id,
-            ModelRow.status == RUNNING,
-            status=FAILED,
-            error=reason,
-            pid=None,
-            finished_at=utcnow(),
-        )
+        return self._ended(model_id, status=FAILED, error=reason, pid=None, finished_at=utcnow())
+
+    def _ended(self, model_id: str, **values: Any) -> bool:
+        """A running job's row set to ``values``; its folder keeps no viewer's word."""
+        ended = self.store.update_model(model_id, ModelRow.status == RUNNING, **values)
+        if ended:
+            turn.done(self.store.model_dir(model_id))
+        return ended
 
     def requeue(self, model_id: str, count_attempt: bool) -> bool:
         """Put a running job back in the queue; a clean shutdown does not count as an attempt."""

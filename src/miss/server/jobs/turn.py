@@ -64,6 +64,16 @@ def forget(folder: Path) -> None:
         (folder / SHOWN).unlink(missing_ok=True)
 
 
+def done(folder: Path) -> None:
+    """The job has ended (done or failed): nothing waits for a viewer any more, and neither
+    file stays in the model's folder. Called where the row says so
+    (:class:`~miss.server.jobs.state.JobState`), and by a viewer's event stream as it ends,
+    which may have touched ``.watched`` between the row's change and its reading of it."""
+    for name in (WATCHED, SHOWN):
+        with contextlib.suppress(OSError):
+            (folder / name).unlink(missing_ok=True)
+
+
 def held(folder: Path, since: float, now: float | None = None) -> bool:
     """Whether the job of ``folder``, drawable since ``since`` (``time.time()``), waits for
     its viewer: one follows it (``.watched`` touched within :data:`FRESH` s), has not

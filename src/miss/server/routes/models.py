@@ -212,6 +212,8 @@ async def model_events(
             last, follow = state, 0
             yield ServerSentEvent(data=model_out(row, volume).model_dump(mode="json"))
         if row.status in (DONE, FAILED):
+            if draws:  # (it may have touched .watched as the job ended)
+                turn.done(folder)
             return
         if draws:  # a viewer follows the job: the job waits for its word
             turn.watching(folder)
