@@ -69,3 +69,15 @@ def test_model_page_preloads_exactly_the_modules_it_imports() -> None:
     )
     for url in preloaded:
         assert local(url).is_file(), url
+
+
+def test_the_volume_page_resolves_modules_as_the_model_page_does() -> None:
+    """Generate runs the model page's modules in the volume page's document
+    (pages/volume-page.js): its import map must be the model page's, or three would be
+    another file there than on the model's own page."""
+
+    def import_map(name: str) -> dict[str, str]:
+        html = (WEB / name).read_text(encoding="utf-8")
+        return json.loads(re.search(r'<script type="importmap">(.*?)</script>', html, re.S)[1])
+
+    assert import_map("volume.html") == import_map("model.html")
