@@ -54,11 +54,16 @@ def module_graph(entry: str, import_map: dict[str, str]) -> list[str]:
     return seen[1:]
 
 
+def page_import_map(html: str) -> dict[str, dict[str, str]]:
+    """A page's import map, as its ``<script type="importmap">`` says."""
+    return json.loads(re.search(r'<script type="importmap">(.*?)</script>', html, re.S)[1])
+
+
 def test_model_page_preloads_exactly_the_modules_it_imports() -> None:
     if not (WEB / "node_modules/three").is_dir():
         pytest.skip("three.js is not installed in src/miss/web (make web-deps installs it)")
     html = (WEB / "model.html").read_text(encoding="utf-8")
-    import_map = json.loads(re.search(r'<script type="importmap">(.*?)</script>', html, re.S)[1])
+    import_map = page_import_map(html)
     entry = re.search(r'<script type="module" src="([^"]+)"', html)[1]
     graph = module_graph(entry, import_map["imports"])
     preloaded = re.findall(r'<link rel="modulepreload" href="([^"]+)">', html)
@@ -75,9 +80,7 @@ def test_the_volume_page_resolves_modules_as_the_model_page_does() -> None:
     """Generate runs the model page's modules in the volume page's document
     (pages/volume-page.js): its import map must be the model page's, or three would be
     another file there than on the model's own page."""
-
-    def import_map(name: str) -> dict[str, str]:
-        html = (WEB / name).read_text(encoding="utf-8")
-        return json.loads(re.search(r'<script type="importmap">(.*?)</script>', html, re.S)[1])
-
-    assert import_map("volume.html") == import_map("model.html")
+    volume, model = (
+        (WEB / name).read_text(encoding="utf-8") for name in ("volume.html", "model.html")
+    )
+    assert page_import_map(volume) == page_import_map(model)
