@@ -8,7 +8,7 @@ VALIDATORS := tests/validators
 
 .PHONY: run test lint format bench web-deps validators vrml-reader chromium pacs-servers postgres clean
 
-$(VENV)/.installed: pyproject.toml
+$(VENV)/.installed: pyproject.toml setup.py src/miss/_nearest.cpp
 	$(PYTHON) -m venv $(VENV)
 	$(PIP) install -q --upgrade pip
 	$(PIP) install -q -e '.[test]'

@@ -37,16 +37,9 @@ import numpy as np
 from numba.core.cpu import CPUTargetOptions
 
 from miss._numba import njit, prange
-from miss.types import Mesh, column_bounds
-
-
-@dataclass(frozen=True)
-class Deviation:
-    """Two-sided distance between surfaces A and B, mm."""
-
-    max_mm: float
-    mean_mm: float
-    samples: int
+from miss.measuring import Deviation, Side
+from miss.measuring import grid_shape as _grid_shape
+from miss.types import Mesh
 
 
 def sample_surface(mesh: Mesh, count: int, rng: np.random.Generator) -> np.ndarray:
@@ -125,8 +118,9 @@ def _cumulative_areas(verts, faces):
     total = 0.0
     for f in range(len(faces)):
         a, b, c = verts[faces[f, 0]], verts[faces[f, 1]], verts[faces[f, 2]]
-        ux, uy, uz = float(b[0]) - a[0], float(b[1]) - a[1], float(b[2]) - a[2]
-        vx, vy, vz = float(c[0]) - a[0], float(c[1]) - a[1], float(c[2]) - a[2]
+        # np.float64, not float(): numba's float() of a float32 is a float32
+        ux, uy, uz = np.float64(b[0]) - a[0], np.float64(b[1]) - a[1], np.float64(b[2]) - a[2]
+        vx, vy, vz = np.float64(c[0]) - a[0], np.float64(c[1]) - a[1], np.float64(c[2]) - a[2]
         nx, ny, nz = uy * vz - uz * vy, uz * vx - ux * vz, ux * vy - uy * vx
         total += math.sqrt(nx * nx + ny * ny + nz * nz)
         out[f] = total
@@ -148,8 +142,8 @@ def _inner_points(verts, faces, cum, target, order, r1, r2, slots, out):
             s, t = 1 - s, 1 - t
         a, b, c = verts[faces[f, 0]], verts[faces[f, 1]], verts[faces[f, 2]]
         for k in range(3):
-            ak = float(a[k])
-            out[slots[j], k] = ak + s * (float(b[k]) - ak) + t * (float(c[k]) - ak)
+            ak = np.float64(a[k])  # in float64 (see _cumulative_areas)
+            out[slots[j], k] = ak + s * (np.float64(b[k]) - ak) + t * (np.float64(c[k]) - ak)
 
 
 @njit(cache=True, inline="always")
@@ -230,22 +224,6 @@ NO_REFCOUNT: dict[str, bool] = {"_nrt": False} if hasattr(CPUTargetOptions, "_nr
 def _point_triangle_sq(p, a, b, c):
     """Squared distance from p to triangle abc, each a (3,) array."""
     return _triangle_sq(p[0], p[1], p[2], a[0], a[1], a[2], b[0], b[1], b[2], c[0], c[1], c[2])
-
-
-def _grid_shape(verts: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
-    """Origin, cell size (mm) and cell counts of a uniform grid over the mesh's bounding box.
-
-    Cells about the median edge hold a few triangles each; the floor on the size keeps the
-    number of cells within about four times the number of triangles whatever the mesh's shape.
-    """
-    lo, hi = (b.astype(np.float64) for b in column_bounds(verts))
-    some = faces[:: max(1, len(faces) // 20_000)]  # a median needs no million edges
-    edge = np.linalg.norm(verts[some[:, 0]].astype(np.float64) - verts[some[:, 1]], axis=1)
-    extent = np.maximum(hi - lo, 1e-9)
-    floor = float(np.prod(extent) / max(4 * len(faces), 1)) ** (1 / 3)
-    cell = max(float(np.median(edge)), floor, 1e-9)
-    dims = np.maximum(np.ceil(extent / cell).astype(np.int64), 1)
-    return lo, cell, dims
 
 
 @njit(cache=True, nogil=True)
@@ -461,17 +439,6 @@ def distances_to(
         return np.full(len(pts), np.inf)
     grid = grid or surface_grid(mesh)
     return _grid_distances(pts, grid, cap * cap, ordered)
-
-
-@dataclass(frozen=True)
-class Side:
-    """Surface ``a``'s half of a :func:`deviation`, made before ``b`` exists (e.g. while
-    ``b`` is being decimated from it): its sample points, its grid, and the random state
-    that ``b``'s sampling goes on from, so that the figures are the same."""
-
-    points: np.ndarray
-    grid: tuple
-    state: dict
 
 
 def side_of(a: Mesh, samples: int = 100_000, seed: int = 0) -> Side:

@@ -1,0 +1,291 @@
+"""The sampled measurement of a decimation, in native code: no numba to start.
+
+:func:`deviation` and :func:`side_of` are :mod:`miss.deviation`'s, with the same samples,
+grid and search, and the same figures to the bit (tests/test_measuring.py), run by the
+kernels of ``_nearest.cpp``: a C++ extension built at install (setup.py), called through
+ctypes, which lets go of the GIL for each call. The queries run on every core the process
+may use, as numba's ``prange`` did.
+
+A process that measures needs numba then only for what else it does. For ``miss convert
+--measure`` under the paper's schedule that is nothing: numba's start (0.6-0.9 s on the
+2-core test machine), which a measuring process of its own used to take on the other core
+(:mod:`miss.measurer`), is not paid at all.
+
+Where numba is loaded already (a server's warmed-up worker), both functions are numba's:
+its kernels, compiled for the very CPU they run on, searched 10-15 % faster than these
+(the same counts of cells, boxes and triangles per query; ``benchmarks/measure.py``). A
+grid made here serves numba's search too (its rows start with the corners numba reads), so
+a half made before numba loaded is still used after. Where the extension was not built (no
+C++ compiler at install), :func:`native` says so and both functions are numba's.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import math
+import os
+import sys
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from functools import cache
+from typing import Any
+
+import numpy as np
+
+from miss.types import Mesh, column_bounds
+
+
+@dataclass(frozen=True)
+class Deviation:
+    """Two-sided distance between surfaces A and B, mm."""
+
+    max_mm: float
+    mean_mm: float
+    samples: int
+
+
+@dataclass(frozen=True)
+class Side:
+    """Surface ``a``'s half of a :func:`deviation`, made before ``b`` exists (e.g. while
+    ``b`` is being decimated from it): its sample points, its grid, and the random state
+    that ``b``'s sampling goes on from, so that the figures are the same."""
+
+    points: np.ndarray
+    grid: tuple
+    state: dict
+
+
+def grid_shape(verts: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
+    """Origin, cell size (mm) and cell counts of a uniform grid over the mesh's bounding box.
+
+    Cells about the median edge hold a few triangles each; the floor on the size keeps the
+    number of cells within about four times the number of triangles whatever the mesh's shape.
+    """
+    lo, hi = (b.astype(np.float64) for b in column_bounds(verts))
+    some = faces[:: max(1, len(faces) // 20_000)]  # a median needs no million edges
+    edge = np.linalg.norm(verts[some[:, 0]].astype(np.float64) - verts[some[:, 1]], axis=1)
+    extent = np.maximum(hi - lo, 1e-9)
+    floor = float(np.prod(extent) / max(4 * len(faces), 1)) ** (1 / 3)
+    cell = max(float(np.median(edge)), floor, 1e-9)
+    dims = np.maximum(np.ceil(extent / cell).astype(np.int64), 1)
+    return lo, cell, dims
+
+
+_P, _I, _D = ctypes.c_void_p, ctypes.c_int64, ctypes.c_double
+_SIGNATURES: dict[str, list[Any]] = {
+    "miss_used": [_P, _I, _P],
+    "miss_increasing": [_P, _I, _D, _P],
+    "miss_grid_count": [_P, _I, _P, _P],
+    "miss_grid_fill": [_P, _I, _P, _P, _P],
+}
+for _t in ("f32", "f64"):
+    _SIGNATURES |= {
+        f"miss_corners_{_t}": [_P, _P, _I, _P, _D, _P, _P, _P],
+        f"miss_cumulative_areas_{_t}": [_P, _P, _I, _P],
+        f"miss_inner_points_{_t}": [_P, _P, _P, _I, _P, _P, _P, _P, _P, _I, _P],
+        f"miss_distances_{_t}": [
+            _P,
+            _I,
+            _P,
+            _D,
+            _P,
+            _P,
+            _P,
+            _P,
+            _D,
+            ctypes.c_int,
+            ctypes.c_int,
+            _P,
+        ],
+    }
+
+
+@cache
+def _library() -> ctypes.CDLL | None:
+    """The built kernels, or None where the extension is not there or does not load."""
+    try:
+        from miss import _nearest  # type: ignore[attr-defined]
+
+        lib = ctypes.CDLL(_nearest.__file__)
+        for name, args in _SIGNATURES.items():
+            getattr(lib, name).argtypes = args
+            getattr(lib, name).restype = None
+    except (ImportError, OSError, AttributeError):
+        return None
+    return lib
+
+
+def native() -> bool:
+    """Whether the native kernels are built here (else :func:`deviation` is numba's)."""
+    return _library() is not None
+
+
+#: Numbers in a row of a native grid's triangles: corners a, b, c, then the box (see
+#: ``_nearest.cpp``).
+ROW = 16
+
+
+def _jitted(side: Side | None = None) -> bool:
+    """Whether to measure with numba's kernels: where the native ones are not built, where
+    numba is loaded (see above), or for a half numba made (its rows hold no box)."""
+    return (
+        not native()
+        or "numba" in sys.modules
+        or (side is not None and side.grid[5].shape[1] != ROW)
+    )
+
+
+def side_of(a: Mesh, samples: int = 100_000, seed: int = 0) -> Side:
+    """``a``'s :class:`Side` of a :func:`deviation` with ``samples`` and ``seed``."""
+    if _jitted():
+        from miss.deviation import side_of as jitted
+
+        return jitted(a, samples, seed)
+    return native_side_of(a, samples, seed)
+
+
+def deviation(
+    a: Mesh, b: Mesh, samples: int = 100_000, seed: int = 0, side: Side | None = None
+) -> Deviation:
+    """Two-sided (symmetric Hausdorff-style) deviation between surfaces ``a`` and ``b``:
+    ``samples`` points on each (its vertices, then area-weighted random points inside its
+    triangles), each one's exact distance to the other surface; ``side``: ``a``'s half made
+    already (:func:`side_of`, the same ``samples`` and ``seed``)."""
+    if _jitted(side):
+        from miss.deviation import deviation as jitted
+
+        return jitted(a, b, samples, seed, side)
+    return native_deviation(a, b, samples, seed, side)
+
+
+def native_side_of(a: Mesh, samples: int = 100_000, seed: int = 0) -> Side:
+    """:func:`side_of` with the native kernels, wherever numba is."""
+    rng = np.random.default_rng(seed)
+    points = _sample(a, samples, rng)
+    return Side(points, surface_grid(a), rng.bit_generator.state)
+
+
+def native_deviation(
+    a: Mesh, b: Mesh, samples: int = 100_000, seed: int = 0, side: Side | None = None
+) -> Deviation:
+    """:func:`deviation` with the native kernels, wherever numba is (``side``: a native
+    one)."""
+    if a.n_triangles == 0 or b.n_triangles == 0:
+        return Deviation(0.0, 0.0, 0)
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        if side is None:
+            rng = np.random.default_rng(seed)
+            # a's cells on the second core while this one samples both and makes b's
+            making = pool.submit(surface_grid, a)
+            points_a = _sample(a, samples, rng)
+            points_b = _sample(b, samples, rng)
+            grid_a, grid_b = making.result(), surface_grid(b)
+        else:
+            rng = np.random.default_rng()
+            rng.bit_generator.state = side.state
+            making = pool.submit(surface_grid, b)
+            points_b = _sample(b, samples, rng)
+            points_a, grid_a, grid_b = side.points, side.grid, making.result()
+    # a's points in a's own order (neighbours together) are searched as they come; b's
+    # (a decimation's order) by blocks of cells
+    both = np.concatenate([distances(points_a, grid_b, ordered=True), distances(points_b, grid_a)])
+    return Deviation(max_mm=float(both.max()), mean_mm=float(both.mean()), samples=len(both))
+
+
+def _arrays(mesh: Mesh) -> tuple[np.ndarray, np.ndarray, str]:
+    """The mesh's vertices (float32 or float64, as they are) and int32 faces, contiguous,
+    and the kernels' suffix for that vertex type."""
+    verts = np.ascontiguousarray(mesh.vertices)
+    if verts.dtype not in (np.float32, np.float64):
+        verts = verts.astype(np.float64)
+    faces = np.ascontiguousarray(mesh.faces, dtype=np.int32)
+    return verts, faces, "f32" if verts.dtype == np.float32 else "f64"
+
+
+def _sample(mesh: Mesh, count: int, rng: np.random.Generator) -> np.ndarray:
+    """:func:`miss.deviation.sample_surface`'s points, its corners in vertex order and its
+    inner points in triangle order (``miss.deviation._sample`` not ``drawn``)."""
+    lib = _library()
+    assert lib is not None
+    verts, faces, t = _arrays(mesh)
+    mask = np.zeros(len(verts), dtype=np.uint8)
+    lib.miss_used(faces.ctypes.data, len(faces), mask.ctypes.data)
+    used = np.flatnonzero(mask)
+    chosen = rng.choice(len(used), size=min(len(used), count // 2), replace=False)
+    mark = np.zeros(len(used), dtype=bool)  # the same vertices in increasing order
+    mark[chosen] = True
+    corners = verts[used[np.flatnonzero(mark)]]
+    n_inner = count - len(corners)
+    cum = np.empty(len(faces))
+    getattr(lib, f"miss_cumulative_areas_{t}")(
+        verts.ctypes.data, faces.ctypes.data, len(faces), cum.ctypes.data
+    )
+    target = rng.random(n_inner) * cum[-1]
+    order = np.empty(n_inner, dtype=np.int64)
+    lib.miss_increasing(target.ctypes.data, n_inner, float(cum[-1]), order.ctypes.data)
+    r1, r2 = rng.random(n_inner), rng.random(n_inner)
+    out = np.empty((count, 3))
+    out[: len(corners)] = corners
+    slots = np.arange(n_inner, dtype=np.int64)
+    inner = out[len(corners) :]
+    getattr(lib, f"miss_inner_points_{t}")(
+        verts.ctypes.data, faces.ctypes.data, cum.ctypes.data, len(cum), target.ctypes.data,
+        order.ctypes.data, r1.ctypes.data, r2.ctypes.data, slots.ctypes.data, n_inner,
+        inner.ctypes.data,
+    )  # fmt: skip
+    return out
+
+
+def surface_grid(mesh: Mesh) -> tuple:
+    """The cells of ``mesh``'s triangles as :func:`miss.deviation.surface_grid` makes them
+    (origin, cell size, counts, CSR offsets and items, a row a triangle), but each row holds
+    the triangle's box after its corners (:data:`ROW` numbers)."""
+    lib = _library()
+    assert lib is not None
+    verts, faces, t = _arrays(mesh)
+    lo, cell, dims = grid_shape(verts, faces)
+    dims = np.ascontiguousarray(dims, dtype=np.int64)
+    spans = np.empty((len(faces), 6), dtype=np.int32)
+    tri = np.empty((len(faces), ROW), dtype=verts.dtype)
+    getattr(lib, f"miss_corners_{t}")(
+        verts.ctypes.data, faces.ctypes.data, len(faces), lo.ctypes.data, cell,
+        dims.ctypes.data, spans.ctypes.data, tri.ctypes.data,
+    )  # fmt: skip
+    offsets = np.zeros(int(np.prod(dims)) + 1, dtype=np.int32)
+    lib.miss_grid_count(spans.ctypes.data, len(faces), dims.ctypes.data, offsets.ctypes.data)
+    items = np.empty(int(offsets[-1]), dtype=np.int32)
+    lib.miss_grid_fill(
+        spans.ctypes.data, len(faces), dims.ctypes.data, offsets.ctypes.data, items.ctypes.data
+    )
+    return (lo, cell, dims, offsets, items, tri)
+
+
+def distances(
+    points: np.ndarray, grid: tuple, cap: float = math.inf, ordered: bool = False
+) -> np.ndarray:
+    """Exact distance (mm) from each of (P, 3) points to the nearest triangle of ``grid``'s
+    surface (:func:`surface_grid`), up to ``cap`` (see :func:`miss.deviation.distances_to`);
+    ``ordered``: searched in the points' own order, else by blocks of cells."""
+    lib = _library()
+    assert lib is not None
+    lo, cell, dims, offsets, items, tri = grid
+    if tri.shape[1] != ROW:
+        raise ValueError(f"a grid of {tri.shape[1]} numbers a triangle, not {ROW}: numba's")
+    pts = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
+    out = np.empty(len(pts))
+    if len(pts) == 0:
+        return out
+    getattr(lib, "miss_distances_f32" if tri.dtype == np.float32 else "miss_distances_f64")(
+        pts.ctypes.data, len(pts), lo.ctypes.data, cell, dims.ctypes.data,
+        offsets.ctypes.data, items.ctypes.data, tri.ctypes.data, cap * cap, int(ordered),
+        _cores(), out.ctypes.data,
+    )  # fmt: skip
+    return out
+
+
+def _cores() -> int:
+    """The cores this process may run on (what numba's threads default to)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:
+        return os.cpu_count() or 1
