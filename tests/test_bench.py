@@ -216,16 +216,21 @@ def test_measure_benchmark_writes_its_table(tmp_path, capsys) -> None:
     data = json.loads((tmp_path / "measure.json").read_text())
     (row,) = data["rows"]
     assert row[0] == case and row[1] > 10_000
-    new_max, old_max, new_mean, old_mean = row[10:14]
+    new_max, old_max, new_mean, old_mean = row[11:15]
     if not np.isnan(old_max):  # git history at hand: the same figures as before
         assert new_max == pytest.approx(old_max, rel=0.01)
         assert new_mean == pytest.approx(old_mean, rel=0.01)
     assert "share % (fresh)" in (tmp_path / "measure.md").read_text()
     # the measuring job as MISS runs it: its figures are the measurement's own
     (piped,) = data["pipeline"]
-    assert piped[0] == case and piped[8:10] == pytest.approx(row[10:14:2])
+    assert piped[0] == case and piped[8:10] == pytest.approx(row[11:15:2])
     assert piped[10] == "yes"  # `miss convert --measure`, fresh, measured the same
     assert "added % (fresh)" in (tmp_path / "measure.md").read_text()
+    # the same queries by MISS's two searches and the peers: the same figures
+    peers = {search: figures for _, search, _, *figures in data["peers"]}
+    assert peers["MISS native"] == peers["MISS numba"] == pytest.approx(row[11:15:2])
+    for search in ("libigl AABB", "FCPW BVH"):
+        assert peers[search] == pytest.approx(peers["MISS native"], rel=1e-5)
     assert "| MR headsq skin |" in capsys.readouterr().out
 
 

@@ -1,5 +1,8 @@
 """Measuring in a second process, for a fresh process that would otherwise wait for numba.
 
+Only where the native kernels (:mod:`miss.measuring`) were not built: with them a fresh
+process measures on a thread of its own and starts no numba anywhere.
+
 A job that decimates unmeasured and measures after (``miss convert --measure`` under the
 paper's schedule) needs numba only for the measurement, and in a fresh process numba's
 start (its import and its first kernel: about 0.8 s on the 2-core test machine) was most
@@ -31,6 +34,8 @@ import sys
 import threading
 from concurrent.futures import Future, ThreadPoolExecutor
 from typing import TYPE_CHECKING, Any, BinaryIO
+
+from miss.measuring import native
 
 if TYPE_CHECKING:
     from miss.spec import JobSpec
@@ -148,7 +153,8 @@ def wanted(spec: JobSpec, measure: bool) -> bool:
     """Whether a job of ``spec``, measured after its files when ``measure``, in this
     process, would send its parts here: a paper-schedule decimation of threshold surfaces
     (a guaranteed one is checked as it runs, with numba here; label parts are measured
-    after), in a process without numba."""
+    after), in a process without numba, where the native kernels were not built (with
+    them the process measures on a thread of its own, no numba started anywhere)."""
     decimation = spec.decimation
     return (
         measure
@@ -156,6 +162,7 @@ def wanted(spec: JobSpec, measure: bool) -> bool:
         and decimation.method != "none"
         and any(item.level is not None for item in spec.structures.items)
         and "numba" not in sys.modules
+        and not native()
     )
 
 
@@ -181,7 +188,7 @@ def serve(stdin: BinaryIO, stdout: BinaryIO) -> None:
     samples)``; end of input ends it."""
     import numpy as np
 
-    from miss.deviation import deviation, side_of
+    from miss.measuring import deviation, side_of
     from miss.types import Mesh
 
     # numba's start and the kernels' load, before the first surface comes

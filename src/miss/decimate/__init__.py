@@ -57,8 +57,9 @@ if TYPE_CHECKING:
 
     import numpy as np
 
-    from miss.deviation import BoundCheck, Side
+    from miss.deviation import BoundCheck
     from miss.measurer import RemoteSide
+    from miss.measuring import Side
     from miss.types import Mesh
 
 Method = Literal["none", "quadric", "schroeder"]
@@ -376,7 +377,7 @@ def measuring_later(before: Mesh, samples: int, pool: ThreadPoolExecutor) -> Fut
 
     def make() -> Side:
         _idle_priority()
-        from miss.deviation import side_of
+        from miss.measuring import side_of
 
         return side_of(before, samples)
 
@@ -595,7 +596,7 @@ def measured(
             figures = side.deviation(after)
         side = None
     if figures is None:
-        from miss.deviation import deviation  # numba: loaded here only when measured here
+        from miss.measuring import deviation  # native (numba's where not built)
 
         # a side that failed (e.g. out of memory on its thread) is made again here, as one
         # not done

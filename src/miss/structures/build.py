@@ -36,6 +36,7 @@ from miss.blockwise import (
 )
 from miss.decimate import SAMPLES, DecimationReport, decimate, measured, measuring_later
 from miss.errors import BadParameter, EmptySurface
+from miss.measuring import native
 from miss.scene import DEFAULT_SCENE_TITLE, Part, Scene
 from miss.smooth import VOLUME_TOLERANCE, smooth_mesh
 from miss.spec import Decimation, JobSpec, Structure
@@ -62,8 +63,8 @@ from miss.surface import extract_surface
 from miss.types import Mesh, Volume
 
 if TYPE_CHECKING:
-    from miss.deviation import Side
     from miss.measurer import RemoteSide
+    from miss.measuring import Side
 
 #: Windowed-sinc iterations when none are asked for: label maps come out of surface
 #: nets as voxel blocks, threshold surfaces are already interpolated.
@@ -123,9 +124,9 @@ class _Ahead:
     """The measurements' halves a build starts while it decimates, for its first
     :data:`SIDES_AHEAD` parts (the largest, as parts come).
 
-    In a process that has numba loaded already (a server's worker, warmed up), on one
-    thread for the build, one after another (:func:`miss.decimate.measuring_later`). In a
-    fresh one (``miss convert --measure``) a thread would import numba while the
+    In a process that has the native kernels (:mod:`miss.measuring`) or numba loaded
+    already (a server's worker, warmed up), on one thread for the build, one after another
+    (:func:`miss.decimate.measuring_later`). Without the native kernels, in a fresh one (``miss convert --measure``) a thread would import numba while the
     decimation runs, and the decimation's own loops, which take numba once it is there,
     would wait for that import (measured: the job as a whole was no sooner, 2.80 against
     2.78 s); there the parts go to a measuring process (:mod:`miss.measurer`), which
@@ -140,7 +141,7 @@ class _Ahead:
         if self.left <= 0:
             return None
         self.left -= 1
-        if "numba" in sys.modules:
+        if "numba" in sys.modules or native():
             return measuring_later(mesh, samples, self.pool)
         child = measurer.shared()
         return None if child is None else child.side(mesh, samples)
