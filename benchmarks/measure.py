@@ -289,6 +289,87 @@ DEFAULT_HEADER = [
 ]
 
 
+def peer_rows(names: list[str], repeats: int) -> list[list[Any]]:
+    """One row per threshold case and search: the measurement's 200,000 queries (the points
+    MISS samples, a side each, to the other surface) answered by MISS's search, native and
+    numba's, and by peer libraries' nearest-triangle queries: libigl's AABB tree
+    (``igl.point_mesh_squared_distance``, float64) and FCPW's BVH (``fcpw.scene_3D``,
+    float32). Each builds its structure on both surfaces and answers both sides, timed
+    warm (after one untimed round), medians of ``repeats``; max and mean of the 200,000
+    distances."""
+    import numpy as np
+    from common import median, round_robin
+
+    from miss import measuring
+
+    rows = []
+    for case, path, what in threshold_cases(names):
+        ((a, b, n),) = run_job(path, what)
+        rng = np.random.default_rng(0)
+        pa, pb = measuring._sample(a, n, rng), measuring._sample(b, n, rng)
+        candidates = peer_searches(a, b, pa, pb)
+        round_robin(candidates, 1)
+        seconds, last = round_robin(candidates, repeats)
+        for name in candidates:
+            found = last[name]
+            rows.append(
+                [case, name, median(seconds[name]), float(found.max()), float(found.mean())]
+            )
+            print(rows[-1], flush=True)
+    return rows
+
+
+def peer_searches(a: Any, b: Any, pa: Any, pb: Any) -> dict[str, Callable[[], Any]]:
+    """The searches of :func:`peer_rows`, each answering ``pa`` to ``b`` and ``pb`` to ``a``
+    (the peers that are installed: ``.[bench]``)."""
+    import numpy as np
+
+    import miss.deviation as jitted
+    from miss import measuring
+
+    def native() -> Any:
+        d_ab = measuring.distances(pa, measuring.surface_grid(b), ordered=True)
+        return np.concatenate([d_ab, measuring.distances(pb, measuring.surface_grid(a))])
+
+    def numba() -> Any:
+        d_ab = jitted._grid_distances(pa, jitted.surface_grid(b), np.inf, True)
+        return np.concatenate([d_ab, jitted._grid_distances(pb, jitted.surface_grid(a), np.inf)])
+
+    searches: dict[str, Callable[[], Any]] = {"MISS native": native, "MISS numba": numba}
+    try:
+        import igl
+
+        def libigl() -> Any:
+            d_ab = igl.point_mesh_squared_distance(pa, b.vertices.astype(float), b.faces)[0]
+            d_ba = igl.point_mesh_squared_distance(pb, a.vertices.astype(float), a.faces)[0]
+            return np.sqrt(np.concatenate([d_ab, d_ba]))
+
+        searches["libigl AABB"] = libigl
+    except ImportError:
+        pass
+    try:
+        import fcpw
+
+        def closest(mesh: Any, points: Any) -> Any:
+            scene = fcpw.scene_3D()
+            scene.set_object_count(1)
+            scene.set_object_vertices(mesh.vertices.astype(np.float32), 0)
+            scene.set_object_triangles(mesh.faces.astype(np.int32), 0)
+            scene.build(fcpw.aggregate_type.bvh_surface_area, True)
+            found = fcpw.interaction_3D_list()
+            p32 = points.astype(np.float32)
+            scene.find_closest_points(p32, np.full(len(p32), np.inf, np.float32), found)
+            return np.array([x.d for x in found])
+
+        searches["FCPW BVH"] = lambda: np.concatenate([closest(b, pa), closest(a, pb)])
+    except ImportError:
+        pass
+    return searches
+
+
+PEER_HEADER = ["case", "search", "s (warm)", "max mm", "mean mm"]
+
+
 def markdown_table_row(row: list[Any]) -> str:
     from common import markdown_table
 
@@ -378,9 +459,10 @@ def child(case: str, impl: str, before: str) -> dict[str, Any]:
         assert old is not None
         deviation = old.deviation
     else:
-        from miss.deviation import deviation
+        from miss.measuring import deviation  # native here: numba is not loaded
     worst, mean = measure(pairs, deviation)
     return {
+        "numba_loaded": "numba" in sys.modules,
         "job_seconds": job_seconds,
         "measure_seconds": time.perf_counter() - t0,
         "job_peak_mb": job_peak / 2**20,
@@ -410,23 +492,28 @@ def warm(case: str, repeats: int, old: ModuleType | None) -> dict[str, Any]:
     """Job, new and old measurement round-robin in this process; medians and figures."""
     from common import median, round_robin
 
-    from miss.deviation import deviation
+    from miss.measuring import deviation, native_deviation
 
     path, what = cases()[case]
     pairs = run_job(path, what)
     candidates: dict[str, Callable[[], Any]] = {
         "job": lambda: run_job(path, what),
-        "new": lambda: measure(pairs, deviation),
+        "new": lambda: measure(pairs, deviation),  # numba's kernels: it is loaded here
+        "native": lambda: measure(pairs, native_deviation),
     }
     if old is not None:
         candidates["old"] = lambda: measure(pairs, old.deviation)
     round_robin(candidates, 1)  # untimed: kernels loaded, caches warm
     seconds, last = round_robin(candidates, repeats)
+    if last["native"] != last["new"]:
+        raise AssertionError(f"{case}: native figures {last['native']} != {last['new']}")
     return {
         "job_seconds": median(seconds["job"]),
         "new_seconds": median(seconds["new"]),
+        "native_seconds": median(seconds["native"]),
         "old_seconds": median(seconds["old"]) if old is not None else None,
         "new": last["new"],
+        "native": last["native"],
         "old": last.get("old"),
         "triangles": sum(a.n_triangles for a, _, _ in pairs),
         "parts": len(pairs),
@@ -447,6 +534,7 @@ def row(case: str, w: dict[str, Any], f: dict[str, list[dict[str, Any]]]) -> lis
         w["triangles"],
         w["job_seconds"],
         w["new_seconds"],
+        w["native_seconds"],
         w["old_seconds"] if w["old_seconds"] is not None else float("nan"),
         share(w["new_seconds"], w["job_seconds"]),
         med("new", "job_seconds"),
@@ -468,6 +556,7 @@ HEADER = [
     "triangles",
     "job s (warm)",
     "measure s (warm)",
+    "native measure s (warm)",
     "old measure s (warm)",
     "share % (warm)",
     "job s (fresh)",
@@ -516,6 +605,7 @@ def main(argv: list[str] | None = None) -> int:
         print(markdown_table(HEADER, rows[-1:]), flush=True)
     default = default_rows(names, args.repeats, args.fresh_repeats)
     piped = pipeline_rows(names, args.repeats, args.fresh_repeats)
+    peers = peer_rows(names, args.repeats)
     table = markdown_table(HEADER, rows)
     note = (
         f"\nShare = measurement / (job + measurement). Warm: medians of {args.repeats} "
@@ -532,13 +622,26 @@ def main(argv: list[str] | None = None) -> int:
         "unmeasured) / measured. Warm: `miss.pipeline.run` as the server's workers run it "
         "(numba loaded; the undecimated surface's half of the measurement made while it "
         f"decimates), medians of {args.repeats} round-robin runs in one process. Fresh: "
-        "`miss convert` as a user runs it (a measured one starts its measuring process "
-        f"first thing), medians of {args.fresh_repeats} new interpreters each, alternately, "
+        "`miss convert` as a user runs it (a measured one measures on a thread with the "
+        "native kernels, no numba started), medians of "
+        f"{args.fresh_repeats} new interpreters each, alternately, "
         "timed from outside; same figures: the fresh runs' max and mean are the warm "
         "ones:\n\n" + markdown_table(PIPELINE_HEADER, piped) + "\n"
+        "\nThe measurement's 200,000 nearest-triangle queries (the points MISS samples, to "
+        "the other surface, both ways), each search building its structure on both surfaces: "
+        f"warm medians of {args.repeats}; max and mean of the distances:\n\n"
+        + markdown_table(PEER_HEADER, peers)
+        + "\n"
     )
     print(table + note)
-    result = {"cases": data, "header": HEADER, "rows": rows, "default": default, "pipeline": piped}
+    result = {
+        "cases": data,
+        "header": HEADER,
+        "rows": rows,
+        "default": default,
+        "pipeline": piped,
+        "peers": peers,
+    }
     save("measure", result, table + note, args.out or RESULTS)
     return 0
 
