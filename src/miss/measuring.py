@@ -71,7 +71,7 @@ def grid_shape(verts: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, float,
     return lo, cell, dims
 
 
-_P, _I, _D = ctypes.c_void_p, ctypes.c_int64, ctypes.c_double
+_P, _I, _D, _C = ctypes.c_void_p, ctypes.c_int64, ctypes.c_double, ctypes.c_int
 _SIGNATURES: dict[str, list[Any]] = {
     "miss_used": [_P, _I, _P],
     "miss_increasing": [_P, _I, _D, _P],
@@ -83,20 +83,8 @@ for _t in ("f32", "f64"):
         f"miss_corners_{_t}": [_P, _P, _I, _P, _D, _P, _P, _P],
         f"miss_cumulative_areas_{_t}": [_P, _P, _I, _P],
         f"miss_inner_points_{_t}": [_P, _P, _P, _I, _P, _P, _P, _P, _P, _I, _P],
-        f"miss_distances_{_t}": [
-            _P,
-            _I,
-            _P,
-            _D,
-            _P,
-            _P,
-            _P,
-            _P,
-            _D,
-            ctypes.c_int,
-            ctypes.c_int,
-            _P,
-        ],
+        # points, n, lo, cell, dims, offsets, items, rows, cap2, ordered, threads, out
+        f"miss_distances_{_t}": [_P, _I, _P, _D, *[_P] * 4, _D, _C, _C, _P],
     }
 
 

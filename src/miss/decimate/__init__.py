@@ -371,7 +371,7 @@ def _held(
 
 def measuring_later(before: Mesh, samples: int, pool: ThreadPoolExecutor) -> Future[Side]:
     """Start the half of :func:`measured` that needs only ``before`` (its sample points and
-    grid, :func:`miss.deviation.side_of`) on ``pool``'s thread at the lowest priority, for
+    grid, :func:`miss.measuring.side_of`) on ``pool``'s thread at the lowest priority, for
     a job that decimates ``before`` unmeasured and measures the result after: it is made
     meanwhile, on the core a quadric decimation (one thread) leaves idle."""
 
@@ -386,8 +386,8 @@ def measuring_later(before: Mesh, samples: int, pool: ThreadPoolExecutor) -> Fut
 
 def _idle_priority() -> None:
     """This thread at nice 19, where the system allows it (Linux: a thread's own nice).
-    Threads it starts after would inherit it: the work it does (numba kernels without
-    ``parallel``) starts none."""
+    Threads it starts after would inherit it: the work it does (a side's sampling and grid,
+    serial kernels) starts none."""
     import os
     import threading
 
@@ -596,7 +596,7 @@ def measured(
             figures = side.deviation(after)
         side = None
     if figures is None:
-        from miss.measuring import deviation  # native (numba's where not built)
+        from miss.measuring import deviation  # native, or numba's where it is loaded
 
         # a side that failed (e.g. out of memory on its thread) is made again here, as one
         # not done
