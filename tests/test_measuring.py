@@ -77,6 +77,11 @@ def test_a_grid_of_numbas_is_refused_by_the_native_search() -> None:
     assert measuring.deviation(mesh, b, 50, 0, side) == jitted.deviation(mesh, b, 50, 0)
 
 
+@given(st.lists(st.floats(0.0, 1e3), min_size=1, max_size=40))
+def test_the_grids_median_is_numpys(values) -> None:
+    assert measuring._median(np.array(values)) == float(np.median(values))
+
+
 def test_empty_surfaces_measure_nothing() -> None:
     a = pieces_mesh(1, 2, 20.0, 0.0, np.float32)
     none = Mesh(vertices=a.vertices, faces=np.empty((0, 3), dtype=np.int32))
