@@ -12,7 +12,7 @@ after one untimed run each that writes the byte-code caches an installed package
   at the bone level to GLB and VRML, quadric decimation to 10 % of the triangles, as a
   user runs it;
 - the same with ``--measure``: it also measures its deviation from the undecimated
-  surface (numba loads for it);
+  surface (with the native kernels: numba does not load);
 - ``miss convert`` as a user runs it when they change nothing: the ``guaranteed`` schedule,
   the model held within 0.002 of the diagonal (measured while decimating; quadric hands
   over to schroeder where it does not hold), so it keeps as many triangles as the bound
