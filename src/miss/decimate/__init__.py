@@ -375,6 +375,12 @@ def measuring_later(before: Mesh, samples: int, pool: ThreadPoolExecutor) -> Fut
     a job that decimates ``before`` unmeasured and measures the result after: it is made
     meanwhile, on the core a quadric decimation (one thread) leaves idle."""
 
+    # numpy's random generator, which the samples are drawn with, imported here: its first
+    # import (13-17 ms of bytecode) on the thread at nice 19 held the GIL there, and the
+    # decimation, on cores the thread hardly got, waited for it (a fresh `miss convert
+    # --measure` of the MR head decimated in 0.082 s so, 0.057 s with this: 11 runs each)
+    import numpy.random  # noqa: F401
+
     def make() -> Side:
         _idle_priority()
         from miss.measuring import side_of
