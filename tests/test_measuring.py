@@ -10,7 +10,6 @@ import sys
 from pathlib import Path
 
 import numpy as np
-import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from test_deviation import brute, pieces_mesh, probes
@@ -67,14 +66,16 @@ def test_native_figures_are_numbas_to_the_bit(seed, dtype, samples) -> None:
     assert jitted.deviation(a, b, samples=samples, seed=5, side=side) == want
 
 
-def test_a_grid_of_numbas_is_refused_by_the_native_search() -> None:
-    mesh = pieces_mesh(1, 2, 20.0, 0.0, np.float64)
-    with pytest.raises(ValueError, match="numba"):
-        measuring.distances(np.zeros((1, 3)), jitted.surface_grid(mesh))
-    # and deviation() takes numba's kernels for a half numba made
-    b = pieces_mesh(2, 2, 20.0, 0.0, np.float64)
-    side = jitted.side_of(mesh, 50, seed=0)
-    assert measuring.deviation(mesh, b, 50, 0, side) == jitted.deviation(mesh, b, 50, 0)
+def test_either_search_takes_either_grid() -> None:
+    mesh = pieces_mesh(1, 3, 20.0, 0.3, np.float32)
+    points = probes(mesh, 2, 20.0)
+    want = jitted.distances_to(points, mesh)
+    np.testing.assert_array_equal(measuring.distances(points, jitted.surface_grid(mesh)), want)
+    np.testing.assert_array_equal(
+        jitted.distances_to(points, mesh, grid=measuring.surface_grid(mesh)), want
+    )
+    for a, b in zip(jitted.surface_grid(mesh), measuring.surface_grid(mesh), strict=True):
+        np.testing.assert_array_equal(a, b)
 
 
 @given(st.lists(st.floats(0.0, 1e3), min_size=1, max_size=40))

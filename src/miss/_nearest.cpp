@@ -143,9 +143,11 @@ inline double margin(double v, int64_t h, int64_t r, double lo, double cell, int
     return m;
 }
 
-// A triangle's row: its corners a, b, c (x, y, z each), then its box (low and high x, y,
-// z), then one unused: 16 numbers, a cache line of float32.
-const int64_t kRow = 16;
+// A triangle's row: its corners a, b, c (x, y, z each), as numba's grid has them (so that
+// either search takes either grid). A row with the box after the corners (16 numbers, a
+// cache line of float32) searched about 10 % faster, but took 28 bytes a triangle more:
+// 235 MB more for an 8.4-million-triangle MR head, measured in the command's own process.
+const int64_t kRow = 9;
 
 template <typename T>
 struct Grid {
@@ -162,9 +164,9 @@ inline double cell_sq(double px, double py, double pz, int64_t c, double best, c
     for (int32_t n = g.offsets[c]; n < g.offsets[c + 1]; ++n) {
         const T* r = g.tri + int64_t(g.items[n]) * kRow;
         // squared distance to the triangle's box: most are dismissed on that alone
-        double d = box_sq(px, r[9], r[10]);
-        d += box_sq(py, r[11], r[12]);
-        d += box_sq(pz, r[13], r[14]);
+        double d = box_sq(px, min3(r[0], r[3], r[6]), max3t(r[0], r[3], r[6]));
+        d += box_sq(py, min3(r[1], r[4], r[7]), max3t(r[1], r[4], r[7]));
+        d += box_sq(pz, min3(r[2], r[5], r[8]), max3t(r[2], r[5], r[8]));
         if (d < best) {
             double t = triangle_sq(px, py, pz, r[0], r[1], r[2], r[3], r[4], r[5], r[6], r[7], r[8]);
             best = t < best ? t : best;
@@ -265,33 +267,65 @@ void distances(const double* points, int64_t n, const Grid<T>& g, double cap2, i
         for (int64_t m = 0; m < n; ++m) out[ord[m]] = found[m];
 }
 
-// miss.deviation._corners: (F, kRow) rows of corners and boxes, and each row's span of
-// cells. In the triangles' own order: the search visits a cell's triangles in that order, as
-// numba's does, and so meets the same ties (a float32 triangle's distance, its edges taken
-// in float32, may come out a hair below its box's, and then which of two triangles at one
-// corner is measured first decides the last bit).
+// miss.deviation._corners: (F, kRow) rows of corners. In the triangles' own order:
+// the search visits a cell's triangles in that order, as numba's does, and so meets the same
+// ties (a float32 triangle's distance, its edges taken in float32, may come out a hair below
+// its box's, and then which of two triangles at one corner is measured first decides the
+// last bit).
 template <typename T>
-void corners(const T* verts, const int32_t* faces, int64_t nf, const double* lo, double cell,
-             const int64_t* dims, int32_t* spans, T* out) {
+void corners(const T* verts, const int32_t* faces, int64_t nf, T* out) {
     for (int64_t f = 0; f < nf; ++f) {
         T* row = out + kRow * f;
         for (int axis = 0; axis < 3; ++axis) {
             T a = verts[3 * int64_t(faces[3 * f]) + axis];
             T b = verts[3 * int64_t(faces[3 * f + 1]) + axis];
             T c = verts[3 * int64_t(faces[3 * f + 2]) + axis];
-            T low = min3(a, b, c), high = max3t(a, b, c);
             row[axis] = a;
             row[3 + axis] = b;
             row[6 + axis] = c;
-            row[9 + 2 * axis] = low;
-            row[10 + 2 * axis] = high;
-            int64_t first = int64_t((low - lo[axis]) / cell);
-            int64_t last = int64_t((high - lo[axis]) / cell);
-            spans[6 * f + axis] = int32_t(std::max<int64_t>(0, std::min(first, dims[axis] - 1)));
-            spans[6 * f + 3 + axis] = int32_t(std::max<int64_t>(0, std::min(last, dims[axis] - 1)));
         }
-        row[15] = 0;
     }
+}
+
+// The first and last cell along x, y, z that a row's box meets (miss.deviation._corners's
+// spans, from the same numbers: made again here rather than kept, 24 bytes a triangle).
+template <typename T>
+inline void span_of(const T* row, const double* lo, double cell, const int64_t* dims,
+                    int64_t* s) {
+    for (int axis = 0; axis < 3; ++axis) {
+        T a = row[axis], b = row[3 + axis], c = row[6 + axis];
+        int64_t first = int64_t((min3(a, b, c) - lo[axis]) / cell);
+        int64_t last = int64_t((max3t(a, b, c) - lo[axis]) / cell);
+        s[axis] = std::max<int64_t>(0, std::min(first, dims[axis] - 1));
+        s[3 + axis] = std::max<int64_t>(0, std::min(last, dims[axis] - 1));
+    }
+}
+
+// miss.deviation._build_grid: with ``items`` null, each cell's count of triangles
+// (offsets[c + 1], offsets zeroed), then their running sum; else each cell's triangles into
+// items (offsets[-1] long), in triangle order.
+template <typename T>
+void grid_cells(const T* rows, int64_t nf, const double* lo, double cell, const int64_t* dims,
+                int32_t* offsets, int32_t* items) {
+    int64_t cells = dims[0] * dims[1] * dims[2];
+    std::vector<int32_t> fill;
+    if (items) fill.assign(offsets, offsets + cells);
+    int64_t s[6];
+    for (int64_t f = 0; f < nf; ++f) {
+        span_of(rows + kRow * f, lo, cell, dims, s);
+        for (int64_t k = s[2]; k <= s[5]; ++k)
+            for (int64_t j = s[1]; j <= s[4]; ++j) {
+                int64_t row = (k * dims[1] + j) * dims[0];
+                for (int64_t c = row + s[0]; c <= row + s[3]; ++c) {
+                    if (items)
+                        items[fill[c]++] = int32_t(f);
+                    else
+                        offsets[c + 1] += 1;
+                }
+            }
+    }
+    if (!items)
+        for (int64_t c = 1; c <= cells; ++c) offsets[c] += offsets[c - 1];
 }
 
 // miss.deviation._cumulative_areas
@@ -367,40 +401,13 @@ void miss_increasing(const double* values, int64_t n, double top, int64_t* order
     }
 }
 
-// Each cell's count of triangles (offsets[c + 1], offsets zeroed), then their running sum:
-// the first half of miss.deviation._build_grid.
-void miss_grid_count(const int32_t* spans, int64_t nf, const int64_t* dims, int32_t* offsets) {
-    for (int64_t f = 0; f < nf; ++f) {
-        const int32_t* s = spans + 6 * f;
-        for (int64_t k = s[2]; k <= s[5]; ++k)
-            for (int64_t j = s[1]; j <= s[4]; ++j) {
-                int64_t row = (k * dims[1] + j) * dims[0];
-                for (int64_t c = row + s[0]; c <= row + s[3]; ++c) offsets[c + 1] += 1;
-            }
-    }
-    int64_t cells = dims[0] * dims[1] * dims[2];
-    for (int64_t c = 1; c <= cells; ++c) offsets[c] += offsets[c - 1];
-}
-
-// The second half: each cell's triangles into items (offsets[-1] long), in triangle order.
-void miss_grid_fill(const int32_t* spans, int64_t nf, const int64_t* dims, const int32_t* offsets,
-                    int32_t* items) {
-    int64_t cells = dims[0] * dims[1] * dims[2];
-    std::vector<int32_t> fill(offsets, offsets + cells);
-    for (int64_t f = 0; f < nf; ++f) {
-        const int32_t* s = spans + 6 * f;
-        for (int64_t k = s[2]; k <= s[5]; ++k)
-            for (int64_t j = s[1]; j <= s[4]; ++j) {
-                int64_t row = (k * dims[1] + j) * dims[0];
-                for (int64_t c = row + s[0]; c <= row + s[3]; ++c) items[fill[c]++] = int32_t(f);
-            }
-    }
-}
-
 #define MISS_TYPED(T, SFX)                                                                    \
-    void miss_corners_##SFX(const T* verts, const int32_t* faces, int64_t nf, const double* lo, \
-                            double cell, const int64_t* dims, int32_t* spans, T* out) {       \
-        corners<T>(verts, faces, nf, lo, cell, dims, spans, out);                             \
+    void miss_corners_##SFX(const T* verts, const int32_t* faces, int64_t nf, T* out) {       \
+        corners<T>(verts, faces, nf, out);                                                    \
+    }                                                                                         \
+    void miss_grid_cells_##SFX(const T* rows, int64_t nf, const double* lo, double cell,      \
+                               const int64_t* dims, int32_t* offsets, int32_t* items) {       \
+        grid_cells<T>(rows, nf, lo, cell, dims, offsets, items);                              \
     }                                                                                         \
     void miss_cumulative_areas_##SFX(const T* verts, const int32_t* faces, int64_t nf,        \
                                      double* out) {                                           \

@@ -12,11 +12,11 @@ A process that measures needs numba then only for what else it does. For ``miss 
 (:mod:`miss.measurer`), is not paid at all.
 
 Where numba is loaded already (a server's warmed-up worker), both functions are numba's:
-its kernels, compiled for the very CPU they run on, searched 10-15 % faster than these
-(the same counts of cells, boxes and triangles per query; ``benchmarks/measure.py``). A
-grid made here serves numba's search too (its rows start with the corners numba reads), so
-a half made before numba loaded is still used after. Where the extension was not built (no
-C++ compiler at install), :func:`native` says so and both functions are numba's.
+its kernels, compiled for the very CPU they run on, searched 10-20 % faster than these
+(the same counts of cells, boxes and triangles per query; ``benchmarks/measure.py``). The
+grids are the same, so a half made before numba loaded is still used after. Where the
+extension was not built (no C++ compiler at install), :func:`native` says so and both
+functions are numba's.
 """
 
 from __future__ import annotations
@@ -88,12 +88,11 @@ _P, _I, _D, _C = ctypes.c_void_p, ctypes.c_int64, ctypes.c_double, ctypes.c_int
 _SIGNATURES: dict[str, list[Any]] = {
     "miss_used": [_P, _I, _P],
     "miss_increasing": [_P, _I, _D, _P],
-    "miss_grid_count": [_P, _I, _P, _P],
-    "miss_grid_fill": [_P, _I, _P, _P, _P],
 }
 for _t in ("f32", "f64"):
     _SIGNATURES |= {
-        f"miss_corners_{_t}": [_P, _P, _I, _P, _D, _P, _P, _P],
+        f"miss_corners_{_t}": [_P, _P, _I, _P],
+        f"miss_grid_cells_{_t}": [_P, _I, _P, _D, _P, _P, _P],
         f"miss_cumulative_areas_{_t}": [_P, _P, _I, _P],
         f"miss_inner_points_{_t}": [_P, _P, _P, _I, _P, _P, _P, _P, _P, _I, _P],
         # points, n, lo, cell, dims, offsets, items, rows, cap2, ordered, threads, out
@@ -121,19 +120,10 @@ def native() -> bool:
     return _library() is not None
 
 
-#: Numbers in a row of a native grid's triangles: corners a, b, c, then the box (see
-#: ``_nearest.cpp``).
-ROW = 16
-
-
-def _jitted(side: Side | None = None) -> bool:
-    """Whether to measure with numba's kernels: where the native ones are not built, where
-    numba is loaded (see above), or for a half numba made (its rows hold no box)."""
-    return (
-        not native()
-        or "numba" in sys.modules
-        or (side is not None and side.grid[5].shape[1] != ROW)
-    )
+def _jitted() -> bool:
+    """Whether to measure with numba's kernels: where the native ones are not built, or
+    where numba is loaded (see above). Either search takes either's grid."""
+    return not native() or "numba" in sys.modules
 
 
 def side_of(a: Mesh, samples: int = 100_000, seed: int = 0) -> Side:
@@ -152,7 +142,7 @@ def deviation(
     ``samples`` points on each (its vertices, then area-weighted random points inside its
     triangles), each one's exact distance to the other surface; ``side``: ``a``'s half made
     already (:func:`side_of`, the same ``samples`` and ``seed``)."""
-    if _jitted(side):
+    if _jitted():
         from miss.deviation import deviation as jitted
 
         return jitted(a, b, samples, seed, side)
@@ -238,26 +228,30 @@ def _sample(mesh: Mesh, count: int, rng: np.random.Generator) -> np.ndarray:
 
 
 def surface_grid(mesh: Mesh) -> tuple:
-    """The cells of ``mesh``'s triangles as :func:`miss.deviation.surface_grid` makes them
-    (origin, cell size, counts, CSR offsets and items, a row a triangle), but each row holds
-    the triangle's box after its corners (:data:`ROW` numbers)."""
+    """The cells of ``mesh``'s triangles, :func:`miss.deviation.surface_grid`'s (origin,
+    cell size, counts, CSR offsets and items, each triangle's corners in a row)."""
     lib = _library()
     assert lib is not None
     verts, faces, t = _arrays(mesh)
     lo, cell, dims = grid_shape(verts, faces)
     dims = np.ascontiguousarray(dims, dtype=np.int64)
-    spans = np.empty((len(faces), 6), dtype=np.int32)
-    tri = np.empty((len(faces), ROW), dtype=verts.dtype)
+    tri = np.empty((len(faces), 9), dtype=verts.dtype)
     getattr(lib, f"miss_corners_{t}")(
-        verts.ctypes.data, faces.ctypes.data, len(faces), lo.ctypes.data, cell,
-        dims.ctypes.data, spans.ctypes.data, tri.ctypes.data,
-    )  # fmt: skip
-    offsets = np.zeros(int(np.prod(dims)) + 1, dtype=np.int32)
-    lib.miss_grid_count(spans.ctypes.data, len(faces), dims.ctypes.data, offsets.ctypes.data)
-    items = np.empty(int(offsets[-1]), dtype=np.int32)
-    lib.miss_grid_fill(
-        spans.ctypes.data, len(faces), dims.ctypes.data, offsets.ctypes.data, items.ctypes.data
+        verts.ctypes.data, faces.ctypes.data, len(faces), tri.ctypes.data
     )
+    cells = getattr(lib, f"miss_grid_cells_{t}")
+    offsets = np.zeros(int(np.prod(dims)) + 1, dtype=np.int32)
+    where = (
+        tri.ctypes.data,
+        len(faces),
+        lo.ctypes.data,
+        cell,
+        dims.ctypes.data,
+        offsets.ctypes.data,
+    )
+    cells(*where, None)  # each cell's count, then their running sum
+    items = np.empty(int(offsets[-1]), dtype=np.int32)
+    cells(*where, items.ctypes.data)
     return (lo, cell, dims, offsets, items, tri)
 
 
@@ -270,8 +264,6 @@ def distances(
     lib = _library()
     assert lib is not None
     lo, cell, dims, offsets, items, tri = grid
-    if tri.shape[1] != ROW:
-        raise ValueError(f"a grid of {tri.shape[1]} numbers a triangle, not {ROW}: numba's")
     pts = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
     out = np.empty(len(pts))
     if len(pts) == 0:
