@@ -10,6 +10,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from test_deviation import brute, pieces_mesh, probes
@@ -133,3 +134,22 @@ def test_a_fresh_command_measures_natively_in_its_own_process(
     want = jitted.deviation(before, after)
     got = stats["decimation"]
     assert (got["max_error_mm"], got["mean_error_mm"]) == (want.max_mm, want.mean_mm)
+
+
+def test_a_kernel_out_of_memory_raises_memory_error_not_an_abort() -> None:
+    """A C++ exception must not cross into ctypes (the process would end): a kernel that
+    cannot have its memory answers so, and Python raises MemoryError, which a job's
+    measurement already takes (its half is made again, or the job fails cleanly)."""
+    lib = measuring._library()
+    far = 2**60  # past any vector's size: the first allocation fails, nothing is touched
+    with pytest.raises(MemoryError):
+        measuring._checked(lib.miss_increasing(None, far, 1.0, None))
+    dims = np.array([1, 1, 1], dtype=np.int64)
+    lo = np.zeros(3)
+    with pytest.raises(MemoryError):
+        measuring._checked(
+            lib.miss_distances_f32(
+                None, far, lo.ctypes.data, 1.0, dims.ctypes.data, None, None, None,
+                0.0, 0, 1, None,
+            )  # fmt: skip
+        )

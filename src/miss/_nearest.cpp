@@ -19,6 +19,9 @@
 #include <cstdint>
 #include <cstdlib>
 #include <limits>
+#include <exception>
+#include <new>
+#include <system_error>
 #include <thread>
 #include <vector>
 
@@ -260,7 +263,11 @@ void distances(const double* points, int64_t n, const Grid<T>& g, double cap2, i
     };
     threads = int(std::max<int64_t>(1, std::min<int64_t>(threads, (n + chunk - 1) / chunk)));
     std::vector<std::thread> pool;
-    for (int t = 1; t < threads; ++t) pool.emplace_back(work);
+    try {
+        for (int t = 1; t < threads; ++t) pool.emplace_back(work);
+    } catch (const std::system_error&) {
+        // no thread to be had (a process's limits): the ones started and this one do it all
+    }
     work();
     for (auto& t : pool) t.join();
     if (!ordered)
@@ -370,6 +377,18 @@ void inner_points(const T* verts, const int32_t* faces, const double* cum, int64
 
 }  // namespace
 
+// Runs ``work``; 0, or 1 where it ran out of memory (an exception must not cross into
+// ctypes: the process would end).
+template <typename F>
+int guarded(F work) {
+    try {
+        work();
+        return 0;
+    } catch (const std::exception&) {  // bad_alloc, or length_error for a size past any
+        return 1;
+    }
+}
+
 extern "C" {
 
 // The vertices some face uses, as 0/1 bytes (miss.deviation._used).
@@ -379,7 +398,7 @@ void miss_used(const int32_t* faces, int64_t nf, uint8_t* out) {
 }
 
 // miss.deviation._increasing: the order of values (uniform in [0, top]) by bucket.
-void miss_increasing(const double* values, int64_t n, double top, int64_t* order) {
+int miss_increasing(const double* values, int64_t n, double top, int64_t* order) try {
     double scale = top > 0 ? double(n) / top : 0.0;
     std::vector<int64_t> bucket(n), start(n + 1, 0);
     for (int64_t i = 0; i < n; ++i) {
@@ -399,15 +418,18 @@ void miss_increasing(const double* values, int64_t n, double top, int64_t* order
             order[m] = i;
         }
     }
+    return 0;
+} catch (const std::exception&) {  // see guarded
+    return 1;
 }
 
 #define MISS_TYPED(T, SFX)                                                                    \
     void miss_corners_##SFX(const T* verts, const int32_t* faces, int64_t nf, T* out) {       \
         corners<T>(verts, faces, nf, out);                                                    \
     }                                                                                         \
-    void miss_grid_cells_##SFX(const T* rows, int64_t nf, const double* lo, double cell,      \
-                               const int64_t* dims, int32_t* offsets, int32_t* items) {       \
-        grid_cells<T>(rows, nf, lo, cell, dims, offsets, items);                              \
+    int miss_grid_cells_##SFX(const T* rows, int64_t nf, const double* lo, double cell,       \
+                              const int64_t* dims, int32_t* offsets, int32_t* items) {        \
+        return guarded([&] { grid_cells<T>(rows, nf, lo, cell, dims, offsets, items); });     \
     }                                                                                         \
     void miss_cumulative_areas_##SFX(const T* verts, const int32_t* faces, int64_t nf,        \
                                      double* out) {                                           \
@@ -419,11 +441,11 @@ void miss_increasing(const double* values, int64_t n, double top, int64_t* order
                                  int64_t n, double* out) {                                    \
         inner_points<T>(verts, faces, cum, ncum, target, order, r1, r2, slots, n, out);       \
     }                                                                                         \
-    void miss_distances_##SFX(const double* points, int64_t n, const double* lo, double cell,  \
+    int miss_distances_##SFX(const double* points, int64_t n, const double* lo, double cell,  \
                               const int64_t* dims, const int32_t* offsets, const int32_t* items, \
                               const T* tri, double cap2, int ordered, int threads, double* out) { \
         Grid<T> g{{lo[0], lo[1], lo[2]}, cell, {dims[0], dims[1], dims[2]}, offsets, items, tri}; \
-        distances<T>(points, n, g, cap2, ordered, threads, out);                             \
+        return guarded([&] { distances<T>(points, n, g, cap2, ordered, threads, out); });     \
     }
 
 MISS_TYPED(float, f32)

@@ -100,6 +100,15 @@ for _t in ("f32", "f64"):
     }
 
 
+_ALLOCATING = ("miss_increasing", "miss_grid_cells_", "miss_distances_")
+
+
+def _checked(failed: int) -> None:
+    """A MemoryError where a kernel ran out of memory (as numpy's would raise)."""
+    if failed:
+        raise MemoryError("out of memory in the measurement's native kernels")
+
+
 @cache
 def _library() -> ctypes.CDLL | None:
     """The built kernels, or None where the extension is not there or does not load."""
@@ -109,7 +118,8 @@ def _library() -> ctypes.CDLL | None:
         lib = ctypes.CDLL(_nearest.__file__)
         for name, args in _SIGNATURES.items():
             getattr(lib, name).argtypes = args
-            getattr(lib, name).restype = None
+            # those that allocate answer 1 where they ran out of memory (see _checked)
+            getattr(lib, name).restype = ctypes.c_int if name.startswith(_ALLOCATING) else None
     except (ImportError, OSError, AttributeError):
         return None
     return lib
@@ -213,7 +223,7 @@ def _sample(mesh: Mesh, count: int, rng: np.random.Generator) -> np.ndarray:
     )
     target = rng.random(n_inner) * cum[-1]
     order = np.empty(n_inner, dtype=np.int64)
-    lib.miss_increasing(target.ctypes.data, n_inner, float(cum[-1]), order.ctypes.data)
+    _checked(lib.miss_increasing(target.ctypes.data, n_inner, float(cum[-1]), order.ctypes.data))
     r1, r2 = rng.random(n_inner), rng.random(n_inner)
     out = np.empty((count, 3))
     out[: len(corners)] = corners
@@ -249,9 +259,9 @@ def surface_grid(mesh: Mesh) -> tuple:
         dims.ctypes.data,
         offsets.ctypes.data,
     )
-    cells(*where, None)  # each cell's count, then their running sum
+    _checked(cells(*where, None))  # each cell's count, then their running sum
     items = np.empty(int(offsets[-1]), dtype=np.int32)
-    cells(*where, items.ctypes.data)
+    _checked(cells(*where, items.ctypes.data))
     return (lo, cell, dims, offsets, items, tri)
 
 
@@ -268,11 +278,13 @@ def distances(
     out = np.empty(len(pts))
     if len(pts) == 0:
         return out
-    getattr(lib, "miss_distances_f32" if tri.dtype == np.float32 else "miss_distances_f64")(
+    search = getattr(lib, "miss_distances_f32" if tri.dtype == np.float32 else "miss_distances_f64")
+    failed = search(
         pts.ctypes.data, len(pts), lo.ctypes.data, cell, dims.ctypes.data,
         offsets.ctypes.data, items.ctypes.data, tri.ctypes.data, cap * cap, int(ordered),
         _cores(), out.ctypes.data,
     )  # fmt: skip
+    _checked(failed)
     return out
 
 
