@@ -149,7 +149,17 @@ def test_a_kernel_out_of_memory_raises_memory_error_not_an_abort() -> None:
     with pytest.raises(MemoryError):
         measuring._checked(
             lib.miss_distances_f32(
-                None, far, lo.ctypes.data, 1.0, dims.ctypes.data, None, None, None,
-                0.0, 0, 1, None,
+                None,
+                far,
+                lo.ctypes.data,
+                1.0,
+                dims.ctypes.data,
+                None,
+                None,
+                None,
+                0.0,
+                0,
+                1,
+                None,
             )  # fmt: skip
         )
