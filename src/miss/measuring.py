@@ -169,8 +169,8 @@ def native_side_of(a: Mesh, samples: int = 100_000, seed: int = 0) -> Side:
 def native_deviation(
     a: Mesh, b: Mesh, samples: int = 100_000, seed: int = 0, side: Side | None = None
 ) -> Deviation:
-    """:func:`deviation` with the native kernels, wherever numba is (``side``: a native
-    one)."""
+    """:func:`deviation` with the native kernels, wherever numba is (``side``: made by
+    either)."""
     if a.n_triangles == 0 or b.n_triangles == 0:
         return Deviation(0.0, 0.0, 0)
     with ThreadPoolExecutor(max_workers=1) as pool:

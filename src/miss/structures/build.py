@@ -126,7 +126,8 @@ class _Ahead:
 
     In a process that has the native kernels (:mod:`miss.measuring`) or numba loaded
     already (a server's worker, warmed up), on one thread for the build, one after another
-    (:func:`miss.decimate.measuring_later`). Without the native kernels, in a fresh one (``miss convert --measure``) a thread would import numba while the
+    (:func:`miss.decimate.measuring_later`). Without the native kernels, in a fresh one
+    (``miss convert --measure``) a thread would import numba while the
     decimation runs, and the decimation's own loops, which take numba once it is there,
     would wait for that import (measured: the job as a whole was no sooner, 2.80 against
     2.78 s); there the parts go to a measuring process (:mod:`miss.measurer`), which
