@@ -37,7 +37,7 @@ import numpy as np
 from numba.core.cpu import CPUTargetOptions
 
 from miss._numba import njit, prange
-from miss.measuring import Deviation, Side
+from miss.measuring import Deviation, Kernels, Side, half, measure
 from miss.measuring import grid_shape as _grid_shape
 from miss.types import Mesh
 
@@ -443,26 +443,25 @@ def distances_to(
 
 def side_of(a: Mesh, samples: int = 100_000, seed: int = 0) -> Side:
     """``a``'s :class:`Side` of a :func:`deviation` with ``samples`` and ``seed``."""
-    rng = np.random.default_rng(seed)
-    points = _sample(a, samples, rng, drawn=False)
-    return Side(points, surface_grid(a), rng.bit_generator.state)
+    return half(a, samples, seed, JITTED)
 
 
 def deviation(
     a: Mesh, b: Mesh, samples: int = 100_000, seed: int = 0, side: Side | None = None
 ) -> Deviation:
     """Two-sided (symmetric Hausdorff-style) deviation between surfaces ``a`` and ``b``;
-    ``side``: ``a``'s half made already (:func:`side_of`, the same ``samples`` and ``seed``)."""
-    if a.n_triangles == 0 or b.n_triangles == 0:
-        return Deviation(0.0, 0.0, 0)
-    points_a, points_b, grid_a, grid_b = _both_sides(a, b, samples, seed, side)
-    # a's points come in a's own order (corners by vertex, the others by triangle): for an
-    # extracted surface, neighbours together, searched as they come (a fifth faster on
-    # CThead than sorting them by cell first); b's (a decimation's order) are sorted
-    d_ab = distances_to(points_a, b, grid=grid_b, ordered=True)
-    d_ba = distances_to(points_b, a, grid=grid_a)
-    both = np.concatenate([d_ab, d_ba])
-    return Deviation(max_mm=float(both.max()), mean_mm=float(both.mean()), samples=len(both))
+    ``side``: ``a``'s half made already (:func:`side_of`, the same ``samples`` and ``seed``).
+    The same points as :func:`sample_surface`'s, neighbours together (max and mean are the
+    same): see :func:`miss.measuring.measure`."""
+    return measure(a, b, samples, seed, side, JITTED)
+
+
+#: numba's kernels, as :func:`miss.measuring.measure` takes them.
+JITTED = Kernels(
+    sample=lambda mesh, count, rng: _sample(mesh, count, rng, drawn=False),
+    grid=surface_grid,
+    search=lambda points, grid, ordered: _grid_distances(points, grid, math.inf, ordered),
+)
 
 
 def between(before: Mesh, after: Mesh, samples: int, seed: int) -> float:
@@ -491,26 +490,6 @@ def _edge_list(mesh: Mesh) -> np.ndarray:
     n = mesh.n_vertices
     none = np.empty((0, 3), dtype=np.int32), np.zeros(n + 1, np.int64), np.empty(0, np.int32)
     return _unique_edges(np.ascontiguousarray(mesh.faces), n, *none)
-
-
-def _both_sides(a: Mesh, b: Mesh, samples: int, seed: int, side: Side | None) -> tuple:
-    """Points on ``a`` and on ``b``, and their grids, for :func:`deviation` (``a``'s from
-    ``side`` when it is made already). The same points as :func:`sample_surface`'s,
-    neighbours together: max and mean are the same."""
-    with ThreadPoolExecutor(max_workers=1) as pool:
-        if side is None:
-            rng = np.random.default_rng(seed)
-            # a's cells (a is the larger surface, as a rule) are made on the second core
-            # while this one samples both and makes b's; the searches, on both cores, after
-            making = pool.submit(surface_grid, a)
-            points_a = _sample(a, samples, rng, drawn=False)
-            points_b = _sample(b, samples, rng, drawn=False)
-            return points_a, points_b, making.result(), surface_grid(b)
-        rng = np.random.default_rng()
-        rng.bit_generator.state = side.state
-        making = pool.submit(surface_grid, b)  # b's cells on the second core while it samples
-        points_b = _sample(b, samples, rng, drawn=False)
-        return side.points, points_b, side.grid, making.result()
 
 
 @njit(cache=True, nogil=True)
