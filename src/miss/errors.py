@@ -56,6 +56,16 @@ class PacsTimeout(PacsError):
     """A PACS that took longer than the timeout: 504 Gateway Timeout (try again later)."""
 
 
+class WrongStudy(MissError, ValueError):
+    """A model that would be filed where it does not belong: a volume not imported from
+    that PACS, or a study that no longer has the patient or series it was made from
+    (409 Conflict; nothing is stored). ``study``: the study it would have gone into."""
+
+    def __init__(self, message: str, study: str = "") -> None:
+        super().__init__(message)
+        self.study = study
+
+
 def is_disk_full(exc: BaseException) -> bool:
     """True for "no space left on device" (or over a disk quota)."""
     if not isinstance(exc, OSError):

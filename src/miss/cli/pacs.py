@@ -3,7 +3,9 @@
 The PACS is the one ``MISS_PACS_URL`` names (``--pacs NAME`` picks another of
 ``MISS_PACS2_URL`` ...); credentials come from the file ``MISS_PACS_AUTH_FILE`` names,
 never from the command line. ``miss convert dicomweb:STUDY/SERIES`` models a series
-straight from the PACS.
+straight from the PACS. ``miss pacs send`` stores a model only in a study that the PACS
+says is there, has the ``--patient-id`` given and holds the ``--series`` named: a study UID
+copied from the wrong line of a search cannot file a model under another patient.
 """
 
 from __future__ import annotations
@@ -37,6 +39,10 @@ def add_arguments(pacs: argparse.ArgumentParser) -> None:
     )
     send.add_argument("model", help="the model: an .stl, or the .zip miss convert writes")
     send.add_argument("--study", required=True, help="Study Instance UID to store it in")
+    send.add_argument(
+        "--patient-id", required=True,
+        help="the patient ID the study must have on the PACS (checked before storing)",
+    )  # fmt: skip
     send.add_argument(
         "--series", default=None,
         help="the image series it was made from: its frame of reference and images are named",
@@ -113,7 +119,7 @@ def _send(server: Any, args: argparse.Namespace) -> Any:
     from miss.pacs.stl import encapsulate
 
     parts = model_parts(Path(args.model))
-    origin = client.study_origin(server, args.study, args.series)
+    origin = client.study_origin(server, args.study, args.series, args.patient_id)
     description = args.description or f"MISS surface: {Path(args.model).stem}"
     datasets = encapsulate(parts, origin, description, f"MISS {__version__}")
     stored = client.store(server, datasets, args.study)

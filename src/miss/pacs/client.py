@@ -24,14 +24,22 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from miss.errors import BadParameter, InputTooLarge, PacsError, PacsTimeout, UnsupportedFormat
+from miss.errors import (
+    BadParameter,
+    InputTooLarge,
+    PacsError,
+    PacsTimeout,
+    UnsupportedFormat,
+    WrongStudy,
+)
 from miss.pacs.server import PacsServer
 
 #: Largest query answer (JSON) accepted, bytes.
 MAX_QUERY_BYTES = 16 << 20
 #: Most studies or series one query page may list.
 MAX_PAGE = 200
-UID = re.compile(r"^[0-9]+(\.[0-9]+)*$")
+#: A UID, matched whole (``fullmatch``: ``$`` would let a trailing newline through).
+UID = re.compile(r"[0-9]+(\.[0-9]+)*")
 #: Transfer syntaxes MISS decodes (pydicom with pylibjpeg): little and big endian,
 #: JPEG 2000, JPEG lossless, JPEG-LS, RLE, JPEG baseline and extended.
 DECODED: frozenset[str] = frozenset(
@@ -73,7 +81,7 @@ NON_IMAGE_SOP_PREFIXES = ("1.2.840.10008.5.1.4.1.1.88.", "1.2.840.10008.5.1.4.1.
 
 def check_uid(uid: str, what: str) -> str:
     """A DICOM UID as MISS accepts it from a client or a PACS (digits and dots, <= 64)."""
-    if not isinstance(uid, str) or len(uid) > 64 or not UID.match(uid):
+    if not isinstance(uid, str) or len(uid) > 64 or not UID.fullmatch(uid):
         raise BadParameter(f"{what} {str(uid)[:80]!r} is not a DICOM UID (digits and dots).")
     return uid
 
@@ -146,7 +154,7 @@ def calling(server: PacsServer, what: str) -> Iterator[None]:
 
     try:
         yield
-    except (PacsError, InputTooLarge, BadParameter, UnsupportedFormat):
+    except (PacsError, InputTooLarge, BadParameter, UnsupportedFormat, WrongStudy):
         raise
     except requests.Timeout:
         raise PacsTimeout(
@@ -249,7 +257,7 @@ def _count(item: Mapping[str, Any], tag: str) -> int | None:
 
 def _uid_of(item: Mapping[str, Any], tag: str) -> str | None:
     uid = _value(item, tag, 80)
-    return uid if uid and len(uid) <= 64 and UID.match(uid) else None
+    return uid if uid and len(uid) <= 64 and UID.fullmatch(uid) else None
 
 
 # ---------------------------------------------------------------- QIDO-RS
@@ -262,7 +270,7 @@ FILTERS: dict[str, str] = {
     "study_date": "StudyDate",
     "modality": "ModalitiesInStudy",
 }
-_DATE = re.compile(r"^(\d{8})?(-(\d{8})?)?$")
+_DATE = re.compile(r"(\d{8})?(-(\d{8})?)?")  # whole: fullmatch
 
 
 def search_filters(given: Mapping[str, str | None]) -> dict[str, str]:
@@ -281,7 +289,7 @@ def search_filters(given: Mapping[str, str | None]) -> dict[str, str]:
             )
         if name == "study_date":
             value = value.replace("-", "") if len(value) == 10 else value
-            if not _DATE.match(value) or value == "-":
+            if not _DATE.fullmatch(value) or value == "-":
                 raise BadParameter(
                     f"study_date must be YYYYMMDD or a range YYYYMMDD-YYYYMMDD, got {value!r}."
                 )
@@ -515,14 +523,12 @@ def _check_instance(
 # ---------------------------------------------------------------- STOW-RS
 
 
-def study_origin(server: PacsServer, study: str, series: str | None) -> Any:
-    """Where a model sent from the command line belongs: the study's patient and study
-    attributes as the PACS has them, and with ``series`` (its source images) that series'
-    frame of reference and images; without it a new frame of reference."""
+def study_attributes(server: PacsServer, study: str) -> dict[str, str] | None:
+    """The patient and study attributes (:data:`miss.pacs.stl.PATIENT_STUDY` keywords)
+    of ``study`` as the PACS has them now; None when it has no such study."""
     from pydicom.datadict import tag_for_keyword
-    from pydicom.uid import generate_uid
 
-    from miss.pacs.stl import PATIENT_STUDY, Origin
+    from miss.pacs.stl import PATIENT_STUDY
 
     client = connect(server)
     with calling(server, "looking up the study"):
@@ -530,12 +536,59 @@ def study_origin(server: PacsServer, study: str, series: str | None) -> Any:
             search_filters={"StudyInstanceUID": check_uid(study, "study")},
             fields=list(PATIENT_STUDY),
         )
-    if not found:
-        raise BadParameter(f"{server.where} has no study {study}; 'miss pacs search' finds it.")
+    found = [item for item in found if isinstance(item, Mapping)]
+    if not found or _uid_of(found[0], "0020000D") not in (None, study):
+        return None
     tags = {keyword: f"{tag_for_keyword(keyword):08X}" for keyword in PATIENT_STUDY}
-    patient = {keyword: _value(found[0], tag, 64) for keyword, tag in tags.items()}
+    return {keyword: _value(found[0], tag, 64) for keyword, tag in tags.items()}
+
+
+def check_study(
+    server: PacsServer, study: str, series: str, patient_id: str, issuer: str = ""
+) -> dict[str, str]:
+    """Ask the PACS (QIDO-RS) that ``study`` is there, still has the patient
+    ``patient_id`` (and ``issuer``, when both name one) and holds ``series`` (none:
+    unchecked); its patient and study attributes. :class:`WrongStudy` (409) otherwise,
+    with a message that names no patient."""
+    held = study_attributes(server, study)
+    if held is None:
+        raise WrongStudy(
+            f"{server.where} has no study {study} (deleted or merged since); nothing was "
+            "sent. Import the series again from the PACS and send a model of it.",
+            study,
+        )
+    same_issuer = not (issuer and held["IssuerOfPatientID"]) or issuer == held["IssuerOfPatientID"]
+    if held["PatientID"].strip() != patient_id.strip() or not same_issuer:
+        raise WrongStudy(
+            f"study {study} on {server.where} belongs to another patient ID than the one it "
+            "had when the series was imported (or than the one given); nothing was sent. "
+            "Check the study with the PACS's administrator, then import the series again.",
+            study,
+        )
+    if series and series not in {r["series"] for r in search_series(server, study)}:
+        raise WrongStudy(
+            f"study {study} on {server.where} no longer holds the series {series} the model "
+            "was made from; nothing was sent. Import the series again from the PACS.",
+            study,
+        )
+    return held
+
+
+def study_origin(
+    server: PacsServer, study: str, series: str | None, patient_id: str, issuer: str = ""
+) -> Any:
+    """Where a model sent from the command line belongs, checked (:func:`check_study`):
+    the study's patient and study attributes as the PACS has them, and with ``series``
+    (its source images) that series' frame of reference and images; without it a new
+    frame of reference."""
+    from pydicom.uid import generate_uid
+
+    from miss.pacs.stl import Origin
+
+    patient = check_study(server, study, series or "", patient_id, issuer)
     frame, sources = generate_uid(), []
     if series:
+        client = connect(server)
         with calling(server, "reading the series' metadata"):
             metadata = client.retrieve_series_metadata(study, check_uid(series, "series"))
         frames = {_uid_of(m, "00200052") for m in metadata} - {None}

@@ -24,7 +24,7 @@ from miss.errors import BadParameter
 
 DEFAULT_NAME = "PACS"
 DEFAULT_TIMEOUT = 30.0
-_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9 ._-]{0,63}$")
+_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9 ._-]{0,63}")  # whole: fullmatch
 
 
 @dataclass(frozen=True)
@@ -48,7 +48,7 @@ class PacsServer:
                 "the PACS URL carries credentials; put them in the file MISS_PACS_AUTH_FILE "
                 "names (user:password or Bearer TOKEN), never in the URL."
             )
-        if not _NAME.match(self.name):
+        if not _NAME.fullmatch(self.name):
             raise BadParameter(
                 f"PACS name {self.name!r} is not valid; use 1-64 letters, digits, spaces, "
                 "'.', '_' or '-'."

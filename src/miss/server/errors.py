@@ -24,6 +24,7 @@ from miss.errors import (
     PacsError,
     PacsTimeout,
     UnsupportedFormat,
+    WrongStudy,
 )
 from miss.server.logmask import mask
 
@@ -73,6 +74,7 @@ STATUS: tuple[tuple[type[MissError], int], ...] = (
     (BodyTooLarge, 413),
     (UnsupportedFormat, 415),
     (NotReady, 409),
+    (WrongStudy, 409),
     (DiskFull, 507),
     (PacsTimeout, 504),
     (PacsError, 502),

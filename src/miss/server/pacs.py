@@ -6,8 +6,14 @@ series' instances, retrieves them into a private folder under ``tmp/``, and hand
 folder to :func:`miss.server.ingest.ingest`, the same door an upload goes through: the
 confined reader, the same checks and messages, de-identification, the original identity
 kept for the owner only (with where it came from: the PACS, the original study, series
-and image UIDs, so the model can be sent back). A DICOM SEG or RT-STRUCT of the same
-study that refers to the series becomes the volume's label map.
+and image UIDs and the study's patient ID as the PACS has it, so the model can be sent
+back). A DICOM SEG or RT-STRUCT of the same study that refers to the series becomes the
+volume's label map.
+
+A model goes back only into the study its volume was imported from, on that PACS, and
+only after the PACS confirms that the study still has that patient ID and source series
+(:func:`destination`); a file someone uploaded may carry any study UID and patient, so
+an uploaded volume's model goes, if ``MISS_PACS_SEND_UPLOADS`` allows, as a new study.
 """
 
 from __future__ import annotations
@@ -16,22 +22,24 @@ import io
 import json
 import logging
 import shutil
+import threading
 import zipfile
+from collections import deque
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
-from sqlalchemy import select, update
+from sqlalchemy import func, select, update
 
 from miss import __version__
-from miss.errors import BadParameter, MissError
+from miss.errors import BadParameter, MissError, WrongStudy
 from miss.pacs import client
 from miss.pacs.server import PacsServer
 from miss.pacs.stl import Origin, encapsulate
 from miss.server import audit
 from miss.server.accounts import User
-from miss.server.errors import NotFound, NotReady
+from miss.server.errors import NotFound, NotReady, TooManyRequests
 from miss.server.ingest import Reading, ingest
 from miss.server.settings import Settings
 from miss.server.storage.db import (
@@ -69,13 +77,25 @@ def fail_interrupted(store: Store) -> None:
         )
 
 
+#: One waiting import: its id, its owner, its PACS.
+Waiting = tuple[str, User, PacsServer]
+
+
 class PacsImports:
     """Imports run on ``settings.pacs_imports`` threads; each is a row in ``pacs_imports``
-    that its owner polls (``GET /api/pacs/imports/{id}``)."""
+    that its owner polls (``GET /api/pacs/imports/{id}``).
+
+    An account may have ``settings.pacs_imports_per_user`` queued or running (429 past
+    that), and a free thread takes the next import of the account served longest ago,
+    not the oldest import: one account's queue never holds up another's import."""
 
     def __init__(self, store: Store, settings: Settings, reading: Callable[[], Reading]) -> None:
         self.store, self.settings, self.reading = store, settings, reading
         self.pool = ThreadPoolExecutor(settings.pacs_imports, thread_name_prefix="miss-pacs")
+        self._lock = threading.Lock()
+        self._waiting: dict[str, deque[Waiting]] = {}  # owner id -> its imports, in order
+        self._served: dict[str, int] = {}  # owner id -> when its last import started (turn)
+        self._turns = 0
 
     def stop(self) -> None:
         self.pool.shutdown(wait=False, cancel_futures=True)
@@ -87,10 +107,41 @@ class PacsImports:
             id=new_id(), owner_id=user.id, pacs=server.name, study=study, series=series,
             segmentation=segmentation,
         )  # fmt: skip
-        with self.store.session.begin() as s:
-            s.add(row)
-        self.pool.submit(self._run, row.id, user, server)
+        with self._lock:  # counted and added at once: two posts cannot both take the last place
+            self._check_room(user)
+            with self.store.session.begin() as s:
+                s.add(row)
+            self._waiting.setdefault(user.id, deque()).append((row.id, user, server))
+        self.pool.submit(self._next)
         return row
+
+    def _check_room(self, user: User) -> None:
+        limit = self.settings.pacs_imports_per_user
+        with self.store.session() as s:
+            query = select(func.count()).where(
+                PacsImportRow.owner_id == user.id, PacsImportRow.status.in_((QUEUED, RUNNING))
+            )
+            count = s.scalar(query) or 0
+        if count >= limit:
+            raise TooManyRequests(
+                f"you have {count} PACS imports queued or running, the most one account may "
+                f"have (MISS_PACS_IMPORTS_PER_USER={limit}); wait until one is done or failed "
+                "(GET /api/pacs/imports) and import again."
+            )
+
+    def _next(self) -> None:
+        """Run the first waiting import of the account whose last one started longest ago
+        (accounts not served yet first): each pool task runs one import."""
+        with self._lock:
+            owner = min(
+                (o for o, q in self._waiting.items() if q), key=lambda o: self._served.get(o, 0)
+            )
+            self._turns += 1
+            self._served[owner] = self._turns
+            import_id, user, server = self._waiting[owner].popleft()
+            if not self._waiting[owner]:
+                del self._waiting[owner]
+        self._run(import_id, user, server)
 
     def get(self, import_id: str, user: User) -> PacsImportRow:
         with self.store.session() as s:
@@ -162,10 +213,13 @@ class PacsImports:
         described = next((r for r in listed if r["series"] == row.series), {})
         name = " ".join(x for x in (described.get("modality"), described.get("description")) if x)
         upload = Upload(path=work / "pacs-series", filename=name, fields={"name": name or "PACS"})
-        origin = {
+        held = client.study_attributes(server, row.study) or {}
+        origin = {  # as the PACS has them: a model is sent back only where they still hold
             "pacs": server.name,
             "study": row.study,
             "series": row.series,
+            "patient_id": held.get("PatientID", ""),
+            "issuer": held.get("IssuerOfPatientID", ""),
             "instances": [list(i) for i in instances],
         }
         volume = ingest(self.store, upload, work, self.reading(), user.id, origin)
@@ -252,26 +306,77 @@ def refers_to(folder: Path, series: str) -> bool:
 # ---------------------------------------------------------------- sending
 
 
-def origin_of(store: Store, volume: VolumeRow) -> Origin:
-    """The original study, series, frame of reference and patient of ``volume`` (from its
-    owner-only identity record); BadParameter for a volume that did not come from DICOM."""
+#: Why a volume that was uploaded (not imported from the PACS) gets no model sent.
+UPLOADED = (
+    "this volume was uploaded, not imported from the PACS: MISS files a model only in the "
+    "study its volume was imported from, checked on the PACS first; nothing was sent. "
+    "Import the series from the PACS and send a model of it (an administrator may allow "
+    "uploads to go as a new study: MISS_PACS_SEND_UPLOADS=1)."
+)
+
+
+def destination(store: Store, settings: Settings, server: PacsServer, volume: VolumeRow) -> Origin:
+    """Where a model of ``volume`` goes on ``server``: the study it was imported from,
+    after the PACS confirmed (QIDO-RS) that the study still has its patient and source
+    series; or, for an uploaded volume and only with ``settings.pacs_send_uploads``, a
+    new study of its own. :class:`WrongStudy` (409) for anything else."""
     record = store.get_identity(volume.id)
     data = record.data if record else {}
-    back = {new: old for old, new in (data.get("uids") or {}).items()}
-    study = back.get(volume.info.get("study_uid") or "")
-    if not study:
-        raise BadParameter(
-            "this volume has no DICOM study to send a model into (it was not read from a "
-            "DICOM series); import the series from the PACS and model it there."
-        )
     came = data.get("origin") or {}
+    if came:
+        return _back_home(server, volume, data, came)
+    if not settings.pacs_send_uploads:
+        raise WrongStudy(UPLOADED)
+    return new_study(data.get("patient") or {})
+
+
+def _back_home(
+    server: PacsServer, volume: VolumeRow, data: dict[str, Any], came: dict[str, Any]
+) -> Origin:
+    """The study a PACS import came from, checked on that PACS."""
+    study, series = str(came.get("study", "")), str(came.get("series", ""))
+    if came.get("pacs") != server.name:
+        raise WrongStudy(
+            f"this volume was imported from PACS {came.get('pacs')!r}; a model goes back only "
+            f"into the study it came from there, not to {server.name!r}; nothing was sent. "
+            "Leave 'pacs' out to send it where it came from.",
+            study,
+        )
+    patient = {k: str(v) for k, v in (data.get("patient") or {}).items()}
+    # imports before the PACS's own patient ID was recorded: the retrieved files' (they
+    # were checked to be of this study and series as they came)
+    patient_id = str(came.get("patient_id", patient.get("PatientID", "")))
+    held = client.check_study(server, study, series, patient_id, str(came.get("issuer", "")))
+    back = {new: old for old, new in (data.get("uids") or {}).items()}
     return Origin(
         study=study,
-        series=back.get(volume.info.get("series_uid") or "", came.get("series", "")),
+        series=series,
         frame_of_reference=back.get(volume.info.get("frame_of_reference") or "", ""),
-        patient={k: str(v) for k, v in (data.get("patient") or {}).items()},
+        patient=patient | {k: v for k, v in held.items() if v},
         sources=[tuple(i) for i in came.get("instances") or []],  # type: ignore[misc]
     )
+
+
+def new_study(patient: dict[str, Any]) -> Origin:
+    """A new study (fresh study, series and frame UIDs; never the uploaded file's) for
+    a model of an uploaded volume whose file named ``patient``."""
+    from datetime import datetime
+
+    from pydicom.uid import generate_uid
+
+    if not str(patient.get("PatientID", "")).strip():
+        raise WrongStudy(
+            "this volume's file names no patient ID, so a model of it has no patient to be "
+            "filed under on the PACS; nothing was sent. Import the series from the PACS."
+        )
+    keep = ("PatientName", "PatientID", "IssuerOfPatientID", "PatientBirthDate", "PatientSex")
+    now = datetime.now()
+    attributes = {k: str(patient[k]) for k in keep if patient.get(k)} | {
+        "StudyDate": now.strftime("%Y%m%d"),
+        "StudyTime": now.strftime("%H%M%S"),
+        "StudyDescription": "MISS model of an uploaded volume",
+    }
+    return Origin(generate_uid(), "", generate_uid(), attributes)
 
 
 def stl_parts(folder: Path) -> list[tuple[str, bytes]]:
@@ -305,15 +410,20 @@ def describe(model: ModelRow, volume: VolumeRow) -> str:
 
 
 def send_model(
-    store: Store, server: PacsServer, model: ModelRow, volume: VolumeRow, user: User
+    store: Store,
+    settings: Settings,
+    server: PacsServer,
+    model: ModelRow,
+    volume: VolumeRow,
+    user: User,
 ) -> dict[str, Any]:
-    """Send a finished model into its volume's original study on ``server`` as one
-    Encapsulated STL instance a part, in a new series; what was stored."""
+    """Send a finished model as one Encapsulated STL instance a part, in a new series of
+    the study :func:`destination` gives; what was stored."""
     if volume.owner_id != user.id:
         raise NotFound(f"no model {model.id!r} of yours; only a volume's owner sends its models.")
     if model.status != DONE:
         raise NotReady(f"model {model.id!r} is {model.status}; send it once it is done.")
-    origin = origin_of(store, volume)
+    origin = destination(store, settings, server, volume)
     parts = stl_parts(store.model_dir(model.id))
     description = describe(model, volume)
     titles = [p.get("name", "") for p in (model.stats or {}).get("parts") or []]
@@ -322,6 +432,7 @@ def send_model(
     stored = client.store(server, datasets, origin.study)
     return {
         "pacs": server.name,
+        "study_uid": origin.study,
         "series_uid": str(datasets[0].SeriesInstanceUID),
         "sop_instance_uids": stored,
         "description": description,

@@ -33,6 +33,10 @@ Environment variables (all optional):
                           ``MISS_PACS_AUTH_FILE``, ``MISS_PACS_TIMEOUT`` and more PACS as
                           ``MISS_PACS2_URL`` ...: see ``miss.pacs.server``
 ``MISS_PACS_IMPORTS``     PACS series imported at once (2)
+``MISS_PACS_IMPORTS_PER_USER`` PACS imports one account may have queued or running (10);
+                          more get 429
+``MISS_PACS_SEND_UPLOADS`` send a model of an uploaded (not PACS-imported) volume to the
+                          PACS as a new study under the file's patient ("0": refused, 409)
 ``MISS_ROOM_MAX_PEOPLE``  people in one model's consultation room at once, counted over
                           every server process (50)
 ``MISS_LOD_TRIANGLES``    a model of more triangles also gets levels of detail (a 3D Tiles
@@ -82,6 +86,8 @@ class Settings:
     #: The PACS MISS may search, import from and send to (``MISS_PACS_URL`` ...).
     pacs: tuple[PacsServer, ...] = ()
     pacs_imports: int = 2
+    pacs_imports_per_user: int = 10
+    pacs_send_uploads: bool = False
     lod_triangles: int = 2_000_000
     room_max_people: int = 50
 
@@ -123,6 +129,10 @@ class Settings:
             )
         if self.pacs_imports < 1:
             raise ValueError(f"MISS_PACS_IMPORTS must be at least 1, got {self.pacs_imports}.")
+        if self.pacs_imports_per_user < 1:
+            raise ValueError(
+                f"MISS_PACS_IMPORTS_PER_USER must be at least 1, got {self.pacs_imports_per_user}."
+            )
         if self.room_max_people < 1:
             raise ValueError(
                 f"MISS_ROOM_MAX_PEOPLE must be at least 1, got {self.room_max_people}."
@@ -217,6 +227,8 @@ _ENV: tuple[tuple[str, str, Any], ...] = (
     ("uploads_per_user", "MISS_UPLOADS_PER_USER", int),
     ("uploads_at_once", "MISS_UPLOADS_AT_ONCE", int),
     ("pacs_imports", "MISS_PACS_IMPORTS", int),
+    ("pacs_imports_per_user", "MISS_PACS_IMPORTS_PER_USER", int),
+    ("pacs_send_uploads", "MISS_PACS_SEND_UPLOADS", _bool),
     ("lod_triangles", "MISS_LOD_TRIANGLES", int),
     ("room_max_people", "MISS_ROOM_MAX_PEOPLE", int),
 )

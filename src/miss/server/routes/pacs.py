@@ -3,7 +3,8 @@
 
 Only accounts with the ``pacs`` permission see any of it: for everyone else (and on a
 server with no PACS configured) every route here answers 404. Every query, import and
-send is in the audit log (filter names and counts, never the patient's name or ID).
+send (and refused send, with the study it was for) is in the audit log (filter names and
+counts, never the patient's name or ID).
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ from fastapi import APIRouter, Depends, Query, Request
 from fastapi.responses import JSONResponse
 from pydantic import BaseModel, ConfigDict, Field
 
+from miss.errors import MissError
 from miss.pacs import client
 from miss.pacs.server import PacsServer
 from miss.server import audit
@@ -132,6 +134,7 @@ class SendRequest(BaseModel):
 
 class SendOut(BaseModel):
     pacs: str
+    study_uid: str
     series_uid: str
     sop_instance_uids: list[str]
     description: str
@@ -239,7 +242,10 @@ def get_import(import_id: str, request: Request, user: PacsUserDep) -> ImportOut
     response_model=SendOut,
     responses={
         404: {"description": "no PACS access, or not your model"},
-        409: {"description": "the model is not done yet"},
+        409: {
+            "description": "the model is not done yet, or would be filed where it does not "
+            "belong (not imported from this PACS; the study's patient or series changed)"
+        },
         502: {"description": "the PACS refused it or did not answer"},
     },
 )
@@ -253,15 +259,27 @@ def send_to_pacs(
 ) -> Any:
     """Send the model into the patient's original study on the PACS: one DICOM
     Encapsulated STL instance a part (patient LPS mm, the source series' frame of
-    reference), in a new series described as what it is. Only the volume's owner."""
+    reference), in a new series described as what it is. Only the volume's owner, only
+    for a volume imported from that PACS whose study the PACS confirms still has the
+    patient and series (409 otherwise; an uploaded volume's model goes as a new study
+    where ``MISS_PACS_SEND_UPLOADS`` allows). Every send and refusal is audited with the
+    study it went (or would have gone) to."""
     volume = store.get_volume(model.volume_id)
     record = store.get_identity(volume.id)
     came_from = ((record.data if record else {}).get("origin") or {}).get("pacs")
     name = (body.pacs if body else None) or (came_from if settings.pacs_server(came_from) else None)
     server = _server(settings, name)
-    sent = send_model(store, server, model, volume, user)
+    where = audit.address(request)
+    try:
+        sent = send_model(store, settings, server, model, volume, user)
+    except MissError as exc:
+        audit.record(
+            store, "pacs_send_refused", user.name, model.id, where, pacs=server.name,
+            study=getattr(exc, "study", ""), reason=str(exc)[:300],
+        )  # fmt: skip
+        raise
     audit.record(
-        store, "pacs_send", user.name, model.id, audit.address(request),
-        pacs=server.name, instances=sent["sop_instance_uids"],
+        store, "pacs_send", user.name, model.id, where, pacs=server.name,
+        study=sent["study_uid"], series=sent["series_uid"], instances=sent["sop_instance_uids"],
     )  # fmt: skip
     return sent
