@@ -58,8 +58,9 @@ def test_convert_from_the_pacs_and_send_back(
     triangles = json.loads(made.stdout)["triangles"]
     assert struct.unpack_from("<I", stl.read_bytes(), 80)[0] == triangles > 1000
     sent = miss(
-        ["pacs", "send", str(stl), "--study", ge.study, "--series", ge.series, "--json"], env
-    )
+        ["pacs", "send", str(stl), "--study", ge.study, "--series", ge.series,
+         "--patient-id", ge.patient_id, "--json"], env,
+    )  # fmt: skip
     assert sent.returncode == 0, sent.stderr
     uids = json.loads(sent.stdout)["sop_instance_uids"]
     found = orthanc.rest("POST", "/tools/lookup", data=uids[0]).json()
@@ -79,7 +80,7 @@ def test_convert_from_the_pacs_and_send_back(
         ),
         (["convert", "dicomweb:1.2.3/abc", "--level", "300", "-o", "x.stl"], "is not a DICOM UID"),
         (["pacs", "search", "--study-date", "yesterday"], "study_date must be YYYYMMDD"),
-        (["pacs", "send", "nothing.stl", "--study", "1.2.3"], "nothing.stl"),
+        (["pacs", "send", "nothing.stl", "--study", "1.2.3", "--patient-id", "P"], "nothing.stl"),
     ],
 )
 def test_bad_input_one_line_exit_2(
