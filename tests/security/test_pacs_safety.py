@@ -180,7 +180,7 @@ def test_an_import_goes_back_only_while_the_pacs_still_has_its_series(
     before = series_in(orthanc, own.study)
     r = app.post(f"/api/models/{model['id']}/pacs", json={}, headers=rad)
     assert r.status_code == 409, r.text
-    assert "no longer holds the series" in r.json()["detail"]
+    assert "does not hold the series" in r.json()["detail"]
     assert series_in(orthanc, own.study) == before
     (refused,) = audited(app, "pacs_send_refused", model["id"])
     assert refused["detail"]["study"] == own.study
@@ -314,7 +314,7 @@ def test_the_command_line_checks_the_patient_before_storing(
     assert series_in(orthanc, ge.study) == before
     out = subprocess.run([*args, "--patient-id", ge.patient_id, "--series", generate_uid()],
                          capture_output=True, text=True, timeout=120, env=env)  # fmt: skip
-    assert out.returncode == 2 and "no longer holds the series" in out.stderr, out.stderr
+    assert out.returncode == 2 and "does not hold the series" in out.stderr, out.stderr
     out = subprocess.run([*args, "--patient-id", ge.patient_id], capture_output=True,
                          text=True, timeout=120, env=env)  # fmt: skip
     assert out.returncode == 0, out.stderr
@@ -333,3 +333,16 @@ def test_no_patient_id_is_served_with_the_volume(app: TestClient, small: Series)
         assert value not in served, value
     identity = app.get(f"/api/volumes/{done['volume_id']}/identity", headers=rad).json()
     assert small.patient_id in str(identity)
+
+
+@pytest.mark.parametrize(
+    ("env", "said"),
+    [
+        ({"MISS_PACS_IMPORTS_PER_USER": "0"}, "MISS_PACS_IMPORTS_PER_USER must be at least 1"),
+        ({"MISS_PACS_SEND_UPLOADS": "perhaps"}, "MISS_PACS_SEND_UPLOADS='perhaps' is not valid"),
+    ],
+)
+def test_the_settings_say_what_is_wrong(env: dict[str, str], said: str) -> None:
+    with pytest.raises(ValueError, match=said):
+        Settings.from_env(env)
+    assert Settings().pacs_send_uploads is False  # off unless the hospital allows it

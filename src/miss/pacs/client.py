@@ -526,6 +526,13 @@ def _check_instance(
 def study_attributes(server: PacsServer, study: str) -> dict[str, str] | None:
     """The patient and study attributes (:data:`miss.pacs.stl.PATIENT_STUDY` keywords)
     of ``study`` as the PACS has them now; None when it has no such study."""
+    found = _studies(server, study)
+    return found[0] if found else None
+
+
+def _studies(server: PacsServer, study: str) -> list[dict[str, str]]:
+    """Each entry the PACS lists for the Study Instance UID ``study`` (one, or more where
+    a PACS keeps a UID per patient, as Orthanc does), as :func:`study_attributes`."""
     from pydicom.datadict import tag_for_keyword
 
     from miss.pacs.stl import PATIENT_STUDY
@@ -536,11 +543,12 @@ def study_attributes(server: PacsServer, study: str) -> dict[str, str] | None:
             search_filters={"StudyInstanceUID": check_uid(study, "study")},
             fields=list(PATIENT_STUDY),
         )
-    found = [item for item in found if isinstance(item, Mapping)]
-    if not found or _uid_of(found[0], "0020000D") not in (None, study):
-        return None
     tags = {keyword: f"{tag_for_keyword(keyword):08X}" for keyword in PATIENT_STUDY}
-    return {keyword: _value(found[0], tag, 64) for keyword, tag in tags.items()}
+    return [
+        {keyword: _value(item, tag, 64) for keyword, tag in tags.items()}
+        for item in found[:MAX_PAGE]
+        if isinstance(item, Mapping) and _uid_of(item, "0020000D") in (None, study)
+    ]
 
 
 def check_study(
@@ -550,28 +558,34 @@ def check_study(
     ``patient_id`` (and ``issuer``, when both name one) and holds ``series`` (none:
     unchecked); its patient and study attributes. :class:`WrongStudy` (409) otherwise,
     with a message that names no patient."""
-    held = study_attributes(server, study)
-    if held is None:
+    found = _studies(server, study)
+    if not found:
         raise WrongStudy(
-            f"{server.where} has no study {study} (deleted or merged since); nothing was "
-            "sent. Import the series again from the PACS and send a model of it.",
+            f"{server.where} has no study {study}; nothing was sent. Find the study with a "
+            "PACS search (deleted or merged since the import? import the series again).",
             study,
         )
-    same_issuer = not (issuer and held["IssuerOfPatientID"]) or issuer == held["IssuerOfPatientID"]
-    if held["PatientID"].strip() != patient_id.strip() or not same_issuer:
+    if not all(_same_patient(held, patient_id, issuer) for held in found):
         raise WrongStudy(
-            f"study {study} on {server.where} belongs to another patient ID than the one it "
-            "had when the series was imported (or than the one given); nothing was sent. "
-            "Check the study with the PACS's administrator, then import the series again.",
+            f"study {study} on {server.where} has another patient ID than the model's (the "
+            "one recorded when its series was imported, or --patient-id); nothing was sent. "
+            "Check the study's patient with a PACS search, or ask the PACS's administrator.",
             study,
         )
     if series and series not in {r["series"] for r in search_series(server, study)}:
         raise WrongStudy(
-            f"study {study} on {server.where} no longer holds the series {series} the model "
-            "was made from; nothing was sent. Import the series again from the PACS.",
+            f"study {study} on {server.where} does not hold the series {series} the model "
+            "was made from (deleted or moved?); nothing was sent. Import it again from the PACS.",
             study,
         )
-    return held
+    return found[0]
+
+
+def _same_patient(held: Mapping[str, str], patient_id: str, issuer: str) -> bool:
+    """Whether a study entry names ``patient_id`` (and ``issuer``, where both name one)."""
+    theirs = held.get("IssuerOfPatientID", "")
+    same_issuer = not (issuer and theirs) or issuer == theirs
+    return held.get("PatientID", "").strip() == patient_id.strip() and same_issuer
 
 
 def study_origin(

@@ -345,7 +345,7 @@ def _back_home(
     patient = {k: str(v) for k, v in (data.get("patient") or {}).items()}
     # imports before the PACS's own patient ID was recorded: the retrieved files' (they
     # were checked to be of this study and series as they came)
-    patient_id = str(came.get("patient_id", patient.get("PatientID", "")))
+    patient_id = str(came.get("patient_id") or patient.get("PatientID", ""))
     held = client.check_study(server, study, series, patient_id, str(came.get("issuer", "")))
     back = {new: old for old, new in (data.get("uids") or {}).items()}
     return Origin(
