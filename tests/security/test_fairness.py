@@ -4,11 +4,17 @@ and leaves nothing behind, and an account over its disk quota is refused (507/41
 
 from __future__ import annotations
 
+import signal
+from collections.abc import Callable, Iterator
+from contextlib import closing
 from datetime import timedelta
 from pathlib import Path
+from typing import Any
 
+import httpx
+import pytest
 from pg import copy_seed, settings_for
-from realserver import serving
+from realserver import Server, serving
 
 from miss.server.storage.db import QUEUED, ModelRow, utcnow
 from miss.server.storage.store import Store, new_id
@@ -50,3 +56,130 @@ def test_round_robin_between_accounts(seeded_dir: Path, tmp_path: Path) -> None:
     assert all(m["status"] == "done" for m in ended), ended
     order = [jobs[ids.index(m["id"])][0] for m in sorted(ended, key=lambda m: m["started"])]
     assert order == ["alice", "bob", "alice", "alice"], order
+
+
+@pytest.fixture
+def limited(seeded_dir: Path, tmp_path: Path) -> Iterator[Callable[..., Server]]:
+    """``limited(MISS_...=value)``: a real server on a copy of the seeded folder (the demo
+    phantom) with these settings, logged in as the administrator."""
+    servers: list[Server] = []
+
+    def start(**env: str) -> Server:
+        data = copy_seed(seeded_dir, tmp_path / f"data{len(servers)}")
+        servers.append(Server(data, tmp_path / "server.log", env={"MISS_DEMO": "0", **env}))
+        return servers[-1]
+
+    yield start
+    for server in servers:
+        if server.proc.poll() is None:
+            server.stop(signal.SIGTERM)
+
+
+def _demo(server: Server) -> str:
+    return next(v["id"] for v in server.http.get("/api/volumes").json() if v["name"] == DEMO)
+
+
+def _usage(server: Server) -> dict[str, dict[str, Any]]:
+    r = server.http.get("/api/admin/usage")
+    assert r.status_code == 200, r.text
+    return {u["account"]: u for u in r.json()}
+
+
+def _fails_clean(server: Server, body: dict[str, Any], setting: str) -> None:
+    """The job of ``body`` fails naming ``setting``, and leaves no model file, no listed
+    file, and the admin's disk use as before."""
+    before = server.http.get("/api/admin/usage")  # looked at last: the job comes first
+    model_id = server.submit(**body)
+    model = server.wait(model_id, ("done", "failed"))
+    assert model["status"] == "failed", model
+    assert setting in model["error"] and "administrator" in model["error"], model["error"]
+    assert not model["files"], model
+    folder = server.data_dir / "models" / model_id
+    left = sorted(p.name for p in folder.iterdir() if p.name != "worker.log")
+    assert left == [], left
+    assert before.status_code == 200, before.text
+    admin = next(u for u in before.json() if u["account"] == "admin")
+    assert _usage(server)["admin"]["bytes"] == admin["bytes"]
+
+
+#: A job of many seconds of CPU on the demo phantom: 16 levels, smoothed, each piece apart.
+HEAVY = {
+    "levels": [float(level) for level in range(-400, 1200, 100)],
+    "components": "split",
+    "smooth": 500,
+}
+
+
+def test_job_over_its_cpu_limit_fails_and_leaves_nothing(
+    limited: Callable[..., Server],
+) -> None:
+    server = limited(MISS_JOB_CPU_SECONDS="1")
+    _fails_clean(server, {"volume": _demo(server), **HEAVY}, "MISS_JOB_CPU_SECONDS")
+
+
+def test_job_over_its_bytes_limit_fails_and_leaves_nothing(
+    limited: Callable[..., Server],
+) -> None:
+    server = limited(MISS_JOB_WRITE_MB="0.05")
+    body = {"volume": _demo(server), "level": 300, "decimate": "none"}
+    _fails_clean(server, body, "MISS_JOB_WRITE_MB")
+
+
+def _user(server: Server, name: str) -> httpx.Client:
+    """An ordinary account ``name`` made by the administrator, logged in by bearer token."""
+    password = f"{name}-password-0"
+    r = server.http.post("/api/users", json={"name": name, "password": password})
+    assert r.status_code == 201, r.text
+    return _logged_in(server, name)
+
+
+def _logged_in(server: Server, name: str) -> httpx.Client:
+    client = httpx.Client(base_url=server.url, timeout=120)
+    r = client.post("/api/auth/login", json={"username": name, "password": f"{name}-password-0"})
+    assert r.status_code == 200, r.text
+    client.cookies.clear()
+    client.headers["Authorization"] = f"Bearer {r.json()['token']}"
+    return client
+
+
+def test_admin_sees_usage_per_account_others_do_not(
+    limited: Callable[..., Server], small_nifti: bytes
+) -> None:
+    server = limited()
+    with closing(_user(server, "alice")) as alice:
+        r = alice.post("/api/volumes", files={"file": ("ball.nii.gz", small_nifti)})
+        assert r.status_code == 201, r.text
+        refused = alice.get("/api/admin/usage")
+        assert refused.status_code == 403, refused.text
+    usage = _usage(server)
+    assert usage["alice"]["volumes"] == 1 and usage["alice"]["bytes"] > len(small_nifti) // 2
+    assert usage["alice"]["models"] == 0 and set(usage) >= {"admin", "alice"}
+
+
+def test_account_over_its_quota_gets_507_and_413(
+    limited: Callable[..., Server], small_nifti: bytes
+) -> None:
+    """Alice fills her quota with one volume: her next upload and her next job get 507,
+    an upload larger than the whole quota 413, and nothing of them is kept."""
+    first = limited()
+    with closing(_user(first, "alice")) as alice:
+        r = alice.post("/api/volumes", files={"file": ("ball.nii.gz", small_nifti)})
+        assert r.status_code == 201, r.text
+        volume = r.json()["id"]
+    used = _usage(first)["alice"]["bytes"]
+    first.stop(signal.SIGTERM)
+    server = Server(first.data_dir, first.log, env={"MISS_QUOTA_MB": repr(used / 2**20)})
+    try:
+        with closing(_logged_in(server, "alice")) as alice:
+            upload = alice.post("/api/volumes", files={"file": ("ball.nii.gz", small_nifti)})
+            job = alice.post("/api/models", json={"volume": volume, "level": 0})
+            huge = alice.post("/api/volumes", files={"file": ("big.nii.gz", b"0" * 2 * used)})
+            kept = alice.get("/api/volumes").json()
+        for refused, code in ((upload, 507), (job, 507), (huge, 413)):
+            assert refused.status_code == code, refused.text
+            assert "MISS_QUOTA_MB" in refused.json()["detail"], refused.text
+        assert "delete volumes or models" in upload.json()["detail"]
+        assert [v["id"] for v in kept] == [volume]
+        assert _usage(server)["alice"]["bytes"] == used
+    finally:
+        server.stop(signal.SIGTERM)

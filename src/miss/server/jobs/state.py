@@ -130,8 +130,17 @@ class JobState:
         )
 
     def fail(self, model_id: str, reason: str) -> bool:
-        """Mark a running job failed with a reason a physician can act on."""
-        return self._ended(model_id, status=FAILED, error=reason, pid=None, finished_at=utcnow())
+        """Mark a running job failed with a reason a physician can act on; it lists no
+        files nor preview (the failed run's are removed)."""
+        return self._ended(
+            model_id,
+            status=FAILED,
+            error=reason,
+            pid=None,
+            finished_at=utcnow(),
+            files=None,
+            stats=None,
+        )
 
     def _ended(self, model_id: str, **values: Any) -> bool:
         """A running job's row set to ``values``; its folder keeps no viewer's word."""
