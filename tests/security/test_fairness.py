@@ -4,7 +4,10 @@ and leaves nothing behind, and an account over its disk quota is refused (507/41
 
 from __future__ import annotations
 
+import os
 import signal
+import subprocess
+import sys
 from collections.abc import Callable, Iterator
 from contextlib import closing
 from datetime import timedelta
@@ -154,6 +157,10 @@ def test_admin_sees_usage_per_account_others_do_not(
     usage = _usage(server)
     assert usage["alice"]["volumes"] == 1 and usage["alice"]["bytes"] > len(small_nifti) // 2
     assert usage["alice"]["models"] == 0 and set(usage) >= {"admin", "alice"}
+    env = {**os.environ, "MISS_DATABASE_URL": settings_for(server.data_dir).database_url}
+    cmd = [sys.executable, "-m", "miss.cli", "user", "usage", "--data-dir", str(server.data_dir)]
+    table = subprocess.run(cmd, env=env, capture_output=True, text=True, check=True).stdout
+    assert any(line.split()[:2] == ["alice", "1"] for line in table.splitlines()), table
 
 
 def test_account_over_its_quota_gets_507_and_413(
