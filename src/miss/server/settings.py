@@ -38,7 +38,7 @@ Environment variables (all optional):
 ``MISS_LOD_TRIANGLES``    a model of more triangles also gets levels of detail (a 3D Tiles
                           tileset the viewer refines as it zooms in); 2,000,000; 0: never
 ``MISS_JOB_CPU_SECONDS``  CPU time one job's worker may use, seconds, all its threads
-                          counted (1800; 0: no limit); over it the job fails
+                          counted (600; 0: no limit); over it the job fails
 ``MISS_JOB_WRITE_MB``     model files one job may write, MB (4096; 0: no limit); over it
                           the job fails and what it wrote is removed
 ``MISS_QUOTA_MB``         disk one account's volumes and models may take, MB (20480; 0: no
@@ -90,7 +90,7 @@ class Settings:
     pacs_imports: int = 2
     lod_triangles: int = 2_000_000
     room_max_people: int = 50
-    job_cpu_seconds: float = 1800.0
+    job_cpu_seconds: float = 600.0
     job_write_mb: float = 4096.0
     quota_mb: float = 20480.0
 
