@@ -6,6 +6,10 @@ import argparse
 import json
 import os
 import sys
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from miss.server.storage.store import Store
 
 
 def serve_arguments(serve: argparse.ArgumentParser) -> None:
@@ -38,6 +42,8 @@ def user_arguments(user: argparse.ArgumentParser) -> None:
         "grant-pacs": "let an account search, import from and send to the PACS",
         "revoke-pacs": "take an account's PACS permission back",
     }
+    usage = user_sub.add_parser("usage", help="disk use of each account against MISS_QUOTA_MB")
+    usage.add_argument("--data-dir", default=None, help="default: MISS_DATA_DIR or ./miss-data")
     for name, text in helps.items():
         change = user_sub.add_parser(name, help=text)
         change.add_argument("name")
@@ -85,7 +91,8 @@ def _read_password() -> str:
 
 
 def cmd_user(args: argparse.Namespace) -> int:
-    """``miss user add|passwd|disable|enable|grant-pacs|revoke-pacs NAME``. A running server drops the ended
+    """``miss user add|passwd|disable|enable|grant-pacs|revoke-pacs NAME``, ``miss user
+    usage``. A running server drops the ended
     logins within seconds (it checks its live sessions against the database)."""
     from miss.server import accounts, audit
     from miss.server.settings import Settings
@@ -95,7 +102,9 @@ def cmd_user(args: argparse.Namespace) -> int:
     store = Store(settings.data_dir, settings.database_url)
     try:
         store.init_schema()
-        if args.user_command == "add":
+        if args.user_command == "usage":
+            said = _usage_table(store, settings.quota_bytes)
+        elif args.user_command == "add":
             user = accounts.create_user(
                 store, args.name, _read_password(), is_admin=args.admin, pacs=args.pacs
             )
@@ -120,6 +129,20 @@ def cmd_user(args: argparse.Namespace) -> int:
         store.close()
     print(said)
     return 0
+
+
+def _usage_table(store: Store, quota: int) -> str:
+    """Each account's volumes, models and MB on disk, largest first, and the quota."""
+    from miss.server.quota import MB, usage
+
+    rows = sorted(usage(store).values(), key=lambda u: (-u.bytes, u.account))
+    width = max([7, *(len(u.account) for u in rows)])
+    lines = [f"{'account':<{width}}  volumes  models        MB"]
+    for u in rows:
+        name = u.account or "(nobody)"
+        lines.append(f"{name:<{width}}  {u.volumes:>7}  {u.models:>6}  {u.bytes / MB:>8.1f}")
+    limit = f"{quota / MB:g} MB each (MISS_QUOTA_MB)" if quota else "none (MISS_QUOTA_MB=0)"
+    return "\n".join([*lines, f"quota: {limit}"])
 
 
 def cmd_audit(args: argparse.Namespace) -> int:

@@ -64,7 +64,8 @@ def _open(settings: Settings, metrics: Metrics | None = None) -> tuple[Store, Jo
         register_demo(store)
     _first_admin(store, settings)
     store.appender.start()
-    queue = JobQueue(store, settings.workers, WorkerProcess(store, settings.spare_workers))
+    runner = WorkerProcess(store, settings.spare_workers, settings.job_env())
+    queue = JobQueue(store, settings.workers, runner, settings.job_cpu_seconds)
     if metrics is not None:
         queue.on_finished = lambda outcome, seconds: metrics.jobs.observe(outcome, value=seconds)
     queue.start()

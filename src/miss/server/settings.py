@@ -41,6 +41,12 @@ Environment variables (all optional):
                           every server process (50)
 ``MISS_LOD_TRIANGLES``    a model of more triangles also gets levels of detail (a 3D Tiles
                           tileset the viewer refines as it zooms in); 2,000,000; 0: never
+``MISS_JOB_CPU_SECONDS``  CPU time one job's worker may use, seconds, all its threads
+                          counted (600; 0: no limit); over it the job fails
+``MISS_JOB_WRITE_MB``     model files one job may write, MB (4096; 0: no limit); over it
+                          the job fails and what it wrote is removed
+``MISS_QUOTA_MB``         disk one account's volumes and models may take, MB (20480; 0: no
+                          quota); over it uploads and new jobs get 507
 """
 
 from __future__ import annotations
@@ -90,6 +96,9 @@ class Settings:
     pacs_send_uploads: bool = False
     lod_triangles: int = 2_000_000
     room_max_people: int = 50
+    job_cpu_seconds: float = 600.0
+    job_write_mb: float = 4096.0
+    quota_mb: float = 20480.0
 
     def __post_init__(self) -> None:
         # Resolve once so the worker subprocesses, which get these as arguments, see the
@@ -139,6 +148,13 @@ class Settings:
             )
         if self.lod_triangles < 0:
             raise ValueError(f"MISS_LOD_TRIANGLES must be 0 or more, got {self.lod_triangles}.")
+        for key, value in (
+            ("MISS_JOB_CPU_SECONDS", self.job_cpu_seconds),
+            ("MISS_JOB_WRITE_MB", self.job_write_mb),
+            ("MISS_QUOTA_MB", self.quota_mb),
+        ):
+            if not value >= 0:
+                raise ValueError(f"{key} must be 0 (no limit) or more, got {value}.")
         if self.worker_memory_mb is not None and not self.worker_memory_mb >= 0:
             raise ValueError(
                 f"MISS_WORKER_MEMORY_MB must be a size in MB (0 for no cap), "
@@ -190,6 +206,22 @@ class Settings:
         )
 
     @property
+    def job_write_bytes(self) -> int:
+        return int(self.job_write_mb * MB)
+
+    @property
+    def quota_bytes(self) -> int:
+        return int(self.quota_mb * MB)
+
+    def job_env(self) -> dict[str, str]:
+        """The job limits as the worker reads them from its environment, so that settings
+        given to ``create_app`` reach it as well as those of the server's environment."""
+        return {
+            "MISS_JOB_CPU_SECONDS": repr(self.job_cpu_seconds),
+            "MISS_JOB_WRITE_MB": repr(self.job_write_mb),
+        }
+
+    @property
     def worker_memory_bytes(self) -> int:
         """What a job may allocate: the setting, or the machine's physical memory; 0: no cap."""
         if self.worker_memory_mb is None:
@@ -231,6 +263,9 @@ _ENV: tuple[tuple[str, str, Any], ...] = (
     ("pacs_send_uploads", "MISS_PACS_SEND_UPLOADS", _bool),
     ("lod_triangles", "MISS_LOD_TRIANGLES", int),
     ("room_max_people", "MISS_ROOM_MAX_PEOPLE", int),
+    ("job_cpu_seconds", "MISS_JOB_CPU_SECONDS", float),
+    ("job_write_mb", "MISS_JOB_WRITE_MB", float),
+    ("quota_mb", "MISS_QUOTA_MB", float),
 )
 
 

@@ -8,7 +8,12 @@ an allocation that failed in native code. On start, rows left ``running`` by a p
 server are queued again, or failed once they were interrupted twice.
 
 Workers inherit the server's environment, so ``MISS_WORKER_MEMORY_MB`` reaches them
-(see ``miss.server.jobs.worker``).
+(see ``miss.server.jobs.worker``), and get the job limits of the server's settings
+(``MISS_JOB_CPU_SECONDS``, ``MISS_JOB_WRITE_MB``). A worker ended by the kernel at its
+CPU limit (SIGXCPU) fails its job with a message naming the limit; any job that fails
+leaves no model files behind.
+
+Which queued job runs next is round robin between accounts (``JobState.claim_next``).
 """
 
 from __future__ import annotations
@@ -29,7 +34,7 @@ from typing import Protocol
 from miss.server.jobs import turn
 from miss.server.jobs.state import JobState
 from miss.server.storage.db import RUNNING, ModelRow
-from miss.server.storage.store import LOD_DIR, Store
+from miss.server.storage.store import LOD_DIR, Store, remove_outputs
 
 log = logging.getLogger("miss.server.jobs")
 
@@ -58,9 +63,20 @@ _OUT_OF_MEMORY_SIGNS = (
 _LOG_TAIL = 64 * 1024
 
 
-def crash_reason(returncode: int, log_tail: str = "") -> str:
+def over_cpu(seconds: float) -> str:
+    """Why a job over its CPU limit (``seconds``) failed, and what to do."""
+    return (
+        f"this job used more than {seconds:g} s of CPU, the limit of one job "
+        "(MISS_JOB_CPU_SECONDS); choose a larger sample rate, fewer levels or labels or less "
+        "smoothing, or ask an administrator to raise the limit."
+    )
+
+
+def crash_reason(returncode: int, log_tail: str = "", cpu_seconds: float = 0.0) -> str:
     """Why a worker ended without recording an outcome, in words; ``log_tail`` is what it
-    wrote to its worker.log during this run."""
+    wrote to its worker.log during this run, ``cpu_seconds`` the job's CPU limit."""
+    if returncode == -signal.SIGXCPU and cpu_seconds > 0:
+        return over_cpu(cpu_seconds)
     if returncode < 0:
         sig = -returncode
         name = signal.Signals(sig).name if sig in signal.Signals._value2member_map_ else "?"
@@ -158,8 +174,16 @@ class JobQueue:
     """``workers`` threads running queued jobs, each through the runner (by default a
     :class:`WorkerProcess`: one child process a job)."""
 
-    def __init__(self, store: Store, workers: int = 1, runner: Runner | None = None) -> None:
+    def __init__(
+        self,
+        store: Store,
+        workers: int = 1,
+        runner: Runner | None = None,
+        cpu_seconds: float = 0.0,
+    ) -> None:
         self.store = store
+        #: The CPU limit of one job (``MISS_JOB_CPU_SECONDS``), for the message.
+        self.cpu_seconds = cpu_seconds
         self.state = JobState(store)
         self.workers = workers
         self.runner = runner or WorkerProcess(store)
@@ -286,13 +310,12 @@ class JobQueue:
             return
         # The child records its own outcome; a row still running means it could not.
         if code != 0:
-            reason = crash_reason(code, read_log(log_path, offset))
-            if self.state.fail(model_id, reason):
-                log.warning("job %s: %s", model_id, reason)
+            reason = crash_reason(code, read_log(log_path, offset), self.cpu_seconds)
         else:
-            self.state.fail(
-                model_id, "worker ended without recording a result; see its worker.log."
-            )
+            reason = "worker ended without recording a result; see its worker.log."
+        if self.state.fail(model_id, reason):
+            remove_outputs(self.store.model_dir(model_id))  # no half model stays
+            log.warning("job %s: %s", model_id, reason)
 
     def _wait(self, model_id: str, proc: Running) -> int:
         """The worker's exit code. Meanwhile, once the job's model can be drawn (its GLB, or
@@ -361,6 +384,8 @@ class WorkerProcess:
 
     store: Store
     spares: int = 0
+    #: Set in the workers' environment beside the server's own (the job limits).
+    env: dict[str, str] = field(default_factory=dict)
     _ready: list[subprocess.Popen[bytes]] = field(default_factory=list)
     _lock: threading.Lock = field(default_factory=threading.Lock)
     _closed: bool = False
@@ -413,7 +438,7 @@ class WorkerProcess:
         # line, which every local user can read in ps; the admin password stays behind.
         cmd = [sys.executable, "-c", _BOOTSTRAP, model_id, str(self.store.data_dir), "-"]
         cmd.append(str(os.getpid()))
-        env = {k: v for k, v in os.environ.items() if k not in WORKER_HIDDEN_ENV}
+        env = {k: v for k, v in os.environ.items() if k not in WORKER_HIDDEN_ENV} | self.env
         with open(log_path, "ab") as log_file:
             # A session of its own: a Ctrl-C in the server's terminal reaches the server,
             # which stops the workers itself and queues their jobs again.

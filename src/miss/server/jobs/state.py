@@ -13,11 +13,28 @@ from __future__ import annotations
 
 from typing import Any
 
-from sqlalchemy import select, update
+from sqlalchemy import func, select, update
+from sqlalchemy.orm import aliased
 
 from miss.server.jobs import turn
 from miss.server.storage.db import DONE, FAILED, QUEUED, RUNNING, ModelRow, utcnow
 from miss.server.storage.store import Store
+
+
+def fair_order() -> tuple[Any, ...]:
+    """ORDER BY terms for queued jobs: first the account whose latest job started longest
+    ago (one that never started a job comes first), then the oldest job of it. An
+    account is the name that queued the job (``submitted_by``; jobs without one, such as
+    the demo's, share one turn)."""
+    other = aliased(ModelRow)
+    account = func.coalesce(ModelRow.submitted_by, "")
+    last_start = (
+        select(func.max(other.started_at))
+        .where(func.coalesce(other.submitted_by, "") == account)
+        .correlate(ModelRow)
+        .scalar_subquery()
+    )
+    return (last_start.asc().nulls_first(), ModelRow.created_at, ModelRow.id)
 
 
 class JobState:
@@ -27,7 +44,12 @@ class JobState:
         self.store = store
 
     def claim_next(self) -> ModelRow | None:
-        """Mark the oldest queued job running and return it (None when the queue is empty).
+        """Mark the next queued job running and return it (None when the queue is empty).
+
+        The next job is the oldest queued one of the account served least recently
+        (:func:`fair_order`): round robin between accounts, so one account's many jobs
+        never hold another's behind more than one of theirs. The order comes from the
+        rows alone, so every server process of one database agrees on it.
 
         One transaction reads and claims: on PostgreSQL the row is locked (``FOR UPDATE
         SKIP LOCKED``), so the threads of several server processes each take a different
@@ -37,9 +59,9 @@ class JobState:
         query = (
             select(ModelRow.id)
             .where(ModelRow.status == QUEUED)
-            .order_by(ModelRow.created_at)
+            .order_by(*fair_order())
             .limit(1)
-            .with_for_update(skip_locked=True)
+            .with_for_update(skip_locked=True, of=ModelRow)
         )
         values = dict(
             status=RUNNING,
@@ -108,8 +130,17 @@ class JobState:
         )
 
     def fail(self, model_id: str, reason: str) -> bool:
-        """Mark a running job failed with a reason a physician can act on."""
-        return self._ended(model_id, status=FAILED, error=reason, pid=None, finished_at=utcnow())
+        """Mark a running job failed with a reason a physician can act on; it lists no
+        files nor preview (the failed run's are removed)."""
+        return self._ended(
+            model_id,
+            status=FAILED,
+            error=reason,
+            pid=None,
+            finished_at=utcnow(),
+            files=None,
+            stats=None,
+        )
 
     def _ended(self, model_id: str, **values: Any) -> bool:
         """A running job's row set to ``values``; its folder keeps no viewer's word."""

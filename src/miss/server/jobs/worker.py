@@ -18,6 +18,13 @@ worker (``MemoryError``, or an abort in native code), and the job fails with "ou
 memory", rather than the kernel's out-of-memory killer choosing a victim, perhaps the
 server itself.
 
+Limits of one job (issue 39: one account's jobs held the only worker for minutes and
+wrote a gigabyte): ``MISS_JOB_CPU_SECONDS`` of CPU time, all threads counted, from the
+job's start (RLIMIT_CPU: the kernel ends the worker with SIGXCPU, in native code too,
+and the queue records why); ``MISS_JOB_WRITE_MB`` of model files, counted before each
+file is written (:class:`DataFolder`), so a job over it writes nothing more, fails, and
+what it wrote is removed.
+
 Disk: a full disk while writing the model fails the job with "disk full", removes the
 files it had written, and leaves the model's state unfinished: a model is ``done`` only
 once every file is in place.
@@ -29,6 +36,7 @@ import contextlib
 import ctypes
 import hashlib
 import json
+import math
 import os
 import resource
 import shutil
@@ -58,6 +66,7 @@ from miss.server.storage.store import (
     PREVIEW_FILE,
     Store,
     is_disk_full,
+    remove_outputs,
     write_atomic,
 )
 from miss.spec import JobSpec, Loaded
@@ -69,8 +78,25 @@ MEMORY_ENV = "MISS_WORKER_MEMORY_MB"
 #: Triangles above which a model also gets levels of detail.
 LOD_ENV = "MISS_LOD_TRIANGLES"
 IN_MEMORY_ENV = "MISS_IN_MEMORY_MAX_MB"
+CPU_ENV = "MISS_JOB_CPU_SECONDS"
+WRITE_ENV = "MISS_JOB_WRITE_MB"
+#: Seconds of CPU past the limit before the kernel's SIGKILL, should SIGXCPU be caught.
+CPU_GRACE = 5
 OUT_OF_MEMORY = "out of memory; choose a larger sample rate or fewer slices."
 ZIP = b"PK\x03\x04"
+
+
+class WriteLimit(MissError):
+    """A job about to write more model files than ``MISS_JOB_WRITE_MB`` allows."""
+
+
+def over_write_limit(limit: int) -> str:
+    """Why a job over its bytes-written limit (``limit`` bytes) failed, and what to do."""
+    return (
+        f"this job would write more than {limit / 2**20:g} MB of model files, the limit of one "
+        f"job ({WRITE_ENV}); choose fewer labels or levels, a larger sample rate or more "
+        "decimation, or ask an administrator to raise the limit."
+    )
 
 
 class Stop(Exception):
@@ -122,6 +148,33 @@ def memory_cap(env: Mapping[str, str]) -> int:
     return _setting(env, MEMORY_ENV, "a number (0 for no cap)").worker_memory_bytes
 
 
+def cpu_seconds(env: Mapping[str, str]) -> float:
+    """CPU seconds a job may use (``MISS_JOB_CPU_SECONDS`` in ``env``); 0: no limit."""
+    return _setting(env, CPU_ENV, "a number of seconds (0: no limit)").job_cpu_seconds
+
+
+def write_bytes(env: Mapping[str, str]) -> int | None:
+    """Bytes of model files a job may write (``MISS_JOB_WRITE_MB`` in ``env``); None: no
+    limit."""
+    return _setting(env, WRITE_ENV, "a number of MB (0: no limit)").job_write_bytes or None
+
+
+def limit_cpu(seconds: float) -> None:
+    """Have the kernel end this process (SIGXCPU) once it has used ``seconds`` of CPU more
+    than now: a spare's warm-up is not the job's. No core file: the data folder is the
+    working directory. 0 leaves it alone."""
+    if seconds <= 0:
+        return
+    usage = resource.getrusage(resource.RUSAGE_SELF)
+    soft = math.ceil(usage.ru_utime + usage.ru_stime + seconds)
+    resource.setrlimit(resource.RLIMIT_CORE, (0, resource.getrlimit(resource.RLIMIT_CORE)[1]))
+    hard = resource.getrlimit(resource.RLIMIT_CPU)[1]
+    new_hard = soft + CPU_GRACE
+    if hard != resource.RLIM_INFINITY:
+        new_hard = min(new_hard, hard)
+    resource.setrlimit(resource.RLIMIT_CPU, (min(soft, new_hard), new_hard))
+
+
 def mapped_bytes() -> int | None:
     """The address space this process uses now (VmSize), None where /proc is missing."""
     try:
@@ -158,16 +211,6 @@ def limit_memory(store: Store, volume_id: str, cap: int) -> None:
         limit = min(limit, hard)
     if soft == resource.RLIM_INFINITY or limit < soft:
         resource.setrlimit(resource.RLIMIT_AS, (limit, hard))
-
-
-def remove_outputs(folder: Path) -> None:
-    """Drop the model files of a failed run: no half set stays, a full disk gets room."""
-    for path in (*folder.glob("model.*"), folder / PREVIEW_FILE, *folder.glob(f".*{PART}")):
-        if path.is_dir():
-            shutil.rmtree(path, ignore_errors=True)
-        else:
-            path.unlink(missing_ok=True)
-    shutil.rmtree(folder / LOD_DIR, ignore_errors=True)
 
 
 def lod_budget(env: Mapping[str, str]) -> int | None:
@@ -237,6 +280,9 @@ class DataFolder:
     model_id: str
     wants_preview: bool = True
     lod_triangles: int | None = None
+    #: Bytes of files the job may write here (``MISS_JOB_WRITE_MB``); None: no limit.
+    write_limit: int | None = None
+    written: int = 0
     lod: dict[str, Any] | None = None
     preview: dict[str, Any] | None = None
     files: dict[str, dict[str, Any]] = field(default_factory=dict)
@@ -244,7 +290,15 @@ class DataFolder:
     started: float = field(default_factory=time.perf_counter)
     ready_seconds: float | None = None
 
+    def count(self, size: int) -> None:
+        """Count ``size`` bytes about to be written; raises :class:`WriteLimit` (before
+        they are) when they would take the job over its limit."""
+        if self.write_limit is not None and self.written + size > self.write_limit:
+            raise WriteLimit(over_write_limit(self.write_limit))
+        self.written += size
+
     def put(self, fmt: str, data: bytes) -> None:
+        self.count(len(data))
         self.folder.mkdir(parents=True, exist_ok=True)
         meta = {"bytes": len(data), "etag": hashlib.sha256(data).hexdigest()[:32]}
         if fmt == PREVIEW:
@@ -267,6 +321,7 @@ class DataFolder:
         return turn.wait_turn(self.folder, time.time())
 
     def put_lod(self, files: Mapping[str, bytes]) -> None:
+        self.count(sum(map(len, files.values())))
         write_tree_atomic(self.folder / LOD_DIR, files)
         tiles = sum(1 for name in files if name.endswith(".glb"))
         self.lod = {"etag": etag(files), "bytes": sum(map(len, files.values())), "tiles": tiles}
@@ -303,20 +358,27 @@ EXPORT_OPTIONS = {"glb": {"compress": True}}
 
 def run_job(store: Store, model_id: str, parent: int) -> None:
     """Compute one model and record it as done (or raise)."""
-    started = time.perf_counter()
+    started, cpu = time.perf_counter(), time.process_time()
     row = store.get_model(model_id)
     limit_memory(store, row.volume_id, memory_cap(os.environ))
+    limit_cpu(cpu_seconds(os.environ))
     state = JobState(store)
     reporter = Reporter(state, model_id, parent)
     source = StoredVolume(store, row.volume_id)
     spec = JobSpec.from_dict({**row.spec, "formats": FORMATS}, source)
     folder = DataFolder(
         store.model_dir(model_id), state, model_id, lod_triangles=lod_budget(os.environ),
-        started=started,
+        write_limit=write_bytes(os.environ), started=started,
     )  # fmt: skip
     turn.forget(folder.folder)
     result, files = execute(spec, folder, reporter, export_options=EXPORT_OPTIONS)
     reporter("store", 1.0)
+    print(  # what an administrator sizes MISS_JOB_CPU_SECONDS and MISS_JOB_WRITE_MB by
+        f"job {model_id}: {time.process_time() - cpu:.1f} s of CPU, "
+        f"{folder.written / 2**20:.1f} MB of model files written",
+        file=sys.stderr,
+        flush=True,
+    )
     if not state.finish(model_id, summarize(result, folder.ready_seconds, folder.lod), files):
         raise Stop
 

@@ -11,7 +11,7 @@ from fastapi.responses import JSONResponse
 from pydantic import BaseModel, ConfigDict, Field
 
 from miss.errors import BadParameter, UnsupportedFormat
-from miss.server import accounts, audit
+from miss.server import accounts, audit, quota
 from miss.server.auth import CSRF_COOKIE, SESSION_COOKIE, presented_token
 from miss.server.deps import AdminDep, SettingsDep, StoreDep, UserDep
 from miss.server.errors import Forbidden, Unauthorized
@@ -176,6 +176,26 @@ def me(user: UserDep) -> UserOut:
 @router.get("/api/users", response_model=list[UserOut])
 def list_users(store: StoreDep, admin: AdminDep) -> list[UserOut]:
     return [user_out(u) for u in accounts.list_users(store)]
+
+
+class UsageOut(BaseModel):
+    account: str = Field(description='a user name; "" for what nobody owns (the demo)')
+    volumes: int
+    models: int = Field(description="models the account queued")
+    bytes: int = Field(description="what its volumes and models take on disk")
+    quota_bytes: int = Field(description="its quota (MISS_QUOTA_MB); 0: none")
+
+
+@router.get("/api/admin/usage", response_model=list[UsageOut])
+def usage(store: StoreDep, settings: SettingsDep, admin: AdminDep) -> list[UsageOut]:
+    """Disk use per account, largest first (administrators)."""
+    found = sorted(quota.usage(store).values(), key=lambda u: (-u.bytes, u.account))
+    limit = settings.quota_bytes
+    return [
+        UsageOut(account=u.account, volumes=u.volumes, models=u.models, bytes=u.bytes,
+                 quota_bytes=limit)
+        for u in found
+    ]  # fmt: skip
 
 
 @router.post("/api/users", status_code=201, response_model=UserOut)

@@ -15,7 +15,7 @@ from starlette.concurrency import run_in_threadpool
 
 from miss.errors import BadParameter, EmptySurface
 from miss.export import FORMATS, WRITERS
-from miss.server import audit, labelmaps
+from miss.server import audit, labelmaps, quota
 from miss.server.deps import (
     JobLimitDep,
     ModelDep,
@@ -28,6 +28,7 @@ from miss.server.deps import (
 )
 from miss.server.errors import NotFound, NotReady
 from miss.server.jobs import turn
+from miss.server.ratelimit import would_queue
 from miss.server.schemas import (
     JSONRoute,
     ModelOut,
@@ -115,7 +116,7 @@ def _label_source(
         200: {"description": "the same parameters were done before: that model"},
         422: {"description": "bad parameters, or no surface at this level"},
         429: {"description": "this account already has its most jobs queued or running"},
-        507: {"description": "the server's disk is full"},
+        507: {"description": "the server's disk, or the account's quota, is full"},
     },
 )
 def create_model(
@@ -137,6 +138,8 @@ def create_model(
     if labels is not None:
         key = labelmaps.cache_key(key, _label_source(volume, store, labels))
     store.check_free_space(settings.min_free_bytes)  # 507 while the disk is nearly full
+    if would_queue(store, volume.id, key):  # a model made already costs no room
+        quota.check(store, user, settings.quota_bytes)  # 507 once the account's is full
     with jobs.slot(store, user.name, volume.id, key):  # 429 when one job too many
         row, created = store.find_or_create_model(volume.id, key, spec.to_dict(), user.name)
         if created:

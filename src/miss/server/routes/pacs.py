@@ -19,7 +19,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from miss.errors import MissError
 from miss.pacs import client
 from miss.pacs.server import PacsServer
-from miss.server import audit
+from miss.server import audit, quota
 from miss.server.accounts import User
 from miss.server.deps import ModelDep, SettingsDep, StoreDep, UserDep
 from miss.server.errors import NotFound
@@ -218,6 +218,7 @@ def start_import(
     if body.segmentation not in ("auto", "none"):
         client.check_uid(body.segmentation, "segmentation")
     store.check_free_space(settings.min_free_bytes)
+    quota.check(store, user, settings.quota_bytes)  # 507 once the account's quota is full
     row = _imports(request).submit(user, server, body.study, body.series, body.segmentation)
     audit.record(
         store, "pacs_import_start", user.name, row.id, audit.address(request), pacs=server.name

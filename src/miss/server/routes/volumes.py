@@ -15,7 +15,7 @@ from fastapi import APIRouter, Query, Request, Response, status
 from fastapi.responses import FileResponse, JSONResponse
 from starlette.concurrency import run_in_threadpool
 
-from miss.server import audit, imaging, labelmaps
+from miss.server import audit, imaging, labelmaps, quota
 from miss.server.accounts import User, get_user
 from miss.server.deps import (
     BytesDep,
@@ -69,6 +69,14 @@ class Axis(StrEnum):
     sagittal = "sagittal"
 
 
+def _declared(request: Request) -> int:
+    """The body's declared size, bytes (0 when it declares none, or nonsense)."""
+    try:
+        return max(int(request.headers.get("content-length", "0")), 0)
+    except ValueError:
+        return 0
+
+
 @asynccontextmanager
 async def received(
     request: Request, store: Store, settings: Settings, user: User
@@ -77,6 +85,7 @@ async def received(
     uploads at once, else 429; with free space, else 507), and that folder removed
     afterwards whatever happened: a stored volume was moved out of it before."""
     await run_in_threadpool(store.check_free_space, settings.min_free_bytes)
+    await run_in_threadpool(quota.check, store, user, settings.quota_bytes, _declared(request))
     with request.app.state.upload_slots.slot(user.id):
         work = await run_in_threadpool(store.tmp_dir)
         try:
@@ -93,9 +102,9 @@ async def received(
     response_model=VolumeOut,
     openapi_extra=_UPLOAD_BODY,
     responses={
-        413: {"description": "over the size limit"},
+        413: {"description": "over the size limit, or larger than the account's quota"},
         415: {"description": "not a scan"},
-        507: {"description": "the server's disk is full"},
+        507: {"description": "the server's disk, or the account's quota, is full"},
     },
 )
 async def upload_volume(
@@ -107,11 +116,21 @@ async def upload_volume(
         row = await run_in_threadpool(
             ingest, store, upload, work, request.app.state.reading, user.id
         )
+    await run_in_threadpool(_within_quota, store, user, settings.quota_bytes, row)
     await run_in_threadpool(
         audit.record, store, "upload", user.name, row.id, audit.address(request), name=row.name
     )
     body = volume_out(row, user.name).model_dump(mode="json")
     return JSONResponse(body, status_code=201, headers={"Location": f"/api/volumes/{row.id}"})
+
+
+def _within_quota(store: Store, user: User, limit: int, row: VolumeRow) -> None:
+    """Keep the new volume only if the account's use with it stays within its quota;
+    otherwise remove it (it was never acknowledged) and refuse (507)."""
+    used = quota.used_by(store, user) if limit > 0 else 0
+    if used > limit > 0:
+        store.delete_volume(row.id)
+        raise quota.refusal(used, limit, "this volume would take it over")
 
 
 def owner_name(store: Store, row: VolumeRow, cache: dict[str, str] | None = None) -> str:

@@ -99,6 +99,17 @@ def write_atomic(path: Path, data: bytes) -> None:
         tmp.unlink(missing_ok=True)
 
 
+def remove_outputs(folder: Path) -> None:
+    """Drop the model files of a failed run from its ``folder``: no half set stays, a full
+    disk or an account's quota gets its room back (the worker's log stays)."""
+    for path in (*folder.glob("model.*"), folder / PREVIEW_FILE, *folder.glob(f".*{PART}")):
+        if path.is_dir():
+            shutil.rmtree(path, ignore_errors=True)
+        else:
+            path.unlink(missing_ok=True)
+    shutil.rmtree(folder / LOD_DIR, ignore_errors=True)
+
+
 class Store:
     """Database rows and data-folder files of volumes and models."""
 
@@ -404,6 +415,12 @@ class Store:
         if owner_id is not None:
             owned = select(VolumeRow.id).where(VolumeRow.owner_id == owner_id)
             query = query.where(ModelRow.volume_id.in_(owned))
+        with self.session() as s:
+            return list(s.scalars(query))
+
+    def models_submitted_by(self, account: str) -> list[str]:
+        """Ids of the models ``account`` (a user name) queued last."""
+        query = select(ModelRow.id).where(ModelRow.submitted_by == account)
         with self.session() as s:
             return list(s.scalars(query))
 
