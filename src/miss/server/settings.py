@@ -37,10 +37,16 @@ Environment variables (all optional):
                           every server process (50)
 ``MISS_LOD_TRIANGLES``    a model of more triangles also gets levels of detail (a 3D Tiles
                           tileset the viewer refines as it zooms in); 2,000,000; 0: never
+``MISS_TRUSTED_PROXIES``  addresses or networks (comma-separated) of the reverse proxies
+                          whose ``X-Forwarded-For``/``-Proto`` are believed (none: the
+                          headers are ignored, whoever sends them)
+``MISS_PASSWORD_CHECKS``  passwords one server process checks at once (2); more logins
+                          wait a few seconds for a turn, then get 429
 """
 
 from __future__ import annotations
 
+import ipaddress
 import os
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -84,6 +90,9 @@ class Settings:
     pacs_imports: int = 2
     lod_triangles: int = 2_000_000
     room_max_people: int = 50
+    #: Reverse proxies (addresses or networks) whose forwarded-for headers are believed.
+    trusted_proxies: tuple[str, ...] = ()
+    password_checks: int = 2
 
     def __post_init__(self) -> None:
         # Resolve once so the worker subprocesses, which get these as arguments, see the
@@ -134,6 +143,12 @@ class Settings:
                 f"MISS_WORKER_MEMORY_MB must be a size in MB (0 for no cap), "
                 f"got {self.worker_memory_mb}."
             )
+        if self.password_checks < 1:
+            raise ValueError(
+                f"MISS_PASSWORD_CHECKS must be at least 1, got {self.password_checks}."
+            )
+        for proxy in self.trusted_proxies:
+            _network(proxy)
 
     @classmethod
     def from_env(cls, env: Mapping[str, str] | None = None, **overrides: Any) -> Settings:
@@ -219,7 +234,25 @@ _ENV: tuple[tuple[str, str, Any], ...] = (
     ("pacs_imports", "MISS_PACS_IMPORTS", int),
     ("lod_triangles", "MISS_LOD_TRIANGLES", int),
     ("room_max_people", "MISS_ROOM_MAX_PEOPLE", int),
+    ("trusted_proxies", "MISS_TRUSTED_PROXIES", lambda text: _networks(text)),
+    ("password_checks", "MISS_PASSWORD_CHECKS", int),
 )
+
+
+def _networks(text: str) -> tuple[str, ...]:
+    """``MISS_TRUSTED_PROXIES``: comma-separated addresses or networks, each checked."""
+    return tuple(_network(item.strip()) for item in text.split(",") if item.strip())
+
+
+def _network(text: str) -> str:
+    try:
+        ipaddress.ip_network(text, strict=False)
+    except ValueError:
+        raise ValueError(
+            f"MISS_TRUSTED_PROXIES: {text!r} is not an IP address or network; give the "
+            "addresses of your reverse proxies, e.g. 127.0.0.1 or 10.0.0.0/24."
+        ) from None
+    return text
 
 
 def _parse(key: str, text: str, cast: Any) -> Any:
