@@ -88,3 +88,20 @@ def test_password_checks_wait_their_turn(proxied: Server) -> None:
     assert codes.count(401) >= 1
     # Those told to wait lost no try: the next login of the same names is checked.
     assert log_in(proxied, "admin", "127.0.0.3").status_code == 200
+
+
+@pytest.mark.parametrize(
+    ("name", "value", "says"),
+    [
+        ("MISS_TRUSTED_PROXIES", "proxy.local", "not an IP address or network"),
+        ("MISS_TRUSTED_PROXIES", "10.0.0.1, 10.0.0.300", "'10.0.0.300'"),
+        ("MISS_PASSWORD_CHECKS", "0", "at least 1"),
+    ],
+)
+def test_bad_settings_are_named(name: str, value: str, says: str) -> None:
+    from miss.server.settings import Settings
+
+    with pytest.raises(ValueError, match=name) as refused:
+        Settings.from_env({name: value})
+    assert says in str(refused.value)
+    assert Settings.from_env({name: "127.0.0.1, 10.0.0.0/24" if "PROX" in name else "3"})

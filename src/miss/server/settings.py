@@ -148,7 +148,10 @@ class Settings:
                 f"MISS_PASSWORD_CHECKS must be at least 1, got {self.password_checks}."
             )
         for proxy in self.trusted_proxies:
-            _network(proxy)
+            try:
+                _network(proxy)
+            except ValueError as exc:
+                raise ValueError(f"MISS_TRUSTED_PROXIES: {exc}") from None
 
     @classmethod
     def from_env(cls, env: Mapping[str, str] | None = None, **overrides: Any) -> Settings:
@@ -249,8 +252,8 @@ def _network(text: str) -> str:
         ipaddress.ip_network(text, strict=False)
     except ValueError:
         raise ValueError(
-            f"MISS_TRUSTED_PROXIES: {text!r} is not an IP address or network; give the "
-            "addresses of your reverse proxies, e.g. 127.0.0.1 or 10.0.0.0/24."
+            f"{text!r} is not an IP address or network; give the addresses of your "
+            "reverse proxies, e.g. 127.0.0.1 or 10.0.0.0/24."
         ) from None
     return text
 
