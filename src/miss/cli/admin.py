@@ -92,8 +92,9 @@ def _read_password() -> str:
 
 def cmd_user(args: argparse.Namespace) -> int:
     """``miss user add|passwd|disable|enable|grant-pacs|revoke-pacs NAME``, ``miss user
-    usage``. A running server drops the ended
-    logins within seconds (it checks its live sessions against the database)."""
+    usage``. Every running server process hears of a change within a second
+    (``accounts.announce_change``): the ended logins, the taken permission count at their
+    next request."""
     from miss.server import accounts, audit
     from miss.server.settings import Settings
     from miss.server.storage.store import Store
@@ -113,6 +114,7 @@ def cmd_user(args: argparse.Namespace) -> int:
         elif args.user_command in ("grant-pacs", "revoke-pacs"):
             user = accounts.find_user(store, args.name)
             accounts.set_pacs(store, user.id, args.user_command == "grant-pacs")
+            accounts.announce_change(store, user.id)
             audit.record(store, "user_change", "(command line)", user.name,
                          pacs=args.user_command == "grant-pacs")  # fmt: skip
             said = f"{args.user_command}: {user.name!r}"
@@ -123,6 +125,7 @@ def cmd_user(args: argparse.Namespace) -> int:
             else:
                 accounts.set_disabled(store, user.id, args.user_command == "disable")
             ended = [] if args.user_command == "enable" else accounts.end_sessions(store, user.id)
+            accounts.announce_change(store, user.id, end_rooms=args.user_command != "enable")
             audit.record(store, f"user_{args.user_command}", "(command line)", user.name)
             said = f"{args.user_command}: {user.name!r} ({len(ended)} login(s) ended)"
     finally:

@@ -13,6 +13,7 @@ from typing import Any
 from fastapi import FastAPI, Request
 from fastapi.responses import JSONResponse, Response
 from starlette.concurrency import run_in_threadpool
+from uvicorn.middleware.proxy_headers import ProxyHeadersMiddleware
 
 from miss import __version__
 from miss.io import confined
@@ -35,6 +36,7 @@ from miss.server.ratelimit import (
     ApiLimits,
     JobLimit,
     OverLimit,
+    PasswordChecks,
     RateLimitMiddleware,
     SharedBuckets,
     too_many,
@@ -151,6 +153,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.metrics = Metrics(settings.data_dir)
     app.state.metrics.watch(lambda: getattr(app.state, "store", None))
     app.state.failed_logins = auth.failed_login_limits()
+    app.state.password_checks = PasswordChecks(settings.password_checks)
     app.state.api_limits = ApiLimits(settings.api_rate, settings.api_burst)
     app.state.shared_limits = SharedBuckets(
         {
@@ -166,6 +169,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     # and the request counts see every answer, 429s included.
     app.add_middleware(SecurityHeaders, pages=WEB)
     app.add_middleware(RequestMetrics, metrics=app.state.metrics)
+    if settings.trusted_proxies:
+        # Outermost: every limit and the audit see the client the proxy names. Only these
+        # peers are believed; ``miss serve`` turns uvicorn's own reading of the headers off.
+        app.add_middleware(ProxyHeadersMiddleware, trusted_hosts=list(settings.trusted_proxies))
     errors.install(app)
     app.add_exception_handler(OverLimit, _over_limit)
     app.include_router(auth.router)

@@ -57,6 +57,10 @@ def serve(
         # Frames far beyond a room's message limit are cut off by the protocol (1009)
         # before they are buffered whole; the room refuses the ones in between itself.
         "ws_max_size": 4 * MAX_MESSAGE_BYTES,
+        # uvicorn believes X-Forwarded-For from 127.0.0.1 unless told not to: anyone on
+        # the machine could then pose as any address and skip every per-address limit.
+        # The app reads the headers itself, from MISS_TRUSTED_PROXIES only (``app``).
+        "proxy_headers": False,
     }
     if processes > 1:
         # Each process reads its settings from the environment (``app_from_env``).

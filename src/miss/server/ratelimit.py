@@ -6,6 +6,7 @@
 - :class:`ApiLimits` and :class:`RateLimitMiddleware`: the REST API's bucket per account,
   or per client address for requests without a known session (share-link viewers).
 - :class:`JobLimit`: how many surface jobs one account may have queued or running.
+- :class:`PasswordChecks`: how many passwords one server process checks at once.
 - :class:`SharedBuckets`: the keyed buckets of the server processes of one PostgreSQL
   database kept in step, so a client spread over N processes gets the limit once, not
   N times.
@@ -23,8 +24,11 @@ import time
 from collections import OrderedDict
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from typing import ParamSpec, TypeVar
 
+import anyio
 from sqlalchemy import select
+from starlette.concurrency import run_in_threadpool
 from starlette.requests import HTTPConnection
 from starlette.responses import JSONResponse
 from starlette.types import ASGIApp, Receive, Scope, Send
@@ -73,12 +77,15 @@ LOW = 0.25
 
 
 class KeyedBuckets:
-    """One bucket per key (a client address), the oldest forgotten beyond ``max_keys``
-    so a scan from many addresses cannot grow memory without end. Thread-safe."""
+    """One bucket per key (a client address, an account), the oldest full ones forgotten
+    beyond ``max_keys`` so a scan from many addresses cannot grow memory without end;
+    one with tokens spent is kept until it has refilled (``_forget_full``). Thread-safe."""
 
     def __init__(self, capacity: float, rate: float, max_keys: int = 10_000) -> None:
         self.capacity, self.rate, self.max_keys = capacity, rate, max_keys
         self._buckets: OrderedDict[str, TokenBucket] = OrderedDict()
+        #: Keys beyond which full buckets are forgotten (``_forget_full``).
+        self._high = max_keys
         self._lock = threading.Lock()
         #: Tokens taken (net of those given back) per key since ``drain``, while shared.
         self._spent: dict[str, float] | None = None
@@ -148,9 +155,21 @@ class KeyedBuckets:
     def _bucket(self, key: str) -> TokenBucket:
         bucket = self._buckets.pop(key, None) or TokenBucket(self.capacity, self.rate)
         self._buckets[key] = bucket
-        while len(self._buckets) > self.max_keys:
-            self._buckets.popitem(last=False)
+        if len(self._buckets) > self._high:
+            self._forget_full()
         return bucket
+
+    def _forget_full(self) -> None:
+        """Forget the oldest full buckets, down to ``max_keys``: a full bucket is what a
+        new key gets anyway. A bucket with tokens spent (a locked account) stays until it
+        has refilled, however many keys come after it: forgetting it would hand out a
+        fresh burst. Those are as many as the keys spent on within one refill, which the
+        limits themselves bound; the next sweep waits until the keys have doubled, so
+        sweeping costs O(1) a key."""
+        full = [key for key, b in self._buckets.items() if b.take(0.0) and b.tokens >= b.capacity]
+        for key in full[: max(0, len(self._buckets) - self.max_keys)]:
+            del self._buckets[key]
+        self._high = max(self.max_keys, 2 * len(self._buckets))
 
 
 def too_many(detail: str, wait: float) -> JSONResponse:
@@ -409,3 +428,43 @@ def active_jobs(store: Store, user_name: str) -> list[str]:
     )
     with store.session() as s:
         return sorted(s.scalars(query))
+
+
+# -- password checks -----------------------------------------------------------------------
+
+#: Seconds a login waits for its turn at the password check before it is refused (429).
+PASSWORD_WAIT = 5.0
+
+P = ParamSpec("P")
+T = TypeVar("T")
+
+
+class PasswordChecks:
+    """At most ``at_once`` password checks at a time in this process.
+
+    Checking a password (argon2id: 64 MiB and tens of milliseconds of a core) is the
+    dearest thing an anonymous client can ask for; 120 logins at once took both cores
+    and every other user's requests waited seconds. The logins beyond ``at_once`` wait
+    for a turn on the event loop, holding no thread, at most ``wait`` seconds; then 429
+    with ``Retry-After``."""
+
+    def __init__(self, at_once: int, wait: float = PASSWORD_WAIT) -> None:
+        self.at_once, self.wait = at_once, wait
+        self._turns: anyio.Semaphore | None = None  # made in the event loop, on first use
+
+    async def run(self, fn: Callable[P, T], *args: P.args, **kwargs: P.kwargs) -> T:
+        """``fn(...)`` in the threadpool once a turn is free; ``OverLimit`` after ``wait``."""
+        if self._turns is None:
+            self._turns = anyio.Semaphore(self.at_once)
+        with anyio.move_on_after(self.wait) as waited:
+            await self._turns.acquire()
+        if waited.cancelled_caught:
+            raise OverLimit(
+                f"the server is busy checking other passwords ({self.at_once} at once, "
+                f"MISS_PASSWORD_CHECKS); try again in {retry_after(self.wait)} s.",
+                self.wait,
+            )
+        try:
+            return await run_in_threadpool(fn, *args, **kwargs)
+        finally:
+            self._turns.release()

@@ -47,10 +47,16 @@ Environment variables (all optional):
                           the job fails and what it wrote is removed
 ``MISS_QUOTA_MB``         disk one account's volumes and models may take, MB (20480; 0: no
                           quota); over it uploads and new jobs get 507
+``MISS_TRUSTED_PROXIES``  addresses or networks (comma-separated) of the reverse proxies
+                          whose ``X-Forwarded-For``/``-Proto`` are believed (none: the
+                          headers are ignored, whoever sends them)
+``MISS_PASSWORD_CHECKS``  passwords one server process checks at once (2); more logins
+                          wait a few seconds for a turn, then get 429
 """
 
 from __future__ import annotations
 
+import ipaddress
 import os
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -99,6 +105,9 @@ class Settings:
     job_cpu_seconds: float = 600.0
     job_write_mb: float = 4096.0
     quota_mb: float = 20480.0
+    #: Reverse proxies (addresses or networks) whose forwarded-for headers are believed.
+    trusted_proxies: tuple[str, ...] = ()
+    password_checks: int = 2
 
     def __post_init__(self) -> None:
         # Resolve once so the worker subprocesses, which get these as arguments, see the
@@ -160,6 +169,15 @@ class Settings:
                 f"MISS_WORKER_MEMORY_MB must be a size in MB (0 for no cap), "
                 f"got {self.worker_memory_mb}."
             )
+        if self.password_checks < 1:
+            raise ValueError(
+                f"MISS_PASSWORD_CHECKS must be at least 1, got {self.password_checks}."
+            )
+        for proxy in self.trusted_proxies:
+            try:
+                _network(proxy)
+            except ValueError as exc:
+                raise ValueError(f"MISS_TRUSTED_PROXIES: {exc}") from None
 
     @classmethod
     def from_env(cls, env: Mapping[str, str] | None = None, **overrides: Any) -> Settings:
@@ -266,7 +284,25 @@ _ENV: tuple[tuple[str, str, Any], ...] = (
     ("job_cpu_seconds", "MISS_JOB_CPU_SECONDS", float),
     ("job_write_mb", "MISS_JOB_WRITE_MB", float),
     ("quota_mb", "MISS_QUOTA_MB", float),
+    ("trusted_proxies", "MISS_TRUSTED_PROXIES", lambda text: _networks(text)),
+    ("password_checks", "MISS_PASSWORD_CHECKS", int),
 )
+
+
+def _networks(text: str) -> tuple[str, ...]:
+    """``MISS_TRUSTED_PROXIES``: comma-separated addresses or networks, each checked."""
+    return tuple(_network(item.strip()) for item in text.split(",") if item.strip())
+
+
+def _network(text: str) -> str:
+    try:
+        ipaddress.ip_network(text, strict=False)
+    except ValueError:
+        raise ValueError(
+            f"{text!r} is not an IP address or network; give the addresses of your "
+            "reverse proxies, e.g. 127.0.0.1 or 10.0.0.0/24."
+        ) from None
+    return text
 
 
 def _parse(key: str, text: str, cast: Any) -> Any:

@@ -9,14 +9,18 @@ from typing import Any
 from fastapi import APIRouter, Request, Response
 from fastapi.responses import JSONResponse
 from pydantic import BaseModel, ConfigDict, Field
+from starlette.concurrency import run_in_threadpool
 
 from miss.errors import BadParameter, UnsupportedFormat
 from miss.server import accounts, audit, quota
 from miss.server.auth import CSRF_COOKIE, SESSION_COOKIE, presented_token
 from miss.server.deps import AdminDep, SettingsDep, StoreDep, UserDep
 from miss.server.errors import Forbidden, Unauthorized
-from miss.server.ratelimit import KeyedBuckets, OverLimit, retry_after
+from miss.server.nextpath import safe_next
+from miss.server.ratelimit import KeyedBuckets, OverLimit, PasswordChecks, retry_after
 from miss.server.schemas import JSONRoute
+from miss.server.settings import Settings
+from miss.server.storage.store import Store
 
 router = APIRouter(tags=["accounts"], route_class=JSONRoute)
 
@@ -78,6 +82,12 @@ class LoginRequest(BaseModel):
 
     username: str = Field(max_length=64)
     password: str = Field(max_length=1024)
+    next: str = Field(
+        default="/",
+        max_length=16_384,
+        description="the page to go to afterwards; the answer's next is this if it is a path "
+        'on this server, else "/"',
+    )
 
 
 class UserOut(BaseModel):
@@ -112,29 +122,61 @@ def _require_json(request: Request) -> None:
 
 @router.post(
     "/api/auth/login",
-    responses={401: {"description": "wrong name or password"}, 429: {"description": "too many"}},
+    responses={
+        401: {"description": "wrong name or password"},
+        429: {"description": "too many failed logins, or too many password checks at once"},
+    },
 )
-def login(
+async def login(
     body: LoginRequest, request: Request, store: StoreDep, settings: SettingsDep
 ) -> JSONResponse:
-    """Check name and password; answer ``{"token", "csrf", "expires", "user"}`` and set the
-    session cookie (HttpOnly) and the CSRF cookie the pages echo in ``X-CSRF-Token``."""
+    """Check name and password; answer ``{"token", "csrf", "expires", "user", "next"}``
+    and set the session cookie (HttpOnly) and the CSRF cookie the pages echo in
+    ``X-CSRF-Token``. ``next`` is the page to go to: the body's ``next`` if it is a path
+    on this server (``nextpath.safe_next``), else "/"."""
     _require_json(request)
     where = audit.address(request)
     limits: LoginLimits = request.app.state.failed_logins
     limits.attempt(where, body.username)  # counted first: raises 429 when locked
+    checks: PasswordChecks = request.app.state.password_checks
     try:
-        user = accounts.authenticate(store, body.username, body.password)
-    except accounts.Disabled:
+        user = await checks.run(_authenticate, store, body.username, body.password)
+    except OverLimit:
+        limits.succeeded(where, body.username)  # no password was checked: not a guess
+        raise
+    return await run_in_threadpool(_answer, body, request, store, settings, where, user)
+
+
+def _authenticate(
+    store: Store, name: str, password: str
+) -> accounts.User | None | accounts.Disabled:
+    """The account, None for a wrong name or password, ``Disabled`` for the right password
+    of a disabled account."""
+    try:
+        return accounts.authenticate(store, name, password)
+    except accounts.Disabled as exc:
+        return exc
+
+
+def _answer(
+    body: LoginRequest,
+    request: Request,
+    store: Store,
+    settings: Settings,
+    where: str,
+    user: accounts.User | None | accounts.Disabled,
+) -> JSONResponse:
+    """The login's answer once the password was checked (database work: a thread)."""
+    if isinstance(user, accounts.Disabled):
         audit.record(store, "login_disabled", body.username, where=where)
-        raise Forbidden("this account is disabled; ask an administrator to enable it.") from None
+        raise Forbidden("this account is disabled; ask an administrator to enable it.")
     if user is None:
         known = accounts.exists(store, body.username)
         audit.record(
             store, "login_failed", body.username if known else UNKNOWN_ACCOUNT, where=where
         )
         raise Unauthorized("wrong user name or password.")
-    limits.succeeded(where, body.username)
+    request.app.state.failed_logins.succeeded(where, body.username)
     token, csrf, expires = accounts.start_session(store, user, settings.session_hours)
     audit.record(store, "login", user.name, where=where)
     body_out = {
@@ -142,6 +184,7 @@ def login(
         "csrf": csrf,
         "expires": expires.isoformat() + "Z",
         "user": user_out(user).model_dump(),
+        "next": safe_next(body.next),
     }
     response = JSONResponse(body_out, headers={"Cache-Control": "no-store"})
     _set_cookies(response, request, token, csrf, int(settings.session_hours * 3600))
@@ -221,7 +264,7 @@ class PasswordChange(BaseModel):
     status_code=204,
     responses={403: {"description": "the old password is wrong"}},
 )
-def change_password(
+async def change_password(
     body: PasswordChange, request: Request, store: StoreDep, user: UserDep
 ) -> Response:
     """Change your password (the old one first); every other login of yours ends, and
@@ -229,7 +272,26 @@ def change_password(
     where = audit.address(request)
     limits: LoginLimits = request.app.state.failed_logins
     limits.attempt(where, user.name)  # the old password is a guess like any other
-    if not accounts.check_password_of(store, user.id, body.old):
+    checks: PasswordChecks = request.app.state.password_checks
+    try:
+        right = await checks.run(accounts.check_password_of, store, user.id, body.old)
+    except OverLimit:
+        limits.succeeded(where, user.name)  # nothing was checked
+        raise
+    return await run_in_threadpool(_new_password, body, request, store, user, where, right)
+
+
+def _new_password(
+    body: PasswordChange,
+    request: Request,
+    store: Store,
+    user: accounts.User,
+    where: str,
+    right: bool,
+) -> Response:
+    """The password change once the old one was checked (database work: a thread)."""
+    limits: LoginLimits = request.app.state.failed_logins
+    if not right:
         audit.record(store, "password_failed", user.name, where=where)
         raise Forbidden("the old password is wrong; type your current password.")
     limits.succeeded(where, user.name)

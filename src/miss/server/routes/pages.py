@@ -4,7 +4,6 @@ locally). Pages other than the login need a session; without one they redirect t
 
 from __future__ import annotations
 
-import re
 from pathlib import Path
 from urllib.parse import quote
 
@@ -16,6 +15,7 @@ from miss.server.accounts import User
 from miss.server.auth import page_user
 from miss.server.deps import StoreDep, visible_model
 from miss.server.errors import NotFound
+from miss.server.nextpath import safe_next
 from miss.server.storage.store import Store
 
 WEB = assets.WEB
@@ -79,22 +79,14 @@ def _login_first(request: Request) -> RedirectResponse:
     return RedirectResponse(f"/login?next={quote(safe_next(target), safe='')}", status_code=303)
 
 
-def safe_next(target: str) -> str:
-    """``target`` if it is a path on this server, else "/". Browsers take ``//host``,
-    ``/\\host`` and ``/<tab>/host`` for another host: after one "/" must come neither
-    "/" nor "\\", and no control character, space or backslash may appear anywhere
-    (the login page's script applies the same rule)."""
-    if not re.match(r"/(?![/\\])", target) or re.search(r"[\x00-\x20\x7f-\xa0\\\\]", target):
-        return "/"
-    return target
-
-
 @router.get("/login", response_model=None)
 def login_page(request: Request) -> Response:
-    """The login page; a ``next`` that leads off this server is replaced by "/"."""
+    """The login page. Its ``next`` is what ``safe_next`` makes of it (the page sends it
+    back with the login, whose answer names the place to go): any other spelling is
+    redirected to that one, "/" for a place off this server."""
     wanted = request.query_params.get("next")
     if wanted is not None and safe_next(wanted) != wanted:
-        return RedirectResponse("/login?next=%2F", status_code=303)
+        return RedirectResponse(f"/login?next={quote(safe_next(wanted), safe='')}", 303)
     return _page("login.html")
 
 

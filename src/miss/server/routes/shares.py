@@ -23,11 +23,11 @@ from miss.export import WRITERS
 from miss.server import assets, audit, shares
 from miss.server.accounts import User
 from miss.server.deps import StoreDep, UserDep, visible_model, visible_volume
-from miss.server.errors import Forbidden, Gone, MissError, NotFound, status_of
+from miss.server.errors import Forbidden, Gone, MissError, NotFound, NotReady, status_of
 from miss.server.routes.models import lod_response, model_file
 from miss.server.routes.pages import WEB
 from miss.server.schemas import JSONRoute, lod_url, params_of
-from miss.server.storage.db import DONE, ModelRow, ShareRow, VolumeRow
+from miss.server.storage.db import DONE, FAILED, ModelRow, ShareRow, VolumeRow
 from miss.server.storage.store import Store
 
 router = APIRouter(tags=["shares"], route_class=JSONRoute)
@@ -234,6 +234,8 @@ def _share_file(
         raise Forbidden(
             f"this link allows viewing only, not downloading .{fmt}; ask for a link with downloads."
         )
+    if model.status == FAILED:  # the reason is the owner's (``model_entry``)
+        raise NotReady(f"{GUEST_ERROR} ({model.id})")
     response = model_file(model, fmt, request, store)
     response.headers.update(PRIVATE)  # revoked means gone: no copy kept by a cache
     if response.status_code == 200 and request.method == "GET":

@@ -4,7 +4,10 @@ logout, a revoked link, a deleted model: their room connections close), jobs que
 room messages.
 
 On SQLite there is one server process per data folder (``Store.lock``): the bus is off
-and ``publish`` does nothing.
+and ``publish`` does nothing. What ``miss`` commands beside it must tell it at once (an
+account disabled, a password or a permission changed) goes through ``announce``: on
+SQLite a line appended to a file beside the database (``<database>-bus``), which the
+server reads every ``POLL`` seconds.
 
 Each process listens on one connection of its own, in a thread; a message carries its
 sender's ``origin``, so a process ignores its own. PostgreSQL delivers notifications of
@@ -18,10 +21,12 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import queue
 import secrets
 import threading
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 from sqlalchemy import Engine, make_url, text
@@ -32,6 +37,8 @@ log = logging.getLogger("miss.server.storage.bus")
 #: (``RowCache`` keys) or dropped with a log line.
 MAX_PAYLOAD = 7900
 PREFIX = "miss_"
+#: Seconds between two looks at the SQLite bus file (``announce``).
+POLL = 0.2
 
 
 class Bus:
@@ -50,6 +57,8 @@ class Bus:
         self._sender_lock = threading.Lock()
         self.heard = 0  # messages from others handled (tests, metrics)
         self._alive: Any = None  # the connection holding this process's liveness lock
+        #: On SQLite: where ``announce`` appends (None for a database in memory).
+        self.file = None if self.enabled else _bus_file(url)
 
     def subscribe(
         self, channel: str, handler: Callable[[Any], None], on_gap: Callable[[], None] | None = None
@@ -64,6 +73,20 @@ class Bus:
         only after the others were told); never raises (a lost message costs a TTL)."""
         if self.enabled:
             self._send([(channel, data)])
+
+    def announce(self, channel: str, data: Any) -> None:
+        """``publish``, and on SQLite append to the bus file the server process reads
+        within ``POLL`` seconds: for ``miss`` commands, which run beside a server."""
+        if self.enabled:
+            self.publish(channel, data)
+        elif self.file is not None:
+            line = json.dumps({"o": self.origin, "c": channel, "d": data}) + "\n"
+            # One write of one short line with O_APPEND: lines of several commands never mix.
+            fd = os.open(self.file, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o600)
+            try:
+                os.write(fd, line.encode())
+            finally:
+                os.close(fd)
 
     def publish_soon(self, channel: str, data: Any) -> None:
         """Tell the other processes without waiting (from the event loop: room messages),
@@ -137,9 +160,46 @@ class Bus:
         return not free
 
     def start(self) -> None:
-        if self.enabled and self._thread is None:
+        if self._thread is not None:
+            return
+        if self.enabled:
             self._thread = threading.Thread(target=self._run, name="miss-bus", daemon=True)
+        elif self.file is not None:
+            self._thread = threading.Thread(
+                target=self._read_file, args=(self.file,), name="miss-bus", daemon=True
+            )
+        if self._thread is not None:
             self._thread.start()
+
+    def _read_file(self, path: Path) -> None:
+        """The SQLite bus: hear each line appended to ``path`` since this process started."""
+        offset = path.stat().st_size if path.exists() else 0
+        while not self._stopping.wait(POLL):
+            try:
+                size = path.stat().st_size
+            except FileNotFoundError:
+                offset = 0
+                continue
+            if size < offset:  # replaced by a shorter file: read it all
+                offset = 0
+            if size == offset:
+                continue
+            with open(path, "rb") as f:
+                f.seek(offset)
+                chunk = f.read(size - offset)
+            end = chunk.rfind(b"\n") + 1  # a line still being written waits for its end
+            offset += end
+            for line in chunk[:end].splitlines():
+                self._hear_line(line)
+
+    def _hear_line(self, line: bytes) -> None:
+        try:
+            message = json.loads(line)
+            channel = str(message["c"])
+        except (ValueError, KeyError, TypeError):
+            log.warning("unreadable line in the bus file: %r", line[:200])
+            return
+        self._deliver(channel, message)
 
     def stop(self) -> None:
         self._stopping.set()
@@ -180,7 +240,9 @@ class Bus:
         return psycopg.connect(plain.render_as_string(hide_password=False), autocommit=True)
 
     def _hear(self, channel: str, payload: str) -> None:
-        message = json.loads(payload)
+        self._deliver(channel, json.loads(payload))
+
+    def _deliver(self, channel: str, message: dict[str, Any]) -> None:
         if message.get("o") == self.origin:
             return
         handler = self._handlers.get(channel)
@@ -191,3 +253,11 @@ class Bus:
             self.heard += 1
         except Exception:
             log.exception("bus handler for %s", channel)
+
+
+def _bus_file(url: str) -> Path | None:
+    """The file beside an SQLite database through which ``announce`` speaks."""
+    database = make_url(url).database
+    if make_url(url).get_backend_name() != "sqlite" or not database or database == ":memory:":
+        return None
+    return Path(database + "-bus")

@@ -85,7 +85,7 @@ export const api = {
 	createModel: ( params ) => request( 'POST', '/api/models', params ),
 	identity: ( id ) => request( 'GET', `/api/volumes/${enc( id )}/identity` ),
 	me: () => request( 'GET', '/api/auth/me' ),
-	login: ( username, password ) => request( 'POST', '/api/auth/login', { username, password }, { login: false } ),
+	login: ( username, password, next = '/' ) => request( 'POST', '/api/auth/login', { username, password, next }, { login: false } ),
 	logout: () => request( 'POST', '/api/auth/logout' ),
 	shares: ( modelId ) => request( 'GET', `/api/shares?model=${enc( modelId )}` ),
 	createShare: ( params ) => request( 'POST', '/api/shares', params ),
