@@ -14,6 +14,7 @@ import re
 import sys
 import warnings
 import zipfile
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -26,10 +27,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from corpus.files import OTHER_SERIES_UID, dicom_bytes, dicom_slice  # noqa: E402
 from test_tiles import glb_json  # noqa: E402
 
-#: A header's person name in UTF-8 (ISO_IR 192), as a German scanner writes it.
-UMLAUTS = {"SpecificCharacterSet": "ISO_IR 192", "PatientName": "MÜLLER^JÖRG"}
+#: Header values in UTF-8, as a German scanner may write them.
+UTF8 = {"SpecificCharacterSet": "ISO_IR 192"}
 #: Every spelling of it that must not come back, and the fragments a cut may leave.
-MUELLER = ["müller", "mueller", "muller", "jörg", "joerg", "jorg", "mü", "örg"]
+Upload = Callable[[str, bytes], dict[str, Any]]
+MUELLER = ["müller", "mueller", "muller", "jörg", "jørg", "joerg", "jorg", "mü", "örg"]
 
 
 def strings(value: Any) -> list[str]:
@@ -45,21 +47,36 @@ def served(server: Server, volume: str) -> str:
     """All that is served about a volume (``everything_shown``), its audit entries and
     the text of its models' GLB (names, provenance), lower-cased."""
     said = [everything_shown(server, volume)]
-    for model in server.http.get("/api/models", params={"volume": volume}).json():
+    models = server.http.get("/api/models", params={"volume": volume}).json()
+    for model in models:
         glb = server.http.get(f"/api/models/{model['id']}/model.glb")
         assert glb.status_code == 200, glb.text
         document = glb_json(glb.content)
         assert any("provenance" in n.get("extras", {}) for n in document["nodes"])
         said.append(RANDOM.sub("#", "\n".join(strings(document))))
+    ours = {volume, *(m["id"] for m in models)}  # this volume's entries, not the others'
     audit = server.http.get("/api/audit").json()
-    said.append(RANDOM.sub("#", "\n".join(strings([e["detail"] for e in audit]))))
+    details = [e["detail"] for e in audit if ours & {e["target"], e["detail"].get("volume")}]
+    assert details  # the upload, the model, its downloads and share were audited
+    said.append(RANDOM.sub("#", "\n".join(strings(details))))
     return "\n".join(said).lower()
 
 
-def upload(server: Server, filename: str, content: bytes) -> dict[str, Any]:
-    r = server.http.post("/api/volumes", files={"file": (filename, content)})
-    assert r.status_code == 201, r.text
-    return dict(r.json())
+@pytest.fixture
+def upload(server: Server) -> Iterator[Upload]:
+    """Upload a file as the administrator; the volumes go at the end of the test, so the
+    volume list of the next one shows only its own."""
+    made: list[str] = []
+
+    def send(filename: str, content: bytes) -> dict[str, Any]:
+        r = server.http.post("/api/volumes", files={"file": (filename, content)})
+        assert r.status_code == 201, r.text
+        made.append(r.json()["id"])
+        return dict(r.json())
+
+    yield send
+    for volume in made:
+        assert server.http.delete(f"/api/volumes/{volume}").status_code == 204
 
 
 def assert_gone(shown: str, secrets: list[str]) -> None:
@@ -69,23 +86,31 @@ def assert_gone(shown: str, secrets: list[str]) -> None:
 
 
 @pytest.mark.parametrize(
-    "description", ["Mueller Joerg head", "MULLER JORG head", "Müller^Jörg head", "Jørg head"]
+    ("header", "description"),
+    [
+        ("MÜLLER^JÖRG", "Mueller Joerg head"),
+        ("MÜLLER^JÖRG", "MULLER JORG head"),
+        ("MÜLLER^JÖRG", "Jørg Müller head"),
+        ("MUELLER^JOERG", "Müller Jörg head"),
+    ],
 )
-def test_a_name_in_another_spelling_than_the_headers(server: Server, description: str) -> None:
+def test_a_name_in_another_spelling_than_the_headers(
+    server: Server, upload: Upload, header: str, description: str
+) -> None:
     """The finding: the header said MÜLLER^JÖRG, the description "Mueller Joerg head" or
     "MULLER JORG head", and the description came back whole."""
-    volume = upload(server, "head.zip", ct_series(description, **UMLAUTS))
+    volume = upload("head.zip", ct_series(description, **UTF8, PatientName=header))
     assert_gone(served(server, volume["id"]), MUELLER)
     assert volume["series"][0]["description"].endswith("head")  # the rest of it stays
 
 
-@pytest.mark.parametrize(
-    "descrip", ["Müller^Jörg T1", "T1 Müller^Jörg", "Mueller^Joerg T1", "Müller^Jörg"]
-)
-def test_a_unicode_person_name_where_no_header_names_anyone(server: Server, descrip: str) -> None:
+@pytest.mark.parametrize("descrip", ["Müller^Jörg T1", "T1 Müller^Jörg", "Müller^Jörg"])
+def test_a_unicode_person_name_where_no_header_names_anyone(
+    server: Server, upload: Upload, descrip: str
+) -> None:
     """The finding: "Müller^Jörg" in a NIfTI ``descrip`` was stored as
     "Mü[removed]örg": the person-name pattern knew only ASCII letters."""
-    volume = upload(server, "brain.nii.gz", nifti_latin1(descrip))
+    volume = upload("brain.nii.gz", nifti_latin1(descrip))
     assert_gone(served(server, volume["id"]), MUELLER)
     assert "[removed]" in volume["series"][0]["description"]
 
@@ -100,11 +125,13 @@ def nifti_latin1(descrip: str) -> bytes:
     return gzip.compress(bytes(plain))
 
 
-def test_a_name_and_date_in_a_series_whose_patient_name_is_empty(server: Server) -> None:
+def test_a_name_and_date_in_a_series_whose_patient_name_is_empty(
+    server: Server, upload: Upload
+) -> None:
     """The finding: PatientName empty, "Doe^John head 02.03.1970" in the description, and
     DICOM descriptions were matched against the (empty) header only."""
     body = ct_series("Doe^John head 02.03.1970", PatientName="", PatientID="")
-    volume = upload(server, "head.zip", body)
+    volume = upload("head.zip", body)
     assert_gone(served(server, volume["id"]), ["doe", "john", "1970", "02.03"])
 
 
@@ -126,10 +153,10 @@ def two_patients() -> bytes:
     return out.getvalue()
 
 
-def test_every_series_of_an_upload_is_scrubbed(server: Server) -> None:
+def test_every_series_of_an_upload_is_scrubbed(server: Server, upload: Upload) -> None:
     """The finding: a second series of another patient in the same zip kept "Roe^Jane
     scout 1980-01-01" in the volume's series list: only the series read was matched."""
-    volume = upload(server, "study.zip", two_patients())
+    volume = upload("study.zip", two_patients())
     assert len(volume["series"]) == 2
     shown = served(server, volume["id"])
     assert_gone(shown, ["roe", "jane", "rj5501", "rj-5501", "1980", "smith", "anna"])
@@ -145,12 +172,12 @@ def test_every_series_of_an_upload_is_scrubbed(server: Server) -> None:
     ],
 )
 def test_file_names_name_no_volume(
-    server: Server, filename: str, content: bytes, secrets: list[str]
+    server: Server, upload: Upload, filename: str, content: bytes, secrets: list[str]
 ) -> None:
     """The finding: "Smith_John_1970.zip" and "Jörg Müller.nii" became volume names,
     and so audit entries, model titles and GLB provenance; the header named nobody to
     match them against. The name is the owner's alone now, in the identity record."""
-    volume = upload(server, filename, content)
+    volume = upload(filename, content)
     assert_gone(served(server, volume["id"]), secrets)
     # Named by what the scan says: modality and description, else the upload's time.
     assert re.fullmatch(r"CT head|(CT )?T1 axial|CT volume, uploaded .*", volume["name"])
@@ -158,7 +185,7 @@ def test_file_names_name_no_volume(
     assert record.status_code == 200 and record.json()["upload_filename"] == filename
 
 
-def test_pydicom_warnings_quote_no_header_value(server: Server) -> None:
+def test_pydicom_warnings_quote_no_header_value(server: Server, upload: Upload) -> None:
     """The finding: pydicom's "Invalid value for VR UI: 'Jane Roe'" went into the notes
     whole; a value in the wrong field is no identity the header names."""
     out = io.BytesIO()
@@ -169,7 +196,7 @@ def test_pydicom_warnings_quote_no_header_value(server: Server) -> None:
             ds.PatientName = ""
             ds.add_new(0x00081150, "UI", "Jane Roe")  # ReferencedSOPClassUID, misfilled
             zf.writestr(f"s/IM{k:04d}.dcm", dicom_bytes(ds))
-    volume = upload(server, "scan.zip", out.getvalue())
+    volume = upload("scan.zip", out.getvalue())
     assert any("pydicom" in note for note in volume["notes"]), volume["notes"]  # a warning
     assert_gone(served(server, volume["id"]), ["jane", "roe"])
     assert json.dumps(volume["notes"]).count("[value]")
