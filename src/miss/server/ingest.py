@@ -346,7 +346,8 @@ def volume_name(volume: Volume) -> str:
     if body and body.lower() in description.lower():
         body = ""
     if description:
-        return " ".join(p for p in (modality, body, description) if p)[:200]
+        said = " ".join(p for p in (modality, body, description) if p)
+        return " ".join("".join(c for c in said if c.isprintable()).split())[:200] or "Scan"
     when = datetime.now(UTC).strftime("%Y-%m-%d %H:%M")
     return f"{' '.join(p for p in (modality or 'Scan', body) if p)} volume, uploaded {when}"
 
