@@ -11,6 +11,7 @@ from __future__ import annotations
 import io
 import json
 import re
+import subprocess
 import sys
 import warnings
 import zipfile
@@ -19,6 +20,8 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from fastapi.testclient import TestClient
+from pg import settings_for
 from realserver import Server
 from test_deid_attacks import RANDOM, ct_series, everything_shown, nifti
 from test_deid_attacks import server as server  # the fixture: one real server for the file
@@ -26,6 +29,8 @@ from test_deid_attacks import server as server  # the fixture: one real server f
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from corpus.files import OTHER_SERIES_UID, dicom_bytes, dicom_slice  # noqa: E402
 from test_tiles import glb_json  # noqa: E402
+
+from miss.server.app import create_app  # noqa: E402
 
 #: Header values in UTF-8, as a German scanner may write them.
 UTF8 = {"SpecificCharacterSet": "ISO_IR 192"}
@@ -200,3 +205,33 @@ def test_pydicom_warnings_quote_no_header_value(server: Server, upload: Upload) 
     assert any("pydicom" in note for note in volume["notes"]), volume["notes"]  # a warning
     assert_gone(served(server, volume["id"]), ["jane", "roe"])
     assert json.dumps(volume["notes"]).count("[value]")
+
+
+def test_miss_ingest_names_no_volume_by_its_folder(
+    tmp_path: Path, login: Callable[..., TestClient], admin_password: str
+) -> None:
+    """The finding's folder half: ``miss ingest Smith_John_1970/`` listed the volume as
+    "Smith_John_1970", the header naming nobody to match it against."""
+    folder = tmp_path / "Smith_John_1970"
+    folder.mkdir()
+    for k in range(6):
+        ds = dicom_slice(k, rows=16, columns=16)
+        ds.PatientName, ds.PatientID, ds.SeriesDescription = "", "", "head"
+        (folder / f"IM{k:04d}.dcm").write_bytes(dicom_bytes(ds))
+    data = tmp_path / "data"
+    run = subprocess.run(
+        [sys.executable, "-m", "miss", "ingest", str(folder), "--data-dir", str(data)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert run.returncode == 0, run.stderr
+    settings = settings_for(data, admin_password=admin_password, demo=False)
+    with TestClient(create_app(settings)) as client:
+        login(client)
+        shown = client.get("/api/volumes").text + client.get("/api/audit").text
+        (volume,) = client.get("/api/volumes").json()
+        assert volume["name"] == "CT head"
+        assert_gone(shown.lower(), ["smith", "john"])
+        record = client.get(f"/api/volumes/{volume['id']}/identity")  # the first admin's
+        assert record.status_code == 200 and record.json()["upload_filename"] == folder.name
