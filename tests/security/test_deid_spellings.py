@@ -8,6 +8,7 @@ name, the share page, the audit log and the provenance inside the model's GLB.""
 
 from __future__ import annotations
 
+import gzip
 import io
 import json
 import re
@@ -34,8 +35,9 @@ from miss.server.app import create_app  # noqa: E402
 
 #: Header values in UTF-8, as a German scanner may write them.
 UTF8 = {"SpecificCharacterSet": "ISO_IR 192"}
-#: Every spelling of it that must not come back, and the fragments a cut may leave.
+#: The ``upload`` fixture: (file name, content) -> the new volume's JSON.
 Upload = Callable[[str, bytes], dict[str, Any]]
+#: Every spelling of MÜLLER^JÖRG that must not come back, and the fragments a cut leaves.
 MUELLER = ["müller", "mueller", "muller", "jörg", "jørg", "joerg", "jorg", "mü", "örg"]
 
 
@@ -122,8 +124,6 @@ def test_a_unicode_person_name_where_no_header_names_anyone(
 
 def nifti_latin1(descrip: str) -> bytes:
     """``nifti`` with its ``descrip`` in Latin-1, as the reader decodes it."""
-    import gzip
-
     plain = bytearray(gzip.decompress(nifti("")))
     raw = descrip.encode("latin-1")[:79]
     plain[148 : 148 + len(raw)] = raw
