@@ -10,8 +10,10 @@ What the profile asks and what MISS does with it:
   an HMAC of the original under a server key: the same original gives the same new UID on
   every upload to that server (series stay recognisable as the same), and without the
   key nobody can go back or test a guess.
-- Descriptors (series description, reader notes): the "clean descriptors" option -- any
-  identity value found in them is cut out.
+- Descriptors (series description, body part, reader notes): the "clean descriptors"
+  option -- any identity value found in them is cut out, in any case and accents
+  ("MÜLLER^JÖRG" as "Mueller Joerg" or "MULLER JORG"), and whatever looks like a person
+  name ("Doe^John") or a date goes too, even where the header names nobody.
 - Private tags: never read into a ``Volume``; only their count is reported.
 - Burned-in annotation (``BurnedInAnnotation == YES``): pixels cannot be cleaned here, so
   the flag is carried on the volume for the pages to warn about.
@@ -19,6 +21,7 @@ What the profile asks and what MISS does with it:
 
 from __future__ import annotations
 
+import functools
 import re
 from collections.abc import Callable
 from dataclasses import dataclass, replace
@@ -154,7 +157,8 @@ def _name_spellings(name: str) -> set[str]:
     """A person name's parts, and the parts run together in both orders ("LI^NA":
     "LI", "NA", "LINA", "NALI")."""
     parts = [p for p in re.split(r"[\^\s,=]+", name) if p]
-    found = set(parts)
+    # A double-barrelled name ("Müller-Lüdenscheidt") is also written half.
+    found = set(parts) | {p for part in parts for p in part.split("-") if p}
     if len(parts) >= 2:
         found |= {parts[0] + parts[1], parts[1] + parts[0], "".join(parts)}
     return found
@@ -181,32 +185,115 @@ def date_spellings(dicom_date: str) -> set[str]:
     return found
 
 
+#: Letters that Unicode decomposition leaves whole, as people type them without the key.
+_LETTERS = {
+    "ß": "ss", "ẞ": "SS", "æ": "ae", "Æ": "AE", "ø": "o", "Ø": "O", "œ": "oe", "Œ": "OE",
+    "đ": "d", "Đ": "D", "ł": "l", "Ł": "L", "þ": "th", "Þ": "TH", "ı": "i",
+}  # fmt: skip
+#: The German and Nordic transliterations (Müller as Mueller, Ågård as Aagaard).
+_TRANSLITERATED = str.maketrans(
+    {"ä": "ae", "ö": "oe", "ü": "ue", "ø": "oe", "å": "aa", "æ": "ae", "ß": "ss"}
+)
+#: The same spellings undone ("MUELLER" in a header, "Müller" in a description).
+_UNDONE = re.compile(r"ae|oe|ue|aa", re.IGNORECASE)
+#: A letter or digit of any script: what joins a short value to a word around it.
+_WORD = r"[^\W_]"
+
+
+def _fold_char(char: str) -> str:
+    """``char`` without accents (NFKD, combining marks dropped; ø, ß, æ ... spelled out)."""
+    if char in _LETTERS:
+        return _LETTERS[char]
+    import unicodedata  # here: cheap, but only text that is scrubbed needs it
+
+    parts = unicodedata.normalize("NFKD", char)
+    return "".join(c for c in parts if not unicodedata.combining(c))
+
+
+def fold(text: str) -> tuple[str, list[int]]:
+    """``text`` without accents, case kept, and for each of its characters the index of
+    the character of ``text`` it came from (an "ss" from "ß" points twice to the same)."""
+    folded: list[str] = []
+    origin: list[int] = []
+    for i, char in enumerate(text):
+        piece = char if char.isascii() else _fold_char(char)
+        folded.append(piece)
+        origin.extend([i] * len(piece))
+    return "".join(folded), origin
+
+
+def spellings(value: str) -> set[str]:
+    """``value`` as it may be typed: without accents ("Muller"), transliterated
+    ("Mueller"), and with transliterations undone ("MUELLER" -> "Muller")."""
+    plain = fold(value)[0]
+    written = fold(value.lower().translate(_TRANSLITERATED))[0]
+    found = {plain, written, _UNDONE.sub(lambda m: m.group()[0], plain)}
+    found.add(_UNDONE.sub(lambda m: m.group()[0], written))
+    return {v for v in found if v.strip()}
+
+
+@functools.lru_cache(maxsize=16)
+def _matchers(values: tuple[str, ...]) -> tuple[re.Pattern[str], ...]:
+    """Regular expressions over folded text for ``values`` (see :func:`scrub`): long
+    values anywhere; short ones as words, or as a capitalised piece of a camel-case run."""
+    spelled = {s for v in values for s in spellings(v)}
+    longest = sorted(spelled, key=lambda v: (-len(v), v))
+    long = [re.escape(v) for v in longest if len(v) >= MIN_VALUE]
+    short = [re.escape(v) for v in longest if len(v) < MIN_VALUE]
+    found = [re.compile("|".join(long), re.IGNORECASE)] if long else []
+    if short:
+        alts = "|".join(short)
+        caps = "|".join(re.escape(v.capitalize()) for v in longest if len(v) < MIN_VALUE)
+        found.append(re.compile(rf"(?<!{_WORD})(?:{alts})(?!{_WORD})", re.IGNORECASE))
+        found.append(re.compile(rf"(?<=[a-z])(?:{caps})(?![a-z])|(?:{caps})(?=[A-Z][a-z])"))
+    return tuple(found)
+
+
 def scrub(text: str, values: list[str]) -> str:
-    """``text`` with every identity value cut out (case-insensitive); values shorter than
-    ``MIN_VALUE`` only where they stand as a word of their own (letters and digits
-    around them break no word: "_", "-", ".", "^", spaces and case changes do)."""
-    for value in values:
-        if len(value) >= MIN_VALUE:
-            text = re.sub(re.escape(value), REMOVED, text, flags=re.IGNORECASE)
-        else:
-            text = _cut_word(text, value)
-    return text
+    """``text`` with every identity value cut out, whatever its case and accents:
+    "MÜLLER^JÖRG" goes from "Mueller Joerg", "MULLER JORG" and "Müller" alike (see
+    :func:`spellings`). Values shorter than ``MIN_VALUE`` go only where they stand as a
+    word of their own (letters and digits around them break no word: "_", "-", ".",
+    "^", spaces and case changes do). Matches are found in the folded text and cut from
+    the original, whole characters at a time: no "Mü[removed]" is left behind."""
+    if not text or not values:
+        return text
+    folded, origin = fold(text)
+    spans = [
+        _original_span(text, origin, m.start(), m.end())
+        for matcher in _matchers(tuple(values))
+        for m in matcher.finditer(folded)
+    ]
+    return _cut(text, spans)
 
 
-def _cut_word(text: str, value: str) -> str:
-    """Cut a short value where it stands as a word of its own (no letter or digit on
-    either side) or as one capitalised piece of a camel-case run ("Li" in "NaLi")."""
-    word = re.compile(rf"(?<![A-Za-z0-9]){re.escape(value)}(?![A-Za-z0-9])", re.IGNORECASE)
-    text = word.sub(REMOVED, text)
-    camel = re.compile(rf"(?<=[a-z]){re.escape(value.capitalize())}(?![a-z])|"
-                       rf"{re.escape(value.capitalize())}(?=[A-Z][a-z])")  # fmt: skip
-    return camel.sub(REMOVED, text)
+def _original_span(text: str, origin: list[int], start: int, end: int) -> tuple[int, int]:
+    """The span of ``text`` that folded characters ``start:end`` came from, with the
+    combining marks that follow it (a decomposed "u" + diaeresis goes whole)."""
+    first, last = origin[start], origin[end - 1] + 1
+    while last < len(text) and not _fold_char(text[last]):
+        last += 1
+    return first, last
 
 
+def _cut(text: str, spans: list[tuple[int, int]]) -> str:
+    """``text`` with each run of overlapping or touching ``spans`` replaced by REMOVED."""
+    out, at = [], 0
+    for start, end in sorted(spans):
+        if start > at or not out:
+            out.append(text[at:start])
+            out.append(REMOVED)
+        at = max(at, end)
+    return "".join(out) + text[at:]
+
+
+#: A letter of any script (Müller, Jörg, Łukasz).
+_LETTER = r"[^\W\d_]"
 #: Free-text patterns that say "a person" or "a date" with nothing known to match: DICOM
-#: person names (Doe^John), "Name: ...", "Patient ...", and dates in the usual spellings.
+#: person names (Doe^John, Müller^Jörg), "Name: ...", "Patient ...", and dates in the
+#: usual spellings.
 _PATTERNS = [
-    re.compile(r"[A-Za-z][A-Za-z'\-]*\^[A-Za-z'\-^ ]*[A-Za-z]"),
+    re.compile(rf"{_LETTER}(?:{_LETTER}|['\-])*\^(?:{_LETTER}|['\-^ ])*{_LETTER}"),
     re.compile(r"(?i)\b(?:patient(?:'s)?(?:\s+name)?|name|pt)\s*[:=]\s*[^,;\n]+"),
     re.compile(r"(?<!\d)(?:19|20)\d\d[-/.]?(?:0[1-9]|1[0-2])[-/.]?(?:0[1-9]|[12]\d|3[01])(?!\d)"),
     re.compile(r"(?<!\d)(?:0?[1-9]|[12]\d|3[01])[-/.](?:0?[1-9]|1[0-2])[-/.](?:19|20)\d\d(?!\d)"),
@@ -219,17 +306,17 @@ _PATTERNS = [
 
 
 def scrub_patterns(text: str) -> str:
-    """``text`` without what looks like a person's name or a date, for text from formats
-    that give no identity to match (NIfTI, NRRD, MetaImage headers, file names)."""
+    """``text`` without what looks like a person's name or a date: for every descriptor,
+    since a header may give no identity to match (NIfTI, NRRD, MetaImage; a DICOM series
+    with an empty PatientName)."""
     for pattern in _PATTERNS:
         text = pattern.sub(REMOVED, text)
     return text
 
 
-def _cleaner(values: list[str], by_pattern: bool) -> Callable[[Any], str]:
+def _cleaner(values: list[str]) -> Callable[[Any], str]:
     def clean(text: Any) -> str:
-        said = scrub(str(text or ""), values)
-        return scrub_patterns(said) if by_pattern else said
+        return scrub_patterns(scrub(str(text or ""), values))
 
     return clean
 
@@ -263,14 +350,17 @@ def deidentify(volume: Volume, key: bytes) -> Deidentified:
     for name in UID_KEYS:
         if name in meta:
             meta[name] = new_uid(meta[name])
-    # Formats without identity fields (NIfTI descrip, NRRD content ...) still carry what
-    # people type into them: names and dates go by pattern there.
-    clean = _cleaner(values, by_pattern=meta.get("source_format") != "dicom")
+    # Formats without identity fields (NIfTI descrip, NRRD content ...), and DICOM headers
+    # whose PatientName is empty, still carry what people type: names and dates go by
+    # pattern too.
+    clean = _cleaner(values)
     meta["series"] = [
         {**s, "uid": new_uid(s.get("uid")), "description": clean(s.get("description", ""))}
         for s in meta.get("series") or []
     ]
     meta["series_description"] = clean(meta.get("series_description", ""))
+    if "body_part" in meta:
+        meta["body_part"] = clean(meta["body_part"])
     meta["notes"] = [clean(n) for n in meta.get("notes") or []]
     report = {
         "profile": PROFILE,

@@ -169,8 +169,10 @@ def test_no_identity_leaves_the_server(
     check_database(data / "miss.sqlite3", secrets, made["volume"]["id"])
     # What the volume says about itself: names only, remapped UIDs, the burned-in flag.
     volume = made["volume"]
-    # The file was named after the patient: the volume is named by modality and upload time.
-    assert volume["name"].startswith("CT volume, uploaded ") and volume["burned_in_annotation"]
+    # Never named after its file (named after the patient): by modality, body part and,
+    # the description having had a name cut out, the upload's time.
+    assert volume["name"].startswith("CT HEAD volume, uploaded ")
+    assert volume["burned_in_annotation"]
     assert set(IDENTITY) <= set(volume["deidentification"]["removed"])
     assert volume["deidentification"]["private_tags_dropped"] >= 1
     assert volume["series"][0]["uid"].startswith("2.25.")

@@ -13,7 +13,11 @@ from pathlib import Path
 
 def add_arguments(ingest: argparse.ArgumentParser) -> None:
     ingest.add_argument("path", help="DICOM folder/zip, NIfTI, NRRD or MetaImage file")
-    ingest.add_argument("--name", default="", help="name to list (default: the file name)")
+    ingest.add_argument(
+        "--name",
+        default="",
+        help="name to list (default: modality, body part and series description)",
+    )
     ingest.add_argument("--data-dir", default=None, help="default: MISS_DATA_DIR or ./miss-data")
 
 

@@ -9,6 +9,7 @@ least two voxels along every axis, native byte order, Fortran order) and fills e
 from __future__ import annotations
 
 import math
+import re
 import warnings
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
@@ -291,8 +292,18 @@ def recorded_warnings(library: str) -> Iterator[list[str]]:
         if issubclass(w.category, ResourceWarning):
             warnings.warn_explicit(w.message, w.category, w.filename, w.lineno, source=w.source)
     said = (w for w in caught if not issubclass(w.category, ResourceWarning))
-    distinct = dict.fromkeys(f"{library}: {w.message}" for w in said)
+    distinct = dict.fromkeys(f"{library}: {_unquoted(str(w.message))}" for w in said)
     notes.extend(list(distinct)[:5])
+
+
+#: A quoted value in a library's warning ("Invalid value for VR UI: 'Roe^Jane'").
+_QUOTED = re.compile(r"(?<![A-Za-z])(?:'[^']*'|\"[^\"]*\")")
+
+
+def _unquoted(message: str) -> str:
+    """A warning without the header values it quotes: notes are shown to whoever sees
+    the volume, and the value may be a patient's name in the wrong field."""
+    return _QUOTED.sub("[value]", message)
 
 
 def integer_dtype(raw_range: tuple[int, int], slope: float, intercept: float) -> np.dtype:

@@ -77,7 +77,7 @@ def read(path: Path, series: str | None) -> Volume:
         stack.affine,
         "dicom",
         notes=notes + stack.notes,
-        patient=_patient(groups[uid][0].ds),
+        patient=_patient(groups, uid),
         **_series_meta(groups, uid, stack.rescale),
     )
 
@@ -100,15 +100,30 @@ def stream(path: Path, series: str | None = None) -> Streamed | None:
         return None
     meta = streamed_meta("dicom", notes + stack.notes, **_series_meta(groups, uid, stack.rescale))
     checked = checked_affine(path, stack.affine, "dicom")
-    patient = _patient(groups[uid][0].ds)
+    patient = _patient(groups, uid)
     return Streamed(
         stack.dims, stack.dtype, checked, stack.planes, lambda lo, hi: meta, "dicom", patient
     )
 
 
-def _patient(first: Dataset) -> dict[str, str]:
-    """The identifying attributes of a series' first slice (``Volume.patient``)."""
-    return {tag: _text(first.get(tag, "") or "") for tag in PATIENT_TAGS}
+def _patient(groups: dict[str, list[Header]], uid: str) -> dict[str, str]:
+    """The identifying attributes of series ``uid``'s first slice (``Volume.patient``),
+    each followed by every other value any file of any series found holds for it
+    (backslash-joined, as DICOM joins values): a zip may mix patients, and the other
+    series' descriptions are listed too, so all their identity is cut out of them."""
+    first = groups[uid][0].ds
+    found = {tag: dict.fromkeys(_values(first, tag)) for tag in PATIENT_TAGS}
+    for headers in groups.values():
+        for header in headers:
+            for tag in PATIENT_TAGS:
+                found[tag].update(dict.fromkeys(_values(header.ds, tag)))
+    return {tag: "\\".join(values) for tag, values in found.items()}
+
+
+def _values(ds: Dataset, tag: str) -> list[str]:
+    """The non-empty values of ``tag`` in ``ds`` (a multi-valued one split)."""
+    text = _text(ds.get(tag, "") or "")
+    return [v for v in text.split("\\") if v.strip()]
 
 
 def _series_meta(
@@ -121,6 +136,7 @@ def _series_meta(
         "units": "HU" if first.get("Modality") == "CT" else "",
         "rescale": rescale,
         "series_description": str(first.get("SeriesDescription", "")),
+        "body_part": str(first.get("BodyPartExamined", "") or ""),
         "series_uid": uid,
         "study_uid": str(first.get("StudyInstanceUID", "")),
         "frame_of_reference": str(first.get("FrameOfReferenceUID", "")),

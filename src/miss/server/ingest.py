@@ -23,9 +23,8 @@ from typing import Any
 
 import numpy as np
 
-from miss.deid import deidentify, identity_values, remap_uid, scrub, scrub_patterns
+from miss.deid import REMOVED, deidentify, identity_values, remap_uid, scrub, scrub_patterns
 from miss.errors import EmptySurface, MissError, UnreadableVolume
-from miss.io.archive import volume_suffix
 from miss.io.common import Streamed
 from miss.io.confined import Confinement, Limits, parse_upload
 from miss.server import imaging
@@ -48,6 +47,7 @@ _META_KEYS = (
     "modality",
     "units",
     "series_description",
+    "body_part",
     "series_uid",
     "study_uid",  # remapped, as the series UID: a model sent back finds its study by them
     "frame_of_reference",
@@ -178,11 +178,11 @@ def ingest(
             "the volume does not fit in the server's memory; upload fewer slices."
         ) from None
     patient = identity_values(identity.get("patient", {}))
-    if identity:  # the file name people give a series often is the patient's name
-        identity = {**identity, "upload_filename": upload.filename}
+    # The file name people give a series often is the patient's name: the owner's alone.
+    identity = {**identity, "upload_filename": upload.filename}
     if origin:
         identity = {**identity, "origin": origin}
-    name = display_name(upload.fields.get("name", ""), upload.filename, volume, patient)
+    name = display_name(upload.fields.get("name", ""), volume, patient)
     return store.add_volume(
         staged, name=name, slug=slugify(name), info=info, owner_id=owner_id, identity=identity
     )
@@ -201,9 +201,8 @@ def ingest_path(store: Store, path: Path, name: str = "") -> VolumeRow:
     key = store.secret(UID_KEY)
     with store.disk_full_as_507():
         staged, volume, identity, info = _stream_in(store, path, key) or _read_in(store, path, key)
-    name = display_name(name, path.name, volume, identity_values(identity.get("patient", {})))
-    if identity:
-        identity = {**identity, "upload_filename": path.name}
+    name = display_name(name, volume, identity_values(identity.get("patient", {})))
+    identity = {**identity, "upload_filename": path.name}
     return store.add_volume(staged, name=name, slug=slugify(name), info=info, identity=identity)
 
 
@@ -316,39 +315,41 @@ def register_demo(store: Store, owner_id: str | None = None) -> None:
     store.add_volume(staged, name=DEMO_NAME, slug=DEMO_SLUG, info=info, owner_id=owner_id)
 
 
-def display_name(name: str, filename: str, volume: Volume, identity: list[str]) -> str:
-    """The name to list: the ``name`` field, else the file name without its extensions.
+def display_name(name: str, volume: Volume, identity: list[str]) -> str:
+    """The name to list: the ``name`` the uploader typed, else :func:`volume_name`.
 
-    A name that contains any identity value (``SMITH_JOHN.zip``, an accession number) is
-    replaced by the modality and series description: shared models must not carry
-    identity. ``identity`` is ``miss.deid.identity_values`` of the original header.
+    Never the file's or a folder's name: people name those after the patient, in
+    spellings no header gives ("Smith_John_1970.zip", "Jörg Müller.nii"); the file name
+    goes to the owner-only identity record. A typed name that contains any identity
+    value, or looks like a person name or a date, is replaced too: shared models must
+    not carry identity. ``identity`` is ``miss.deid.identity_values`` of the header.
     """
     name = name.strip()
-    if not name:
-        filename = Path(filename.replace("\\", "/")).name
-        suffix = volume_suffix(Path(filename)) or (
-            ".zip" if filename.lower().endswith(".zip") else ""
-        )
-        name = filename[: len(filename) - len(suffix)] if suffix else filename
-    # File names use "_" and "-" where the header has "^" and spaces.
-    spaced = re.sub(r"[_\-.]+", " ", name)
-    if any(scrub_patterns(scrub(text, identity)) != text for text in (name, spaced)):
-        return withheld_name(volume)
-    return name[:200] or "Scan"
-
-
-def withheld_name(volume: Volume) -> str:
-    """The name of a volume whose file name carried identity, or looked as if it did (a
-    name, a date): its modality and series description, or, without those, its
-    modality and the upload's date ("CT volume, uploaded 2026-11-24 14:05"), which says
-    when it came, never when the patient was scanned."""
-    meta = volume.meta
-    parts = [meta.get("modality"), meta.get("series_description")]
-    name = " ".join(p for p in parts if p and "[removed]" not in p)
-    if meta.get("series_description") and "[removed]" not in meta["series_description"]:
+    spaced = re.sub(r"[_\-.]+", " ", name)  # "_" and "-" where a header has "^" and spaces
+    if name and all(scrub_patterns(scrub(text, identity)) == text for text in (name, spaced)):
         return name[:200]
+    return volume_name(volume)
+
+
+def volume_name(volume: Volume) -> str:
+    """A name from what the de-identified volume says of itself: modality, body part and
+    series description ("CT HEAD Axial 5 mm"). A description that had anything cut out
+    is left out (what is left reads as a riddle about what was cut); without one, the
+    modality, body part and the upload's time ("CT HEAD volume, uploaded 2026-11-24
+    14:05"), which says when it came, never when the patient was scanned."""
+    meta = volume.meta
+    modality = str(meta.get("modality") or "").strip()
+    body = str(meta.get("body_part") or "").strip()
+    description = str(meta.get("series_description") or "").strip()
+    body = "" if REMOVED in body else body
+    description = "" if REMOVED in description else description
+    if body and body.lower() in description.lower():
+        body = ""
+    if description:
+        said = " ".join(p for p in (modality, body, description) if p)
+        return " ".join("".join(c for c in said if c.isprintable()).split())[:200] or "Scan"
     when = datetime.now(UTC).strftime("%Y-%m-%d %H:%M")
-    return f"{meta.get('modality') or 'Scan'} volume, uploaded {when}"
+    return f"{' '.join(p for p in (modality or 'Scan', body) if p)} volume, uploaded {when}"
 
 
 def slugify(name: str) -> str:

@@ -158,9 +158,13 @@ class IdentityOut(BaseModel):
     """The original identity of a volume, for its owner."""
 
     volume: str
-    patient: dict[str, str] = Field(description="DICOM keyword -> original value")
-    uids: dict[str, str] = Field(description="original UID -> the UID MISS uses")
-    upload_filename: str = ""
+    patient: dict[str, str] = Field(
+        default_factory=dict, description="DICOM keyword -> original value"
+    )
+    uids: dict[str, str] = Field(
+        default_factory=dict, description="original UID -> the UID MISS uses"
+    )
+    upload_filename: str = Field("", description="the uploaded file's name, as sent")
 
 
 class ModelOut(BaseModel):

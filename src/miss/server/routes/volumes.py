@@ -52,7 +52,7 @@ def _multipart_body(file_description: str, **fields: str) -> dict[str, Any]:
 
 _UPLOAD_BODY = _multipart_body(
     "a .zip of a DICOM series (or folder tree), or one .nii/.nii.gz/.nrrd/.mha file",
-    name="name to list (default: the file name)",
+    name="name to list (default: modality, body part and series description; never the file name)",
     series="DICOM SeriesInstanceUID to read",
 )
 
