@@ -24,6 +24,7 @@ from test_access import add_user, as_user, own_model, room, token_of
 from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect
 
+from miss.server.settings import Settings
 from miss.server.storage.store import Store
 
 BOUNDARY = "trickle-boundary"
@@ -229,3 +230,20 @@ def test_deeply_nested_json_is_refused_without_a_traceback(server: Server) -> No
             pass
     log = Path(server.log).read_text()
     assert "Traceback" not in log and "RecursionError" not in log
+
+
+@pytest.mark.parametrize(
+    ("key", "value"),
+    [
+        ("MISS_UPLOAD_MIN_KBPS", "-1"),
+        ("MISS_UPLOAD_RATE_SECONDS", "0"),
+        ("MISS_UPLOAD_IDLE_SECONDS", "0"),
+        ("MISS_ROOM_RESERVED", "50"),
+        ("MISS_ROOM_GUESTS_PER_LINK", "0"),
+        ("MISS_SSE_PER_USER", "0"),
+        ("MISS_WS_CONNECTS_PER_MINUTE", "0.5"),
+    ],
+)
+def test_the_settings_say_what_is_wrong(tmp_path: Path, key: str, value: str) -> None:
+    with pytest.raises(ValueError, match=key):
+        Settings.from_env({key: value, "MISS_DATA_DIR": str(tmp_path)})

@@ -26,6 +26,7 @@ from typing import IO, Any
 from python_multipart.multipart import MultipartParser, parse_options_header
 from starlette.concurrency import run_in_threadpool
 from starlette.requests import ClientDisconnect, Request
+from starlette.types import Message, Receive
 
 from miss.errors import BadParameter, UnsupportedFormat
 from miss.io.archive import too_large
@@ -34,6 +35,8 @@ from miss.server.ratelimit import OverLimit
 from miss.server.storage.store import is_disk_full
 
 CHUNK = 1 << 20
+#: Seconds within which arrivals share one mark of an upload's pace.
+MARK_EVERY = 0.25
 FIELD_LIMIT = 64 * 1024
 MAX_FIELDS = 16
 _UNSAFE_CHARS = re.compile(r"[^A-Za-z0-9._-]+")
@@ -245,35 +248,41 @@ class Pace:
             )
 
 
-async def paced(stream: AsyncIterator[bytes], pace: Pace) -> AsyncIterator[bytes]:
-    """``stream``'s chunks, raising :class:`UploadTooSlow` as soon as it falls behind
-    ``pace``: it is checked while waiting for the next chunk too, since a client that
-    sends nothing never wakes a plain ``async for``."""
+async def paced(receive: Receive, pace: Pace) -> AsyncIterator[bytes]:
+    """The request body's chunks as they arrive, raising :class:`UploadTooSlow` as soon as
+    it falls behind ``pace``; checked while waiting for the next chunk too, since a client
+    that sends nothing never wakes a plain ``async for``. Read from the ASGI ``receive``
+    itself, as ``Request.stream`` does: a wait cut short to check the pace loses nothing
+    there (the server keeps what comes for the next call)."""
     start = time.monotonic()
     marks: deque[tuple[float, int]] = deque([(start, 0)])
-    # The next chunk is awaited in a task of its own, so a wait that times out to check
-    # the pace leaves the stream's read in progress rather than cancelled.
-    ahead: asyncio.Future[bytes] | None = None
-    try:
-        while True:
-            ahead = ahead or asyncio.ensure_future(anext(aiter(stream)))
-            await asyncio.wait({ahead}, timeout=min(pace.idle, pace.window, pace.CHECK_EVERY))
-            now = time.monotonic()
-            if ahead.done():
-                done, ahead = ahead, None
-                try:
-                    chunk = done.result()
-                except StopAsyncIteration:
-                    return
-                if chunk:
-                    marks.append((now, marks[-1][1] + len(chunk)))
-                    pace.check(start, now, marks)
-                    yield chunk
-                continue
+    wait = min(pace.idle, pace.window, pace.CHECK_EVERY)
+    while True:
+        message: Message | None = None
+        with contextlib.suppress(TimeoutError):
+            async with asyncio.timeout(wait):
+                message = await receive()
+        now = time.monotonic()
+        if message is None:
             pace.check(start, now, marks)
-    finally:
-        if ahead is not None:
-            ahead.cancel()
+            continue
+        if message["type"] == "http.disconnect":
+            raise ClientDisconnect()
+        if chunk := message.get("body", b""):
+            _mark(marks, now, len(chunk))
+            pace.check(start, now, marks)
+            yield chunk
+        if not message.get("more_body", False):
+            return
+
+
+def _mark(marks: deque[tuple[float, int]], now: float, size: int) -> None:
+    """Note ``size`` bytes come at ``now``; arrivals close together share one mark, so a
+    fast upload keeps a few marks a second, not one a chunk."""
+    if len(marks) > 1 and now - marks[-1][0] < MARK_EVERY:
+        marks[-1] = (now, marks[-1][1] + size)
+    else:
+        marks.append((now, marks[-1][1] + size))
 
 
 async def receive(
@@ -299,7 +308,7 @@ async def receive(
     try:
         # Parsing and disk writes run in the threadpool, a megabyte at a time, so the event
         # loop keeps serving other requests during a long upload.
-        async with contextlib.aclosing(paced(request.stream(), pace or Pace())) as chunks:
+        async with contextlib.aclosing(paced(request.receive, pace or Pace())) as chunks:
             async for chunk in chunks:
                 if full is not None:
                     continue  # read to the end, so the client hears "disk full", not a reset
