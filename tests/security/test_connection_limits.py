@@ -247,3 +247,9 @@ def test_deeply_nested_json_is_refused_without_a_traceback(server: Server) -> No
 def test_the_settings_say_what_is_wrong(tmp_path: Path, key: str, value: str) -> None:
     with pytest.raises(ValueError, match=key):
         Settings.from_env({key: value, "MISS_DATA_DIR": str(tmp_path)})
+
+
+def test_a_small_room_keeps_fewer_places() -> None:
+    """Rooms set small before the reserve existed still start: one place stays a guest's."""
+    assert Settings.from_env({"MISS_ROOM_MAX_PEOPLE": "3"}).room_reserved == 2
+    assert Settings.from_env({}).room_reserved == 5

@@ -39,7 +39,8 @@ Environment variables (all optional):
                           ``MISS_UPLOAD_RATE_SECONDS`` (30) after the first; slower, or
                           ``MISS_UPLOAD_IDLE_SECONDS`` (60) without a byte: 408, slot freed (8)
 ``MISS_ROOM_RESERVED``    places of a room kept for the owner and administrators: guests fill
-                          at most ``MISS_ROOM_MAX_PEOPLE`` less these (5)
+                          at most ``MISS_ROOM_MAX_PEOPLE`` less these (5; fewer in a room
+                          of 5 or fewer places)
 ``MISS_ROOM_GUESTS_PER_LINK`` guests in one room through one share link at once (20)
 ``MISS_SSE_PER_USER``     event streams (``/api/models/{id}/events``) one account or client
                           address may hold open at once (10); more get 429
@@ -97,7 +98,8 @@ class Settings:
     upload_min_kbps: float = 8.0
     upload_rate_seconds: float = 30.0
     upload_idle_seconds: float = 60.0
-    room_reserved: int = 5
+    #: None: 5, or one less than ``room_max_people`` when that is 5 or fewer.
+    room_reserved: int | None = None
     room_guests_per_link: int = 20
     sse_per_user: int = 10
     ws_connects_per_minute: float = 60.0
@@ -165,6 +167,8 @@ class Settings:
             raise ValueError(
                 f"MISS_UPLOAD_IDLE_SECONDS must be positive, got {self.upload_idle_seconds}."
             )
+        if self.room_reserved is None:
+            object.__setattr__(self, "room_reserved", max(0, min(5, self.room_max_people - 1)))
         if not 0 <= self.room_reserved < self.room_max_people:
             raise ValueError(
                 "MISS_ROOM_RESERVED must be 0 or more and less than MISS_ROOM_MAX_PEOPLE "
