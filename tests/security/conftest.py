@@ -14,4 +14,5 @@ _spec = importlib.util.spec_from_file_location("server_fixtures", _SERVER_TESTS 
 assert _spec is not None and _spec.loader is not None
 _fixtures = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(_fixtures)
+sys.modules.setdefault("server_fixtures", _fixtures)  # its helpers: running_row ...
 globals().update({k: v for k, v in vars(_fixtures).items() if not k.startswith("_")})

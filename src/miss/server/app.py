@@ -35,11 +35,13 @@ from miss.server.pacs import PacsImports, fail_interrupted
 from miss.server.ratelimit import (
     ApiLimits,
     JobLimit,
+    OpenStreams,
     OverLimit,
     PasswordChecks,
     RateLimitMiddleware,
     SharedBuckets,
     too_many,
+    ws_connect_limits,
 )
 from miss.server.rooms import Hub
 from miss.server.routes import audit, auth, models, pacs, pages, rooms, shares, volumes
@@ -123,7 +125,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         _say_confinement(confinement)
         app.state.reading = (confinement, settings.parse_limits())
         app.state.pacs_imports = PacsImports(store, settings, lambda: app.state.reading)
-        app.state.rooms = Hub(store, max_people=settings.room_max_people)
+        app.state.rooms = Hub(
+            store,
+            max_people=settings.room_max_people,
+            reserved=settings.room_reserved,
+            per_link=settings.room_guests_per_link,
+        )
         app.state.rooms.on_people = app.state.metrics.rooms.set
         app.state.rooms.start()
         app.state.shared_limits.start(store.bus)
@@ -155,14 +162,17 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.failed_logins = auth.failed_login_limits()
     app.state.password_checks = PasswordChecks(settings.password_checks)
     app.state.api_limits = ApiLimits(settings.api_rate, settings.api_burst)
+    app.state.ws_connects = ws_connect_limits(settings.ws_connects_per_minute)
     app.state.shared_limits = SharedBuckets(
         {
             "api": app.state.api_limits.buckets,
             "login-addresses": app.state.failed_logins.addresses,
             "login-accounts": app.state.failed_logins.accounts,
+            "ws-connects": app.state.ws_connects,
         }
     )
     app.state.job_limit = JobLimit(settings.max_jobs_per_user)
+    app.state.open_streams = OpenStreams(settings.sse_per_user)
     app.state.upload_slots = UploadSlots(settings.uploads_per_user, settings.uploads_at_once)
     app.add_middleware(RateLimitMiddleware, limits=app.state.api_limits)
     # Added last, so outermost: the rate limiter's 429 and every error get the headers too,

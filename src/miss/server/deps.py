@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import functools
 import os
-from collections.abc import Callable
+from collections.abc import AsyncIterator, Callable
 from typing import Annotated, ParamSpec, TypeVar
 
 import anyio.to_thread
@@ -101,6 +101,17 @@ async def current_user(request: Request, store: StoreDep) -> User:
 
 
 UserDep = Annotated[User, Depends(current_user)]
+
+
+async def event_stream(request: Request, user: UserDep) -> AsyncIterator[None]:
+    """One of the account's open event streams (``MISS_SSE_PER_USER``; 429 beyond),
+    held until the stream ends: FastAPI leaves a dependency with ``yield`` after the
+    response has been sent."""
+    with request.app.state.open_streams.slot(user.id):
+        yield
+
+
+EventStreamDep = Annotated[None, Depends(event_stream)]
 
 
 async def current_admin(user: UserDep) -> User:

@@ -59,6 +59,10 @@ class Gone(MissError, LookupError):
     """A share link that has expired or was revoked."""
 
 
+class UploadTooSlow(MissError, TimeoutError):
+    """An upload whose body stopped arriving, or arrives slower than the minimum rate (408)."""
+
+
 class TooManyRequests(MissError, RuntimeError):
     """A client over its rate limit (failed logins)."""
 
@@ -70,6 +74,7 @@ STATUS: tuple[tuple[type[MissError], int], ...] = (
     (Forbidden, 403),
     (Gone, 410),
     (TooManyRequests, 429),
+    (UploadTooSlow, 408),
     (UploadTooLarge, 413),
     (BodyTooLarge, 413),
     (UnsupportedFormat, 415),

@@ -2,11 +2,12 @@
 
 - :class:`TokenBucket` and :class:`KeyedBuckets`: a burst of ``capacity`` at once, then
   ``rate`` per second; per WebSocket connection (room messages), per client address
-  (failed logins).
+  (failed logins, WebSocket connections opened: :func:`ws_connect_limits`).
 - :class:`ApiLimits` and :class:`RateLimitMiddleware`: the REST API's bucket per account,
   or per client address for requests without a known session (share-link viewers).
 - :class:`JobLimit`: how many surface jobs one account may have queued or running.
 - :class:`PasswordChecks`: how many passwords one server process checks at once.
+- :class:`OpenStreams`: how many event streams one account may hold open at once.
 - :class:`SharedBuckets`: the keyed buckets of the server processes of one PostgreSQL
   database kept in step, so a client spread over N processes gets the limit once, not
   N times.
@@ -170,6 +171,13 @@ class KeyedBuckets:
         for key in full[: max(0, len(self._buckets) - self.max_keys)]:
             del self._buckets[key]
         self._high = max(self.max_keys, 2 * len(self._buckets))
+
+
+def ws_connect_limits(per_minute: float) -> KeyedBuckets:
+    """WebSocket connections per client address: ``per_minute`` at once (a ward's guests
+    behind one address joining together), then ``per_minute`` a minute. Rooms limit the
+    messages of a connection themselves; this limits opening them."""
+    return KeyedBuckets(per_minute, per_minute / 60.0)
 
 
 def too_many(detail: str, wait: float) -> JSONResponse:
@@ -375,6 +383,46 @@ def split(spent: dict[str, dict[str, float]], most: int) -> list[dict[str, dict[
     if message:
         messages.append(message)
     return messages
+
+
+# -- long-lived responses --------------------------------------------------------------------
+
+
+class OpenStreams:
+    """At most ``limit`` responses that stay open (Server-Sent Events) per key (an
+    account) at once: each holds a connection and a task that polls the job for as long
+    as it runs, so one account opening thousands would take them from everyone."""
+
+    #: Seconds a refused client is told to wait (its page falls back to polling anyway).
+    RETRY_SECONDS = 5.0
+
+    def __init__(self, limit: int) -> None:
+        self.limit = limit
+        self._lock = threading.Lock()
+        self._open: dict[str, int] = {}
+
+    @contextmanager
+    def slot(self, key: str) -> Iterator[None]:
+        """Hold one of ``key``'s streams while the body runs; :class:`OverLimit` beyond."""
+        with self._lock:
+            mine = self._open.get(key, 0)
+            if mine >= self.limit:
+                raise OverLimit(
+                    f"too many event streams open: this account already has {mine} (at most "
+                    f"{self.limit}); close a model page you no longer watch, or poll "
+                    "GET /api/models/{id} instead.",
+                    self.RETRY_SECONDS,
+                )
+            self._open[key] = mine + 1
+        try:
+            yield
+        finally:
+            with self._lock:
+                left = self._open[key] - 1
+                if left:
+                    self._open[key] = left
+                else:
+                    del self._open[key]
 
 
 # -- surface jobs --------------------------------------------------------------------------

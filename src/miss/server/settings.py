@@ -39,6 +39,17 @@ Environment variables (all optional):
                           PACS as a new study under the file's patient ("0": refused, 409)
 ``MISS_ROOM_MAX_PEOPLE``  people in one model's consultation room at once, counted over
                           every server process (50)
+``MISS_UPLOAD_MIN_KBPS``  an upload's body must arrive at this average rate, kB/s, over each
+                          ``MISS_UPLOAD_RATE_SECONDS`` (30) after the first; slower, or
+                          ``MISS_UPLOAD_IDLE_SECONDS`` (60) without a byte: 408, slot freed (8)
+``MISS_ROOM_RESERVED``    places of a room kept for the owner and administrators: guests fill
+                          at most ``MISS_ROOM_MAX_PEOPLE`` less these (5; fewer in a room
+                          of 5 or fewer places)
+``MISS_ROOM_GUESTS_PER_LINK`` guests in one room through one share link at once (20)
+``MISS_SSE_PER_USER``     event streams (``/api/models/{id}/events``) one account or client
+                          address may hold open at once (10); more get 429
+``MISS_WS_CONNECTS_PER_MINUTE`` WebSocket connections one client address may open a minute,
+                          all at once at most (60); more are closed with 4429
 ``MISS_LOD_TRIANGLES``    a model of more triangles also gets levels of detail (a 3D Tiles
                           tileset the viewer refines as it zooms in); 2,000,000; 0: never
 ``MISS_JOB_CPU_SECONDS``  CPU time one job's worker may use, seconds, all its threads
@@ -108,6 +119,14 @@ class Settings:
     #: Reverse proxies (addresses or networks) whose forwarded-for headers are believed.
     trusted_proxies: tuple[str, ...] = ()
     password_checks: int = 2
+    upload_min_kbps: float = 8.0
+    upload_rate_seconds: float = 30.0
+    upload_idle_seconds: float = 60.0
+    #: None: 5, or one less than ``room_max_people`` when that is 5 or fewer.
+    room_reserved: int | None = None
+    room_guests_per_link: int = 20
+    sse_per_user: int = 10
+    ws_connects_per_minute: float = 60.0
 
     def __post_init__(self) -> None:
         # Resolve once so the worker subprocesses, which get these as arguments, see the
@@ -155,6 +174,7 @@ class Settings:
             raise ValueError(
                 f"MISS_ROOM_MAX_PEOPLE must be at least 1, got {self.room_max_people}."
             )
+        self._check_connections()
         if self.lod_triangles < 0:
             raise ValueError(f"MISS_LOD_TRIANGLES must be 0 or more, got {self.lod_triangles}.")
         for key, value in (
@@ -178,6 +198,37 @@ class Settings:
                 _network(proxy)
             except ValueError as exc:
                 raise ValueError(f"MISS_TRUSTED_PROXIES: {exc}") from None
+
+    def _check_connections(self) -> None:
+        """The settings that share connections and slots fairly among clients."""
+        if not (self.upload_min_kbps >= 0 and self.upload_rate_seconds > 0):
+            raise ValueError(
+                "MISS_UPLOAD_MIN_KBPS must be 0 or more (0: no minimum) and "
+                "MISS_UPLOAD_RATE_SECONDS positive, "
+                f"got {self.upload_min_kbps} and {self.upload_rate_seconds}."
+            )
+        if not self.upload_idle_seconds > 0:
+            raise ValueError(
+                f"MISS_UPLOAD_IDLE_SECONDS must be positive, got {self.upload_idle_seconds}."
+            )
+        if self.room_reserved is None:
+            object.__setattr__(self, "room_reserved", max(0, min(5, self.room_max_people - 1)))
+        if not 0 <= self.room_reserved < self.room_max_people:
+            raise ValueError(
+                "MISS_ROOM_RESERVED must be 0 or more and less than MISS_ROOM_MAX_PEOPLE "
+                f"({self.room_max_people}), got {self.room_reserved}."
+            )
+        if self.room_guests_per_link < 1:
+            raise ValueError(
+                f"MISS_ROOM_GUESTS_PER_LINK must be at least 1, got {self.room_guests_per_link}."
+            )
+        if self.sse_per_user < 1:
+            raise ValueError(f"MISS_SSE_PER_USER must be at least 1, got {self.sse_per_user}.")
+        if not self.ws_connects_per_minute >= 1:
+            raise ValueError(
+                "MISS_WS_CONNECTS_PER_MINUTE must be at least 1, "
+                f"got {self.ws_connects_per_minute}."
+            )
 
     @classmethod
     def from_env(cls, env: Mapping[str, str] | None = None, **overrides: Any) -> Settings:
@@ -286,6 +337,13 @@ _ENV: tuple[tuple[str, str, Any], ...] = (
     ("quota_mb", "MISS_QUOTA_MB", float),
     ("trusted_proxies", "MISS_TRUSTED_PROXIES", lambda text: _networks(text)),
     ("password_checks", "MISS_PASSWORD_CHECKS", int),
+    ("upload_min_kbps", "MISS_UPLOAD_MIN_KBPS", float),
+    ("upload_rate_seconds", "MISS_UPLOAD_RATE_SECONDS", float),
+    ("upload_idle_seconds", "MISS_UPLOAD_IDLE_SECONDS", float),
+    ("room_reserved", "MISS_ROOM_RESERVED", int),
+    ("room_guests_per_link", "MISS_ROOM_GUESTS_PER_LINK", int),
+    ("sse_per_user", "MISS_SSE_PER_USER", int),
+    ("ws_connects_per_minute", "MISS_WS_CONNECTS_PER_MINUTE", float),
 )
 
 

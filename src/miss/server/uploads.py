@@ -2,18 +2,23 @@
 
 The body is parsed as it arrives and the file part written straight into the data
 folder's ``tmp/``, counting bytes, so an upload over the limit stops at the limit and
-a 2 GB DICOM series never sits in memory. What it holds is read afterwards by a
+a 2 GB DICOM series never sits in memory. It must keep arriving (:class:`Pace`): a body
+that trickles or stalls is answered 408 and gives its slot back, so a few slow clients
+cannot hold the server's upload slots (:class:`UploadSlots`) for everyone. What it holds is read afterwards by a
 confined child process (:mod:`miss.io.confined`; zips by :mod:`miss.io.archive`).
 """
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import errno
 import os
 import re
 import threading
-from collections.abc import Iterator
+import time
+from collections import deque
+from collections.abc import AsyncIterator, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
 from typing import IO, Any
@@ -21,14 +26,17 @@ from typing import IO, Any
 from python_multipart.multipart import MultipartParser, parse_options_header
 from starlette.concurrency import run_in_threadpool
 from starlette.requests import ClientDisconnect, Request
+from starlette.types import Message, Receive
 
 from miss.errors import BadParameter, UnsupportedFormat
 from miss.io.archive import too_large
-from miss.server.errors import UploadTooLarge
+from miss.server.errors import UploadTooLarge, UploadTooSlow
 from miss.server.ratelimit import OverLimit
 from miss.server.storage.store import is_disk_full
 
 CHUNK = 1 << 20
+#: Seconds within which arrivals share one mark of an upload's pace.
+MARK_EVERY = 0.25
 FIELD_LIMIT = 64 * 1024
 MAX_FIELDS = 16
 _UNSAFE_CHARS = re.compile(r"[^A-Za-z0-9._-]+")
@@ -153,7 +161,12 @@ class UploadSlots:
     """Uploads being received or read at once: at most ``per_user`` for one account and
     ``in_all`` for everyone. Each takes disk, a reader process and memory until it is
     stored, so a client over the limit hears 429 with a Retry-After at once, before it
-    sends a byte more."""
+    sends a byte more.
+
+    An account's uploads beyond its first never take the last free slot: that one is
+    kept for an account sending nothing yet, so two accounts (of slow links, or
+    trickling on purpose) cannot fill the server for a third; holding ``in_all``
+    slots takes ``in_all`` accounts, each pushing at least the minimum rate (:class:`Pace`)."""
 
     #: Seconds a refused client is told to wait (a typical upload's reading time).
     RETRY_SECONDS = 10.0
@@ -171,6 +184,13 @@ class UploadSlots:
                 raise OverLimit(
                     f"too many uploads at once: this account is already sending {mine} "
                     f"(at most {self.per_user}); wait for one to finish, then send this again.",
+                    self.RETRY_SECONDS,
+                )
+            if mine and total + 1 >= self.in_all:
+                raise OverLimit(
+                    f"too many uploads at once: this account is already sending {mine} and "
+                    f"the server's last free upload slot (of {self.in_all}) is kept for "
+                    "accounts sending nothing; wait for yours to finish, then send this again.",
                     self.RETRY_SECONDS,
                 )
             if total >= self.in_all:
@@ -191,11 +211,88 @@ class UploadSlots:
                     del self._users[user_id]
 
 
-async def receive(request: Request, folder: Path, limit: int, min_free: int = 0) -> Upload:
+@dataclass(frozen=True)
+class Pace:
+    """The least an upload's body must keep up: ``min_rate`` bytes per second on average
+    over every ``window`` seconds once the first have passed (0: no minimum), and never
+    ``idle`` seconds without a byte. Both are far below any real link: they only end
+    bodies that trickle or stall (408)."""
+
+    min_rate: float = 0.0
+    window: float = 30.0
+    idle: float = 60.0
+
+    #: Longest wait between two checks of the rate, s.
+    CHECK_EVERY = 1.0
+
+    def check(self, start: float, now: float, marks: deque[tuple[float, int]]) -> None:
+        """Raise :class:`UploadTooSlow` when the body is behind; ``marks`` holds (time,
+        bytes so far) at each arrival, oldest first; those the window has left behind
+        are dropped (one before it is kept, the start of the span measured)."""
+        if now - marks[-1][0] >= self.idle:
+            raise UploadTooSlow(
+                f"the upload stalled: no data for {self.idle:g} s, so it was stopped and "
+                "nothing was kept; check the connection and send it again."
+            )
+        while len(marks) > 1 and marks[1][0] <= now - self.window:
+            marks.popleft()
+        if not self.min_rate or now - start < self.window:
+            return
+        since, got = marks[0][0], marks[-1][1] - marks[0][1]
+        if got < self.min_rate * (now - since):
+            raise UploadTooSlow(
+                f"the upload arrived at {got / max(now - since, 1e-9) / 1000:.2f} kB/s over the "
+                f"last {now - since:.0f} s, below the minimum of {self.min_rate / 1000:g} "
+                "kB/s, so it was stopped and nothing was kept; send it again over a "
+                "faster connection."
+            )
+
+
+async def paced(receive: Receive, pace: Pace) -> AsyncIterator[bytes]:
+    """The request body's chunks as they arrive, raising :class:`UploadTooSlow` as soon as
+    it falls behind ``pace``; checked while waiting for the next chunk too, since a client
+    that sends nothing never wakes a plain ``async for``. Read from the ASGI ``receive``
+    itself, as ``Request.stream`` does: a wait cut short to check the pace loses nothing
+    there (the server keeps what comes for the next call)."""
+    start = time.monotonic()
+    marks: deque[tuple[float, int]] = deque([(start, 0)])
+    wait = min(pace.idle, pace.window, pace.CHECK_EVERY)
+    while True:
+        message: Message | None = None
+        with contextlib.suppress(TimeoutError):
+            async with asyncio.timeout(wait):
+                message = await receive()
+        now = time.monotonic()
+        if message is None:
+            pace.check(start, now, marks)
+            continue
+        if message["type"] == "http.disconnect":
+            raise ClientDisconnect()
+        if chunk := message.get("body", b""):
+            _mark(marks, now, len(chunk))
+            pace.check(start, now, marks)
+            yield chunk
+        if not message.get("more_body", False):
+            return
+
+
+def _mark(marks: deque[tuple[float, int]], now: float, size: int) -> None:
+    """Note ``size`` bytes come at ``now``; arrivals close together share one mark, so a
+    fast upload keeps a few marks a second, not one a chunk."""
+    if len(marks) > 1 and now - marks[-1][0] < MARK_EVERY:
+        marks[-1] = (now, marks[-1][1] + size)
+    else:
+        marks.append((now, marks[-1][1] + size))
+
+
+async def receive(
+    request: Request, folder: Path, limit: int, min_free: int = 0, pace: Pace | None = None
+) -> Upload:
     """Stream a multipart/form-data body into ``folder``; the file part in field ``file``.
 
     The disk's free space is checked as the body arrives, not only before: a client that
-    fills the disk mid-upload gets 507 and its partial file is removed at once."""
+    fills the disk mid-upload gets 507 and its partial file is removed at once. A body
+    that falls behind ``pace`` gets 408 (the caller removes what came of it)."""
     kind, params = parse_options_header(request.headers.get("content-type", ""))
     if kind != b"multipart/form-data" or not params.get(b"boundary"):
         raise UnsupportedFormat(
@@ -211,13 +308,15 @@ async def receive(request: Request, folder: Path, limit: int, min_free: int = 0)
     try:
         # Parsing and disk writes run in the threadpool, a megabyte at a time, so the event
         # loop keeps serving other requests during a long upload.
-        async for chunk in request.stream():
-            if full is not None:
-                continue  # read to the end, so the client hears "disk full", not a reset
-            pending += chunk
-            if len(pending) >= CHUNK:
-                full = await run_in_threadpool(_write_unless_full, sink, bytes(pending), min_free)
-                pending.clear()
+        async with contextlib.aclosing(paced(request.receive, pace or Pace())) as chunks:
+            async for chunk in chunks:
+                if full is not None:
+                    continue  # read to the end, so the client hears "disk full", not a reset
+                pending += chunk
+                if len(pending) >= CHUNK:
+                    data = bytes(pending)
+                    full = await run_in_threadpool(_write_unless_full, sink, data, min_free)
+                    pending.clear()
         if full is None:
             return await run_in_threadpool(sink.finish, bytes(pending))
         raise full

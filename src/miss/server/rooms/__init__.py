@@ -11,12 +11,19 @@ room notices any of it.
 
 Each participant has an outgoing queue drained by its own task, so one slow browser
 never holds up a broadcast to the others.
+
+Places: guests fill at most ``max_people - reserved`` of a room, and at most
+``per_link`` through one link, so the guests of one leaked link cannot lock out the
+owner, the administrators or the guests of the owner's other links. What people see of
+each other is display names, colours and a per-room pseudonym (:func:`public_key`): never
+an account's id or another link's id.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import hashlib
 import json
 import logging
 import math
@@ -50,6 +57,9 @@ OUTBOX = 512
 #: every server process (the others' people as the bus has told them: a room opened
 #: here learns of them within a moment of its first person). ``MISS_ROOM_MAX_PEOPLE``.
 MAX_PEOPLE = 50
+#: Places of ``MAX_PEOPLE`` no guest may take (kept for the owner and administrators),
+#: and guests one link lets in at once: ``MISS_ROOM_RESERVED``, ``MISS_ROOM_GUESTS_PER_LINK``.
+RESERVED, GUESTS_PER_LINK = 5, 20
 MAX_NOTE, MAX_CHAT, MAX_NAME = 500, 2000, 40
 #: The presenter's camera goes to the replay at most this often (seconds).
 VIEW_EVERY = 1.0
@@ -77,7 +87,8 @@ class Close:
     FORBIDDEN = 4403
     NOT_FOUND = 4404
     GONE = 4410
-    FULL = 4429  # the room has MAX_PEOPLE connections
+    FULL = 4429  # the room, its places for guests or the link's are taken
+    TOO_MANY = 4429  # the address opened too many connections
 
 
 class Refused(Exception):
@@ -148,6 +159,23 @@ REMEMBER_ENDED = 30.0
 RECHECK_TICKS = 8
 
 
+def public_key(model_id: str, key: str) -> str:
+    """A participant's key (``Visitor.key``) as the others in the room see it: the same
+    for the same author in this room, so a browser knows its own pins, but a digest that
+    does not give away the account's id or the link's id it came from."""
+    if not key.startswith(("u:", "s:")):
+        return key
+    digest = hashlib.sha256(f"{model_id}\0{key}".encode()).hexdigest()
+    return f"p:{digest[:16]}"
+
+
+def public_item(model_id: str, item: dict[str, Any]) -> dict[str, Any]:
+    """A pin or measurement as sent to the room: its author's key as :func:`public_key`."""
+    if isinstance(item.get("by"), str):
+        return item | {"by": public_key(model_id, item["by"])}
+    return item
+
+
 def guest_name(raw: str) -> str:
     """A display name a guest chose, printable and short, marked as a guest's."""
     clean = "".join(ch for ch in raw if ch.isprintable()).strip()[:MAX_NAME] or "Guest"
@@ -157,9 +185,10 @@ def guest_name(raw: str) -> str:
 class Participant:
     """One connection: its socket, outgoing queue, colour and rate limit."""
 
-    def __init__(self, ws: WebSocket, visitor: Visitor, colour: str) -> None:
+    def __init__(self, ws: WebSocket, visitor: Visitor, colour: str, model_id: str) -> None:
         self.id = secrets.token_hex(4)
         self.ws, self.visitor, self.colour = ws, visitor, colour
+        self.model_id = model_id
         self.outbox: asyncio.Queue[tuple[str, Any]] = asyncio.Queue(OUTBOX)
         self.bucket = TokenBucket(BURST, RATE)
         self.dropped: deque[float] = deque()
@@ -167,6 +196,7 @@ class Participant:
         self.closing = False
 
     def public(self) -> dict[str, Any]:
+        """What everyone in the room may know of this person: no account or link id."""
         v = self.visitor
         return {
             "id": self.id,
@@ -174,8 +204,14 @@ class Participant:
             "colour": self.colour,
             "guest": v.guest,
             "owner": v.owner,
-            "key": v.key,
+            "key": public_key(self.model_id, v.key),
         }
+
+    def listed(self) -> dict[str, Any]:
+        """:meth:`public` and, for the other server processes only (they count a link's
+        guests too), a digest of the link it came through."""
+        link = self.visitor.share_id
+        return self.public() | ({"link": public_key(self.model_id, f"s:{link}")} if link else {})
 
     def send(self, message: dict[str, Any]) -> None:
         """Queue a frame; a reader too slow to take its frames is closed, not waited for."""
@@ -298,13 +334,23 @@ class Room:
             "model": self.model_id,
             "session": self.session,
             "you": you.public(),
-            "participants": [p.public() for p in self.people.values()] + list(self.remote.values()),
+            "participants": [p.public() for p in self.people.values()]
+            + [_unlisted(p) for p in self.remote.values()],
             "presenter": self.presenter,
             "view": self.view if self.presenter else None,
             "bounds": self.bounds,
             "limits": {"max_bytes": MAX_MESSAGE_BYTES, "rate": RATE, "burst": BURST},
-            **self.state.snapshot(),
+            **self.state.snapshot(lambda item: public_item(self.model_id, item)),
         }
+
+    def guests(self, link: str | None = None) -> int:
+        """Guests here and on other processes; only those of ``link`` (a share id) if given."""
+        tag = link and public_key(self.model_id, f"s:{link}")
+        here = [p.visitor for p in self.people.values() if p.visitor.guest]
+        there = [p for p in self.remote.values() if p.get("guest")]
+        if link is None:
+            return len(here) + len(there)
+        return sum(v.share_id == link for v in here) + sum(p.get("link") == tag for p in there)
 
     def on_model(self, p: list[float], name: str) -> list[float]:
         """Refuse a point far from this model: most likely meant for another one."""
@@ -328,8 +374,15 @@ Handler = Callable[["Hub", Room, Participant, dict[str, Any]], Awaitable[None]]
 class Hub:
     """All open rooms of the server (in memory; their lasting content is in the database)."""
 
-    def __init__(self, store: Store, max_people: int = MAX_PEOPLE) -> None:
+    def __init__(
+        self,
+        store: Store,
+        max_people: int = MAX_PEOPLE,
+        reserved: int = RESERVED,
+        per_link: int = GUESTS_PER_LINK,
+    ) -> None:
         self.store, self.max_people = store, max_people
+        self.reserved, self.per_link = reserved, per_link
         self.rooms: dict[str, Room] = {}
         self._lock = asyncio.Lock()
         #: One lock a model while anything holds it: a session's last leave may still be
@@ -397,7 +450,7 @@ class Hub:
         kind = message.get("type")
         if kind == "hello":  # a room just opened there: say who is here
             for person in room.people.values():
-                self._publish(room.model_id, {"type": "joined", "participant": person.public()})
+                self._publish(room.model_id, {"type": "joined", "participant": person.listed()})
             return
         if data.get("event"):
             room.state.apply(*data["event"])
@@ -406,6 +459,7 @@ class Hub:
                 return  # already known (an answer to a hello)
             room.remote[message["participant"]["id"]] = message["participant"]
             room.remote_on[message["participant"]["id"]] = str(data.get("on", ""))
+            message = message | {"participant": _unlisted(message["participant"])}
         elif kind == "left":
             room.remote.pop(message["id"], None)
             room.remote_on.pop(message["id"], None)
@@ -511,10 +565,8 @@ class Hub:
     ) -> tuple[Room, Participant]:
         async with self._lock:
             room = self.rooms.get(model_id)
-            if room is not None and len(room.people) + len(room.remote) >= self.max_people:
-                raise Refused(
-                    Close.FULL, f"this room is full ({self.max_people} people); try again later."
-                )
+            if room is not None:
+                self._check_place(room, visitor)
             if room is None:
                 state = await run_in_threadpool(roomlog.load_state, self.store, model_id)
                 session = await run_in_threadpool(roomlog.next_session, self.store, model_id)
@@ -522,13 +574,37 @@ class Hub:
                 room = Room(model_id, session, state, bounds, writing)
                 self.rooms[model_id] = room
                 self._publish(model_id, {"type": "hello"})
-            person = Participant(ws, visitor, room.colour())
+            person = Participant(ws, visitor, room.colour(), model_id)
             room.people[person.id] = person
             self.on_people(self.connections())
         person.send(room.welcome(person))
-        self.broadcast(room, {"type": "joined", "participant": person.public()}, skip=person)
+        room.broadcast({"type": "joined", "participant": person.public()}, skip=person)
+        self._publish(model_id, {"type": "joined", "participant": person.listed()})
         await self.store_event(room, person, "join", {"colour": person.colour})
         return room, person
+
+    def _check_place(self, room: Room, visitor: Visitor) -> None:
+        """Refuse one more when the room is full, when the guests have taken all but the
+        reserved places, or when this guest's link has ``per_link`` guests in already."""
+        if len(room.people) + len(room.remote) >= self.max_people:
+            raise Refused(
+                Close.FULL, f"this room is full ({self.max_people} people); try again later."
+            )
+        if not visitor.guest:
+            return
+        places = self.max_people - self.reserved
+        if room.guests() >= places:
+            raise Refused(
+                Close.FULL,
+                f"all {places} places for guests in this room are taken (the other "
+                f"{self.reserved} are kept for the owner); try again later.",
+            )
+        if room.guests(visitor.share_id) >= self.per_link:
+            raise Refused(
+                Close.FULL,
+                f"this link already has {self.per_link} guests in the room, the most one "
+                "link may let in; ask the owner for a link of your own.",
+            )
 
     async def _leave(self, room: Room, person: Participant) -> None:
         # No await before the room is left: a connection cancelled mid-way (the server
@@ -607,6 +683,10 @@ class Hub:
             message = json.loads(raw)
         except ValueError as exc:
             raise Invalid("malformed", f"not valid JSON ({exc.msg} at {exc.pos}).") from None
+        except RecursionError:  # "[[[[..." thousands deep: the parser's own limit
+            raise Invalid(
+                "malformed", "JSON nested too deeply; messages are objects a few levels deep."
+            ) from None
         if not isinstance(message, dict) or not isinstance(message.get("type"), str):
             raise Invalid("malformed", 'send a JSON object with a "type", e.g. {"type": "ping"}.')
         handler = HANDLERS.get(message["type"])
@@ -619,6 +699,11 @@ class Hub:
         """Close every connection that came in through a revoked link, at once."""
         self.end("share", share_id)
         self.close_ended()
+
+
+def _unlisted(entry: dict[str, Any]) -> dict[str, Any]:
+    """A person listed by another process as the people here see them (no link digest)."""
+    return {k: v for k, v in entry.items() if k != "link"}
 
 
 def _log_failure(task: asyncio.Future[Any]) -> None:
@@ -709,6 +794,7 @@ async def _keep(hub: Hub, room: Room, person: Participant, kind: str, data: dict
     stored_id, at = await hub.store_event(room, person, kind, data)
     room.state.apply(stored_id, at, kind, person.visitor.name, data)
     item = {"id": stored_id, "author": person.visitor.name, "at": at, **data}
+    item = public_item(room.model_id, item)
     event = (stored_id, at, kind, person.visitor.name, data)
     hub.broadcast(room, {"type": kind, "item": item}, event=event)
 

@@ -8,6 +8,7 @@ can never disagree.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from typing import Any
@@ -76,10 +77,13 @@ class RoomState:
             self.chat.append(item)
             del self.chat[:-CHAT_BACKLOG]
 
-    def snapshot(self) -> dict[str, Any]:
+    def snapshot(
+        self, shown: Callable[[dict[str, Any]], dict[str, Any]] = lambda item: item
+    ) -> dict[str, Any]:
+        """Pins, measurements and chat, each pin and measurement as ``shown`` makes it."""
         return {
-            "pins": list(self.pins.values()),
-            "measurements": list(self.measurements.values()),
+            "pins": [shown(item) for item in self.pins.values()],
+            "measurements": [shown(item) for item in self.measurements.values()],
             "chat": list(self.chat),
         }
 

@@ -17,6 +17,7 @@ from miss.errors import BadParameter, EmptySurface
 from miss.export import FORMATS, WRITERS
 from miss.server import audit, labelmaps, quota
 from miss.server.deps import (
+    EventStreamDep,
     JobLimitDep,
     ModelDep,
     QueueDep,
@@ -190,13 +191,15 @@ def delete_model(model: ModelDep, store: StoreDep, queue: QueueDep, request: Req
 async def model_events(
     model: ModelDep,
     store: StoreDep,
+    _stream: EventStreamDep,
     draws: Annotated[bool, Query(description="the caller draws the model and says so")] = False,
 ) -> AsyncIterator[ServerSentEvent]:
     """Server-Sent Events: the model (as GET /api/models/{id}) each time its status,
     stage, progress, preview or files change, until it is done or failed; then the
     stream ends. ``draws=1`` (the model page): the caller draws the model once it can
     and posts ``/shown`` when it has; meanwhile, for a second at most, the job holds back
-    its other formats and its error (:mod:`miss.server.jobs.turn`)."""
+    its other formats and its error (:mod:`miss.server.jobs.turn`). An account holds at
+    most ``MISS_SSE_PER_USER`` streams at once (429 beyond)."""
     volume = await run_in_threadpool(store.get_volume, model.volume_id)
     folder = store.model_dir(model.id)
     row, last, seen, follow = model, None, _mtime(folder), 0

@@ -13,6 +13,7 @@ from miss.server import audit, shares
 from miss.server.auth import authenticate, same_origin
 from miss.server.deps import ModelDep, StoreDep, visible_model
 from miss.server.errors import Gone, NotFound, Unauthorized
+from miss.server.ratelimit import retry_after
 from miss.server.rooms import Close, Refused, Visitor, guest_name
 from miss.server.rooms import record as roomlog
 from miss.server.storage.store import Store
@@ -87,6 +88,20 @@ def admit(store: Store, ws: WebSocket, model_id: str, token: str, name: str) -> 
     return visitor, bounds
 
 
+def too_often(ws: WebSocket) -> None:
+    """Refuse a connection over its address's allowance (``MISS_WS_CONNECTS_PER_MINUTE``),
+    before any database look-up: a loop reconnecting as fast as it can costs little."""
+    address = ws.client.host if ws.client else ""
+    wait = ws.app.state.ws_connects.take_or_wait(f"addr:{address}")
+    if wait > 0.0:
+        per_minute = ws.app.state.ws_connects.capacity
+        raise Refused(
+            Close.TOO_MANY,
+            f"too many connections from your address (at most {per_minute:g} a minute); "
+            f"retry in {retry_after(wait)} s.",
+        )
+
+
 @router.websocket("/ws/rooms/{model_id}")
 async def room_socket(
     ws: WebSocket,
@@ -97,11 +112,13 @@ async def room_socket(
     """Join a model's room: logged in (cookie or bearer) as its owner, or ``?share=TOKEN``
     of a link with ``can_annotate`` (``&name=`` the guest's display name). A refusal is an
     ``error`` frame, then a close: 4401 unknown credentials, 4403 not allowed, 4404 no
-    such model, 4410 expired or revoked link."""
+    such model, 4410 expired or revoked link, 4429 the room (or its places for guests,
+    or the link's) full, or too many connections from the address."""
     # Accept first, so a refusal reaches the browser as words and a code, not a bare 403.
     await ws.accept()
     store: Store = ws.app.state.store
     try:
+        too_often(ws)
         visitor, bounds = await run_in_threadpool(admit, store, ws, model_id, share, name)
     except Refused as refused:
         await ws.send_json({"type": "error", "code": "refused", "error": refused.reason})

@@ -32,7 +32,7 @@ from miss.server.schemas import IdentityOut, VolumeOut, volume_out
 from miss.server.settings import Settings
 from miss.server.storage.db import VolumeRow
 from miss.server.storage.store import Store
-from miss.server.uploads import Upload, receive
+from miss.server.uploads import Pace, Upload, receive
 
 router = APIRouter(prefix="/api/volumes", tags=["volumes"])
 
@@ -77,6 +77,15 @@ def _declared(request: Request) -> int:
         return 0
 
 
+def upload_pace(settings: Settings) -> Pace:
+    """What an upload's body must keep up (``MISS_UPLOAD_MIN_KBPS`` ...), bytes/s and s."""
+    return Pace(
+        settings.upload_min_kbps * 1000,
+        settings.upload_rate_seconds,
+        settings.upload_idle_seconds,
+    )
+
+
 @asynccontextmanager
 async def received(
     request: Request, store: Store, settings: Settings, user: User
@@ -91,7 +100,7 @@ async def received(
         try:
             with store.disk_full_as_507():
                 limit, free = settings.max_upload_bytes, settings.min_free_bytes
-                yield await receive(request, work, limit, free), work
+                yield await receive(request, work, limit, free, upload_pace(settings)), work
         finally:
             await run_in_threadpool(shutil.rmtree, work, True)
 
@@ -103,6 +112,7 @@ async def received(
     openapi_extra=_UPLOAD_BODY,
     responses={
         413: {"description": "over the size limit, or larger than the account's quota"},
+        408: {"description": "the body arrived too slowly, or stalled"},
         415: {"description": "not a scan"},
         507: {"description": "the server's disk, or the account's quota, is full"},
     },
