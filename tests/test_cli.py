@@ -106,6 +106,39 @@ def test_bad_input_gives_one_line_and_exit_2(
     assert not (tmp_path / "x.stl").exists()
 
 
+@pytest.mark.parametrize(
+    ("args", "line"),
+    [
+        (["--bogus"], "unknown option --bogus (see 'miss --help')"),
+        (
+            ["convert", "/no/such/scan", "--level", "300", "-o", "x.stl", "--bogus"],
+            "unknown option --bogus (see 'miss convert --help')",
+        ),
+        (["convert", "--bogus"], "unknown option --bogus (see 'miss convert --help')"),
+        (
+            ["serve", "--prot", "1"],
+            "unknown option --prot (did you mean --port?) (see 'miss serve --help')",
+        ),
+        (["user", "add", "--bogus=1"], "unknown option --bogus (see 'miss user add --help')"),
+        (["pacs", "--bogus"], "unknown option --bogus (see 'miss pacs --help')"),
+    ],
+)
+def test_an_unknown_option_is_named_first_with_the_help_of_its_command(
+    args: list[str], line: str
+) -> None:
+    """Not "arguments are required", nor a hint at ``miss --help`` for a command's option."""
+    proc = miss(*args, check=False)
+    assert proc.returncode == 2 and proc.stdout == ""
+    assert proc.stderr == f"miss: {line}\n"
+
+
+def test_a_negative_level_is_a_number_not_an_unknown_option(tmp_path: Path) -> None:
+    proc = miss("convert", "/no/such/scan", "--level", "-500", "-o", str(tmp_path / "x.stl"),
+                check=False)  # fmt: skip
+    assert proc.returncode == 2 and "no such file" in proc.stderr
+    assert "unknown option" not in proc.stderr
+
+
 def test_cthead_bone_gives_about_545k_triangles(datasets: Path, tmp_path: Path) -> None:
     out = tmp_path / "cthead.stl"
     stats = json.loads(

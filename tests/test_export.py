@@ -86,7 +86,7 @@ def _triangles(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
 
 
 def test_registry_lists_every_format_with_its_mime_type() -> None:
-    assert FORMATS == ["wrl", "wrz", "x3d", "glb", "stl", "ply", "obj"]
+    assert FORMATS == ["wrl", "wrz", "x3d", "glb", "stl", "ply", "obj", "3mf"]
     expected = {
         "wrl": "model/vrml",
         "wrz": "model/vrml",
@@ -95,10 +95,11 @@ def test_registry_lists_every_format_with_its_mime_type() -> None:
         "stl": "model/stl",
         "ply": "model/ply",
         "obj": "model/obj",
+        "3mf": "model/3mf",
     }
     assert {fmt: mime_type(fmt) for fmt in FORMATS} == expected
     assert WRITERS["wrl"].legacy_mime == "x-world/x-vrml"
-    assert [fmt for fmt in FORMATS if WRITERS[fmt].binary] == ["wrz", "glb", "stl", "ply"]
+    assert [fmt for fmt in FORMATS if WRITERS[fmt].binary] == ["wrz", "glb", "stl", "ply", "3mf"]
 
 
 @pytest.mark.parametrize("spelling", ["wrl", ".wrl", "WRL", ".Wrl", " wrl "])
@@ -137,7 +138,7 @@ def test_out_of_range_face_index_is_refused(sphere: Mesh) -> None:
         export(broken, "obj")
 
 
-@pytest.mark.parametrize("fmt", ["wrl", "wrz", "x3d", "glb", "stl", "ply", "obj"])
+@pytest.mark.parametrize("fmt", ["wrl", "wrz", "x3d", "glb", "stl", "ply", "obj", "3mf"])
 def test_every_writer_is_deterministic(sphere: Mesh, fmt: str) -> None:
     assert export(sphere, fmt, title=TITLE, metadata=METADATA) == export(
         sphere, fmt, title=TITLE, metadata=METADATA

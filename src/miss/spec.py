@@ -43,7 +43,7 @@ SCHEDULES: tuple[str, ...] = ("guaranteed", "paper")
 #: What ``components`` may be: every piece, the largest, or one part per piece.
 COMPONENT_MODES: tuple[str, ...] = ("all", "largest", "split")
 #: Output formats (``miss.export.WRITERS`` holds one writer each).
-FORMATS: tuple[str, ...] = ("wrl", "wrz", "x3d", "glb", "stl", "ply", "obj")
+FORMATS: tuple[str, ...] = ("wrl", "wrz", "x3d", "glb", "stl", "ply", "obj", "3mf")
 #: Most thresholds one job may have (each is a whole surface).
 MAX_LEVELS = 16
 

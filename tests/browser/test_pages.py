@@ -288,7 +288,7 @@ def test_generate_shows_the_model_page_in_the_same_document(
     assert glb["triangles"] > 0
     assert page.evaluate("() => document.body.className") == "owner"
     assert page.title() == f"MISS · {uploaded['name']}"
-    assert page.locator("#downloads a").count() == 7
+    assert page.locator("#downloads a").count() == 8
     assert page.is_visible("#volume-link") and not page.is_visible("#generate")
     page.screenshot(path=artifacts / "viewer-same-document.png")
     views = server.get("/api/audit?action=view")
@@ -346,7 +346,7 @@ def test_viewer_on_a_tablet_turns_by_touch(
         after = canvas.screenshot()
         page.screenshot(path=artifacts / "viewer-tablet-turned.png")
         assert after != before
-        assert page.locator("#downloads a").count() == 7
+        assert page.locator("#downloads a").count() == 8
     finally:
         context.close()
 

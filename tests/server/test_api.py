@@ -271,6 +271,9 @@ def check_download(fmt: str, content: bytes, triangles: int) -> None:
     elif fmt in ("stl", "ply", "obj"):
         mesh = trimesh.load(io.BytesIO(content), file_type=fmt, force="mesh", process=False)
         assert len(mesh.faces) == triangles
+    elif fmt == "3mf":  # a zip of the OPC parts; tests/test_export_3mf.py reads it with lib3mf
+        mesh = trimesh.load(io.BytesIO(content), file_type="3mf", force="mesh", process=False)
+        assert len(mesh.faces) == triangles
     elif fmt == "x3d":
         root = etree.fromstring(content)
         assert root.tag == "X3D" and root.find(".//Shape") is not None
@@ -288,6 +291,7 @@ MIMES = {
     "stl": "model/stl",
     "ply": "model/ply",
     "obj": "model/obj",
+    "3mf": "model/3mf",
 }
 
 

@@ -7,12 +7,16 @@ Bad input ends with one line on stderr naming the problem and the fix, exit code
 from __future__ import annotations
 
 import argparse
+import difflib
 import importlib
+import re
 import sys
 from collections.abc import Sequence
 from typing import NoReturn
 
 EXIT_BAD_INPUT = 2
+# What argparse takes for a negative number rather than an option (``--level -500``).
+_NUMBER = re.compile(r"^-\d+$|^-\d*\.\d+$")
 
 #: Each command: its one-line help, and the module with its ``arguments`` (adds them to
 #: its parser) and ``run`` (does it) functions. A command's module loads only when that
@@ -52,12 +56,62 @@ COMMANDS: dict[str, tuple[str, str, str, str]] = {
 }  # fmt: skip
 
 
+class _Lenient(Exception):
+    """A usage error met while re-reading leniently (:meth:`_Parser._left_over`)."""
+
+
 class _Parser(argparse.ArgumentParser):
-    """argparse that reports a usage error on one line."""
+    """argparse that reports a usage error on one line, an unknown option before anything
+    else (argparse would first complain of a missing argument, or leave the option to the
+    top-level parser, whose hint names ``miss --help`` rather than the command's)."""
+
+    _lenient = False  # class-wide: nested parsers re-read leniently with their parent
+    _words: list[str] = []
+
+    def parse_known_args(  # type: ignore[override]
+        self, args: Sequence[str] | None = None, namespace: argparse.Namespace | None = None
+    ) -> tuple[argparse.Namespace, list[str]]:
+        self._words = list(sys.argv[1:] if args is None else args)
+        namespace, extras = super().parse_known_args(self._words, namespace)
+        if extras and not _Parser._lenient:
+            # Said by the parser that met them, so the hint names the command typed.
+            self.error(self._unknown(extras) or f"unrecognized arguments: {' '.join(extras)}")
+        return namespace, extras
 
     def error(self, message: str) -> NoReturn:
+        if _Parser._lenient:
+            raise _Lenient(message)
+        message = self._unknown(self._left_over()) or message
         # prog is the command as typed so far: "miss", "miss convert", "miss user add"
         self.exit(EXIT_BAD_INPUT, f"miss: {message} (see '{self.prog} --help')\n")
+
+    def _left_over(self) -> list[str]:
+        """The words this parser leaves over when nothing is required; [] if they hold
+        another usage error."""
+        required = [action for action in self._actions if action.required]
+        _Parser._lenient = True
+        try:
+            for action in required:
+                action.required = False
+            return super().parse_known_args(self._words)[1]
+        except _Lenient:
+            return []
+        finally:
+            _Parser._lenient = False
+            for action in required:
+                action.required = True
+
+    def _unknown(self, words: list[str]) -> str | None:
+        """ "unknown option --x" for the first option-like word, with the nearest known one."""
+        for word in words:
+            if word == "--":
+                break
+            if word.startswith("-") and len(word) > 1 and not _NUMBER.match(word):
+                name = word.split("=", 1)[0]
+                known = [o for action in self._actions for o in action.option_strings]
+                near = difflib.get_close_matches(name, known, n=1)
+                return f"unknown option {name}" + (f" (did you mean {near[0]}?)" if near else "")
+        return None
 
 
 def build_parser(only: str | None = None) -> argparse.ArgumentParser:

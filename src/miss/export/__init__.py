@@ -10,7 +10,7 @@ mesh has none. ``metadata`` is provenance (parameters, software version, source 
 as strings; each format stores it where its readers look.
 
 MIME types are the IANA-registered ones (``model/vrml``, ``model/x3d+xml``,
-``model/gltf-binary``, ``model/stl``, ``model/obj``). PLY has no registration;
+``model/gltf-binary``, ``model/stl``, ``model/obj``, ``model/3mf``). PLY has no registration;
 ``model/ply`` follows the registered siblings and is what desktop tools and web
 servers commonly send (``application/ply`` is rarely seen).
 """
@@ -94,6 +94,7 @@ WRITERS: dict[str, Writer] = {
     "stl": Writer("stl", "model/stl", True, "binary STL, for 3-D printing", zips_scenes=True),
     "ply": Writer("ply", "model/ply", True, "binary PLY with normals", zips_scenes=True),
     "obj": Writer("obj", "model/obj", False, "Wavefront OBJ with normals", zips_scenes=True),
+    "3mf": Writer("threemf", "model/3mf", True, "3MF, each part in its colour, for 3-D printing"),
 }  # fmt: skip
 
 FORMATS: list[str] = list(WRITERS)

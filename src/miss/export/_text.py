@@ -23,12 +23,22 @@ import numpy as np
 
 # A lone surrogate is how Python decodes a file name's non-UTF-8 byte (surrogateescape).
 _SURROGATE = re.compile(r"[\ud800-\udfff]")
+# Not even a character reference can write these in XML 1.0; UTF-8 cannot encode a lone
+# surrogate either.
+_NOT_XML = re.compile(r"[\x00-\x08\x0b\x0c\x0e-\x1f\ud800-\udfff\ufffe\uffff]")
 
 
 def utf8(text: str) -> bytes:
     """``text`` in UTF-8, a lone surrogate (a title from an undecodable file name) as U+FFFD
     rather than an error."""
     return _SURROGATE.sub("\ufffd", text).encode("utf-8")
+
+
+def xml_safe(text: object) -> str:
+    """``str(text)`` with U+FFFD for each character XML 1.0 cannot hold (C0 controls but tab
+    and line ends, lone surrogates, U+FFFE, U+FFFF), which a label table or a file name can
+    bring; escaping (``quoteattr``, ``escape``) is still the caller's."""
+    return _NOT_XML.sub("\ufffd", str(text))
 
 
 # Rows per slice: keeps the byte workspace to a few MB whatever the mesh size.

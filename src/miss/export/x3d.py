@@ -14,20 +14,15 @@ label table or a file name can bring, become U+FFFD rather than an unreadable do
 
 from __future__ import annotations
 
-import re
 from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
-from miss.export._text import format_rows
+from miss.export._text import format_rows, xml_safe
 from miss.export.vrml import BONE_RGB, DEFAULT_TITLE, viewpoint
 from miss.geometry import mesh_normals
 from miss.scene import Part, Scene, safe_names
 from miss.types import Mesh
-
-# Not even a character reference can write these in XML 1.0. A lone surrogate is how Python
-# decodes a file name's non-UTF-8 byte; UTF-8 cannot encode it either.
-_NOT_XML = re.compile(r"[\x00-\x08\x0b\x0c\x0e-\x1f\ud800-\udfff\ufffe\uffff]")
 
 # Interchange is the smallest profile with IndexedTriangleSet and Viewpoint.
 _OPENING = (
@@ -67,7 +62,7 @@ def _head(title: str | None, metadata: dict[str, str] | None) -> str:
 
 def _attribute(text: object) -> str:
     """``text`` quoted as an XML attribute value, U+FFFD for what XML cannot hold."""
-    return quoteattr(_NOT_XML.sub("\ufffd", str(text)))
+    return quoteattr(xml_safe(text))
 
 
 def _scene_opening(mesh: Mesh) -> str:
