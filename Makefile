@@ -8,11 +8,11 @@ VALIDATORS := tests/validators
 
 .PHONY: run test lint format bench web-deps validators vrml-reader chromium pacs-servers postgres clean
 
-$(VENV)/.installed: pyproject.toml setup.py src/miss/_nearest.cpp
+$(VENV)/.installed: pyproject.toml setup.py src/miss/measure/_nearest.cpp
 	$(PYTHON) -m venv $(VENV)
 	$(PIP) install -q --upgrade pip
 	$(PIP) install -q -e '.[test]'
-	$(PY) -c "from miss._schroeder import warm_up; warm_up()"  # compile numba kernels once
+	$(PY) -c "from miss.decimate._schroeder import warm_up; warm_up()"  # compile numba kernels once
 	touch $@
 
 $(VENV)/.bench-installed: $(VENV)/.installed

@@ -35,7 +35,7 @@ from paper import machine
 
 import miss
 from miss.demo import phantom
-from miss.deviation import between, distances_to
+from miss.measure._jit import between, distances_to
 from miss.types import Mesh
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -73,7 +73,7 @@ def two_sided(before: Mesh, after: Mesh) -> tuple[float, float]:
 
 def dense(before: Mesh, after: Mesh, samples: int = DENSE_SAMPLES) -> float:
     """Max mm found anywhere: :func:`two_sided`'s points and, between them,
-    :func:`miss.deviation.between`'s (every output edge at each eighth, every input edge's
+    :func:`miss.measure._jit.between`'s (every output edge at each eighth, every input edge's
     midpoint, ``samples`` random points inside each surface, both ways; seed 5)."""
     return max(between(before, after, samples, seed=5), two_sided(before, after)[0])
 

@@ -20,7 +20,7 @@ after one untimed run each that writes the byte-code caches an installed package
 - ``peer_script.py``: the same job composed from nibabel, VTK, meshoptimizer and trimesh.
 
 Afterwards both GLB files are read back (trimesh) and each decimated surface's deviation
-from its own undecimated one is measured with ``miss.deviation`` (same samples and seed).
+from its own undecimated one is measured with ``miss.measure._jit`` (same samples and seed).
 
 Writes ``results/cli.{json,md}``.
 """
@@ -127,7 +127,7 @@ def deviations(volume: Path, level: float) -> dict[str, dict[str, Any]]:
     import peer_script
 
     import miss
-    from miss.deviation import deviation
+    from miss.measure._jit import deviation
 
     references = {
         CONVERT: miss.extract_surface(miss.load_volume(volume), level, normals=False),
@@ -174,7 +174,7 @@ def report(res: dict[str, Any]) -> str:
         f"{res['repeats']} alternating runs; convert: {res['volume']}, level {res['level']:g}, "
         f"quadric to {1 - REDUCE:.0%} of the triangles (the default row: the bound held), "
         "GLB + VRML. Deviation: each GLB read "
-        "back, against its own undecimated surface (miss.deviation, 100 000 samples a side, "
+        "back, against its own undecimated surface (miss.measure._jit, 100 000 samples a side, "
         "seed 0).\n\n" + markdown_table(COLUMNS, rows)
     )
 

@@ -4,7 +4,7 @@
 
 The job is the public API's: ``load_volume`` -> ``extract_surface`` (or ``extract_scene``
 for a label map) -> quadric decimation to 10 % -> GLB and VRML, with ``measure=False``. The
-measurement is :func:`miss.deviation.deviation` on what the job made: 100 000 samples a side
+measurement is :func:`miss.measure._jit.deviation` on what the job made: 100 000 samples a side
 for a surface, ``MEASURE_SAMPLES`` a part for a label map's scene, as the job itself would
 measure. "Old" is the implementation at ``--before`` (default: before issue 14; ``git show
 REF:src/miss/deviation.py`` loaded as a module of its own), run in the same session,
@@ -22,7 +22,7 @@ Share = measurement / (job + measurement): the part of a measured job spent meas
 
 **The default job** (a second table, for the threshold cases): what a user's job does when
 they change nothing, ``decimate`` under the ``guaranteed`` schedule (quadric to 10 % within
-0.002 of the diagonal), whose check (``miss.deviation.bound_check``: every dropped input
+0.002 of the diagonal), whose check (``miss.measure._jit.bound_check``: every dropped input
 vertex, every new edge's and triangle's middle) is the measurement and holds the bound: a
 round out of bound is repeated with the regions locked. Its share is the report's
 ``measure_seconds`` (all rounds' checks) over the whole job's time, that included, warm
@@ -38,7 +38,7 @@ decimates (:func:`miss.decimate.measuring_later`), the rest while the files afte
 are written. Fresh: ``miss convert`` as a user runs it (its ``main`` in a new interpreter
 each, alternately, the whole process timed from outside, its imports and start
 included); a measured one starts its measuring process first thing
-(:mod:`miss.measurer`). "same figures": the fresh runs' max and mean are the warm ones.
+(:mod:`miss.measure.measurer`). "same figures": the fresh runs' max and mean are the warm ones.
 
 Writes ``results/measure.{json,md}``.
 """
@@ -150,7 +150,7 @@ def run_pipeline(path: Path, what: dict[str, Any], measure: bool) -> dict[str, A
 def run_command(path: Path, what: dict[str, Any], measure: bool) -> dict[str, Any]:
     """The same job as a user runs it, ``miss convert`` (its ``main``, in this fresh
     interpreter): a measured one starts its measuring process first thing
-    (:mod:`miss.measurer`), as the command does."""
+    (:mod:`miss.measure.measurer`), as the command does."""
     import contextlib
     import io
     import tempfile
@@ -300,7 +300,7 @@ def peer_rows(names: list[str], repeats: int) -> list[list[Any]]:
     import numpy as np
     from common import median, round_robin
 
-    from miss import measuring
+    from miss.measure import _native as measuring
 
     rows = []
     for case, path, what in threshold_cases(names):
@@ -324,8 +324,8 @@ def peer_searches(a: Any, b: Any, pa: Any, pb: Any) -> dict[str, Callable[[], An
     (the peers that are installed: ``.[bench]``)."""
     import numpy as np
 
-    import miss.deviation as jitted
-    from miss import measuring
+    import miss.measure._jit as jitted
+    from miss.measure import _native as measuring
 
     def native() -> Any:
         d_ab = measuring.distances(pa, measuring.surface_grid(b), ordered=True)
@@ -459,7 +459,7 @@ def child(case: str, impl: str, before: str) -> dict[str, Any]:
         assert old is not None
         deviation = old.deviation
     else:
-        from miss.measuring import deviation  # native here: numba is not loaded
+        from miss.measure._native import deviation  # native here: numba is not loaded
     worst, mean = measure(pairs, deviation)
     return {
         "numba_loaded": "numba" in sys.modules,
@@ -492,7 +492,7 @@ def warm(case: str, repeats: int, old: ModuleType | None) -> dict[str, Any]:
     """Job, new and old measurement round-robin in this process; medians and figures."""
     from common import median, round_robin
 
-    from miss.measuring import deviation, native_deviation
+    from miss.measure._native import deviation, native_deviation
 
     path, what = cases()[case]
     pairs = run_job(path, what)

@@ -229,7 +229,7 @@ def measure_row(
 def decimation_method() -> str:
     """The paper's own decimation when its kernel is importable, else quadric."""
     try:
-        from miss._schroeder import schroeder_decimate  # noqa: F401
+        from miss.decimate._schroeder import schroeder_decimate  # noqa: F401
     except ImportError:
         return "quadric"
     return "schroeder"

@@ -7,7 +7,7 @@ The job: read the volume file (CThead at 256 x 256 x 225, uncompressed NIfTI) ->
 each peer on the same input (medians, round-robin repeats); the fastest peer of each stage
 make up the "best composed peer pipeline", which then runs end to end, interleaved with
 MISS's own job through its public API. Each decimated mesh's deviation from the surface it
-was made from is measured with ``miss.deviation`` (same seed, same 100 000 samples a side).
+was made from is measured with ``miss.measure._jit`` (same seed, same 100 000 samples a side).
 
 VTK runs on its STDThread SMP backend for the peers too (MISS switches it on; a user can
 by ``VTK_SMP_BACKEND_IN_USE``), so flying edges uses both cores on either side.
@@ -48,8 +48,8 @@ from vtk.util import numpy_support  # noqa: E402
 
 import miss  # noqa: E402
 from miss._vtk import to_polydata  # noqa: E402
-from miss.deviation import deviation  # noqa: E402
 from miss.geometry import compact  # noqa: E402
+from miss.measure._jit import deviation  # noqa: E402
 from miss.pipeline import run  # noqa: E402
 from miss.spec import JobSpec  # noqa: E402
 

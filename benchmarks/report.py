@@ -163,7 +163,7 @@ NOTES = """## How to read these numbers
   counted), then resets the kernel's high-water mark (`/proc/self/clear_refs`) and reads
   `VmHWM` after the job, minus the resident size before it. Volume bytes are the int16
   voxels (29.5 MB for 256 x 256 x 225); output is the GLB + VRML bytes.
-- **Error.** `miss.deviation`: 100 000 points on each surface (vertices and area-weighted
+- **Error.** `miss.measure._jit`: 100 000 points on each surface (vertices and area-weighted
   points inside triangles), exact point-to-triangle distance to the other surface, both
   ways. The maximum is dominated by small disconnected fragments (loose bone chips, noise)
   that a decimator collapses away entirely: their points are then tens of mm from any
@@ -174,7 +174,7 @@ NOTES = """## How to read these numbers
   voxels equal to the level make zero-area triangles.
 - **nibabel's read** is lazy (a memory map): its 0.001 s moves the page reads into the
   isosurface stage of the peer pipeline, which is timed as a whole.
-- **MISS schroeder** is the paper's vertex decimation (`miss._schroeder`, another helper's
+- **MISS schroeder** is the paper's vertex decimation (`miss.decimate._schroeder`, another helper's
   kernel), asked for 90 % reduction from error bound 0.0002; it raises the bound in passes.
 """
 

@@ -96,7 +96,7 @@ def _planes(data: np.ndarray, count: int) -> Iterator[np.ndarray]:
 def _variant(name: str, zarr_path: str, block: int) -> dict[str, Any]:
     if name.startswith("spin"):  # the control: no volume, no MISS
         return _spin_at_once(int(name.removeprefix("spin")))
-    import miss.blockwise  # noqa: F401  (the same imports as the baseline)
+    import miss.surface.blockwise  # noqa: F401  (the same imports as the baseline)
     from miss.server.storage import chunked
     from miss.types import Volume
 
@@ -108,7 +108,7 @@ def _variant(name: str, zarr_path: str, block: int) -> dict[str, Any]:
     if name.startswith("single"):
         return _single(array)
     if name == "threads":
-        from miss.blockwise import blockwise_surface
+        from miss.surface.blockwise import blockwise_surface
 
         start = time.perf_counter()
         mesh = blockwise_surface(Volume(array, np.eye(4)), LEVEL, normals=False, block=block,
@@ -149,8 +149,8 @@ def _single(array: Any) -> dict[str, Any]:
 def _blocks(volume: Any, workers: int, block: int) -> dict[str, Any]:
     from distributed import Client
 
-    from miss.blockwise import blockwise_surface
-    from miss.runner import local_cluster
+    from miss.surface.blockwise import blockwise_surface
+    from miss.surface.runner import local_cluster
 
     start = time.perf_counter()
     with local_cluster(workers) as cluster:  # the cluster MISS itself starts
@@ -173,7 +173,7 @@ def _blocks(volume: Any, workers: int, block: int) -> dict[str, Any]:
 
 
 def _forget_chunks() -> None:
-    from miss.blocks import CHUNKS
+    from miss.surface.blocks import CHUNKS
 
     with CHUNKS.lock:
         CHUNKS.chunks.clear()
@@ -228,7 +228,7 @@ def _job(volume: Any, two_stage: bool) -> dict[str, Any]:
 
 
 def _threads(volume: Any, block: int, cluster: bool) -> float:
-    from miss.blockwise import blockwise_surface
+    from miss.surface.blockwise import blockwise_surface
 
     start = time.perf_counter()
     blockwise_surface(volume, LEVEL, normals=False, block=block, cluster=cluster)

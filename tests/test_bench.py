@@ -20,8 +20,8 @@ import paper_tables  # noqa: E402
 from paper import MODES, SAMPLE_RATES, markdown, paper_rows, resample_axis  # noqa: E402
 
 from miss.demo import phantom
-from miss.deviation import deviation, distances_to
 from miss.geometry import boundary_edge_count, enclosed_volume
+from miss.measure._jit import deviation, distances_to
 
 # the package exports the function decimate under the module's name
 decimate_module = importlib.import_module("miss.decimate.quadric")
@@ -190,7 +190,7 @@ def test_distances_are_exact_on_slivers_and_points_off_the_grid(degenerate_mesh:
 
 
 def test_samples_are_the_vertices_and_points_inside_triangles(skull: Mesh) -> None:
-    from miss.deviation import sample_surface
+    from miss.measure._jit import sample_surface
 
     points = sample_surface(skull, 4000, np.random.default_rng(1))
     assert points.shape == (4000, 3) and points.dtype == np.float64
@@ -355,8 +355,8 @@ def test_scale_volume_is_stored_as_miss_stores_one(tmp_path: Path) -> None:
         pytest.skip("CThead is absent: the real scans live in ../shared/datasets")
     import scale
 
-    from miss.blockwise import blockwise_surface
     from miss.server.storage import chunked
+    from miss.surface.blockwise import blockwise_surface
 
     path = scale.make_volume((72, 70, 40), tmp_path)
     voxels, affine, _ = chunked.open_array(path)

@@ -10,7 +10,6 @@ import numpy as np
 import pytest
 from test_blocks import FLOAT32_ROUNDING_MM, assert_same_surface
 
-from miss.blockwise import BlockRun
 from miss.io import load_volume
 from miss.pipeline import run
 from miss.server.storage import chunked
@@ -18,6 +17,7 @@ from miss.spec import JobSpec
 from miss.structures.block_components import blockwise_components
 from miss.structures.build import _component_meshes
 from miss.structures.components import select_components
+from miss.surface.blockwise import BlockRun
 from miss.types import Volume
 
 LEVEL = 1500.0
@@ -144,8 +144,8 @@ def test_a_job_on_a_lazy_volume_keeps_its_largest_piece(cthead, lazy_cthead) -> 
 def test_on_a_dask_cluster_the_same_as_on_threads(tmp_path) -> None:
     """The tasks and their items pickle: both passes on one local cluster, the snake read
     from Zarr by the workers."""
-    from miss.runner import local_cluster
     from miss.structures.block_components import component_surfaces
+    from miss.surface.runner import local_cluster
 
     snake = _snake()
     path = tmp_path / "snake.zarr"

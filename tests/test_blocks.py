@@ -10,9 +10,9 @@ import pytest
 from scipy.spatial import cKDTree
 
 from miss import BadParameter, EmptySurface, Volume, extract_surface
-from miss.blocks import Grid, voxel_boxes
-from miss.blockwise import RANGE_BLOCK, blockwise_surface
 from miss.geometry import boundary_edge_count, enclosed_volume
+from miss.surface.blocks import Grid, voxel_boxes
+from miss.surface.blockwise import RANGE_BLOCK, blockwise_surface
 from miss.types import Mesh
 
 # extract_surface keeps VTK's float32 vertices (index space, then mm); blockwise places
@@ -173,9 +173,9 @@ def test_a_level_outside_the_values_is_refused_after_one_pass(cthead) -> None:
 def test_a_job_on_zarr_goes_block_by_block(cthead, tmp_path) -> None:
     """The job's region stays lazy (read block by block) and its surface is the one the
     in-memory job makes; the progress comes from the blocks."""
-    from miss.blockwise import StridedView
     from miss.pipeline import run
     from miss.spec import JobSpec
+    from miss.surface.blockwise import StridedView
 
     spec = JobSpec.of(level=1500, decimate="none", sample_rate=2, start_slice=10, end_slice=100)
     lazy = zarr_copy(cthead, tmp_path, (64, 64, 32))
@@ -222,10 +222,10 @@ def test_decimated_in_blocks_holds_the_bound_against_the_full_surface(
     """Each block decimated where it was made (borders held), then across the blocks: the
     model, checked exactly against the full-resolution surface (every dropped vertex, every
     new edge's and triangle's middle), is within the bound, and within the report's max."""
-    from miss.blockwise import BlockRun
-    from miss.deviation import bound_check
+    from miss.measure._jit import bound_check
     from miss.pipeline import run
     from miss.spec import JobSpec
+    from miss.surface.blockwise import BlockRun
 
     spec = JobSpec.of(level=1500.0, decimate=method, reduce=0.9, error_bound=0.002)
     got = run(cthead, spec, blocks=BlockRun(block=block), measure=False)
@@ -247,8 +247,8 @@ def test_blocks_hold_their_borders_and_half_the_bound(cthead) -> None:
     meet (the welded mesh is closed: their border vertices were held) and the mesh is
     within half the bound of the full surface, as the stage reports (not without the
     borders held: 30 mm off where blocks left holes)."""
-    from miss.blockwise import BlockDecimation, blockwise_decimated
-    from miss.deviation import bound_check
+    from miss.measure._jit import bound_check
+    from miss.surface.blockwise import BlockDecimation, blockwise_decimated
 
     decimation = BlockDecimation("quadric", 0.9, 0.002)
     welded, stage = blockwise_decimated(cthead, 1500.0, decimation, block=40)
@@ -285,7 +285,7 @@ def test_a_label_map_on_disk_makes_the_model_it_makes_in_memory(tmp_path) -> Non
 def _random_block(rng: np.random.Generator, width: int):
     """A block of random vertices whose face vertices have few edge ids (so they repeat
     across blocks, and once in a while within the block); some blocks are empty."""
-    from miss.blocks import BlockMesh
+    from miss.surface.blocks import BlockMesh
 
     n = int(rng.integers(0, 40)) if rng.random() < 0.9 else 0
     shared = rng.choice(n, size=int(rng.integers(0, n + 1)), replace=False)
@@ -331,7 +331,7 @@ def test_blocks_welded_as_they_come_equal_a_weld_at_the_end() -> None:
     from hypothesis import given, settings
     from hypothesis import strategies as st
 
-    from miss.blocks import Welder
+    from miss.surface.blocks import Welder
 
     @settings(max_examples=80, deadline=None)
     @given(st.integers(0, 2**32 - 1), st.integers(1, 30), st.sampled_from([0, 3]))

@@ -20,8 +20,8 @@ import pytest
 from test_blocks import assert_same_surface, zarr_copy
 
 from miss import Volume
-from miss.blockwise import blockwise_surface
-from miss.runner import SchedulerUnreachable
+from miss.surface.blockwise import blockwise_surface
+from miss.surface.runner import SchedulerUnreachable
 
 DASK = Path(sys.executable).with_name("dask")
 
@@ -131,7 +131,7 @@ def test_blocks_decimated_on_the_workers_equal_the_local_run(cluster, cthead, tm
     across the blocks starts from the same mesh, so the model is the same every run."""
     from distributed import Client, get_task_stream
 
-    from miss.blockwise import BlockDecimation, blockwise_decimated
+    from miss.surface.blockwise import BlockDecimation, blockwise_decimated
 
     running, workers = cluster
     lazy = zarr_copy(cthead, tmp_path, (64, 64, 32))
@@ -157,7 +157,7 @@ def test_each_worker_runs_its_own_run_of_neighbouring_blocks(cluster) -> None:
     """Neighbouring blocks share the chunks on their seam, which a worker decompresses once
     for both when it makes both: each worker gets a run of consecutive blocks (the far
     end of the other's run once its own is done), not every other one."""
-    from miss.runner import run_blocks
+    from miss.surface.runner import run_blocks
 
     running, workers = cluster
 
@@ -184,7 +184,7 @@ def test_workers_on_this_machine_hand_meshes_over_through_shared_memory(cluster)
 
     import numpy as np
 
-    from miss.runner import run_blocks
+    from miss.surface.runner import run_blocks
 
     running, _ = cluster
     folders_before = set(Path("/dev/shm").glob("miss-blocks-*"))
@@ -220,7 +220,7 @@ def test_results_travel_as_they_are_where_the_hand_over_folder_is_not_seen(
     the results go back over the socket, as before."""
     import numpy as np
 
-    from miss import runner
+    from miss.surface import runner
 
     results = [np.arange(10_000.0)]
     assert runner._left(results, str(tmp_path / "elsewhere")) is results

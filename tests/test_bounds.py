@@ -3,14 +3,14 @@
 The bound (a fraction of the diagonal) is the most the output may deviate from the input
 surface, two-sided, in mm, measured at the points the contract names: every input vertex
 to the output surface, every output vertex, edge midpoint and triangle centroid to the
-input surface. The decimation checks itself (``miss.deviation.bound_check``, on the new
+input surface. The decimation checks itself (``miss.measure._jit.bound_check``, on the new
 edges and triangles only; a schroeder model, within its bound by construction, without
 the triangles' centroids); these tests measure all those points again, on every edge and
 triangle of the output, with nothing of the check's bookkeeping.
 
 Between those points two surfaces can part further (a new edge along a wavy input surface,
 a valley of the output under an input triangle). Schroeder's accumulated error is a bound
-everywhere (``miss._schroeder._overlay_gap``), so its models are also measured densely
+everywhere (``miss.decimate._schroeder._overlay_gap``), so its models are also measured densely
 here (every output edge at each eighth, random points inside both surfaces); a quadric
 model (the paper's schedule only) is held at the checked points alone.
 """
@@ -24,7 +24,7 @@ from hypothesis import strategies as st
 from test_schroeder import icosphere  # the same sphere as the kernel's tests
 
 from miss import Mesh, decimate
-from miss.deviation import between, distances_to
+from miss.measure._jit import between, distances_to
 
 BOUNDS = (0.0001, 0.0002, 0.0005, 0.001, 0.002, 0.01)
 
@@ -82,7 +82,7 @@ def independent_max(before: Mesh, after: Mesh) -> float:
 
 
 def dense_max(before: Mesh, after: Mesh, samples: int = 200_000) -> float:
-    """Max distance (mm) between the contract's points (:func:`miss.deviation.between`:
+    """Max distance (mm) between the contract's points (:func:`miss.measure._jit.between`:
     every output edge at each eighth, every input edge's midpoint, random points inside
     both surfaces' triangles, both ways)."""
     return between(before, after, samples, seed=1)
@@ -188,7 +188,7 @@ def test_a_run_far_out_is_screened_and_a_guaranteed_bound_is_schroeders() -> Non
     # its dropped vertices; under a guaranteed bound quadric does not run: schroeder makes
     # the model in one run, held everywhere
     from miss.decimate import _strays
-    from miss.deviation import bound_check
+    from miss.measure._jit import bound_check
 
     mesh = scene("sphere", 3, 0.2, 0)
     top = mesh.vertices[mesh.faces].mean(axis=1)[:, 2] > 0
@@ -214,9 +214,9 @@ def test_vertices_out_of_bound_are_put_back_on_the_surface(seed: int, noise: flo
     from hypothesis import assume
     from test_schroeder import boundary_edges, euler_characteristic
 
-    from miss._schroeder import schroeder_decimate
     from miss.decimate import _put_back
-    from miss.deviation import bound_check
+    from miss.decimate._schroeder import schroeder_decimate
+    from miss.measure._jit import bound_check
 
     mesh = scene("sphere", seed, noise, 0)
     bound = 0.002 * mesh.diagonal()
@@ -251,7 +251,7 @@ def test_a_vertex_beside_an_edge_splits_the_edge() -> None:
     # its foot lies on the diagonal both triangles share: no triangle holds it for a split
     # in three, so the edge is split and its two triangles become four that meet at it
     from miss.decimate import _put_back
-    from miss.deviation import bound_check
+    from miss.measure._jit import bound_check
 
     mesh, square = _tent((5.0, 5.0, 1.0))
     check = bound_check(mesh, square)
@@ -295,7 +295,7 @@ def test_a_schroeder_model_is_checked_at_the_contracts_points(monkeypatch) -> No
     contract's points (every input vertex, every new edge's midpoint), not the new
     triangles' centroids too; a quadric model (the paper's schedule) is held only where it
     is measured, so its check keeps them. The max is the same either way here."""
-    import miss.deviation as deviation
+    import miss.measure._jit as deviation
 
     asked: list[bool] = []
     real = deviation.bound_check

@@ -7,8 +7,8 @@ import pytest
 
 from miss import BadParameter, Mesh, decimate, extract_surface, load_volume
 from miss.demo import phantom
-from miss.deviation import distances_to
 from miss.geometry import boundary_edge_count, enclosed_volume
+from miss.measure._jit import distances_to
 
 
 @pytest.fixture(scope="module")

@@ -12,7 +12,7 @@ from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from miss import Mesh
-from miss.deviation import (
+from miss.measure._jit import (
     _sample,
     deviation,
     distances_to,
@@ -155,7 +155,7 @@ def test_bound_check_is_the_brute_force_figures(seed, keep):
     # and triangles to the input, each new edge once; kept triangles and edges are not
     from itertools import combinations
 
-    from miss.deviation import bound_check
+    from miss.measure._jit import bound_check
 
     before = pieces_mesh(seed, 3, 20.0, 0.0, np.float64)
     rng = np.random.default_rng(seed)

@@ -1,4 +1,4 @@
-"""The numba kernels (miss._jit, used once numba is loaded) and their numpy versions (used
+"""The numba kernels (miss.decimate._quadric, used once numba is loaded) and their numpy versions (used
 by a process that has not loaded it) give the same results, bit for bit."""
 
 from __future__ import annotations
@@ -94,7 +94,7 @@ NUMBA_START = """
 import sys
 import numpy as np
 from numba import njit
-from miss.deviation import deviation
+from miss.measure._jit import deviation
 from miss.demo import phantom
 from miss.surface import extract_surface
 

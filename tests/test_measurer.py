@@ -1,4 +1,4 @@
-"""A fresh process measures in a second process (:mod:`miss.measurer`): numba starts
+"""A fresh process measures in a second process (:mod:`miss.measure.measurer`): numba starts
 there while this one works, the figures are the same to the bit, and anything amiss with
 that process leaves the measurement to this one."""
 
@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 from miss.decimate import decimate, measured
-from miss.deviation import deviation
-from miss.measurer import Measurer, MeasurerGone
+from miss.measure._jit import deviation
+from miss.measure.measurer import Measurer, MeasurerGone
 from miss.surface import extract_surface
 from miss.types import Mesh, Volume
 

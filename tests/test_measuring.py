@@ -1,4 +1,4 @@
-"""The native measurement (:mod:`miss.measuring`) is numba's, to the bit: the same samples,
+"""The native measurement (:mod:`miss.measure._native`) is numba's, to the bit: the same samples,
 the same distances, the same figures, on random surfaces with degenerate triangles and on a
 real scan's; and ``miss convert --measure`` measures with it, no numba anywhere."""
 
@@ -15,15 +15,15 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from test_deviation import brute, pieces_mesh, probes
 
-from miss import deviation as jitted
-from miss import measuring
+from miss.measure import _jit as jitted
+from miss.measure import _native as measuring
 from miss.types import Mesh
 
 
 def test_the_native_kernels_are_built() -> None:
     """``make`` builds them (setup.py); the extension is optional, so a build that failed
     would otherwise pass unseen, every measurement falling back to numba's."""
-    assert measuring.native(), "src/miss/_nearest.cpp was not built: run `make test` again"
+    assert measuring.native(), "src/miss/measure/_nearest.cpp was not built: run `make test` again"
 
 
 @settings(max_examples=40, deadline=None)
@@ -111,7 +111,7 @@ import json, sys
 from miss.cli import main
 main(["convert", {path!r}, "--level", "300", "--schedule", "paper", "--reduce", "0.9",
       "--measure", "--json", "-o", {out!r}])
-from miss import measurer
+from miss.measure import measurer
 print(json.dumps({{"numba": "numba" in sys.modules, "children": len(measurer._SHARED)}}))
 """
 

@@ -8,9 +8,10 @@ from dataclasses import replace
 
 import pytest
 
-from miss import BadParameter, measurer
+from miss import BadParameter
 from miss.demo import phantom
-from miss.measurer import RemoteSide
+from miss.measure import measurer
+from miss.measure.measurer import RemoteSide
 from miss.pipeline import run
 from miss.spec import JobSpec
 from miss.structures import build
@@ -71,7 +72,7 @@ def test_a_job_measured_after_starts_the_measurement_while_it_decimates(monkeypa
         assert again.reports[0].mean_error_mm == alone.reports[0].mean_error_mm
     # in a process without numba yet (a fresh `miss convert --measure`) the native kernels
     # make it on the thread; where they were not built, it goes to the measuring process
-    # (miss.measurer), which measures it: the same figures either way
+    # (miss.measure.measurer), which measures it: the same figures either way
     with monkeypatch.context() as m:
         m.delitem(sys.modules, "numba")
         native = build_scene(phantom(), spec, measure=False, measure_later=True)

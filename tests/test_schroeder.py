@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from miss._schroeder import schroeder_decimate
+from miss.decimate._schroeder import schroeder_decimate
 from miss.geometry import boundary_edge_count, enclosed_volume, surface_area
 
 # ----------------------------------------------------------------------------- test meshes
@@ -357,7 +357,7 @@ def bumpy_sphere(seed: int, level: int = 5, roughness: float = 0.05):
 def test_slabs_share_no_neighbour(count):
     # what lets slabs be decimated side by side: a slab's vertices have neighbours in their
     # own slab only (its own vertices or the guard's), so no two slabs share a neighbour
-    from miss._schroeder import _domains, _slabs
+    from miss.decimate._schroeder import _domains, _slabs
 
     vertices, faces = bumpy_sphere(0)
     slab = _slabs(vertices, faces, count)
@@ -384,9 +384,9 @@ def test_slabs_share_no_neighbour(count):
 def test_slabs_give_the_same_output_on_any_number_of_cores(monkeypatch):
     # the slabs are set by the mesh, not the machine: one core or many, the same triangles;
     # and the run keeps what the serial run keeps (closed, oriented, within the bound)
-    import miss._schroeder as kernel
+    from miss.decimate import _schroeder as kernel
     from miss import Mesh
-    from miss.deviation import bound_check
+    from miss.measure._jit import bound_check
 
     vertices, faces = bumpy_sphere(1)
     serial, _ = schroeder_decimate(vertices, faces, reduce=0.9, error_bound=0.002, max_error=0.02)
@@ -420,7 +420,7 @@ def test_slabs_give_the_same_output_on_any_number_of_cores(monkeypatch):
 def test_random_bumpy_spheres_in_slabs_stay_closed_and_oriented(
     seed, roughness, reduce, bound, count
 ):
-    import miss._schroeder as kernel
+    from miss.decimate import _schroeder as kernel
 
     vertices, faces = bumpy_sphere(seed, level=4, roughness=roughness)
     with pytest.MonkeyPatch.context() as patch:

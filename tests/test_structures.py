@@ -24,10 +24,10 @@ from vtk.util import numpy_support
 import miss
 from miss._vtk import to_polydata
 from miss.demo import phantom
-from miss.deviation import distances_to
 from miss.errors import BadParameter, EmptySurface
 from miss.export import WRITERS
 from miss.geometry import boundary_edge_count, face_normals
+from miss.measure._jit import distances_to
 from miss.pipeline import run
 from miss.scene import Part, Scene, linear_rgb
 from miss.spec import JobSpec

@@ -27,15 +27,15 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from miss import measurer
-from miss.blockwise import BlockRun
 from miss.decimate import DecimationReport
 from miss.errors import BadParameter, EmptySurface
 from miss.export import export
+from miss.measure import measurer
 from miss.scene import Scene
 from miss.spec import JobSpec
 from miss.structures.build import SceneBuild, build_scene, combined_report
 from miss.structures.labels import TableSpec
+from miss.surface.blockwise import BlockRun
 from miss.types import Mesh, Volume
 
 Progress = Callable[[str, float], None]

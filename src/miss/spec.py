@@ -239,7 +239,7 @@ class Region:
         if isinstance(volume.data, np.ndarray):
             data = np.asfortranarray(volume.data[picked])
         else:  # on disk (zarr): a lazy view, read block by block by the surface stage
-            from miss.blockwise import StridedView
+            from miss.surface.blockwise import StridedView
 
             data = StridedView(volume.data, box, self.steps)
         return Volume(data, volume.affine @ shift, volume.meta, volume.patient)

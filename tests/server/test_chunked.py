@@ -17,11 +17,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from miss.blocks import ChunkCache
 from miss.errors import DiskFull, UnreadableVolume
 from miss.server import imaging
 from miss.server.storage import chunked
 from miss.server.summary import Summary
+from miss.surface.blocks import ChunkCache
 
 AFFINE = np.array([[-0.8, 0, 0, 100.5], [0, -0.7, 0.1, -20], [0, 0, 2.5, 33], [0, 0, 0, 1]])
 

@@ -56,8 +56,8 @@ def _blocks(args: argparse.Namespace) -> Any:
     """The BlockRun the options ask for, or None (the job decides from its volume)."""
     import os
 
-    from miss.blockwise import BlockRun
-    from miss.runner import SCHEDULER_ENV
+    from miss.surface.blockwise import BlockRun
+    from miss.surface.runner import SCHEDULER_ENV
 
     if args.chunks is None and args.scheduler is None and not os.environ.get(SCHEDULER_ENV):
         return None
@@ -110,9 +110,9 @@ def cmd_convert(args: argparse.Namespace) -> int:
     ):
         form["labels"] = "all"  # a label map's labels; a scan is refused, naming --level
     spec = JobSpec.from_dict({**form, "formats": list(paths)}, source_of(args))
-    from miss.measurer import prestart
+    from miss.measure.measurer import prestart
 
-    prestart(spec, args.measure)  # before VTK loads here: see miss.measurer
+    prestart(spec, args.measure)  # before VTK loads here: see miss.measure.measurer
     from miss.pipeline import Files, execute
 
     result, written = execute(

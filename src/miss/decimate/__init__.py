@@ -4,7 +4,7 @@ Methods
 -------
 ``schroeder``
     The paper's vertex decimation (Schroeder, Zarge & Lorensen 1992), ours, in
-    :mod:`miss._schroeder`. Vertices are never moved and none are created.
+    :mod:`miss.decimate._schroeder`. Vertices are never moved and none are created.
 ``quadric``
     meshoptimizer's edge-collapse simplifier with quadric error metrics: the fast
     path and the web default. It also keeps a subset of the original vertices.
@@ -24,10 +24,10 @@ Schedules
     (``finished_with`` says so): its triangles carry the error already spent on them
     (accumulated error), and each deletion's share is a bound on the distance between the
     triangles it removes and those that replace it, everywhere on them
-    (:func:`miss._schroeder._overlay_gap`), so the output is within the bound everywhere,
+    (:func:`miss.decimate._schroeder._overlay_gap`), so the output is within the bound everywhere,
     not only where it is measured. quadric's target error is an estimate no check at
     points can turn into a bound. Every run is also checked
-    (:func:`miss.deviation.bound_check`: every dropped input vertex to the output, every
+    (:func:`miss.measure._jit.bound_check`: every dropped input vertex to the output, every
     new output edge's middle to the input, and for quadric's models every new triangle's
     centroid too); a few input vertices out of
     bound are put back (:func:`_put_back`) and the result checked again; otherwise the
@@ -57,15 +57,15 @@ if TYPE_CHECKING:
 
     import numpy as np
 
-    from miss.deviation import BoundCheck
-    from miss.measurer import RemoteSide
-    from miss.measuring import Side
+    from miss.measure._jit import BoundCheck
+    from miss.measure._native import Side
+    from miss.measure.measurer import RemoteSide
     from miss.types import Mesh
 
 Method = Literal["none", "quadric", "schroeder"]
 Schedule = Literal["guaranteed", "paper"]
 #: Points sampled on each surface by :func:`measured` (a decimation's own check samples
-#: nothing: see :func:`miss.deviation.bound_check`).
+#: nothing: see :func:`miss.measure._jit.bound_check`).
 SAMPLES = 100_000
 #: Runs a decimation gets to come within its bound (the last one keeps the input).
 ROUNDS = 8
@@ -183,7 +183,7 @@ def decimate(
     max_error : float
         ``paper`` only: the bound is never raised past this fraction of the diagonal.
     measure : bool
-        Check the result (see :func:`miss.deviation.bound_check`) and hold it within the
+        Check the result (see :func:`miss.measure._jit.bound_check`) and hold it within the
         bound; False leaves it unchecked (``bound_held`` None), for quick previews only.
     samples : int
         Unused by the check (kept for callers that pass it; :func:`measured` samples).
@@ -296,7 +296,7 @@ def _runner(
         return run_quadric
     if schedule == "guaranteed":
         # Whatever the method asked for: schroeder's accumulated error is a bound (see
-        # miss._schroeder._overlay_gap), quadric's error an estimate that a check at points
+        # miss.decimate._schroeder._overlay_gap), quadric's error an estimate that a check at points
         # cannot make one (it held none of benchmarks/bounds.py's 15 bounds even there).
         # A rising bound spends the budget on the cheapest deletions first: b/8, b/4, b/2,
         # b; the run is held to b, the bound asked for, wherever the target stopped it.
@@ -336,7 +336,7 @@ def _held(
     start again, from ``fixed``, when another method takes over); the last round keeps the
     input as it is (0 mm). Returns (faces, bound mm, (check, seconds of checking), rounds
     run, the method that made the faces)."""
-    from miss.deviation import surface_adjacency, surface_grid
+    from miss.measure._jit import surface_adjacency, surface_grid
 
     def build() -> tuple[tuple, tuple[np.ndarray, np.ndarray]]:
         # the input's cells, searched in every round's check, and its triangles around each
@@ -371,7 +371,7 @@ def _held(
 
 def measuring_later(before: Mesh, samples: int, pool: ThreadPoolExecutor) -> Future[Side]:
     """Start the half of :func:`measured` that needs only ``before`` (its sample points and
-    grid, :func:`miss.measuring.side_of`) on ``pool``'s thread at the lowest priority, for
+    grid, :func:`miss.measure._native.side_of`) on ``pool``'s thread at the lowest priority, for
     a job that decimates ``before`` unmeasured and measures the result after: it is made
     meanwhile, on the core a quadric decimation (one thread) leaves idle."""
 
@@ -383,7 +383,7 @@ def measuring_later(before: Mesh, samples: int, pool: ThreadPoolExecutor) -> Fut
 
     def make() -> Side:
         _idle_priority()
-        from miss.measuring import side_of
+        from miss.measure._native import side_of
 
         return side_of(before, samples)
 
@@ -411,7 +411,7 @@ def _rounds(
     """:func:`_held`'s rounds; ``inputs()``: the input's grid and adjacency."""
     import numpy as np
 
-    from miss.deviation import bound_check
+    from miss.measure._jit import bound_check
 
     fixed = np.zeros(mesh.n_vertices, dtype=bool) if fixed is None else fixed.astype(bool)
     locked = fixed.copy()
@@ -470,7 +470,7 @@ def _put_back(
     512 x 600) had one, its foot beside an edge: put back, schroeder's run (1 s) is saved."""
     import numpy as np
 
-    from miss.deviation import nearest_face
+    from miss.measure._jit import nearest_face
 
     stray = np.flatnonzero(np.nan_to_num(check.to_output) > limit_mm)
     if (
@@ -545,7 +545,7 @@ def _strays(mesh: Mesh, faces: np.ndarray, limit_mm: float) -> bool:
     spread over them) lie farther than ``limit_mm`` from it: a run that far out is known out
     of bound without the whole check (a quadric run several times over the bound, as on
     CThead, strays at most of them)."""
-    from miss.deviation import _dropped, distances_to
+    from miss.measure._jit import _dropped, distances_to
     from miss.types import Mesh
 
     _, dropped = _dropped(mesh.faces, faces, mesh.n_vertices)
@@ -588,12 +588,12 @@ def measured(
     ``decimate(..., measure=False)`` now, this later. ``side``: :func:`measuring_later`'s
     for ``before`` and ``samples``, started before the decimation; used if it is done (and
     did not fail), else the measurement makes that half itself (same figures either way);
-    or a :class:`miss.measurer.RemoteSide`: the measuring process measures (made here if
+    or a :class:`miss.measure.measurer.RemoteSide`: the measuring process measures (made here if
     it cannot).
     """
     if report.max_error_mm is not None:
         return report
-    from miss.measurer import MeasurerGone, RemoteSide
+    from miss.measure.measurer import MeasurerGone, RemoteSide
 
     start = time.perf_counter()
     figures = None
@@ -602,7 +602,7 @@ def measured(
             figures = side.deviation(after)
         side = None
     if figures is None:
-        from miss.measuring import deviation  # native, or numba's where it is loaded
+        from miss.measure._native import deviation  # native, or numba's where it is loaded
 
         # a side that failed (e.g. out of memory on its thread) is made again here, as one
         # not done

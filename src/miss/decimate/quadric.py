@@ -97,9 +97,9 @@ def _partition(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Faces (F, 3) bucketed by the slab (between ``cuts``) of their centroid's ``coord``:
     flat uint32 indices slab after slab (each slab's faces in their order), and the slabs'
-    first faces (len(cuts) + 2). numba's loop (:mod:`miss._jit`) when numba is loaded."""
+    first faces (len(cuts) + 2). numba's loop (:mod:`miss.decimate._quadric`) when numba is loaded."""
     if "numba" in sys.modules:
-        from miss._jit import partition
+        from miss.decimate._quadric import partition
 
         return partition(faces, coord, cuts)
     centre = coord.take(faces[:, 0]) + coord.take(faces[:, 1]) + coord.take(faces[:, 2])
@@ -117,10 +117,10 @@ def _roots(faces: np.ndarray, n_vertices: int) -> np.ndarray:
     the smallest of them, then paths are halved until every vertex points at a root; a few
     rounds, each on the triangles whose corners still have different roots (int32 and
     column by column, so the work arrays stay a fraction of the mesh). numba's loop
-    (:mod:`miss._jit`) when numba is loaded already.
+    (:mod:`miss.decimate._quadric`) when numba is loaded already.
     """
     if "numba" in sys.modules:
-        from miss._jit import roots
+        from miss.decimate._quadric import roots
 
         return roots(faces, n_vertices)
     corners = [np.ascontiguousarray(faces[:, k], dtype=np.int32) for k in range(3)]

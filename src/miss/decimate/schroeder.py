@@ -1,5 +1,5 @@
 """The paper's vertex decimation (Schroeder, Zarge & Lorensen 1992): the numba kernels
-live in :mod:`miss._schroeder`; this is how :func:`miss.decimate.decimate` calls them."""
+live in :mod:`miss.decimate._schroeder`; this is how :func:`miss.decimate.decimate` calls them."""
 
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ def schroeder(
 ) -> tuple[np.ndarray, float]:
     """Face indices kept, and the last bound used (mm). Triangles carry the error spent
     on them (accumulated error); ``locked`` (N,) bool: vertices that stay."""
-    from miss._schroeder import schroeder_decimate  # numba: compiled on first use
+    from miss.decimate._schroeder import schroeder_decimate  # numba: compiled on first use
 
     faces, info = schroeder_decimate(
         mesh.vertices.astype(np.float64),

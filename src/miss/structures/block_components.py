@@ -3,8 +3,8 @@
 The same components, the same choice and the same surfaces as the in-memory path
 (:func:`miss.structures.components.select_components`, then one surface per group with
 the other pieces blanked), for a volume read lazily (a ``zarr.Array``, a
-:class:`~miss.blockwise.StridedView` of one). Three passes of independent tasks
-(:func:`miss.runner.run_blocks`, threads or Dask; a :class:`~miss.blocks.Grid` travels,
+:class:`~miss.surface.blockwise.StridedView` of one). Three passes of independent tasks
+(:func:`miss.surface.runner.run_blocks`, threads or Dask; a :class:`~miss.surface.blocks.Grid` travels,
 never the voxels):
 
 1. **Labels.** The padded grid's points are cut into *owned* boxes that tile it (the
@@ -25,7 +25,7 @@ never the voxels):
    components not in the group (to the data type's minimum) and everything outside the
    group's box grown by one voxel (the in-memory path's crop), and runs flying edges;
    blocks outside that box are not run. Welding is exact as for any blockwise surface
-   (:mod:`miss.blocks`).
+   (:mod:`miss.surface.blocks`).
 
 Integer data gives the in-memory path's triangles and vertices (to float32 rounding).
 Float data is labelled as float32, as its surfaces are read; where a piece meets the
@@ -43,12 +43,19 @@ from typing import Any
 
 import numpy as np
 
-from miss.blocks import Box, Grid, Welder, read_points
-from miss.blockwise import BlockShape, Progress, _counted, _source, _surface_task, block_edges
 from miss.errors import EmptySurface
-from miss.runner import CLUSTER_VOXELS, run_blocks, scheduler_address
 from miss.structures.components import _CONNECTIVITY, Components, choose_components
 from miss.surface import _contour_level, _pad_value, check_level
+from miss.surface.blocks import Box, Grid, Welder, read_points
+from miss.surface.blockwise import (
+    BlockShape,
+    Progress,
+    _counted,
+    _source,
+    _surface_task,
+    block_edges,
+)
+from miss.surface.runner import CLUSTER_VOXELS, run_blocks, scheduler_address
 from miss.types import Mesh, Volume
 
 #: Face planes a labelled box keeps on its low and high side of each axis: a surface block
@@ -123,7 +130,7 @@ class _Labels:
 
 def owned_boxes(padded: Sequence[int], edges: Sequence[int]) -> list[Box]:
     """Boxes of points that tile the padded grid: the surface blocks'
-    (:func:`miss.blocks.cell_blocks`) without their last plane, save the last box's.
+    (:func:`miss.surface.blocks.cell_blocks`) without their last plane, save the last box's.
     Edges under 2 become 2, so that every box holds the planes its neighbours read."""
     ranges = []
     for n, e in zip(padded, edges, strict=True):
@@ -216,7 +223,7 @@ def blockwise_components(
 
     ``volume.data`` is any 3-D array that slices like numpy (read a box at a time);
     ``block`` the block edge in cells (int or (x, y, z), at least 2), ``scheduler`` and
-    ``cluster`` as for :func:`miss.blockwise.blockwise_surface`; ``progress("surface",
+    ``cluster`` as for :func:`miss.surface.blockwise.blockwise_surface`; ``progress("surface",
     fraction)`` counts the boxes labelled up to :data:`LABELS_SHARE`.
     """
     dtype = np.dtype(volume.data.dtype)
@@ -246,7 +253,7 @@ def blockwise_components(
 
 
 def _runner(scheduler: str | None, cluster: bool | None, shape: Sequence[int]) -> Any:
-    """:func:`miss.runner.run_blocks` set up as :func:`miss.blockwise.blockwise_surface`
+    """:func:`miss.surface.runner.run_blocks` set up as :func:`miss.surface.blockwise.blockwise_surface`
     sets it up."""
     big = cluster if cluster is not None else int(np.prod(shape)) >= CLUSTER_VOXELS
     return partial(run_blocks, scheduler=scheduler_address(scheduler), cluster=big)

@@ -25,18 +25,10 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from miss import measurer
-from miss.blockwise import (
-    BlockDecimation,
-    BlockRun,
-    decimated_surface_of,
-    in_blocks,
-    in_memory,
-    surface_of,
-)
 from miss.decimate import SAMPLES, DecimationReport, decimate, measured, measuring_later
 from miss.errors import BadParameter, EmptySurface
-from miss.measuring import native
+from miss.measure import measurer
+from miss.measure._native import native
 from miss.scene import DEFAULT_SCENE_TITLE, Part, Scene
 from miss.smooth import VOLUME_TOLERANCE, smooth_mesh
 from miss.spec import Decimation, JobSpec, Structure
@@ -60,11 +52,19 @@ from miss.structures.labels import (
     resolve_table,
 )
 from miss.surface import extract_surface
+from miss.surface.blockwise import (
+    BlockDecimation,
+    BlockRun,
+    decimated_surface_of,
+    in_blocks,
+    in_memory,
+    surface_of,
+)
 from miss.types import Mesh, Volume
 
 if TYPE_CHECKING:
-    from miss.measurer import RemoteSide
-    from miss.measuring import Side
+    from miss.measure._native import Side
+    from miss.measure.measurer import RemoteSide
 
 #: Windowed-sinc iterations when none are asked for: label maps come out of surface
 #: nets as voxel blocks, threshold surfaces are already interpolated.
@@ -77,7 +77,7 @@ TRANSLUCENT = 0.35
 class Source:
     """A part's surface before decimation, the samples a side its measurement takes, and
     (when it was started) that measurement's half on this surface, being made meanwhile
-    (:func:`miss.decimate.measuring_later`, or in :mod:`miss.measurer`'s process)."""
+    (:func:`miss.decimate.measuring_later`, or in :mod:`miss.measure.measurer`'s process)."""
 
     mesh: Mesh
     samples: int
@@ -124,13 +124,13 @@ class _Ahead:
     """The measurements' halves a build starts while it decimates, for its first
     :data:`SIDES_AHEAD` parts (the largest, as parts come).
 
-    In a process that has the native kernels (:mod:`miss.measuring`) or numba loaded
+    In a process that has the native kernels (:mod:`miss.measure._native`) or numba loaded
     already (a server's worker, warmed up), on one thread for the build, one after another
     (:func:`miss.decimate.measuring_later`). Without the native kernels, in a fresh one
     (``miss convert --measure``) a thread would import numba while the
     decimation runs, and the decimation's own loops, which take numba once it is there,
     would wait for that import (measured: the job as a whole was no sooner, 2.80 against
-    2.78 s); there the parts go to a measuring process (:mod:`miss.measurer`), which
+    2.78 s); there the parts go to a measuring process (:mod:`miss.measure.measurer`), which
     starts numba on the other core and measures them, or, where none starts, are measured
     after the GLB, as before."""
 
@@ -233,7 +233,7 @@ def build_scene(
 ) -> SceneBuild:
     """The scene ``spec`` asks for, with the per-part reports and timings: every
     threshold part of the region, then the label parts (built together). ``blocks``
-    runs the threshold surfaces block by block (:mod:`miss.blockwise`).
+    runs the threshold surfaces block by block (:mod:`miss.surface.blockwise`).
     ``measure_later`` (with ``measure`` False): the caller measures the build after
     (:meth:`SceneBuild.measured`), so the half of a measurement that needs only a part's
     surface before decimation is started as soon as that surface exists."""
@@ -361,7 +361,7 @@ def _decimated_in_blocks(
     notes: list[str],
 ) -> tuple[Mesh, DecimationReport, Mesh]:
     """A level's surface decimated in two stages: each block where it was made, its border
-    held, to half the bound (:func:`miss.blockwise.blockwise_decimated`); then the welded
+    held, to half the bound (:func:`miss.surface.blockwise.blockwise_decimated`); then the welded
     mesh, across the blocks, to what the blocks left of the bound and of the triangles.
 
     The report's maximum is the two stages' measured maxima added: the output lies within
@@ -406,7 +406,7 @@ def _component_meshes(
     blocks: BlockRun | None = None,
 ) -> list[Mesh]:
     """Surfaces of the chosen voxel components above the level, largest first; block by
-    block when :func:`~miss.blockwise.in_blocks` (the same pieces and surfaces)."""
+    block when :func:`~miss.surface.blockwise.in_blocks` (the same pieces and surfaces)."""
     assert item.level is not None
     voxel_mm3 = abs(float(np.linalg.det(volume.affine[:3, :3])))
     min_voxels = item.min_size_mm3 / voxel_mm3

@@ -47,7 +47,7 @@ import numpy as np
 from miss.errors import DiskFull, UnreadableVolume, is_disk_full
 
 if TYPE_CHECKING:
-    from miss.blocks import ChunkCache
+    from miss.surface.blocks import ChunkCache
 
 #: Chunk shape, (X, Y, Z) voxels (see the module docstring for the measurements).
 CHUNK = (64, 64, 64)
@@ -144,7 +144,7 @@ class Voxels:
     """A stored volume's (X, Y, Z) voxels, read lazily: numpy basic indexing (integers,
     slices with steps of 1 or more) reads and decompresses only the chunks the selection
     crosses and returns a numpy array; ``np.asarray`` reads everything. ``stored`` is
-    the ``zarr.Array`` itself, (Z, Y, X). ``cache`` (a :class:`miss.blocks.ChunkCache`,
+    the ``zarr.Array`` itself, (Z, Y, X). ``cache`` (a :class:`miss.surface.blocks.ChunkCache`,
     keyed by file): chunks kept between reads (a server's slices), else each read
     decompresses what it needs."""
 

@@ -58,7 +58,7 @@ from miss.server.storage.db import (
 from miss.types import Volume
 
 if TYPE_CHECKING:
-    from miss.blocks import ChunkCache
+    from miss.surface.blocks import ChunkCache
 
 
 class DataDirInUse(RuntimeError):
@@ -126,7 +126,7 @@ class Store:
         #: bytes, 0 for none: a job's worker reads each chunk once).
         self.chunks: ChunkCache | None = None
         if chunk_cache > 0:
-            from miss.blocks import ChunkCache
+            from miss.surface.blocks import ChunkCache
 
             self.chunks = ChunkCache(chunk_cache)
         self.database_url = database_url

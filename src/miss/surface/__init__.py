@@ -232,10 +232,10 @@ def _keep_and_number(
     below) keep it, the others get start, start + 1, ... in first-use order. Returns the
     faces (int32) and the local indices of the newly numbered vertices; fills ``ids``.
 
-    numpy here; numba's loop (:mod:`miss._jit`) when numba is loaded already.
+    numpy here; numba's loop (:mod:`miss.decimate._quadric`) when numba is loaded already.
     """
     if "numba" in sys.modules:
-        from miss._jit import keep_and_number
+        from miss.decimate._quadric import keep_and_number
 
         return keep_and_number(faces, beyond, ids, start)
     dropped = beyond[faces[:, 0]] | beyond[faces[:, 1]] | beyond[faces[:, 2]]

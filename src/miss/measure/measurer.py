@@ -1,6 +1,6 @@
 """Measuring in a second process, for a fresh process that would otherwise wait for numba.
 
-Only where the native kernels (:mod:`miss.measuring`) were not built: with them a fresh
+Only where the native kernels (:mod:`miss.measure._native`) were not built: with them a fresh
 process measures on a thread of its own and starts no numba anywhere.
 
 A job that decimates unmeasured and measures after (``miss convert --measure`` under the
@@ -10,7 +10,7 @@ of what measuring added to the job. A thread cannot start it meanwhile: the impo
 the GIL, and the decimation waited for it. A child process can, on the other core: it
 imports numba and loads the measurement's kernels while this process reads the volume
 and makes the surface; it gets each part's surface before decimation as soon as it
-exists and makes its half of the measurement (:func:`miss.deviation.side_of`); it gets
+exists and makes its half of the measurement (:func:`miss.measure._jit.side_of`); it gets
 the decimated part after and answers with the figures. The same code with the same
 samples: the same figures to the bit.
 
@@ -35,7 +35,7 @@ import threading
 from concurrent.futures import Future, ThreadPoolExecutor
 from typing import TYPE_CHECKING, Any, BinaryIO
 
-from miss.measuring import native
+from miss.measure._native import native
 
 if TYPE_CHECKING:
     from miss.spec import JobSpec
@@ -51,11 +51,11 @@ class Measurer:
 
     def __init__(self) -> None:
         # the child imports this same tree of miss, wherever it was found
-        here = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+        here = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
         path = os.pathsep.join(p for p in (here, os.environ.get("PYTHONPATH", "")) if p)
         env = {**os.environ, "PYTHONPATH": path}
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "miss.measurer"],
+            [sys.executable, "-m", "miss.measure.measurer"],
             stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, env=env,
         )  # fmt: skip
         # Writes go through one thread: a pipe takes 64 KB before the child reads, and the
@@ -120,7 +120,7 @@ class RemoteSide:
 
     def deviation(self, after: Mesh) -> tuple[float, float]:
         """The deviation of ``after`` (this part decimated) from the surface sent before,
-        max and mean, mm (:func:`miss.deviation.deviation`'s); :class:`MeasurerGone` if the
+        max and mean, mm (:func:`miss.measure._jit.deviation`'s); :class:`MeasurerGone` if the
         child cannot say. Not a ``Deviation``: its module would load numba here."""
         try:
             self.sent.result()
@@ -188,7 +188,7 @@ def serve(stdin: BinaryIO, stdout: BinaryIO) -> None:
     samples)``; end of input ends it."""
     import numpy as np
 
-    from miss.measuring import deviation, side_of
+    from miss.measure._native import deviation, side_of
     from miss.types import Mesh
 
     # numba's start and the kernels' load, before the first surface comes

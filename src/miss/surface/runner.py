@@ -52,7 +52,7 @@ CLUSTER_CONFIG = {**NANNY_ENVIRON, "distributed.scheduler.worker-saturation": fl
 
 #: Imported by every worker of the local cluster as it starts (``--preload`` for remote
 #: ones): VTK, numpy and zarr load before the first block, not inside the job's time.
-PRELOAD = ["miss.blockwise", "zarr"]
+PRELOAD = ["miss.surface.blockwise", "zarr"]
 
 
 class SchedulerUnreachable(MissError, ConnectionError):
@@ -355,7 +355,7 @@ def _in_runs(
 
     The items are blocks (or groups of them) in order, neighbours in space next to each
     other: neighbours read the chunks on their seam, which a worker decompresses once for
-    both when it makes both (its chunk cache, :data:`miss.blocks.CHUNKS`). So each worker
+    both when it makes both (its chunk cache, :data:`miss.surface.blocks.CHUNKS`). So each worker
     gets an equal run of consecutive items, a few at a time (:data:`_BATCH` more once it
     has no more than one a thread left); one that has finished its run takes the far end
     of the longest run left. The work evens out without Dask's work stealing, which the

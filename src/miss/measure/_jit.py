@@ -37,8 +37,8 @@ import numpy as np
 from numba.core.cpu import CPUTargetOptions
 
 from miss._numba import njit, prange
-from miss.measuring import Deviation, Kernels, Side, half, measure
-from miss.measuring import grid_shape as _grid_shape
+from miss.measure._native import Deviation, Kernels, Side, half, measure
+from miss.measure._native import grid_shape as _grid_shape
 from miss.types import Mesh
 
 
@@ -216,7 +216,7 @@ def _triangle_sq(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz):
 #: njit options for kernels that allocate nothing: no reference counting of the arrays
 #: they take and index (numba's own option; a numba without it counts, as before). Each
 #: count is an atomic instruction on the array's shared header: in schroeder's pass loop
-#: they were a fifth of the run (see :mod:`miss._schroeder`).
+#: they were a fifth of the run (see :mod:`miss.decimate._schroeder`).
 NO_REFCOUNT: dict[str, bool] = {"_nrt": False} if hasattr(CPUTargetOptions, "_nrt") else {}
 
 
@@ -452,11 +452,11 @@ def deviation(
     """Two-sided (symmetric Hausdorff-style) deviation between surfaces ``a`` and ``b``;
     ``side``: ``a``'s half made already (:func:`side_of`, the same ``samples`` and ``seed``).
     The same points as :func:`sample_surface`'s, neighbours together (max and mean are the
-    same): see :func:`miss.measuring.measure`."""
+    same): see :func:`miss.measure._native.measure`."""
     return measure(a, b, samples, seed, side, JITTED)
 
 
-#: numba's kernels, as :func:`miss.measuring.measure` takes them.
+#: numba's kernels, as :func:`miss.measure._native.measure` takes them.
 JITTED = Kernels(
     sample=lambda mesh, count, rng: _sample(mesh, count, rng, drawn=False),
     grid=surface_grid,
@@ -700,7 +700,7 @@ def bound_check(
 
     ``centroids`` False leaves the new triangles' centroids out (``faces`` and ``face_mm``
     empty), for an output whose bound holds by construction (schroeder's: see
-    :func:`miss._schroeder._overlay_gap`), where the check measures what the contract
+    :func:`miss.decimate._schroeder._overlay_gap`), where the check measures what the contract
     names, every input vertex and every output vertex and edge midpoint, and not a point
     more: on the 15 surfaces and bounds of ``benchmarks/bounds.py`` no centroid was ever the
     farthest point (the largest was an input vertex at 13, an edge midpoint at 2), and they

@@ -1,8 +1,8 @@
 """``blockwise_surface``: :func:`miss.surface.extract_surface` computed block by block.
 
-Two passes over the blocks, each a set of independent tasks (:mod:`miss.runner`): the
+Two passes over the blocks, each a set of independent tasks (:mod:`miss.surface.runner`): the
 region's minimum and maximum (the level must lie between them; float data's pad value
-depends on the span), then the surface of each block (:mod:`miss.blocks`). Each block's
+depends on the span), then the surface of each block (:mod:`miss.surface.blocks`). Each block's
 mesh is mapped to LPS millimetres as it arrives and welded at the end.
 """
 
@@ -16,20 +16,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from miss.blocks import (
-    BlockMesh,
-    Box,
-    Decimated,
-    Edit,
-    Grid,
-    Welder,
-    block_range,
-    cell_blocks,
-    surface_block,
-    voxel_boxes,
-)
 from miss.errors import BadParameter, EmptySurface
-from miss.runner import CLUSTER_VOXELS, run_blocks, scheduler_address
 from miss.surface import (
     Roi,
     SampleRate,
@@ -41,6 +28,19 @@ from miss.surface import (
     checked_region,
     extract_surface,
 )
+from miss.surface.blocks import (
+    BlockMesh,
+    Box,
+    Decimated,
+    Edit,
+    Grid,
+    Welder,
+    block_range,
+    cell_blocks,
+    surface_block,
+    voxel_boxes,
+)
+from miss.surface.runner import CLUSTER_VOXELS, run_blocks, scheduler_address
 from miss.types import Mesh, Volume
 
 #: Block edge in cells when none is asked for: 128³ cells, ~2 M voxels (4 MB of int16)
@@ -123,9 +123,9 @@ def blockwise_surface(
     is read block by block, never whole). ``block`` is the block edge in cells (int or
     (x, y, z)); ``scheduler`` a Dask address (default ``MISS_DASK_SCHEDULER``); ``cluster``
     forces (True) or forbids (False) a local Dask cluster, by default used from
-    :data:`miss.runner.CLUSTER_VOXELS` voxels. ``progress("surface", fraction)`` counts
+    :data:`miss.surface.runner.CLUSTER_VOXELS` voxels. ``progress("surface", fraction)`` counts
     blocks. The same triangles and vertices as one flying-edges pass over the padded
-    region, vertices placed from float64 edge parameters (see :mod:`miss.blocks`).
+    region, vertices placed from float64 edge parameters (see :mod:`miss.surface.blocks`).
     """
     mesh, _, _ = _blockwise(
         volume, level, sample_rate, slices, roi, normals=normals, block=block,
@@ -258,7 +258,7 @@ def _source(
 ) -> tuple[Any, tuple[int, ...], tuple[int, ...]]:
     """The array the blocks read, where the region starts in it and its steps: through a
     :class:`StridedView` to the array on disk itself, so that its chunks are read whole
-    and kept (:data:`miss.blocks.CHUNKS`)."""
+    and kept (:data:`miss.surface.blocks.CHUNKS`)."""
     if isinstance(data, StridedView):
         inner = [lo + s0 * st for (lo, _), s0, st in zip(data.box, start, data.steps, strict=True)]
         steps = [a * b for a, b in zip(steps, data.steps, strict=True)]
@@ -277,7 +277,7 @@ def _surface_task(
     edit: Edit | None = None,
 ) -> BlockMesh:
     """One block's surface with its vertices (float32) and normals in LPS mm (``edit``: see
-    :func:`miss.blocks.surface_block`)."""
+    :func:`miss.surface.blocks.surface_block`)."""
     part = surface_block(grid, box, level, normals, edit)
     verts = _points_to_patient(part.vertices - 1.0, affine, steps, offset)  # pad: -1
     vectors = part.normals

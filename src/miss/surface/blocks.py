@@ -74,7 +74,7 @@ class BlockMesh:
     keys: np.ndarray
     #: the smallest and largest region voxel the block read (its pad aside)
     span: tuple[float, float] = (np.inf, -np.inf)
-    #: what decimating it where it was made did (``miss.blockwise.blockwise_decimated``)
+    #: what decimating it where it was made did (``miss.surface.blockwise.blockwise_decimated``)
     decimated: Decimated | None = None
     #: the block it is (its cells in the padded grid), for a weld in the blocks' order
     box: Box | None = None

@@ -1,11 +1,11 @@
-// The sampled measurement's kernels (miss.measuring), in native code: sample points on a
+// The sampled measurement's kernels (miss.measure._native), in native code: sample points on a
 // surface, bin its triangles into a grid of cells, and find each point's exact distance to
 // the nearest triangle. Built at install (setup.py) and called through ctypes, which
 // releases the GIL for each call; a process that measures then needs no numba, whose
 // start (0.6-0.9 s on the 2-core test machine) was most of what measuring added to a fresh
 // `miss convert`.
 //
-// Each function is the numba kernel of the same name in miss/deviation.py, operation for
+// Each function is the numba kernel of the same name in miss/measure/_jit.py, operation for
 // operation and in the same types (float32 corners are subtracted in float32, as numba
 // does; everything else in float64), compiled without contraction into fused multiply-adds:
 // the same figures to the bit (tests/test_measuring.py compares them).
@@ -27,7 +27,7 @@
 
 namespace {
 
-const double kSliver = 1e-20;  // miss.deviation._SLIVER
+const double kSliver = 1e-20;  // miss.measure._jit._SLIVER
 const double kInf = std::numeric_limits<double>::infinity();
 
 // Python's max/min of floats as numba computes them: the first of equal ones.
@@ -74,7 +74,7 @@ inline double segment_sq(double px, double py, double pz, T ax, T ay, T az, T bx
     return dot(qx, qy, qz, qx, qy, qz);
 }
 
-// Ericson, Real-Time Collision Detection 5.1.5 (miss.deviation._triangle_sq).
+// Ericson, Real-Time Collision Detection 5.1.5 (miss.measure._jit._triangle_sq).
 template <typename T>
 inline double triangle_sq(double px, double py, double pz, T ax, T ay, T az, T bx, T by, T bz,
                           T cx, T cy, T cz) {
@@ -179,7 +179,7 @@ inline double cell_sq(double px, double py, double pz, int64_t c, double best, c
     return best;
 }
 
-// miss.deviation._nearest_sq
+// miss.measure._jit._nearest_sq
 template <typename T>
 double nearest_sq(double px, double py, double pz, const Grid<T>& g, double cap2) {
     const double lox = g.lo[0], loy = g.lo[1], loz = g.lo[2], cell = g.cell;
@@ -214,7 +214,7 @@ double nearest_sq(double px, double py, double pz, const Grid<T>& g, double cap2
     }
 }
 
-// miss.deviation._block_order
+// miss.measure._jit._block_order
 void block_order(const double* points, int64_t n, const double* lo, double cell,
                  const int64_t* dims, int64_t* order) {
     const int64_t side = 2;
@@ -246,7 +246,7 @@ void distances(const double* points, int64_t n, const Grid<T>& g, double cap2, i
     }
     const int64_t* ord = ordered ? nullptr : order.data();
     // threads take chunks of consecutive queries in turn: neighbours stay together, and
-    // each writes its answers in search order (see miss.deviation._grid_distances)
+    // each writes its answers in search order (see miss.measure._jit._grid_distances)
     const int64_t chunk = 512;
     std::atomic<int64_t> next(0);
     auto work = [&]() {
@@ -274,7 +274,7 @@ void distances(const double* points, int64_t n, const Grid<T>& g, double cap2, i
         for (int64_t m = 0; m < n; ++m) out[ord[m]] = found[m];
 }
 
-// miss.deviation._corners: (F, kRow) rows of corners. In the triangles' own order:
+// miss.measure._jit._corners: (F, kRow) rows of corners. In the triangles' own order:
 // the search visits a cell's triangles in that order, as numba's does, and so meets the same
 // ties (a float32 triangle's distance, its edges taken in float32, may come out a hair below
 // its box's, and then which of two triangles at one corner is measured first decides the
@@ -294,7 +294,7 @@ void corners(const T* verts, const int32_t* faces, int64_t nf, T* out) {
     }
 }
 
-// The first and last cell along x, y, z that a row's box meets (miss.deviation._corners's
+// The first and last cell along x, y, z that a row's box meets (miss.measure._jit._corners's
 // spans, from the same numbers: made again here rather than kept, 24 bytes a triangle).
 template <typename T>
 inline void span_of(const T* row, const double* lo, double cell, const int64_t* dims,
@@ -308,7 +308,7 @@ inline void span_of(const T* row, const double* lo, double cell, const int64_t* 
     }
 }
 
-// miss.deviation._build_grid: with ``items`` null, each cell's count of triangles
+// miss.measure._jit._build_grid: with ``items`` null, each cell's count of triangles
 // (offsets[c + 1], offsets zeroed), then their running sum; else each cell's triangles into
 // items (offsets[-1] long), in triangle order.
 template <typename T>
@@ -335,7 +335,7 @@ void grid_cells(const T* rows, int64_t nf, const double* lo, double cell, const 
         for (int64_t c = 1; c <= cells; ++c) offsets[c] += offsets[c - 1];
 }
 
-// miss.deviation._cumulative_areas
+// miss.measure._jit._cumulative_areas
 template <typename T>
 void cumulative_areas(const T* verts, const int32_t* faces, int64_t nf, double* out) {
     double total = 0.0;
@@ -351,7 +351,7 @@ void cumulative_areas(const T* verts, const int32_t* faces, int64_t nf, double* 
     }
 }
 
-// miss.deviation._inner_points
+// miss.measure._jit._inner_points
 template <typename T>
 void inner_points(const T* verts, const int32_t* faces, const double* cum, int64_t ncum,
                   const double* target, const int64_t* order, const double* r1,
@@ -391,13 +391,13 @@ int guarded(F work) {
 
 extern "C" {
 
-// The vertices some face uses, as 0/1 bytes (miss.deviation._used).
+// The vertices some face uses, as 0/1 bytes (miss.measure._jit._used).
 void miss_used(const int32_t* faces, int64_t nf, uint8_t* out) {
     for (int64_t f = 0; f < nf; ++f)
         for (int k = 0; k < 3; ++k) out[faces[3 * f + k]] = 1;
 }
 
-// miss.deviation._increasing: the order of values (uniform in [0, top]) by bucket.
+// miss.measure._jit._increasing: the order of values (uniform in [0, top]) by bucket.
 int miss_increasing(const double* values, int64_t n, double top, int64_t* order) try {
     double scale = top > 0 ? double(n) / top : 0.0;
     std::vector<int64_t> bucket(n), start(n + 1, 0);

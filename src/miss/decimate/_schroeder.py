@@ -43,7 +43,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from miss._numba import njit
-from miss.deviation import NO_REFCOUNT, _segment_sq
+from miss.measure._jit import NO_REFCOUNT, _segment_sq
 from miss.types import column_bounds
 
 SIMPLE, BOUNDARY, INTERIOR_EDGE, CORNER, COMPLEX = 0, 1, 2, 3, 4
@@ -70,7 +70,7 @@ _MAX_SLABS = 4
 # saves about a fifth of the run time. The split search stays a call to keep compile time low.
 #
 # The pass loop and the helpers it calls are compiled without numba's reference counting
-# (:data:`miss.deviation.NO_REFCOUNT`): they allocate nothing, and every array they take,
+# (:data:`miss.measure._jit.NO_REFCOUNT`): they allocate nothing, and every array they take,
 # unpack or index as a row (``pts[i]``) had its count raised and lowered with an atomic
 # instruction each time; on slabs run side by side (see _domains) both cores wrote those
 # counts' cache lines. perf put a fifth of a serial run in NRT_incref/NRT_decref. Without

@@ -1,6 +1,6 @@
 """The sampled measurement of a decimation, in native code: no numba to start.
 
-:func:`deviation` and :func:`side_of` are :mod:`miss.deviation`'s, with the same samples,
+:func:`deviation` and :func:`side_of` are :mod:`miss.measure._jit`'s, with the same samples,
 grid and search, and the same figures to the bit (tests/test_measuring.py), run by the
 kernels of ``_nearest.cpp``: a C++ extension built at install (setup.py), called through
 ctypes, which lets go of the GIL for each call. The queries run on every core the process
@@ -9,7 +9,7 @@ may use, as numba's ``prange`` did.
 A process that measures needs numba then only for what else it does. For ``miss convert
 --measure`` under the paper's schedule that is nothing: numba's start (0.6-0.9 s on the
 2-core test machine), which a measuring process of its own used to take on the other core
-(:mod:`miss.measurer`), is not paid at all.
+(:mod:`miss.measure.measurer`), is not paid at all.
 
 Where numba is loaded already (a server's warmed-up worker), both functions are numba's:
 its kernels, compiled for the very CPU they run on, searched 10-20 % faster than these
@@ -114,7 +114,7 @@ def _checked(failed: int) -> None:
 def _library() -> ctypes.CDLL | None:
     """The built kernels, or None where the extension is not there or does not load."""
     try:
-        from miss import _nearest  # type: ignore[attr-defined]
+        from miss.measure import _nearest  # type: ignore[attr-defined]
 
         lib = ctypes.CDLL(_nearest.__file__)
         for name, args in _SIGNATURES.items():
@@ -140,7 +140,7 @@ def _jitted() -> bool:
 def side_of(a: Mesh, samples: int = 100_000, seed: int = 0) -> Side:
     """``a``'s :class:`Side` of a :func:`deviation` with ``samples`` and ``seed``."""
     if _jitted():
-        from miss.deviation import side_of as jitted
+        from miss.measure._jit import side_of as jitted
 
         return jitted(a, samples, seed)
     return native_side_of(a, samples, seed)
@@ -154,7 +154,7 @@ def deviation(
     triangles), each one's exact distance to the other surface; ``side``: ``a``'s half made
     already (:func:`side_of`, the same ``samples`` and ``seed``)."""
     if _jitted():
-        from miss.deviation import deviation as jitted
+        from miss.measure._jit import deviation as jitted
 
         return jitted(a, b, samples, seed, side)
     return native_deviation(a, b, samples, seed, side)
@@ -178,7 +178,7 @@ class Kernels:
     """What a measurement runs: ``sample(mesh, count, rng)`` (the points, corners in vertex
     order and the others in triangle order), ``grid(mesh)`` (its cells) and
     ``search(points, grid, ordered)`` (each point's exact distance): the native ones
-    (:data:`NATIVE`) or numba's (:mod:`miss.deviation`), the same figures either way."""
+    (:data:`NATIVE`) or numba's (:mod:`miss.measure._jit`), the same figures either way."""
 
     sample: Callable[[Mesh, int, np.random.Generator], np.ndarray]
     grid: Callable[[Mesh], tuple]
@@ -232,8 +232,8 @@ def _arrays(mesh: Mesh) -> tuple[np.ndarray, np.ndarray, str]:
 
 
 def _sample(mesh: Mesh, count: int, rng: np.random.Generator) -> np.ndarray:
-    """:func:`miss.deviation.sample_surface`'s points, its corners in vertex order and its
-    inner points in triangle order (``miss.deviation._sample`` not ``drawn``)."""
+    """:func:`miss.measure._jit.sample_surface`'s points, its corners in vertex order and its
+    inner points in triangle order (``miss.measure._jit._sample`` not ``drawn``)."""
     lib = _library()
     assert lib is not None
     verts, faces, t = _arrays(mesh)
@@ -266,7 +266,7 @@ def _sample(mesh: Mesh, count: int, rng: np.random.Generator) -> np.ndarray:
 
 
 def surface_grid(mesh: Mesh) -> tuple:
-    """The cells of ``mesh``'s triangles, :func:`miss.deviation.surface_grid`'s (origin,
+    """The cells of ``mesh``'s triangles, :func:`miss.measure._jit.surface_grid`'s (origin,
     cell size, counts, CSR offsets and items, each triangle's corners in a row)."""
     lib = _library()
     assert lib is not None
@@ -297,7 +297,7 @@ def distances(
     points: np.ndarray, grid: tuple, cap: float = math.inf, ordered: bool = False
 ) -> np.ndarray:
     """Exact distance (mm) from each of (P, 3) points to the nearest triangle of ``grid``'s
-    surface (:func:`surface_grid`), up to ``cap`` (see :func:`miss.deviation.distances_to`);
+    surface (:func:`surface_grid`), up to ``cap`` (see :func:`miss.measure._jit.distances_to`);
     ``ordered``: searched in the points' own order, else by blocks of cells."""
     lib = _library()
     assert lib is not None
