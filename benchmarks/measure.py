@@ -459,7 +459,7 @@ def child(case: str, impl: str, before: str) -> dict[str, Any]:
         assert old is not None
         deviation = old.deviation
     else:
-        from miss.measure._native import deviation  # native here: numba is not loaded
+        from miss.measure import deviation  # native here: numba is not loaded
     worst, mean = measure(pairs, deviation)
     return {
         "numba_loaded": "numba" in sys.modules,
@@ -492,7 +492,7 @@ def warm(case: str, repeats: int, old: ModuleType | None) -> dict[str, Any]:
     """Job, new and old measurement round-robin in this process; medians and figures."""
     from common import median, round_robin
 
-    from miss.measure._native import deviation, native_deviation
+    from miss.measure import deviation, native_deviation
 
     path, what = cases()[case]
     pairs = run_job(path, what)

@@ -260,7 +260,7 @@ def test_slabs_give_the_whole_blocks_surface(monkeypatch, level: float) -> None:
 
     surface = importlib.import_module("miss.surface")
     block = phantom(96, spacing=2.0).data
-    contour = surface._contour_level(block.dtype, level)
+    contour = surface.contour_level(block.dtype, level)
     span = float(block.max() - block.min())
     monkeypatch.setattr(surface, "_SLAB_VOXELS", 96 * 96 * 20)
     assert len(surface._seam_planes(block, contour)) >= 3

@@ -175,7 +175,7 @@ def test_a_job_on_zarr_goes_block_by_block(cthead, tmp_path) -> None:
     in-memory job makes; the progress comes from the blocks."""
     from miss.pipeline import run
     from miss.spec import JobSpec
-    from miss.surface.blockwise import StridedView
+    from miss.types import StridedView
 
     spec = JobSpec.of(level=1500, decimate="none", sample_rate=2, start_slice=10, end_slice=100)
     lazy = zarr_copy(cthead, tmp_path, (64, 64, 32))

@@ -49,7 +49,7 @@ def pieces() -> Mesh:
 @pytest.mark.parametrize("level", [300.0, -500.0])
 def test_slab_welding(monkeypatch: pytest.MonkeyPatch, level: float) -> None:
     block = phantom(96, spacing=2.0).data
-    contour = surface._contour_level(block.dtype, level)
+    contour = surface.contour_level(block.dtype, level)
     span = float(block.max() - block.min())
     monkeypatch.setattr(surface, "_SLAB_VOXELS", 96 * 96 * 16)
     assert len(surface._seam_planes(block, contour)) >= 3

@@ -384,8 +384,8 @@ def test_slabs_share_no_neighbour(count):
 def test_slabs_give_the_same_output_on_any_number_of_cores(monkeypatch):
     # the slabs are set by the mesh, not the machine: one core or many, the same triangles;
     # and the run keeps what the serial run keeps (closed, oriented, within the bound)
-    from miss.decimate import _schroeder as kernel
     from miss import Mesh
+    from miss.decimate import _schroeder as kernel
     from miss.measure._jit import bound_check
 
     vertices, faces = bumpy_sphere(1)

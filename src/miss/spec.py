@@ -28,6 +28,7 @@ from dataclasses import MISSING, Field, dataclass, field, fields, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
+from miss.decimate import METHODS, SCHEDULES
 from miss.errors import BadParameter
 
 if TYPE_CHECKING:
@@ -36,10 +37,6 @@ if TYPE_CHECKING:
 
 RGB = tuple[float, float, float]
 
-#: Decimation methods (``miss.decimate`` implements them).
-METHODS: tuple[str, ...] = ("none", "quadric", "schroeder")
-#: How a bound is held: as a hard cap (measured), or raised as the 1998 pipeline did.
-SCHEDULES: tuple[str, ...] = ("guaranteed", "paper")
 #: What ``components`` may be: every piece, the largest, or one part per piece.
 COMPONENT_MODES: tuple[str, ...] = ("all", "largest", "split")
 #: Output formats (``miss.export.WRITERS`` holds one writer each).
@@ -239,7 +236,7 @@ class Region:
         if isinstance(volume.data, np.ndarray):
             data = np.asfortranarray(volume.data[picked])
         else:  # on disk (zarr): a lazy view, read block by block by the surface stage
-            from miss.surface.blockwise import StridedView
+            from miss.types import StridedView
 
             data = StridedView(volume.data, box, self.steps)
         return Volume(data, volume.affine @ shift, volume.meta, volume.patient)

@@ -6,7 +6,8 @@ patient's Left, +y Posterior, +z Superior).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -114,3 +115,33 @@ class Mesh:
         """Length of the bounding-box diagonal in mm."""
         lo, hi = self.bounds()
         return float(np.linalg.norm(hi - lo))
+
+
+def in_memory(volume: Volume) -> Volume:
+    """``volume`` with its voxels read into one (X, Y, Z) numpy array when they are on
+    disk (a :class:`StridedView` or a stored array), for the work not yet done block by
+    block (label maps). A worker's memory cap stops a region too large for it."""
+    if isinstance(volume.data, np.ndarray):
+        return volume
+    data = np.asfortranarray(volume.data[(slice(None),) * 3])
+    return replace(volume, data=data)
+
+
+class StridedView:
+    """A lazy box of a 3-D array at a sample step: slicing it (unit steps) reads only that
+    part of ``data``. What :meth:`miss.spec.Region.apply` returns for data on disk."""
+
+    def __init__(self, data: Any, box: Sequence[tuple[int, int]], steps: Sequence[int]):
+        self.data, self.box, self.steps = data, tuple(box), tuple(steps)
+        self.shape = tuple(
+            len(range(lo, hi + 1, st)) for (lo, hi), st in zip(self.box, self.steps, strict=True)
+        )
+        self.dtype = np.dtype(data.dtype)
+        self.ndim = 3
+
+    def __getitem__(self, key: tuple[slice, ...]) -> np.ndarray:
+        picked = []
+        for sl, (lo, _), st, n in zip(key, self.box, self.steps, self.shape, strict=True):
+            a, b, step = sl.indices(n)
+            picked.append(slice(lo + a * st, lo + (b - 1) * st + 1, st * step))
+        return np.asarray(self.data[tuple(picked)])

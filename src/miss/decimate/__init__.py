@@ -57,13 +57,17 @@ if TYPE_CHECKING:
 
     import numpy as np
 
+    from miss.measure import Side
     from miss.measure._jit import BoundCheck
-    from miss.measure._native import Side
     from miss.measure.measurer import RemoteSide
     from miss.types import Mesh
 
 Method = Literal["none", "quadric", "schroeder"]
 Schedule = Literal["guaranteed", "paper"]
+#: The decimation methods (the job declaration, :mod:`miss.spec`, offers these).
+METHODS: tuple[str, ...] = ("none", "quadric", "schroeder")
+#: How a bound is held: as a hard cap (measured), or raised as the 1998 pipeline did.
+SCHEDULES: tuple[str, ...] = ("guaranteed", "paper")
 #: Points sampled on each surface by :func:`measured` (a decimation's own check samples
 #: nothing: see :func:`miss.measure._jit.bound_check`).
 SAMPLES = 100_000
@@ -136,9 +140,6 @@ class DecimationReport:
 
 
 def _check(method: str, reduce: float, error_bound: float, max_error: float, schedule: str) -> None:
-    # here, not at the top: ``import miss`` (every ``miss`` command) needs no job declaration
-    from miss.spec import METHODS, SCHEDULES
-
     if schedule not in SCHEDULES:
         raise BadParameter(f"unknown schedule {schedule!r}; choose one of {', '.join(SCHEDULES)}.")
     if method not in METHODS:
@@ -383,7 +384,7 @@ def measuring_later(before: Mesh, samples: int, pool: ThreadPoolExecutor) -> Fut
 
     def make() -> Side:
         _idle_priority()
-        from miss.measure._native import side_of
+        from miss.measure import side_of
 
         return side_of(before, samples)
 
@@ -545,10 +546,10 @@ def _strays(mesh: Mesh, faces: np.ndarray, limit_mm: float) -> bool:
     spread over them) lie farther than ``limit_mm`` from it: a run that far out is known out
     of bound without the whole check (a quadric run several times over the bound, as on
     CThead, strays at most of them)."""
-    from miss.measure._jit import _dropped, distances_to
+    from miss.measure._jit import distances_to, dropped_vertices
     from miss.types import Mesh
 
-    _, dropped = _dropped(mesh.faces, faces, mesh.n_vertices)
+    _, dropped = dropped_vertices(mesh.faces, faces, mesh.n_vertices)
     if len(dropped) == 0:
         return False
     some = dropped[:: max(1, len(dropped) // _SCREEN)]
@@ -602,7 +603,7 @@ def measured(
             figures = side.deviation(after)
         side = None
     if figures is None:
-        from miss.measure._native import deviation  # native, or numba's where it is loaded
+        from miss.measure import deviation  # native, or numba's where it is loaded
 
         # a side that failed (e.g. out of memory on its thread) is made again here, as one
         # not done

@@ -1,4 +1,5 @@
-"""Compiled (numba) versions of three hot loops, and when to use them.
+"""Compiled (numba) versions of the quadric's two hot loops, and when to use them (the
+surface's seam loop, of the same kind, is :mod:`miss.surface._seams`).
 
 A process pays numba's start once (its import and the first kernel's load: 0.6-0.9 s on
 the 2-core test machine); after that each of these runs in a few milliseconds, several
@@ -15,29 +16,6 @@ from __future__ import annotations
 import numpy as np
 
 from miss._numba import njit
-
-
-@njit(cache=True)
-def keep_and_number(faces, beyond, ids, start):
-    """Faces without a vertex ``beyond``, renumbered: vertices with an id (from the seam
-    below) keep it, the others get start, start + 1, ... in first-use order. Returns the
-    faces (int32) and the local indices of the newly numbered vertices; fills ``ids``."""
-    out = np.empty(faces.shape, dtype=np.int32)
-    order = np.empty(len(ids), dtype=np.int64)
-    n_faces, n_new = 0, 0
-    for f in range(len(faces)):
-        a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
-        if beyond[a] or beyond[b] or beyond[c]:
-            continue
-        for k in range(3):
-            v = faces[f, k]
-            if ids[v] < 0:
-                ids[v] = start + n_new
-                order[n_new] = v
-                n_new += 1
-            out[n_faces, k] = ids[v]
-        n_faces += 1
-    return out[:n_faces], order[:n_new]
 
 
 @njit(cache=True)

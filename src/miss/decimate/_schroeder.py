@@ -43,7 +43,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from miss._numba import njit
-from miss.measure._jit import NO_REFCOUNT, _segment_sq
+from miss.measure.distance import NO_REFCOUNT, segment_sq
 from miss.types import column_bounds
 
 SIMPLE, BOUNDARY, INTERIOR_EDGE, CORNER, COMPLEX = 0, 1, 2, 3, 4
@@ -70,7 +70,7 @@ _MAX_SLABS = 4
 # saves about a fifth of the run time. The split search stays a call to keep compile time low.
 #
 # The pass loop and the helpers it calls are compiled without numba's reference counting
-# (:data:`miss.measure._jit.NO_REFCOUNT`): they allocate nothing, and every array they take,
+# (:data:`miss.measure.distance.NO_REFCOUNT`): they allocate nothing, and every array they take,
 # unpack or index as a row (``pts[i]``) had its count raised and lowered with an atomic
 # instruction each time; on slabs run side by side (see _domains) both cores wrote those
 # counts' cache lines. perf put a fifth of a serial run in NRT_incref/NRT_decref. Without
@@ -613,7 +613,7 @@ def _overlay_gap(pts, v, fn, n, loop, n_loop, tris, ntri, nrm, xyh, limit):
             return np.inf
         ax, ay, az = pts[loop[a], 0] - ox, pts[loop[a], 1] - oy, pts[loop[a], 2] - oz
         bx, by, bz = pts[loop[b], 0] - ox, pts[loop[b], 1] - oy, pts[loop[b], 2] - oz
-        gap = math.sqrt(_segment_sq(0.0, 0.0, 0.0, ax, ay, az, bx, by, bz))
+        gap = math.sqrt(segment_sq(0.0, 0.0, 0.0, ax, ay, az, bx, by, bz))
     if gap > limit:
         return gap
     for i in range(n_loop):

@@ -34,11 +34,11 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
-from numba.core.cpu import CPUTargetOptions
 
 from miss._numba import njit, prange
-from miss.measure._native import Deviation, Kernels, Side, half, measure
-from miss.measure._native import grid_shape as _grid_shape
+from miss.measure._core import Deviation, Kernels, Side, half, measure
+from miss.measure._core import grid_shape as _grid_shape
+from miss.measure.distance import NO_REFCOUNT, triangle_sq
 from miss.types import Mesh
 
 
@@ -146,86 +146,6 @@ def _inner_points(verts, faces, cum, target, order, r1, r2, slots, out):
             out[slots[j], k] = ak + s * (np.float64(b[k]) - ak) + t * (np.float64(c[k]) - ak)
 
 
-@njit(cache=True, inline="always")
-def _dot(ax, ay, az, bx, by, bz):
-    return ax * bx + ay * by + az * bz
-
-
-@njit(cache=True, inline="always")
-def _segment_sq(px, py, pz, ax, ay, az, bx, by, bz):
-    """Squared distance from point p to segment ab (a point when a == b)."""
-    abx, aby, abz = bx - ax, by - ay, bz - az
-    apx, apy, apz = px - ax, py - ay, pz - az
-    length2 = _dot(abx, aby, abz, abx, aby, abz)
-    t = 0.0 if length2 == 0.0 else min(max(_dot(abx, aby, abz, apx, apy, apz) / length2, 0.0), 1.0)
-    qx, qy, qz = apx - t * abx, apy - t * aby, apz - t * abz
-    return _dot(qx, qy, qz, qx, qy, qz)
-
-
-#: A triangle whose squared sine (|ab x ac|^2 / (|ab|^2 |ac|^2)) is below this is measured as
-#: its three edges: the region tests' products cancel there. With 1e-24 here, a triangle
-#: whose squared sine was 1.4e-24 (sides about 10 mm) gave 0.148 mm for a point on it (a
-#: random case of tests/test_deviation.py); at 1e-20 its edges stand for it within 1e-10 of
-#: its sides.
-_SLIVER = 1e-20
-
-
-@njit(cache=True, inline="always")
-def _triangle_sq(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz):
-    """Squared distance from point p to triangle abc (Ericson, Real-Time Collision Detection
-    5.1.5), on coordinates rather than arrays so that the search's loop keeps them in
-    registers."""
-    abx, aby, abz = bx - ax, by - ay, bz - az
-    acx, acy, acz = cx - ax, cy - ay, cz - az
-    nx, ny, nz = aby * acz - abz * acy, abz * acx - abx * acz, abx * acy - aby * acx
-    scale = _dot(abx, aby, abz, abx, aby, abz) * _dot(acx, acy, acz, acx, acy, acz)
-    if _dot(nx, ny, nz, nx, ny, nz) <= _SLIVER * scale or scale == 0.0:
-        # a sliver or a point: the region tests below would divide by zero
-        return min(
-            _segment_sq(px, py, pz, ax, ay, az, bx, by, bz),
-            _segment_sq(px, py, pz, bx, by, bz, cx, cy, cz),
-            _segment_sq(px, py, pz, cx, cy, cz, ax, ay, az),
-        )
-    apx, apy, apz = px - ax, py - ay, pz - az
-    d1, d2 = _dot(abx, aby, abz, apx, apy, apz), _dot(acx, acy, acz, apx, apy, apz)
-    if d1 <= 0.0 and d2 <= 0.0:
-        return _dot(apx, apy, apz, apx, apy, apz)
-    bpx, bpy, bpz = px - bx, py - by, pz - bz
-    d3, d4 = _dot(abx, aby, abz, bpx, bpy, bpz), _dot(acx, acy, acz, bpx, bpy, bpz)
-    if d3 >= 0.0 and d4 <= d3:
-        return _dot(bpx, bpy, bpz, bpx, bpy, bpz)
-    cpx, cpy, cpz = px - cx, py - cy, pz - cz
-    d5, d6 = _dot(abx, aby, abz, cpx, cpy, cpz), _dot(acx, acy, acz, cpx, cpy, cpz)
-    if d6 >= 0.0 and d5 <= d6:
-        return _dot(cpx, cpy, cpz, cpx, cpy, cpz)
-    vc, vb, va = d1 * d4 - d3 * d2, d5 * d2 - d1 * d6, d3 * d6 - d5 * d4
-    if vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0:
-        s, t = d1 / (d1 - d3), 0.0
-    elif vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0:
-        s, t = 0.0, d2 / (d2 - d6)
-    elif va <= 0.0 and (d4 - d3) >= 0.0 and (d5 - d6) >= 0.0:
-        w = (d4 - d3) / ((d4 - d3) + (d5 - d6))
-        s, t = 1.0 - w, w
-    else:
-        denom = va + vb + vc
-        s, t = vb / denom, vc / denom
-    qx, qy, qz = apx - s * abx - t * acx, apy - s * aby - t * acy, apz - s * abz - t * acz
-    return _dot(qx, qy, qz, qx, qy, qz)
-
-
-#: njit options for kernels that allocate nothing: no reference counting of the arrays
-#: they take and index (numba's own option; a numba without it counts, as before). Each
-#: count is an atomic instruction on the array's shared header: in schroeder's pass loop
-#: they were a fifth of the run (see :mod:`miss.decimate._schroeder`).
-NO_REFCOUNT: dict[str, bool] = {"_nrt": False} if hasattr(CPUTargetOptions, "_nrt") else {}
-
-
-@njit(cache=True, **NO_REFCOUNT)
-def _point_triangle_sq(p, a, b, c):
-    """Squared distance from p to triangle abc, each a (3,) array."""
-    return _triangle_sq(p[0], p[1], p[2], a[0], a[1], a[2], b[0], b[1], b[2], c[0], c[1], c[2])
-
-
 @njit(cache=True, nogil=True)
 def _corners(verts, faces, lo, cell, dims, spans):
     """(F, 9) each triangle's corners a, b, c side by side, in the vertices' dtype: the search
@@ -299,7 +219,7 @@ def _cell_sq(px, py, pz, c, best, offsets, items, tri):
         gap += _box_sq(py, min(ay, by, cy), max(ay, by, cy))
         gap += _box_sq(pz, min(az, bz, cz), max(az, bz, cz))
         if gap < best:
-            best = min(best, _triangle_sq(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz))
+            best = min(best, triangle_sq(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz))
             if best == 0.0:  # a vertex or a point of the surface itself: nothing is nearer
                 break
     return best
@@ -507,7 +427,7 @@ def nearest_face(p, verts, faces):
             gap += _box_sq(q, lo, hi)
         if gap >= best:
             continue
-        d = _triangle_sq(
+        d = triangle_sq(
             px, py, pz, verts[a, 0], verts[a, 1], verts[a, 2], verts[b, 0], verts[b, 1],
             verts[b, 2], verts[c, 0], verts[c, 1], verts[c, 2],
         )  # fmt: skip
@@ -659,7 +579,7 @@ def _check_points(verts, dropped, edges, faces):
 
 
 @njit(cache=True, nogil=True)
-def _dropped(before_faces, after_faces, n_vertices):
+def dropped_vertices(before_faces, after_faces, n_vertices):
     """(used, dropped): the vertices some input triangle uses (bool) and, in increasing
     order, those of them no output triangle does."""
     used = _used(before_faces, n_vertices)
@@ -707,7 +627,9 @@ def bound_check(
     were 28-47 % of the points searched.
     """
     faces = np.ascontiguousarray(faces)
-    used_in, dropped = _dropped(np.ascontiguousarray(before.faces), faces, before.n_vertices)
+    used_in, dropped = dropped_vertices(
+        np.ascontiguousarray(before.faces), faces, before.n_vertices
+    )
     to_output = np.where(used_in, 0.0, np.nan)
     after = Mesh(vertices=before.vertices, faces=faces)
     with ThreadPoolExecutor(max_workers=1) as pool:

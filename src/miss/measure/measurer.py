@@ -35,7 +35,7 @@ import threading
 from concurrent.futures import Future, ThreadPoolExecutor
 from typing import TYPE_CHECKING, Any, BinaryIO
 
-from miss.measure._native import native
+from miss.measure import native
 
 if TYPE_CHECKING:
     from miss.spec import JobSpec
@@ -188,7 +188,7 @@ def serve(stdin: BinaryIO, stdout: BinaryIO) -> None:
     samples)``; end of input ends it."""
     import numpy as np
 
-    from miss.measure._native import deviation, side_of
+    from miss.measure import deviation, side_of
     from miss.types import Mesh
 
     # numba's start and the kernels' load, before the first surface comes

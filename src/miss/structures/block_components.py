@@ -45,15 +45,15 @@ import numpy as np
 
 from miss.errors import EmptySurface
 from miss.structures.components import _CONNECTIVITY, Components, choose_components
-from miss.surface import _contour_level, _pad_value, check_level
+from miss.surface import check_level, contour_level, pad_value
 from miss.surface.blocks import Box, Grid, Welder, read_points
 from miss.surface.blockwise import (
     BlockShape,
     Progress,
-    _counted,
-    _source,
-    _surface_task,
     block_edges,
+    block_source,
+    counted,
+    surface_task,
 )
 from miss.surface.runner import CLUSTER_VOXELS, run_blocks, scheduler_address
 from miss.types import Mesh, Volume
@@ -227,18 +227,18 @@ def blockwise_components(
     fraction)`` counts the boxes labelled up to :data:`LABELS_SHARE`.
     """
     dtype = np.dtype(volume.data.dtype)
-    data, start, step = _source(volume.data, (0, 0, 0), (1, 1, 1))
+    data, start, step = block_source(volume.data, (0, 0, 0), (1, 1, 1))
     shape = tuple(int(n) for n in volume.data.shape)
-    contour = _contour_level(dtype, level)
+    contour = contour_level(dtype, level)
     # read as the surfaces will be (float data as float32), so that they label alike; the
     # pad is left out of the labels, its value not needed yet
-    read_as = np.dtype(_pad_value(dtype, contour, 0.0)[0]).str
+    read_as = np.dtype(pad_value(dtype, contour, 0.0)[0]).str
     grid = Grid(data, start, step, shape, 0.0, read_as)  # type: ignore[arg-type]
     owned = owned_boxes(grid.padded, block_edges(block))
     run = _runner(scheduler, cluster, shape)
     found: list[Labelled | None] = [None] * len(owned)
     index = {box: i for i, box in enumerate(owned)}
-    done = None if progress is None else partial(_counted, progress, 0.0, LABELS_SHARE)
+    done = None if progress is None else partial(counted, progress, 0.0, LABELS_SHARE)
     for box, part in run(partial(_label_item, level=level), grid, owned, progress=done):
         found[index[box]] = part
     parts: list[Labelled] = [p for p in found if p is not None]
@@ -247,7 +247,7 @@ def blockwise_components(
     kept, dropped = choose_components(sizes, components, min_voxels, max_parts)
     groups = [[c] for c in kept] if components == "split" else [kept] if kept else []
     span = max(p.span[1] for p in parts) - min(p.span[0] for p in parts)
-    pad_dtype, pad = _pad_value(dtype, contour, span)
+    pad_dtype, pad = pad_value(dtype, contour, span)
     surface_grid = Grid(data, start, step, shape, pad, np.dtype(pad_dtype).str)  # type: ignore[arg-type]
     return Chosen(groups, [int(sizes[i]) for i in kept], dropped, labels, surface_grid)
 
@@ -372,7 +372,7 @@ def component_surfaces(
     grid, labels = chosen.grid, chosen.labels
     run = _runner(scheduler, cluster, grid.shape)
     task = partial(
-        _part_task, level=level, contour=_contour_level(np.dtype(volume.data.dtype), level),
+        _part_task, level=level, contour=contour_level(np.dtype(volume.data.dtype), level),
         normals=normals, affine=volume.affine,
     )  # fmt: skip
     meshes = []
@@ -380,7 +380,7 @@ def component_surfaces(
     for n, group in enumerate(chosen.groups):
         welder = Welder()
         start = LABELS_SHARE + n * width
-        done = None if progress is None else partial(_counted, progress, start, width)
+        done = None if progress is None else partial(counted, progress, start, width)
         for part in run(task, grid, _part_blocks(grid, labels, group), progress=done):
             welder.add(part, part.vertices, part.normals)
         verts, faces, vectors = welder.result()
@@ -444,7 +444,7 @@ def _part_task(
     """One surface block of one group, its other pieces blanked, in LPS mm."""
     edit = partial(_blank, item=item, level=level, low=grid.pad)
     zero = np.zeros(3)
-    return _surface_task(grid, item.box, contour, normals, affine, (1, 1, 1), zero, edit)
+    return surface_task(grid, item.box, contour, normals, affine, (1, 1, 1), zero, edit)
 
 
 def _blank(points: np.ndarray, read: Box, item: _PartBlock, level: float, low: float) -> np.ndarray:

@@ -27,8 +27,7 @@ import numpy as np
 
 from miss.decimate import SAMPLES, DecimationReport, decimate, measured, measuring_later
 from miss.errors import BadParameter, EmptySurface
-from miss.measure import measurer
-from miss.measure._native import native
+from miss.measure import measurer, native
 from miss.scene import DEFAULT_SCENE_TITLE, Part, Scene
 from miss.smooth import VOLUME_TOLERANCE, smooth_mesh
 from miss.spec import Decimation, JobSpec, Structure
@@ -57,13 +56,12 @@ from miss.surface.blockwise import (
     BlockRun,
     decimated_surface_of,
     in_blocks,
-    in_memory,
     surface_of,
 )
-from miss.types import Mesh, Volume
+from miss.types import Mesh, Volume, in_memory
 
 if TYPE_CHECKING:
-    from miss.measure._native import Side
+    from miss.measure import Side
     from miss.measure.measurer import RemoteSide
 
 #: Windowed-sinc iterations when none are asked for: label maps come out of surface

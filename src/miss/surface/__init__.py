@@ -67,7 +67,7 @@ def _region(
     return box
 
 
-def _pad_value(dtype: np.dtype, level: float, span: float) -> tuple[np.dtype, float]:
+def pad_value(dtype: np.dtype, level: float, span: float) -> tuple[np.dtype, float]:
     """(dtype, value) of the pad: very low, so that the cap's vertices, interpolated towards
     it, land within a few hundredths of a voxel of the last chosen slice rather than half a
     voxel beyond. Integer data keeps its type when its minimum is below the level."""
@@ -78,7 +78,7 @@ def _pad_value(dtype: np.dtype, level: float, span: float) -> tuple[np.dtype, fl
 
 def _pad_below(block: np.ndarray, level: float, span: float) -> np.ndarray:
     """Surround the block by one voxel far below the level so cut surfaces close (capped)."""
-    dtype, low = _pad_value(block.dtype, level, span)
+    dtype, low = pad_value(block.dtype, level, span)
     out = np.full(tuple(s + 2 for s in block.shape), low, dtype=dtype, order="F")
     out[1:-1, 1:-1, 1:-1] = block
     return out
@@ -120,7 +120,7 @@ def _slab(block: np.ndarray, first: int, last: int, pad: tuple[np.dtype, float])
     return out
 
 
-def _contour_level(dtype: np.dtype, level: float) -> float:
+def contour_level(dtype: np.dtype, level: float) -> float:
     """The value flying edges contours: ``level``, a quarter below a whole-number level on
     integer data, or half a float32 step below a level float32 data can hold.
 
@@ -165,7 +165,7 @@ def _surface_in_slabs(
     seams = _seam_planes(block, level)
     if not seams:
         return _surface_whole(block, level, span, normals)
-    pad, bounds = _pad_value(block.dtype, level, span), [-1, *seams, block.shape[2]]
+    pad, bounds = pad_value(block.dtype, level, span), [-1, *seams, block.shape[2]]
     welder = _Welder()
     for j in range(len(bounds) - 1):
         inner_lo, inner_hi = j > 0, j < len(bounds) - 2
@@ -232,10 +232,10 @@ def _keep_and_number(
     below) keep it, the others get start, start + 1, ... in first-use order. Returns the
     faces (int32) and the local indices of the newly numbered vertices; fills ``ids``.
 
-    numpy here; numba's loop (:mod:`miss.decimate._quadric`) when numba is loaded already.
+    numpy here; numba's loop (:mod:`miss.surface._seams`) when numba is loaded already.
     """
     if "numba" in sys.modules:
-        from miss.decimate._quadric import keep_and_number
+        from miss.surface._seams import keep_and_number
 
         return keep_and_number(faces, beyond, ids, start)
     dropped = beyond[faces[:, 0]] | beyond[faces[:, 1]] | beyond[faces[:, 2]]
@@ -337,7 +337,7 @@ def extract_surface(
     lo, hi = float(np.min(block)), float(np.max(block))
     check_level(level, lo, hi)
     offset = np.array([b[0] for b in box], dtype=np.float64)
-    contour = _contour_level(block.dtype, level)
+    contour = contour_level(block.dtype, level)
     if closed:
         verts, faces, index_normals = _surface_in_slabs(block, contour, hi - lo, normals)
     else:

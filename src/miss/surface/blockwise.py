@@ -20,13 +20,13 @@ from miss.errors import BadParameter, EmptySurface
 from miss.surface import (
     Roi,
     SampleRate,
-    _contour_level,
     _normals_to_patient,
-    _pad_value,
     _points_to_patient,
     check_level,
     checked_region,
+    contour_level,
     extract_surface,
+    pad_value,
 )
 from miss.surface.blocks import (
     BlockMesh,
@@ -41,7 +41,7 @@ from miss.surface.blocks import (
     voxel_boxes,
 )
 from miss.surface.runner import CLUSTER_VOXELS, run_blocks, scheduler_address
-from miss.types import Mesh, Volume
+from miss.types import Mesh, StridedView, Volume
 
 #: Block edge in cells when none is asked for: 128³ cells, ~2 M voxels (4 MB of int16)
 #: plus VTK's working arrays per task, well under a worker's memory.
@@ -201,14 +201,14 @@ def _blockwise(
     what each block's decimation did, and when it began (``time.perf_counter``)."""
     steps, box, shape = checked_region(volume.dims, level, sample_rate, slices, roi)
     dtype = np.dtype(volume.data.dtype)
-    data, start, step = _source(volume.data, [lo for lo, _ in box], steps)
+    data, start, step = block_source(volume.data, [lo for lo, _ in box], steps)
     grid = Grid(data, start, step, shape, 0.0, dtype.str)  # type: ignore[arg-type]
     blocks = cell_blocks(grid.padded, block_edges(block))
     address = scheduler_address(scheduler)
     big = cluster if cluster is not None else int(np.prod(shape)) >= CLUSTER_VOXELS
     run = partial(run_blocks, scheduler=address, cluster=big)
     report = progress or (lambda stage, fraction: None)
-    contour = _contour_level(dtype, level)
+    contour = contour_level(dtype, level)
     # Integer data pads with its type's minimum: the surface pass needs no value range
     # first, and each block reports its own (checked once all are in). Float data's pad
     # lies below the range, which a first pass finds (big blocks, few tasks).
@@ -218,7 +218,7 @@ def _blockwise(
         lo, hi = _range(grid, voxel_boxes(grid, RANGE_BLOCK), run, report)
         check_level(level, lo, hi)
         start = 0.1
-    pad_dtype, pad = _pad_value(dtype, contour, hi - lo if not in_one_pass else 0.0)
+    pad_dtype, pad = pad_value(dtype, contour, hi - lo if not in_one_pass else 0.0)
     grid = Grid(grid.data, grid.start, grid.step, grid.shape, pad, np.dtype(pad_dtype).str)
     offset = np.array([b[0] for b in box], dtype=np.float64)
     # On threads the blocks come in their order and are welded at the end; from Dask, as
@@ -229,10 +229,10 @@ def _blockwise(
     order = {box: i for i, box in enumerate(blocks)}
     # each task maps its own vertices to mm: float32 travels back, and the work is spread
     task = partial(
-        _surface_task, level=contour, normals=normals, affine=volume.affine, steps=steps,
+        surface_task, level=contour, normals=normals, affine=volume.affine, steps=steps,
         offset=offset,
     )  # fmt: skip
-    done = partial(_counted, report, start, 1.0 - start)
+    done = partial(counted, report, start, 1.0 - start)
     second: list[float] = []  # when the blocks' decimation (the second wave) began
     then = None if decimation is None else (_extent, partial(_decide, decimation, second))
     stages: list[Decimated] | None = None if decimation is None else []
@@ -253,7 +253,7 @@ def _blockwise(
     return mesh, stages, second[0] if second else time.perf_counter()
 
 
-def _source(
+def block_source(
     data: Any, start: Sequence[int], steps: Sequence[int]
 ) -> tuple[Any, tuple[int, ...], tuple[int, ...]]:
     """The array the blocks read, where the region starts in it and its steps: through a
@@ -266,7 +266,7 @@ def _source(
     return data, tuple(start), tuple(steps)
 
 
-def _surface_task(
+def surface_task(
     grid: Grid,
     box: Box,
     level: float,
@@ -339,7 +339,7 @@ def _decimate_block(part: BlockMesh, method: str, reduce: float, bound_mm: float
     )
 
 
-def _counted(report: Progress, start: float, width: float, done: int, total: int) -> None:
+def counted(report: Progress, start: float, width: float, done: int, total: int) -> None:
     report("surface", start + width * done / total)
 
 
@@ -348,7 +348,7 @@ def _range(
 ) -> tuple[float, float]:
     """The region's minimum and maximum, block by block (the first tenth of the progress)."""
     lo, hi = np.inf, -np.inf
-    for b_lo, b_hi in run(block_range, grid, blocks, progress=partial(_counted, report, 0.0, 0.1)):  # type: ignore[attr-defined]
+    for b_lo, b_hi in run(block_range, grid, blocks, progress=partial(counted, report, 0.0, 0.1)):  # type: ignore[attr-defined]
         lo, hi = min(lo, b_lo), max(hi, b_hi)
     return lo, hi
 
@@ -394,33 +394,3 @@ def surface_of(
         volume, level, normals=normals, block=run.block, scheduler=run.scheduler,
         progress=run.progress,
     )  # fmt: skip
-
-
-def in_memory(volume: Volume) -> Volume:
-    """``volume`` with its voxels read into one (X, Y, Z) numpy array when they are on
-    disk (a :class:`StridedView` or a stored array), for the work not yet done block by
-    block (label maps). A worker's memory cap stops a region too large for it."""
-    if isinstance(volume.data, np.ndarray):
-        return volume
-    data = np.asfortranarray(volume.data[(slice(None),) * 3])
-    return replace(volume, data=data)
-
-
-class StridedView:
-    """A lazy box of a 3-D array at a sample step: slicing it (unit steps) reads only that
-    part of ``data``. What :meth:`miss.spec.Region.apply` returns for data on disk."""
-
-    def __init__(self, data: Any, box: Sequence[tuple[int, int]], steps: Sequence[int]):
-        self.data, self.box, self.steps = data, tuple(box), tuple(steps)
-        self.shape = tuple(
-            len(range(lo, hi + 1, st)) for (lo, hi), st in zip(self.box, self.steps, strict=True)
-        )
-        self.dtype = np.dtype(data.dtype)
-        self.ndim = 3
-
-    def __getitem__(self, key: tuple[slice, ...]) -> np.ndarray:
-        picked = []
-        for sl, (lo, _), st, n in zip(key, self.box, self.steps, self.shape, strict=True):
-            a, b, step = sl.indices(n)
-            picked.append(slice(lo + a * st, lo + (b - 1) * st + 1, st * step))
-        return np.asarray(self.data[tuple(picked)])
