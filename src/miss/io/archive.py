@@ -19,13 +19,13 @@ from collections.abc import Callable
 from pathlib import Path, PurePosixPath
 
 from miss.errors import BadParameter, InputTooLarge, UnreadableVolume, UnsafeArchive
+from miss.io.codecs import MAX_RATIO, RATIO_FLOOR
 
 CHUNK = 1 << 20
 MAX_MEMBERS = 100_000
 #: Inflated bytes per zipped byte beyond which an archive (or one member) is refused once
-#: past ``RATIO_FLOOR``: CT and MR slices deflate about 2-10:1, masks a little more.
-MAX_RATIO = 100
-RATIO_FLOOR = 64 * 1024**2
+#: past ``RATIO_FLOOR``: CT and MR slices deflate about 2-10:1, masks a little more. The
+#: same rule holds for every compressed file a reader decodes (:mod:`miss.io.codecs`).
 #: Extensions of single-file volumes, longest first so ".nii.gz" wins over ".gz".
 VOLUME_SUFFIXES = (".nii.gz", ".nii", ".nrrd", ".nhdr", ".mha", ".mhd")
 

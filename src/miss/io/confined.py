@@ -13,7 +13,9 @@ SimpleITK's catch-all) runs here, in a child process that
   wherever the kernel's Landlock ABI has them (ABI 4, 6, 10 and 9);
 - starts with an empty environment (no ``MISS_ADMIN_PASSWORD``, no database URL) and no
   open files but its standard streams;
-- has its address space (``RLIMIT_AS``), CPU time, file size and wall-clock time capped.
+- has its address space (``RLIMIT_AS``), CPU time, file size and wall-clock time capped
+  (memory: ``MISS_PARSE_MEMORY_MB``, 4096 by default, beyond its libraries), and what
+  any compressed file may decode to (:mod:`miss.io.codecs`).
 
 The child sends the voxels back as ``out/data.npy`` and everything else as JSON, never
 as a pickle, and the parent checks both before it believes them: a reader that a
@@ -96,13 +98,19 @@ SYSTEM_READ = (
 )
 
 
+#: Memory one child may use beyond its libraries by default (``MISS_PARSE_MEMORY_MB``):
+#: a 1 GiB volume read whole (a 512 x 512 x 2000 CT) takes about three times that.
+DEFAULT_MEMORY = 4 << 30
+
+
 @dataclass(frozen=True)
 class Limits:
     """Caps for one child: wall-clock and CPU seconds, bytes of memory beyond the
-    libraries, bytes it may write (unpacked zip and voxels), bytes a zip may inflate to."""
+    libraries (0: none), bytes it may write (unpacked zip and voxels), bytes a zip, or
+    any compressed file, may inflate to (:mod:`miss.io.codecs`)."""
 
     seconds: float = 600.0
-    memory_bytes: int = 16 << 30
+    memory_bytes: int = DEFAULT_MEMORY
     write_bytes: int = 16 << 30
     unzipped_bytes: int = 8 << 30
     min_free_bytes: int = 0
@@ -546,6 +554,9 @@ def child_main(config: dict[str, Any]) -> int:
     _cap(config)
     if config.get("confined", True) or config["mode"] == "probe":
         _confine(config["roots"], Path.cwd())
+    from miss.io import codecs
+
+    codecs.set_max_decoded(int(config.get("unzipped_bytes") or 0))
     out = Path.cwd() / OUT
     try:
         answer = _CHILD_MODES[config["mode"]](config)

@@ -24,6 +24,7 @@ from pydicom.errors import InvalidDicomError
 from pydicom.uid import ExplicitVRBigEndian, ExplicitVRLittleEndian, ImplicitVRLittleEndian
 
 from miss.errors import UnreadableVolume
+from miss.io import codecs
 from miss.io.archive import MAX_RATIO, RATIO_FLOOR
 
 #: Refuse archives that would inflate beyond this (zip bombs); a 2000-slice CT is ~1 GB.
@@ -54,6 +55,7 @@ def read_dataset(entry: Entry, header_only: bool = False) -> Dataset:
     """
     try:
         with _opened(entry) as stream:
+            codecs.check_deflated_dicom(Path(entry.label), stream)
             return pydicom.dcmread(stream, stop_before_pixels=header_only)
     except InvalidDicomError:
         with _opened(entry) as stream:

@@ -31,6 +31,7 @@ from typing import Any, Literal
 import numpy as np
 
 from miss.errors import InputTooLarge, UnreadableSegmentation
+from miss.io import codecs
 from miss.structures.labels import LabelInfo, LabelTable
 from miss.types import Volume
 
@@ -56,6 +57,7 @@ def segmentation_kind(path: str | os.PathLike[str]) -> Literal["seg", "rtstruct"
     import pydicom
     from pydicom.errors import InvalidDicomError
 
+    _check_deflated(Path(path))
     try:
         header = pydicom.dcmread(
             path, stop_before_pixels=True, specific_tags=["SOPClassUID"], force=False
@@ -63,6 +65,17 @@ def segmentation_kind(path: str | os.PathLike[str]) -> Literal["seg", "rtstruct"
     except (InvalidDicomError, OSError, ValueError, TypeError, AttributeError, EOFError):
         return None
     return KINDS.get(_sop_class(header))
+
+
+def _check_deflated(path: Path) -> None:
+    """A deflated data set past the caps of :mod:`miss.io.codecs` is refused before
+    pydicom inflates it whole (it does, for the header alone)."""
+    try:
+        stream = path.open("rb")
+    except OSError:
+        return  # pydicom says why it cannot be read
+    with stream:
+        codecs.check_deflated_dicom(path, stream)
 
 
 def _sop_class(header: Any) -> str:
@@ -107,6 +120,8 @@ def read_seg(path: str | os.PathLike[str]) -> tuple[Volume, LabelTable]:
     name = Path(path).name
     header = _header(path, "seg", "a DICOM SEG")
     _check_seg_size(header, name)
+    pixels = int(header.get("NumberOfFrames", 1) or 1) * int(header.Rows) * int(header.Columns)
+    codecs.check_decoded(Path(path), pixels, Path(path).stat().st_size, "SEG pixel data")
     seg = _segread(path, name)
     geometry = _seg_geometry(seg, name)
     numbers = [int(n) for n in seg.segment_numbers]
@@ -137,6 +152,7 @@ def _header(path: str | os.PathLike[str], kind: str, what: str) -> Any:
     from pydicom.errors import InvalidDicomError
 
     name = Path(path).name
+    _check_deflated(Path(path))
     try:
         header = pydicom.dcmread(path, stop_before_pixels=True)
         for _ in header.iterall():  # pydicom parses sequences when first touched

@@ -7,6 +7,7 @@ uneven gaps are resampled onto a regular grid (see :mod:`miss.io.slices`).
 
 from __future__ import annotations
 
+import math
 import re
 from collections import Counter
 from collections.abc import Iterator
@@ -17,7 +18,7 @@ import numpy as np
 from pydicom.dataset import Dataset
 
 from miss.errors import MissError, UnreadableVolume
-from miss.io import slices
+from miss.io import codecs, slices
 from miss.io.common import MAX_MM, check_declared_size, integer_dtype, recorded_warnings, zyx_to_xyz
 from miss.io.dicom_files import Entry, number, read_dataset
 
@@ -70,6 +71,7 @@ def _plan(path: Path, files: list[tuple[Entry, Dataset]]) -> _Plan:
         2,
         fix="check the series' Rows and Columns",
     )
+    _check_compressed(path, first, len(keep))
     try:
         grid = slices.plan_grid(positions, origins[keep])
     except ValueError as exc:
@@ -134,6 +136,17 @@ def stream_stack(path: Path, files: list[tuple[Entry, Dataset]]) -> StreamedStac
     planes = (_rescaled(array, scale, dtype).T for array, scale in _decoded(path, plan.entries, []))
     dims = (columns, rows, len(plan.entries))
     return StreamedStack(dims, dtype, plan.affine, scales[0], notes + plan.grid.notes, planes)
+
+
+def _check_compressed(path: Path, first: Dataset, count: int) -> None:
+    """Compressed pixels (JPEG, JPEG 2000, RLE) decode to the size the headers declare
+    whatever the files hold: the declared stack against the bytes on disk, before any
+    slice is decoded (:mod:`miss.io.codecs`)."""
+    shape = (int(number(first, "Columns")), int(number(first, "Rows")), count)
+    itemsize = max(int(number(first, "BitsAllocated", 16)) // 8, 1)
+    what = f"{'x'.join(map(str, shape))} pixels of {itemsize} byte(s)"
+    decoded = math.prod(shape) * itemsize
+    codecs.check_decoded(path, decoded, codecs.bytes_on_disk(path), "DICOM files", what)
 
 
 def _position(ds: Dataset) -> np.ndarray:

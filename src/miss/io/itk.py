@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from miss.errors import UnreadableVolume, UnsupportedFormat
+from miss.io import codecs
 from miss.io.common import affine_from, check_declared_size, make_volume, no_series, zyx_to_xyz
 from miss.types import Volume
 
@@ -70,16 +71,35 @@ def read_image(path: Path, on_disk: int | None = None) -> sitk.Image:
         reader.ReadImageInformation()
         shape = [*reader.GetSize(), reader.GetNumberOfComponents()]
         check_declared_size(path, shape, 1)
-        if on_disk is not None and math.prod(shape) > MAX_RATIO * on_disk:
-            raise UnreadableVolume(
-                f"{path.name}: the header declares {'x'.join(map(str, shape))} values, which "
-                f"{on_disk} bytes on disk cannot hold; the header is damaged: fix its sizes."
-            )
+        if on_disk is not None:
+            _check_on_disk(path, reader, shape, on_disk)
         return reader.Execute()
     except RuntimeError as exc:
         lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
         reason = _without_addresses(lines[-1]) if lines else "unknown error"
         raise UnsupportedFormat(f"SimpleITK cannot read {path.name} ({reason})") from exc
+
+
+def _check_on_disk(
+    path: Path, reader: sitk.ImageFileReader, shape: list[int], on_disk: int
+) -> None:
+    """The declared image against the ``on_disk`` bytes that hold it, before ITK decodes:
+    the caps of :mod:`miss.io.codecs`, whatever codec the format uses (TIFF's LZW,
+    MINC's HDF5 gzip, .mgz ...), and ``MAX_RATIO`` values per byte below them."""
+    if math.prod(shape) > MAX_RATIO * on_disk:
+        raise UnreadableVolume(
+            f"{path.name}: the header declares {'x'.join(map(str, shape))} values, which "
+            f"{on_disk} bytes on disk cannot hold; the header is damaged: fix its sizes."
+        )
+    sitk = _simpleitk()
+    itemsize = sitk.Image([1, 1], reader.GetPixelID()).GetSizeOfPixelComponent()
+    what = f"{'x'.join(map(str, shape[:-1]))} x {shape[-1]} component(s) of {itemsize} byte(s)"
+    codecs.check_decoded(path, math.prod(shape) * itemsize, on_disk, "file data", what)
+
+
+def folder_bytes(path: Path) -> int:
+    """Bytes of the regular files in ``path``'s folder: all a header there may name."""
+    return sum(p.stat().st_size for p in path.parent.iterdir() if p.is_file())
 
 
 def _bytes_beside(path: Path) -> int:

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from miss.errors import UnreadableVolume, UnsupportedFormat
-from miss.io import itk
+from miss.io import codecs, itk
 from miss.io.common import affine_from, check_declared_size, make_volume, no_series, zyx_to_xyz
 from miss.io.metaimage_header import (
     MetaHeader,
@@ -73,7 +73,8 @@ def read(path: Path, series: str | None) -> Volume:
     if header is not None:
         check_declared_size(path, [*header.sizes, header.channels], header.dtype.itemsize)
     try:
-        return itk.to_volume(path, itk.read_image(path), "metaimage")
+        image = itk.read_image(path, on_disk=itk.folder_bytes(path))
+        return itk.to_volume(path, image, "metaimage")
     except UnsupportedFormat as exc:
         if header is not None:  # a variant MISS's reader lacks: it would read garbage
             raise UnreadableVolume(
@@ -162,6 +163,7 @@ def _check_data(path: Path, header: MetaHeader) -> None:
             raise _truncated(path, max(available, 0), _need(header))
         return
     check_declared_size(path, shape, header.dtype.itemsize, max(available, 0), fix="fix DimSize")
+    codecs.check_declared(path, shape, header.dtype, max(available, 0), "zlib")
 
 
 def _compressed_size_mismatch(path: Path, header: MetaHeader) -> str:
@@ -190,8 +192,8 @@ def _payload(path: Path, header: MetaHeader, text: bytes, need: int) -> bytes:
     if not header.compressed:
         return data
     try:
-        return zlib.decompressobj(zlib.MAX_WBITS | 32).decompress(data, need)
-    except zlib.error as exc:
+        return codecs.inflate(data, "zlib", need, concatenated=False)
+    except (zlib.error, ValueError) as exc:
         raise UnreadableVolume(
             f"{path.name}: the compressed voxel data is damaged ({exc}); copy it again."
         ) from exc

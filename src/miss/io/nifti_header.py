@@ -20,6 +20,7 @@ from typing import BinaryIO
 import numpy as np
 
 from miss.errors import UnreadableVolume
+from miss.io import codecs
 from miss.io.common import DEFLATE_MAX_RATIO, check_declared_size
 
 NIFTI1_MAGICS = (b"n+1\0", b"ni1\0")
@@ -174,6 +175,9 @@ def _check_size(path: Path, declared: Declared) -> None:
         raise truncated(
             path, f"the header needs {declared.needed} bytes; {on_disk} compressed cannot hold them"
         )
+    if gz:
+        what = codecs.declared_text(declared.shape, declared.dtype)
+        codecs.check_decoded(path, declared.needed, on_disk, "gzip", what)
 
 
 def open_stream(path: Path) -> BinaryIO:

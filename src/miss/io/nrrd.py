@@ -8,7 +8,6 @@ or ``NAME.%d 1 113 1``), raw or compressed, in either byte order. Geometry comes
 
 from __future__ import annotations
 
-import bz2
 import math
 import re
 import zlib
@@ -17,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from miss.errors import UnreadableVolume
-from miss.io import nrrd_header
+from miss.io import codecs, nrrd_header
 from miss.io.common import check_declared_size, make_volume, no_series
 from miss.io.nrrd_header import NrrdHeader
 from miss.types import Volume
@@ -64,9 +63,11 @@ def read(path: Path, series: str | None) -> Volume:
 
 
 def _check_sizes(path: Path, header: NrrdHeader, text: bytes) -> None:
-    """Refuse absurd sizes before reading, inflating or allocating anything."""
+    """Refuse absurd sizes before reading, inflating or allocating anything: compressed
+    data is held to the caps of :mod:`miss.io.codecs` (byte skips count: they are
+    inflated too)."""
     compressed = None
-    if header.encoding == "gzip":
+    if header.encoding in ("gzip", "bzip2"):
         if header.data.files:
             compressed = sum(f.stat().st_size for f in header.data.files if f.is_file())
         else:
@@ -75,9 +76,14 @@ def _check_sizes(path: Path, header: NrrdHeader, text: bytes) -> None:
         path,
         header.sizes,
         header.dtype.itemsize,
-        compressed,
+        compressed if header.encoding == "gzip" else None,
         fix="fix 'sizes' (fastest axis first)",
     )
+    if compressed is not None:
+        skipped = max(_skips(path, header)[1], 0) * max(len(header.data.files), 1)
+        what = codecs.declared_text(header.sizes, header.dtype)
+        decoded = _expected_bytes(header) + skipped
+        codecs.check_decoded(path, decoded, compressed, header.encoding, what)
 
 
 def _payload(path: Path, header: NrrdHeader, text: bytes) -> bytes:
@@ -160,24 +166,13 @@ def _skips(path: Path, header: NrrdHeader) -> tuple[int, int]:
 
 def _inflate(path: Path, name: str, chunk: bytes, encoding: str, limit: int) -> bytes:
     """At most ``limit`` bytes of gzip/zlib or bzip2 data (concatenated streams included)."""
-    out = bytearray()
     try:
-        while chunk and len(out) < limit:
-            if encoding == "gzip":  # wbits 47: a gzip or a zlib header, detected
-                inflater = zlib.decompressobj(zlib.MAX_WBITS | 32)
-                out += inflater.decompress(chunk, limit - len(out))
-            else:
-                inflater = bz2.BZ2Decompressor()
-                out += inflater.decompress(chunk, limit - len(out))
-            if len(out) < limit and not inflater.eof:
-                raise EOFError("the compressed stream ends before the data does")
-            chunk = inflater.unused_data
+        return codecs.inflate(chunk, encoding, limit)
     except (EOFError, OSError, zlib.error, ValueError) as exc:
         raise UnreadableVolume(
             f"{path.name}: the {encoding} data in {name} is truncated or damaged ({exc}); "
             "copy it again."
         ) from exc
-    return bytes(out)
 
 
 def _values(path: Path, header: NrrdHeader, payload: bytes) -> np.ndarray:

@@ -21,12 +21,15 @@ Environment variables (all optional):
 ``MISS_MIN_FREE_MB``      uploads and jobs are refused while the data folder's disk has
                           less free space than this, MB (256)
 ``MISS_WORKER_MEMORY_MB`` memory one job's worker may use beyond its code and the volume,
-                          MB (physical memory; 0: no cap; see ``miss.server.jobs.worker``); the
-                          confined child that reads an upload gets the same cap
+                          MB (physical memory; 0: no cap; see ``miss.server.jobs.worker``)
 ``MISS_IN_MEMORY_MAX_MB`` volumes up to this size (decompressed) are read whole into memory
                           for a job or a slice; larger ones are read chunk by chunk as
                           needed, MB (1024)
 ``MISS_PARSE_SECONDS``    longest an upload's confined reader may run, seconds (600)
+``MISS_PARSE_MEMORY_MB``  memory an upload's confined reader may use beyond its libraries,
+                          MB (4096: a 1 GiB volume read whole fits; 0: no cap); compressed
+                          files may decode to at most ``MISS_MAX_UNZIPPED_MB``, and past 64 MB
+                          to 100 times their size (``miss.io.codecs``)
 ``MISS_UPLOADS_PER_USER`` uploads one account may send at once (2); more get 429
 ``MISS_UPLOADS_AT_ONCE``  uploads the server receives at once from everyone (4)
 ``MISS_PACS_URL``         DICOMweb root of the hospital's PACS (none); ``MISS_PACS_NAME``,
@@ -127,6 +130,7 @@ class Settings:
     room_guests_per_link: int = 20
     sse_per_user: int = 10
     ws_connects_per_minute: float = 60.0
+    parse_memory_mb: float = 4096.0
 
     def __post_init__(self) -> None:
         # Resolve once so the worker subprocesses, which get these as arguments, see the
@@ -188,6 +192,11 @@ class Settings:
             raise ValueError(
                 f"MISS_WORKER_MEMORY_MB must be a size in MB (0 for no cap), "
                 f"got {self.worker_memory_mb}."
+            )
+        if not self.parse_memory_mb >= 0:
+            raise ValueError(
+                f"MISS_PARSE_MEMORY_MB must be a size in MB (0 for no cap), "
+                f"got {self.parse_memory_mb}."
             )
         if self.password_checks < 1:
             raise ValueError(
@@ -268,7 +277,7 @@ class Settings:
         """Caps for the confined child that reads one upload."""
         return Limits(
             seconds=self.parse_seconds,
-            memory_bytes=self.worker_memory_bytes,
+            memory_bytes=int(self.parse_memory_mb * MB),
             write_bytes=self.max_unzipped_bytes + (16 << 30),
             unzipped_bytes=self.max_unzipped_bytes,
             min_free_bytes=self.min_free_bytes,
@@ -344,6 +353,7 @@ _ENV: tuple[tuple[str, str, Any], ...] = (
     ("room_guests_per_link", "MISS_ROOM_GUESTS_PER_LINK", int),
     ("sse_per_user", "MISS_SSE_PER_USER", int),
     ("ws_connects_per_minute", "MISS_WS_CONNECTS_PER_MINUTE", float),
+    ("parse_memory_mb", "MISS_PARSE_MEMORY_MB", float),
 )
 
 
