@@ -97,9 +97,11 @@ def cmd_user(args: argparse.Namespace) -> int:
     next request."""
     from miss.server import accounts, audit
     from miss.server.settings import Settings
+    from miss.server.storage.private import owner_only
     from miss.server.storage.store import Store
 
     settings = Settings.from_env(data_dir=args.data_dir)
+    owner_only(settings.data_dir, settings.database_url)
     store = Store(settings.data_dir, settings.database_url)
     try:
         store.init_schema()
@@ -170,8 +172,10 @@ def cmd_backup(args: argparse.Namespace) -> int:
     then the volumes and models, each file with its SHA-256 in ``manifest.json``."""
     from miss.server.settings import Settings
     from miss.server.storage.backup import backup
+    from miss.server.storage.private import owner_only
 
     settings = Settings.from_env(data_dir=args.data_dir)
+    owner_only(settings.data_dir, settings.database_url)  # the copy: 0600 files, 0700 folders
     os.nice(10)  # like the job workers: viewers of the running server come first
     done = backup(settings.data_dir, settings.database_url, args.dest)
     print(
@@ -185,8 +189,10 @@ def cmd_restore(args: argparse.Namespace) -> int:
     """``miss restore SRC``: into an empty data folder (and an empty database)."""
     from miss.server.settings import Settings
     from miss.server.storage.backup import restore
+    from miss.server.storage.private import UMASK
 
     settings = Settings.from_env(data_dir=args.data_dir)
+    os.umask(UMASK)  # the data folder must be empty: restore makes it, owner-only
     done = restore(args.src, settings.data_dir, settings.database_url)
     print(
         f"restored {done.files} files ({done.bytes / 2**20:.1f} MB) and the database into "

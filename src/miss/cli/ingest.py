@@ -27,12 +27,14 @@ def cmd_ingest(args: argparse.Namespace) -> int:
     from miss.server import audit
     from miss.server.ingest import ingest_path
     from miss.server.settings import Settings
+    from miss.server.storage.private import owner_only
     from miss.server.storage.store import Store
 
     path = Path(args.path)
     if not path.exists():
         raise BadParameter(f"{path}: no such file or folder; check the path.")
     settings = Settings.from_env(data_dir=args.data_dir)
+    owner_only(settings.data_dir, settings.database_url)
     store = Store(settings.data_dir, settings.database_url, settings.in_memory_max_bytes)
     try:
         store.init_schema()

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import re
 import shutil
 from collections.abc import Iterable
@@ -24,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from miss.deid import REMOVED, deidentify, identity_values, remap_uid, scrub, scrub_patterns
-from miss.errors import EmptySurface, MissError, UnreadableVolume
+from miss.errors import BadParameter, EmptySurface, MissError, UnreadableVolume
 from miss.io.common import Streamed
 from miss.io.confined import Confinement, Limits, parse_upload
 from miss.server import imaging
@@ -197,13 +198,54 @@ def ingest_path(store: Store, path: Path, name: str = "") -> VolumeRow:
     de-identification, files and row, no owner (the first administrator's at the next
     start). A plain NIfTI file and a folder of DICOM slices are read plane by plane
     (:func:`miss.io.nifti.stream`, :func:`miss.io.dicom.stream`), so they are never whole
-    in memory; other formats are read whole."""
+    in memory; other formats are read whole. Read in this process, unconfined: what it
+    reads is first checked to lie in the ingested folder (:func:`refuse_links_out`)."""
+    refuse_links_out(path)
     key = store.secret(UID_KEY)
     with store.disk_full_as_507():
         staged, volume, identity, info = _stream_in(store, path, key) or _read_in(store, path, key)
     name = display_name(name, volume, identity_values(identity.get("patient", {})))
     identity = {**identity, "upload_filename": path.name}
     return store.add_volume(staged, name=name, slug=slugify(name), info=info, identity=identity)
+
+
+def refuse_links_out(path: Path) -> None:
+    """Refuse to ingest ``path`` when a file its readers may open is a symbolic link (or
+    lies below one) that leads out of the ingested folder: every entry of ``path`` if a
+    folder (a DICOM series: every file in it is read); for a file, every entry of its
+    folder when the file can name others (a detached NRRD or MetaImage header, SimpleITK's
+    formats: their header checks allow any name inside the folder), else its namesakes (a
+    NIfTI pair's ``.img``). The file named on the command line is taken as given; a zip's
+    links are refused as it is unpacked. Raises ``BadParameter`` naming the link."""
+    from miss.io import self_contained
+    from miss.io.archive import is_zip
+
+    if path.is_dir():
+        _refuse_links_in(path, _entries(path))
+    elif not is_zip(path):
+        if self_contained(path):
+            _refuse_links_in(path.parent, _entries(path.parent))
+        else:
+            stem = path.name.split(".")[0]
+            namesakes = (p for p in path.parent.iterdir() if p.name.split(".")[0] == stem)
+            _refuse_links_in(path.parent, (str(p) for p in namesakes if p.name != path.name))
+
+
+def _entries(folder: Path) -> Iterable[str]:
+    """Every file and folder under ``folder``, links not followed (each is checked)."""
+    for top, dirs, files in os.walk(folder):
+        yield from (os.path.join(top, name) for name in (*dirs, *files))
+
+
+def _refuse_links_in(folder: Path, paths: Iterable[str]) -> None:
+    inside = os.path.realpath(folder)
+    for link in paths:
+        target = os.path.realpath(link)
+        if os.path.islink(link) and os.path.commonpath([inside, target]) != inside:
+            raise BadParameter(
+                f"{link} is a symbolic link to {target}, outside the ingested folder "
+                f"{folder}; copy that file into the folder (MISS reads no file out of it)."
+            )
 
 
 def _stream_in(store: Store, path: Path, key: bytes) -> Stored | None:

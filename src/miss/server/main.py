@@ -12,6 +12,7 @@ from miss.server import logmask
 from miss.server.app import create_app
 from miss.server.rooms import MAX_MESSAGE_BYTES
 from miss.server.settings import Settings
+from miss.server.storage.private import owner_only
 from miss.server.storage.store import DataDirInUse, Store
 
 
@@ -38,6 +39,7 @@ def serve(
             file=sys.stderr,
         )
         return 2
+    owner_only(settings.data_dir, settings.database_url)  # before anything is written
     probe = Store(settings.data_dir, settings.database_url)
     try:  # say it in one line now rather than as a traceback from the app's startup
         probe.lock()

@@ -16,6 +16,13 @@ folder made after the copy of the database is copied too and dropped at restore 
 names it: ``Store.init``); a job running during the backup is queued again at restore.
 A folder whose rows are in the copy but which was deleted before its files could be read
 is named in the manifest under ``vanished``.
+
+A backup holds the identity table: its folders are made 0700 and its files 0600, whatever
+the umask. A restore believes nothing of the manifest it has not checked: before anything
+is written, every file it names must be a plain relative path under ``volumes/`` or
+``models/`` (no ``..``, no absolute or drive path, no backslash), ``database`` must be one
+of the two names a backup uses, and each must be a regular file of the backup reached
+through no symbolic link; else the whole restore is refused, naming the entry.
 """
 
 from __future__ import annotations
@@ -28,7 +35,7 @@ import sqlite3
 import subprocess
 import time
 from dataclasses import dataclass
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import Any
 
 from sqlalchemy import create_engine, inspect, make_url, select
@@ -37,6 +44,7 @@ from miss import __version__
 from miss.errors import BadParameter
 from miss.server.storage import schema
 from miss.server.storage.db import DONE, ModelRow, VolumeRow
+from miss.server.storage.private import FILE_MODE, FOLDER_MODE, tighten
 from miss.server.storage.store import PART, Store
 
 MANIFEST = "manifest.json"
@@ -62,7 +70,7 @@ def backup(data_dir: Path, database_url: str, dest: Path) -> Summary:
     start = time.monotonic()
     dest = Path(dest)
     _require_empty(dest, "backup into")
-    dest.mkdir(parents=True, exist_ok=True)
+    tighten(dest, FOLDER_MODE, create=True)
     engine_name = _engine(database_url)
     if engine_name == "sqlite":
         database = dest / SQLITE_COPY
@@ -70,6 +78,7 @@ def backup(data_dir: Path, database_url: str, dest: Path) -> Summary:
         rows_url = f"sqlite:///{database}"
     else:
         database = dest / PG_DUMP
+        _new_file(database).close()  # pg_dump keeps the mode of the file it overwrites
         _pg("pg_dump", database_url, "--format=custom", "--no-owner", f"--file={database}")
         rows_url = database_url  # the folders to copy: those the dump's rows name, or more
     volumes, models = _known_folders(rows_url)
@@ -93,7 +102,8 @@ def backup(data_dir: Path, database_url: str, dest: Path) -> Summary:
         "files": files,
         "vanished": vanished,
     }
-    (dest / MANIFEST).write_text(json.dumps(manifest, indent=1, sort_keys=True))
+    with _new_file(dest / MANIFEST) as out:
+        out.write(json.dumps(manifest, indent=1, sort_keys=True).encode())
     return Summary(
         len(files),
         sum(f["bytes"] for f in files.values()),
@@ -107,6 +117,7 @@ def restore(src: Path, data_dir: Path, database_url: str) -> Summary:
     start = time.monotonic()
     src, data_dir = Path(src), Path(data_dir)
     manifest = json.loads((src / MANIFEST).read_text())
+    _check_manifest(src, manifest)
     _require_empty(data_dir, "restore into")
     engine_name = _engine(database_url)
     if manifest["engine"] != engine_name:
@@ -117,7 +128,7 @@ def restore(src: Path, data_dir: Path, database_url: str) -> Summary:
     database = src / manifest["database"]
     if _sha256(database) != manifest["database_sha256"]:
         raise BadParameter(f"{database} is not the file the backup made (checksum differs).")
-    data_dir.mkdir(parents=True, exist_ok=True)
+    tighten(data_dir, FOLDER_MODE, create=True)
     if engine_name == "sqlite":
         _sqlite_backup(database, _sqlite_path(database_url))
     else:
@@ -126,7 +137,7 @@ def restore(src: Path, data_dir: Path, database_url: str) -> Summary:
     total = 0
     for relative, entry in sorted(manifest["files"].items()):
         target = data_dir / relative
-        target.parent.mkdir(parents=True, exist_ok=True)
+        target.parent.mkdir(FOLDER_MODE, parents=True, exist_ok=True)
         digest = _copy_file(src / "files" / relative, target)
         if digest != entry["sha256"]:
             raise BadParameter(f"{src / 'files' / relative} differs from the backup's record.")
@@ -137,6 +148,62 @@ def restore(src: Path, data_dir: Path, database_url: str) -> Summary:
     finally:
         store.close()
     return Summary(len(manifest["files"]), total, database.stat().st_size, time.monotonic() - start)
+
+
+def _check_manifest(src: Path, manifest: Any) -> None:
+    """Refuse the backup at ``src`` unless every path its ``manifest`` names is a regular
+    file inside it: checked before anything is written (a crafted manifest must not make
+    restore write, or read, anywhere else)."""
+    files = manifest.get("files") if isinstance(manifest, dict) else None
+    database = manifest.get("database") if isinstance(manifest, dict) else None
+    if not isinstance(files, dict) or database not in (SQLITE_COPY, PG_DUMP):
+        raise BadParameter(
+            f"will not restore {src}: its {MANIFEST} names the database {database!r}, not "
+            f"{SQLITE_COPY!r} or {PG_DUMP!r} (or lists no files); it was not made by "
+            "'miss backup' or was altered."
+        )
+    _check_inside(src, database, src / database)
+    for relative, entry in files.items():
+        if not _plain_relative(relative) or not isinstance(entry, dict):
+            raise _altered(src, relative)
+        _check_inside(src, relative, src / "files" / relative)
+
+
+def _plain_relative(name: Any) -> bool:
+    """True for ``volumes/...`` or ``models/...`` in plain POSIX form: no ``..`` or ``.``,
+    no absolute or drive path, no backslash, no empty part, no control character."""
+    if not isinstance(name, str) or "\\" in name or not name.isprintable():
+        return False
+    parts = name.split("/")
+    return (
+        len(parts) >= 2
+        and parts[0] in FOLDERS
+        and not PurePosixPath(name).is_absolute()
+        and all(part not in ("", ".", "..") and ":" not in part for part in parts)
+    )
+
+
+def _check_inside(src: Path, name: str, path: Path) -> None:
+    """``path`` (named ``name`` in the manifest) must be a regular file of the backup
+    reached through no symbolic link (a backup holds none)."""
+    lexical = os.path.join(os.path.realpath(src), os.path.relpath(path, src))
+    if os.path.realpath(path) != lexical or not path.is_file():
+        raise _altered(src, name)
+
+
+def _altered(src: Path, name: Any) -> BadParameter:
+    return BadParameter(
+        f"will not restore {src}: its {MANIFEST} names {name!r}, which is not a file inside "
+        "the backup (a path out of it, or a symbolic link); it was altered. Nothing was "
+        "restored."
+    )
+
+
+def _new_file(path: Path) -> Any:
+    """``path`` opened for writing (binary, truncated), created 0600 whatever the umask."""
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, FILE_MODE)
+    os.fchmod(fd, FILE_MODE)  # an existing file keeps its mode otherwise
+    return os.fdopen(fd, "wb")
 
 
 def _require_empty(folder: Path, what: str) -> None:
@@ -173,7 +240,9 @@ def _sqlite_path(url: str) -> Path:
 
 def _sqlite_backup(source: Path, target: Path) -> None:
     """SQLite's online backup: one consistent copy, whatever writes meanwhile."""
-    target.parent.mkdir(parents=True, exist_ok=True)
+    target.parent.mkdir(FOLDER_MODE, parents=True, exist_ok=True)
+    if not target.exists():
+        _new_file(target).close()  # SQLite keeps the mode of the file it opens
     src = sqlite3.connect(f"file:{source}?mode=ro", uri=True, timeout=30)
     dst = sqlite3.connect(target)
     try:
@@ -243,7 +312,7 @@ def _copy_tree(source: Path, target: Path, files: dict[str, dict[str, Any]]) -> 
             continue
         relative = path.relative_to(base).as_posix()
         out = target.parent / relative
-        out.parent.mkdir(parents=True, exist_ok=True)
+        out.parent.mkdir(FOLDER_MODE, parents=True, exist_ok=True)
         try:
             digest = _copy_file(path, out)
         except FileNotFoundError:
@@ -254,7 +323,7 @@ def _copy_tree(source: Path, target: Path, files: dict[str, dict[str, Any]]) -> 
 def _copy_file(source: Path, target: Path) -> str:
     """Copy and hash in one read; flushed to disk. Returns the SHA-256 (hex)."""
     digest = hashlib.sha256()
-    with open(source, "rb") as f, open(target, "wb") as out:
+    with open(source, "rb") as f, _new_file(target) as out:
         while chunk := f.read(CHUNK):
             digest.update(chunk)
             out.write(chunk)

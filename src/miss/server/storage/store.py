@@ -55,6 +55,7 @@ from miss.server.storage.db import (
     make_engine,
     make_sessionmaker,
 )
+from miss.server.storage.private import FOLDER_MODE, tighten
 from miss.types import Volume
 
 if TYPE_CHECKING:
@@ -175,7 +176,8 @@ class Store:
         for its start, then shares it (``share``); one that starts beside others waits for
         any start under way and skips the sweeps.
         """
-        self.data_dir.mkdir(parents=True, exist_ok=True)
+        # Owner-only also where no command set the umask (an app made in a test, a host).
+        tighten(self.data_dir, FOLDER_MODE, create=True)
         handle = open(self.data_dir / "server.lock", "w")  # noqa: SIM115 - held until close()
         try:
             fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
