@@ -26,16 +26,18 @@ from miss.spec import JobSpec
 DEMO = "Demo head phantom (synthetic CT)"
 
 
-def _queue_rows(data: Path, jobs: list[tuple[str, float]]) -> list[str]:
-    """Queued rows on the demo volume, oldest first: (account, level) each; no server
-    runs yet, so the queue's order alone decides which starts when."""
+def _queue_rows(data: Path, jobs: list[tuple[str, float]], **params: Any) -> list[str]:
+    """Queued rows on the demo volume, oldest first: (account, level) each, and
+    ``params`` for all (a quick one at sample rate 2 by default); no server runs yet, so
+    the queue's order alone decides which starts when."""
+    params = params or {"sample_rate": 2, "decimate": "none"}
     settings = settings_for(data)
     store = Store(data, settings.database_url)
     try:
         volume = next(v for v in store.list_volumes() if v.name == DEMO)
         first, ids = utcnow(), []
         for n, (account, level) in enumerate(jobs):
-            spec = JobSpec.of(level=level, sample_rate=2, decimate="none")
+            spec = JobSpec.of(level=level, **params)
             row = ModelRow(
                 id=new_id(), volume_id=volume.id, key=spec.key(), spec=spec.to_dict(),
                 status=QUEUED, submitted_by=account, created_at=first + timedelta(seconds=n),
@@ -59,6 +61,23 @@ def test_round_robin_between_accounts(seeded_dir: Path, tmp_path: Path) -> None:
     assert all(m["status"] == "done" for m in ended), ended
     order = [jobs[ids.index(m["id"])][0] for m in sorted(ended, key=lambda m: m["started"])]
     assert order == ["alice", "bob", "alice", "alice"], order
+
+
+def test_a_worker_is_left_for_another_account(seeded_dir: Path, tmp_path: Path) -> None:
+    """Alice's two long jobs came first and there are two workers: the second waits, so
+    the administrator's job, posted while Alice's first runs, starts before it (the old
+    queue gave Alice both workers, and the next account waited for one of her jobs)."""
+    data = copy_seed(seeded_dir, tmp_path / "data")
+    heavy = {"components": "split", "smooth": 500}
+    alice = _queue_rows(data, [("alice", 300.0), ("alice", 310.0)], **heavy)
+    with serving(data, tmp_path / "server.log", workers=2, env={"MISS_DEMO": "0"}) as server:
+        first = server.wait(alice[0], ("running", "done", "failed"))
+        assert first["status"] == "running", "alice's first job ended before the test looked"
+        volume = next(v["id"] for v in server.http.get("/api/volumes").json())
+        mine = server.submit(volume, level=500.0, sample_rate=2, decimate="none")
+        ended = [server.wait(i, ("done", "failed"), timeout=300) for i in (*alice, mine)]
+    assert all(m["status"] == "done" for m in ended), ended
+    assert ended[2]["started"] < ended[1]["started"], ended
 
 
 @pytest.fixture

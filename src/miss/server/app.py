@@ -69,7 +69,9 @@ def _open(settings: Settings, metrics: Metrics | None = None) -> tuple[Store, Jo
     _first_admin(store, settings)
     store.appender.start()
     runner = WorkerProcess(store, settings.spare_workers, settings.job_env())
-    queue = JobQueue(store, settings.workers, runner, settings.job_cpu_seconds)
+    queue = JobQueue(
+        store, settings.workers, runner, settings.job_cpu_seconds, settings.workers_per_account
+    )
     if metrics is not None:
         queue.on_finished = lambda outcome, seconds: metrics.jobs.observe(outcome, value=seconds)
     queue.start()

@@ -55,6 +55,8 @@ Environment variables (all optional):
                           all at once at most (60); more are closed with 4429
 ``MISS_LOD_TRIANGLES``    a model of more triangles also gets levels of detail (a 3D Tiles
                           tileset the viewer refines as it zooms in); 2,000,000; 0: never
+``MISS_WORKERS_PER_ACCOUNT`` jobs of one account run at once (``MISS_WORKERS`` less one, at
+                          least 1): the last worker is kept for another account's job
 ``MISS_JOB_CPU_SECONDS``  CPU time one job's worker may use, seconds, all its threads
                           counted (600; 0: no limit); over it the job fails
 ``MISS_JOB_WRITE_MB``     model files one job may write, MB (4096; 0: no limit); over it
@@ -116,6 +118,8 @@ class Settings:
     pacs_send_uploads: bool = False
     lod_triangles: int = 2_000_000
     room_max_people: int = 50
+    #: Jobs of one account run at once (0: ``workers`` less one, at least 1).
+    workers_per_account: int = 0
     job_cpu_seconds: float = 600.0
     job_write_mb: float = 4096.0
     quota_mb: float = 20480.0
@@ -142,6 +146,13 @@ class Settings:
             object.__setattr__(self, "max_unzipped_mb", 4.0 * self.max_upload_mb)
         if self.workers < 1:
             raise ValueError(f"MISS_WORKERS must be at least 1, got {self.workers}.")
+        if self.workers_per_account < 0:
+            raise ValueError(
+                f"MISS_WORKERS_PER_ACCOUNT must be 0 (MISS_WORKERS less one) or more, "
+                f"got {self.workers_per_account}."
+            )
+        if self.workers_per_account == 0:
+            object.__setattr__(self, "workers_per_account", max(1, self.workers - 1))
         if self.spare_workers < 0:
             raise ValueError(f"MISS_SPARE_WORKERS must be 0 or more, got {self.spare_workers}.")
         if self.session_hours <= 0:
@@ -341,6 +352,7 @@ _ENV: tuple[tuple[str, str, Any], ...] = (
     ("pacs_send_uploads", "MISS_PACS_SEND_UPLOADS", _bool),
     ("lod_triangles", "MISS_LOD_TRIANGLES", int),
     ("room_max_people", "MISS_ROOM_MAX_PEOPLE", int),
+    ("workers_per_account", "MISS_WORKERS_PER_ACCOUNT", int),
     ("job_cpu_seconds", "MISS_JOB_CPU_SECONDS", float),
     ("job_write_mb", "MISS_JOB_WRITE_MB", float),
     ("quota_mb", "MISS_QUOTA_MB", float),

@@ -180,8 +180,11 @@ class JobQueue:
         workers: int = 1,
         runner: Runner | None = None,
         cpu_seconds: float = 0.0,
+        per_account: int = 0,
     ) -> None:
         self.store = store
+        #: Jobs of one account run at once here at most (0: no cap; see ``claim_next``).
+        self.per_account = per_account
         #: The CPU limit of one job (``MISS_JOB_CPU_SECONDS``), for the message.
         self.cpu_seconds = cpu_seconds
         self.state = JobState(store)
@@ -259,7 +262,7 @@ class JobQueue:
             try:
                 if not self._running:  # a running job's thread does it once it is drawn
                     self.runner.prepare()
-                row = self.state.claim_next()
+                row = self.state.claim_next(self.per_account)
                 if row is None:
                     with self._wake:
                         self._wake.wait(POLL_SECONDS)

@@ -43,8 +43,13 @@ class JobState:
     def __init__(self, store: Store) -> None:
         self.store = store
 
-    def claim_next(self) -> ModelRow | None:
+    def claim_next(self, per_account: int = 0) -> ModelRow | None:
         """Mark the next queued job running and return it (None when the queue is empty).
+
+        ``per_account`` (0: no cap) is the most jobs of one account this server process
+        runs at once: an account whose jobs fill that many of its workers waits, so a
+        worker is left for the next account's job even when the first account's jobs came
+        first and are long (``MISS_WORKERS_PER_ACCOUNT``).
 
         The next job is the oldest queued one of the account served least recently
         (:func:`fair_order`): round robin between accounts, so one account's many jobs
@@ -58,7 +63,7 @@ class JobState:
         """
         query = (
             select(ModelRow.id)
-            .where(ModelRow.status == QUEUED)
+            .where(ModelRow.status == QUEUED, *self._room_for(per_account))
             .order_by(*fair_order())
             .limit(1)
             .with_for_update(skip_locked=True, of=ModelRow)
@@ -84,6 +89,24 @@ class JobState:
             self.store.rows.drop(("model", model_id))
             if claimed:
                 return self.store.get_model(model_id)
+
+    def _room_for(self, per_account: int) -> tuple[Any, ...]:
+        """The WHERE term that keeps out accounts already running ``per_account`` jobs in
+        this server process (none when ``per_account`` is 0)."""
+        if per_account <= 0:
+            return ()
+        other = aliased(ModelRow)
+        running = (
+            select(func.count(other.id))
+            .where(
+                other.status == RUNNING,
+                other.runner == self.store.bus.origin,
+                func.coalesce(other.submitted_by, "") == func.coalesce(ModelRow.submitted_by, ""),
+            )
+            .correlate(ModelRow)
+            .scalar_subquery()
+        )
+        return (running < per_account,)
 
     def set_pid(self, model_id: str, pid: int | None) -> None:
         self.store.update_model(model_id, pid=pid)
