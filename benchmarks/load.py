@@ -90,7 +90,11 @@ def free_port() -> int:
 
 
 def start_server(
-    data_dir: Path, workers: int = 2, database: str = "", processes: int = 1
+    data_dir: Path,
+    workers: int = 2,
+    database: str = "",
+    processes: int = 1,
+    env: dict[str, str] | None = None,
 ) -> tuple[subprocess.Popen[bytes], str]:
     port = free_port()
     env = {
@@ -102,6 +106,7 @@ def start_server(
         "MISS_WORKERS": str(workers),
         "MISS_API_RATE": "1000000",
         "MISS_API_BURST": "1000000",
+        **(env or {}),
     }
     cmd = [sys.executable, "-m", "miss.cli", "serve", "--port", str(port)]
     cmd += ["--processes", str(processes)]
