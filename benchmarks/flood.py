@@ -201,8 +201,9 @@ class Flood:
 
     def __exit__(self, *exc: object) -> None:
         self.stop.set()
+        time.sleep(2.0)  # the API's own rate limit refills after the flood's requests
         models = httpx.get(self.url + "/api/models", headers=self.headers, timeout=TIMEOUT).json()
-        for model in models:
+        for model in models if isinstance(models, list) else []:
             reason = (model.get("error") or "")[:60]
             self.count("job ended", f"{model['status']} {reason}".strip())
 

@@ -19,7 +19,7 @@ from collections.abc import Callable
 from pathlib import Path, PurePosixPath
 
 from miss.errors import BadParameter, InputTooLarge, UnreadableVolume, UnsafeArchive
-from miss.io.codecs import MAX_RATIO, RATIO_FLOOR
+from miss.io.codecs import RATIO_FLOOR, ZIP_RATIO
 
 CHUNK = 1 << 20
 MAX_MEMBERS = 100_000
@@ -74,9 +74,9 @@ def _member_path(info: zipfile.ZipInfo) -> PurePosixPath | None:
 
 def extract_zip(path: Path, dest: Path, max_bytes: int, progress: Progress | None = None) -> None:
     """Unpack ``path`` into ``dest``: unsafe members, more than ``max_bytes`` in all, or more
-    than ``MAX_RATIO`` times the archive's size (past ``RATIO_FLOOR``) are refused."""
+    than ``ZIP_RATIO`` times the archive's size (past ``RATIO_FLOOR``) are refused."""
     archive = max(path.stat().st_size, 1)
-    budget = min(max_bytes, max(RATIO_FLOOR, MAX_RATIO * archive))
+    budget = min(max_bytes, max(RATIO_FLOOR, ZIP_RATIO * archive))
     try:
         with zipfile.ZipFile(path) as zf:
             infos = zf.infolist()
@@ -116,11 +116,11 @@ def _refuse_bombs(archive: int, infos: list[zipfile.ZipInfo], declared: int) -> 
     """Members, and the archive (``archive`` bytes) as a whole, that would inflate far
     beyond what scans compress to, refused from the declared sizes before anything is
     written."""
-    if declared > RATIO_FLOOR and declared > MAX_RATIO * archive:
+    if declared > RATIO_FLOOR and declared > ZIP_RATIO * archive:
         raise _bomb("the zip", archive, declared)
     for info in infos:
         size, packed = info.file_size, max(info.compress_size, 1)
-        if size > RATIO_FLOOR and size > MAX_RATIO * packed:
+        if size > RATIO_FLOOR and size > ZIP_RATIO * packed:
             raise _bomb(f"zip member {info.filename!r}", packed, size)
 
 

@@ -25,13 +25,13 @@ from pydicom.uid import ExplicitVRBigEndian, ExplicitVRLittleEndian, ImplicitVRL
 
 from miss.errors import UnreadableVolume
 from miss.io import codecs
-from miss.io.archive import MAX_RATIO, RATIO_FLOOR
+from miss.io.archive import RATIO_FLOOR, ZIP_RATIO
 
 #: Refuse archives that would inflate beyond this (zip bombs); a 2000-slice CT is ~1 GB.
 MAX_ZIP_BYTES = 8 * 1024**3
 #: Archives (and members) inflating more than ``MAX_ZIP_RATIO`` times their compressed size
 #: once past ``RATIO_FLOOR`` bytes are refused: the upload's rule (``miss.io.archive``).
-MAX_ZIP_RATIO = MAX_RATIO
+MAX_ZIP_RATIO = ZIP_RATIO
 #: The first bytes of a data set without preamble: group 0008 (or 0002) little endian.
 BARE_STARTS = (b"\x08\x00", b"\x02\x00")
 #: Files that are never slices: the DICOMDIR index, OS debris.
