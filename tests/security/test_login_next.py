@@ -4,7 +4,7 @@
 removes dot segments and what remains, ``//evil.example/phish``, names a host. One rule
 decides now, on the URL as a browser resolves it (``miss.server.nextpath``), and the
 page goes where the login's answer says. chromium's verdict on the same spellings:
-``tests/browser/test_login_next.py``."""
+``tests/browser/test_login_next_page.py``."""
 
 from __future__ import annotations
 
