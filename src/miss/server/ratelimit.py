@@ -24,7 +24,7 @@ import threading
 import time
 from collections import OrderedDict
 from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, contextmanager
 from typing import ParamSpec, TypeVar
 
 import anyio
@@ -388,6 +388,33 @@ def split(spent: dict[str, dict[str, float]], most: int) -> list[dict[str, dict[
 # -- long-lived responses --------------------------------------------------------------------
 
 
+class HeldCounts:
+    """How many of something each key holds at once (open streams, uploads being
+    received), under one lock; what may be held is the caller's ``check``."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._held: dict[str, int] = {}
+
+    @contextmanager
+    def hold(self, key: str, check: Callable[[int, int], None]) -> Iterator[None]:
+        """Hold one more for ``key`` while the body runs. ``check(mine, total)`` runs under
+        the lock first, with ``key``'s count and everyone's, and raises to refuse."""
+        with self._lock:
+            mine = self._held.get(key, 0)
+            check(mine, sum(self._held.values()))
+            self._held[key] = mine + 1
+        try:
+            yield
+        finally:
+            with self._lock:
+                left = self._held[key] - 1
+                if left:
+                    self._held[key] = left
+                else:
+                    del self._held[key]
+
+
 class OpenStreams:
     """At most ``limit`` responses that stay open (Server-Sent Events) per key (an
     account) at once: each holds a connection and a task that polls the job for as long
@@ -398,31 +425,20 @@ class OpenStreams:
 
     def __init__(self, limit: int) -> None:
         self.limit = limit
-        self._lock = threading.Lock()
-        self._open: dict[str, int] = {}
+        self._open = HeldCounts()
 
-    @contextmanager
-    def slot(self, key: str) -> Iterator[None]:
+    def slot(self, key: str) -> AbstractContextManager[None]:
         """Hold one of ``key``'s streams while the body runs; :class:`OverLimit` beyond."""
-        with self._lock:
-            mine = self._open.get(key, 0)
-            if mine >= self.limit:
-                raise OverLimit(
-                    f"too many event streams open: this account already has {mine} (at most "
-                    f"{self.limit}); close a model page you no longer watch, or poll "
-                    "GET /api/models/{id} instead.",
-                    self.RETRY_SECONDS,
-                )
-            self._open[key] = mine + 1
-        try:
-            yield
-        finally:
-            with self._lock:
-                left = self._open[key] - 1
-                if left:
-                    self._open[key] = left
-                else:
-                    del self._open[key]
+        return self._open.hold(key, self._check)
+
+    def _check(self, mine: int, total: int) -> None:
+        if mine >= self.limit:
+            raise OverLimit(
+                f"too many event streams open: this account already has {mine} (at most "
+                f"{self.limit}); close a model page you no longer watch, or poll "
+                "GET /api/models/{id} instead.",
+                self.RETRY_SECONDS,
+            )
 
 
 # -- surface jobs --------------------------------------------------------------------------

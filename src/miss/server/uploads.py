@@ -15,10 +15,9 @@ import contextlib
 import errno
 import os
 import re
-import threading
 import time
 from collections import deque
-from collections.abc import AsyncIterator, Iterator
+from collections.abc import AsyncIterator
 from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
 from typing import IO, Any
@@ -31,7 +30,7 @@ from starlette.types import Message, Receive
 from miss.errors import BadParameter, UnsupportedFormat
 from miss.io.archive import too_large
 from miss.server.errors import UploadTooLarge, UploadTooSlow
-from miss.server.ratelimit import OverLimit
+from miss.server.ratelimit import HeldCounts, OverLimit
 from miss.server.storage.store import is_disk_full
 
 CHUNK = 1 << 20
@@ -173,42 +172,33 @@ class UploadSlots:
 
     def __init__(self, per_user: int, in_all: int) -> None:
         self.per_user, self.in_all = per_user, in_all
-        self._lock = threading.Lock()
-        self._users: dict[str, int] = {}
+        self._users = HeldCounts()
 
-    @contextlib.contextmanager
-    def slot(self, user_id: str) -> Iterator[None]:
-        with self._lock:
-            mine, total = self._users.get(user_id, 0), sum(self._users.values())
-            if mine >= self.per_user:
-                raise OverLimit(
-                    f"too many uploads at once: this account is already sending {mine} "
-                    f"(at most {self.per_user}); wait for one to finish, then send this again.",
-                    self.RETRY_SECONDS,
-                )
-            if mine and total + 1 >= self.in_all:
-                raise OverLimit(
-                    f"too many uploads at once: this account is already sending {mine} and "
-                    f"the server's last free upload slot (of {self.in_all}) is kept for "
-                    "accounts sending nothing; wait for yours to finish, then send this again.",
-                    self.RETRY_SECONDS,
-                )
-            if total >= self.in_all:
-                raise OverLimit(
-                    f"the server is already receiving {total} uploads (at most "
-                    f"{self.in_all} at once); send this again in a few seconds.",
-                    self.RETRY_SECONDS,
-                )
-            self._users[user_id] = mine + 1
-        try:
-            yield
-        finally:
-            with self._lock:
-                left = self._users[user_id] - 1
-                if left:
-                    self._users[user_id] = left
-                else:
-                    del self._users[user_id]
+    def slot(self, user_id: str) -> contextlib.AbstractContextManager[None]:
+        """Hold one of ``user_id``'s uploads while the body runs; :class:`OverLimit`
+        beyond the limits above."""
+        return self._users.hold(user_id, self._check)
+
+    def _check(self, mine: int, total: int) -> None:
+        if mine >= self.per_user:
+            raise OverLimit(
+                f"too many uploads at once: this account is already sending {mine} "
+                f"(at most {self.per_user}); wait for one to finish, then send this again.",
+                self.RETRY_SECONDS,
+            )
+        if mine and total + 1 >= self.in_all:
+            raise OverLimit(
+                f"too many uploads at once: this account is already sending {mine} and "
+                f"the server's last free upload slot (of {self.in_all}) is kept for "
+                "accounts sending nothing; wait for yours to finish, then send this again.",
+                self.RETRY_SECONDS,
+            )
+        if total >= self.in_all:
+            raise OverLimit(
+                f"the server is already receiving {total} uploads (at most "
+                f"{self.in_all} at once); send this again in a few seconds.",
+                self.RETRY_SECONDS,
+            )
 
 
 @dataclass(frozen=True)
