@@ -4,10 +4,12 @@ and leaves nothing behind, and an account over its disk quota is refused (507/41
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import subprocess
 import sys
+import time
 from collections.abc import Callable, Iterator
 from contextlib import closing
 from datetime import timedelta
@@ -78,6 +80,49 @@ def test_a_worker_is_left_for_another_account(seeded_dir: Path, tmp_path: Path) 
         ended = [server.wait(i, ("done", "failed"), timeout=300) for i in (*alice, mine)]
     assert all(m["status"] == "done" for m in ended), ended
     assert ended[2]["started"] < ended[1]["started"], ended
+
+
+def _policies(pid: int) -> set[int]:
+    """The scheduling policy of every thread of process ``pid`` (empty once it ended)."""
+    found = set()
+    for task in Path(f"/proc/{pid}/task").glob("*"):
+        with contextlib.suppress(OSError):  # the thread ended meanwhile
+            found.add(os.sched_getscheduler(int(task.name)))
+    return found
+
+
+def _computing(server: Server, model_id: str) -> int:
+    """The worker pid of ``model_id`` once its job reports progress (so it has chosen
+    its priority), from the database the server writes."""
+    for _ in range(600):
+        body = server.wait(model_id, ("running", "done", "failed"))
+        assert body["status"] == "running", f"the job ended before the test looked: {body}"
+        if body.get("stage") not in (None, "", "starting"):
+            break
+        time.sleep(0.1)
+    store = Store(server.data_dir, settings_for(server.data_dir).database_url)
+    try:
+        pid = store.get_model(model_id).pid
+    finally:
+        store.close()
+    assert pid, "the running job has no worker pid recorded"
+    return pid
+
+
+@pytest.mark.skipif(not hasattr(os, "SCHED_IDLE"), reason="Linux scheduling policies")
+def test_a_flooding_accounts_job_runs_behind_anothers(seeded_dir: Path, tmp_path: Path) -> None:
+    """Alice has a long job running and another queued; the administrator posts one job.
+    Every thread of Alice's worker runs at SCHED_IDLE, every thread of the
+    administrator's at SCHED_BATCH, so on a contended core his job gets five times hers
+    (the old workers all ran at SCHED_IDLE: the flood's threads took as much CPU as his)."""
+    data = copy_seed(seeded_dir, tmp_path / "data")
+    alice = _queue_rows(data, [("alice", 300.0), ("alice", 310.0)], **HEAVY)
+    with serving(data, tmp_path / "server.log", workers=2, env={"MISS_DEMO": "0"}) as server:
+        hers = _computing(server, alice[0])
+        levels = [level + 5 for level in HEAVY["levels"]]
+        mine = _computing(server, server.submit(_demo(server), **{**HEAVY, "levels": levels}))
+        assert _policies(hers) == {os.SCHED_IDLE}, _policies(hers)
+        assert _policies(mine) == {os.SCHED_BATCH}, _policies(mine)
 
 
 @pytest.fixture

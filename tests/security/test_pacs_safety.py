@@ -21,6 +21,7 @@ import io
 import os
 import subprocess
 import sys
+import time
 import zipfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -294,6 +295,31 @@ def test_a_flood_does_not_go_ahead_of_another_accounts_import(
     assert done["status"] == "done" and all(f["status"] == "done" for f in floods)
     ahead = [f for f in floods if f["finished_at"] < done["finished_at"]]
     assert len(ahead) <= 2, (len(ahead), CAP)
+
+
+def test_a_flood_leaves_an_import_thread_free(
+    orthanc: Orthanc, small: Series, tmp_path: Path
+) -> None:
+    """Two import threads; one account queues its share: its imports run one at a time
+    (seen from its own list, polled as they go), so the other thread is free for the
+    next account at once (the old pool ran two of the flood's at a time)."""
+    client = start_app(tmp_path / "data", orthanc, MISS_PACS_IMPORTS="2")
+    try:
+        flood = make_user(client, "flood3", pacs=True)
+        body = {"study": small.study, "series": small.series, "segmentation": "none"}
+        queued = [client.post("/api/pacs/import", json=body, headers=flood) for _ in range(4)]
+        assert [q.status_code for q in queued] == [202] * 4
+        most = 0
+        for _ in range(3000):
+            rows = client.get("/api/pacs/imports", headers=flood).json()
+            most = max(most, sum(r["status"] == "running" for r in rows))
+            if all(r["status"] in ("done", "failed") for r in rows):
+                break
+            time.sleep(0.01)
+        assert all(r["status"] == "done" for r in rows), rows
+        assert most == 1, most
+    finally:
+        client.__exit__(None, None, None)
 
 
 def test_the_command_line_checks_the_patient_before_storing(

@@ -107,13 +107,15 @@ DEFAULT_MEMORY = 4 << 30
 class Limits:
     """Caps for one child: wall-clock and CPU seconds, bytes of memory beyond the
     libraries (0: none), bytes it may write (unpacked zip and voxels), bytes a zip, or
-    any compressed file, may inflate to (:mod:`miss.io.codecs`)."""
+    any compressed file, may inflate to (:mod:`miss.io.codecs`), and how much lower than
+    its parent's its CPU priority is (a nice increment, 0 to 19)."""
 
     seconds: float = 600.0
     memory_bytes: int = DEFAULT_MEMORY
     write_bytes: int = 16 << 30
     unzipped_bytes: int = 8 << 30
     min_free_bytes: int = 0
+    nice: int = 0
 
 
 @dataclass(frozen=True)
@@ -271,6 +273,7 @@ def parse_upload(
 def _spawn(work: Path, config: dict[str, Any], limits: Limits) -> subprocess.Popen[bytes]:
     config = {**config, "memory_bytes": limits.memory_bytes, "write_bytes": limits.write_bytes}
     config["cpu_seconds"] = math.ceil(limits.seconds)
+    config["nice"] = limits.nice
     config["package"] = str(Path(__file__).resolve().parent.parent)
     env = {"PATH": "/usr/bin:/bin", "LANG": "C.UTF-8", "OMP_NUM_THREADS": "1"}
     with open(work / "child.log", "ab") as log:
@@ -585,6 +588,8 @@ def _cap(config: dict[str, Any]) -> None:
             resource.setrlimit(which, (value, value))
 
     limit(resource.RLIMIT_CORE, 0)
+    if config.get("nice"):
+        os.nice(int(config["nice"]))
     limit(resource.RLIMIT_CPU, int(config.get("cpu_seconds", 600)))
     if config.get("memory_bytes"):
         limit(resource.RLIMIT_AS, int(config["memory_bytes"]) + BASE_ADDRESS_SPACE)

@@ -27,6 +27,7 @@ import zipfile
 from collections import deque
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -62,6 +63,9 @@ MAX_INSTANCES = 5000
 #: Largest DICOM SEG or RT-STRUCT series retrieved (an uncompressed SEG of a 20-slice CT
 #: with 31 segments is 17 MB).
 MAX_SEGMENTATION_BYTES = 1 << 30
+#: The nice increment of the confined reader of an import whose account has more waiting
+#: (weight 110 against the server's 1024 on a contended core).
+READ_NICE = 10
 RESTARTED = "the server restarted during the import; import the series again."
 
 
@@ -87,7 +91,11 @@ class PacsImports:
 
     An account may have ``settings.pacs_imports_per_user`` queued or running (429 past
     that), and a free thread takes the next import of the account served longest ago,
-    not the oldest import: one account's queue never holds up another's import."""
+    not the oldest import: one account's queue never holds up another's import. One
+    account runs at most all threads but one at once (at least one), so a thread is free
+    for the next account's import even while the first keeps posting; and an import
+    whose account has more imports waiting reads its files behind the server
+    (``READ_NICE``), so a burst of imports leaves the cores to others' requests."""
 
     def __init__(self, store: Store, settings: Settings, reading: Callable[[], Reading]) -> None:
         self.store, self.settings, self.reading = store, settings, reading
@@ -95,6 +103,8 @@ class PacsImports:
         self._lock = threading.Lock()
         self._waiting: dict[str, deque[Waiting]] = {}  # owner id -> its imports, in order
         self._served: dict[str, int] = {}  # owner id -> when its last import started (turn)
+        self._running: dict[str, int] = {}  # owner id -> its imports running now
+        self._per_account = max(1, settings.pacs_imports - 1)
         self._turns = 0
 
     def stop(self) -> None:
@@ -131,17 +141,35 @@ class PacsImports:
 
     def _next(self) -> None:
         """Run the first waiting import of the account whose last one started longest ago
-        (accounts not served yet first): each pool task runs one import."""
+        (accounts not served yet first) among those below their share of the threads;
+        each pool task runs at most one import, and an import that ends asks for the
+        next (one held back by the share waits for that)."""
         with self._lock:
-            owner = min(
-                (o for o, q in self._waiting.items() if q), key=lambda o: self._served.get(o, 0)
-            )
+            owners = [
+                o
+                for o, q in self._waiting.items()
+                if q and self._running.get(o, 0) < self._per_account
+            ]
+            if not owners:
+                return
+            owner = min(owners, key=lambda o: self._served.get(o, 0))
             self._turns += 1
             self._served[owner] = self._turns
+            self._running[owner] = self._running.get(owner, 0) + 1
             import_id, user, server = self._waiting[owner].popleft()
             if not self._waiting[owner]:
                 del self._waiting[owner]
-        self._run(import_id, user, server)
+            busy = owner in self._waiting or self._running[owner] > 1
+        try:
+            self._run(import_id, user, server, busy)
+        finally:
+            with self._lock:
+                self._running[owner] -= 1
+                if not self._running[owner]:
+                    del self._running[owner]
+                more = bool(self._waiting)
+            if more:
+                self.pool.submit(self._next)
 
     def get(self, import_id: str, user: User) -> PacsImportRow:
         with self.store.session() as s:
@@ -164,14 +192,17 @@ class PacsImports:
         with self.store.session.begin() as s:
             s.execute(update(PacsImportRow).where(PacsImportRow.id == import_id).values(**values))
 
-    def _run(self, import_id: str, user: User, server: PacsServer) -> None:
+    def _run(self, import_id: str, user: User, server: PacsServer, busy: bool) -> None:
         row = self.get(import_id, user)
+        reading = self.reading()
+        if busy:  # this account has more imports waiting: its reading goes behind others
+            reading = (reading[0], replace(reading[1], nice=READ_NICE))
         self._set(import_id, status=RUNNING, stage="listing the series", progress=0.02)
         work: Path | None = None
         try:
             self.store.check_free_space(self.settings.min_free_bytes)
             work = self.store.tmp_dir()
-            volume, labels = self._import(row, user, server, work)
+            volume, labels = self._import(row, user, server, work, reading)
         except MissError as exc:
             self._set(import_id, status=FAILED, error=str(exc), finished_at=utcnow())
             audit.record(self.store, "pacs_import_failed", user.name, import_id, pacs=server.name)
@@ -193,7 +224,7 @@ class PacsImports:
         )
 
     def _import(
-        self, row: PacsImportRow, user: User, server: PacsServer, work: Path
+        self, row: PacsImportRow, user: User, server: PacsServer, work: Path, reading: Reading
     ) -> tuple[VolumeRow, int]:
         instances = client.list_instances(server, row.study, row.series, MAX_INSTANCES)
         found = work / "unzipped"
@@ -222,12 +253,12 @@ class PacsImports:
             "issuer": held.get("IssuerOfPatientID", ""),
             "instances": [list(i) for i in instances],
         }
-        volume = ingest(self.store, upload, work, self.reading(), user.id, origin)
+        volume = ingest(self.store, upload, work, reading, user.id, origin)
         labels = 0
         if row.segmentation != "none":
             self._set(row.id, stage="looking for segmentations", progress=0.9)
             try:
-                labels = self._segmentation(row, server, volume, work, listed)
+                labels = self._segmentation(row, server, volume, work, listed, reading)
             except MissError as exc:  # the images are in: keep them, say what was not
                 error = f"the series was imported, its segmentation was not: {exc}"
                 self._set(row.id, error=error)
@@ -240,6 +271,7 @@ class PacsImports:
         volume: VolumeRow,
         work: Path,
         listed: list[dict[str, Any]],
+        reading: Reading,
     ) -> int:
         """Lay the study's SEG or RT-STRUCT of this series over the volume; its label
         count (0: none found)."""
@@ -249,7 +281,7 @@ class PacsImports:
         if found is None:
             return 0
         scan = self.store.open_volume(volume.id)
-        labels, meta = labelmaps.read_segmentation(found, scan, work, self.reading())
+        labels, meta = labelmaps.read_segmentation(found, scan, work, reading)
         labelmaps.save(self.store, volume.id, labels, meta)
         return len(meta["labels"])
 

@@ -110,11 +110,15 @@ def read_log(path: Path, offset: int) -> str:
 
 
 #: Workers run at a lower priority than the server, so that a long conversion never makes
-#: viewers wait: the event loop gets a core whenever it has a request. They also ask for
-#: SCHED_IDLE (Linux, no privilege needed): nice alone still gave a worker's threads a
-#: share of the server's core, and cached model fetches a p99 of 300 ms or more during
-#: jobs; with it, about 15 ms. A conversion still gets every core nobody else wants.
-WORKER_NICE = 10
+#: viewers wait: the event loop gets a core whenever it has a request. SCHED_BATCH at nice
+#: 19 (weight 15 against the server's 1024, and a batch thread never preempts on waking):
+#: nice 10 alone had given cached model fetches a p99 of 300 ms or more during jobs.
+#: A job whose account has more jobs queued or running then drops itself to SCHED_IDLE
+#: (weight 3; :func:`miss.server.jobs.worker.yield_to_others`), so one account's flood
+#: of jobs leaves most of the cores to another account's single job (issue 39). The order
+#: matters: a process may lower its own priority but, without privilege, never raise it
+#: back (RLIMIT_NICE), so every worker starts at the higher of the two.
+WORKER_NICE = 19
 
 #: The worker's first lines, run before it imports VTK and numba (seconds): Linux is asked
 #: to kill it when the server dies (PR_SET_PDEATHSIG), so a server killed meanwhile never
@@ -129,7 +133,7 @@ if os.getppid() != int(sys.argv[4]):
     sys.exit(3)
 os.nice({WORKER_NICE})
 try:
-    os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+    os.sched_setscheduler(0, os.SCHED_BATCH, os.sched_param(0))
 except (AttributeError, OSError):
     pass
 from miss.server.jobs.worker import main

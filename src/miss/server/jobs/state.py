@@ -108,6 +108,17 @@ class JobState:
         )
         return (running < per_account,)
 
+    def others_waiting(self, model_id: str, account: str | None) -> int:
+        """How many other jobs of ``account`` (who submitted ``model_id``) are queued or
+        running, on any server process."""
+        query = select(func.count(ModelRow.id)).where(
+            ModelRow.status.in_((QUEUED, RUNNING)),
+            ModelRow.id != model_id,
+            func.coalesce(ModelRow.submitted_by, "") == (account or ""),
+        )
+        with self.store.session() as s:
+            return s.scalar(query) or 0
+
     def set_pid(self, model_id: str, pid: int | None) -> None:
         self.store.update_model(model_id, pid=pid)
 
