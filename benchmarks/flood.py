@@ -252,12 +252,14 @@ def measure(ana: Ana, series: dict[str, str] | None, repeats: int) -> dict[str, 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
     with tempfile.TemporaryDirectory(prefix="miss-flood-") as tmp, ExitStack() as stack:
-        folder = Path(tmp)
+        folder = Path(args.keep or tmp)
         series, pacs_env = (None, {}) if args.no_pacs else pacs_series(stack, folder)
         shipped = {
             "MISS_API_RATE": str(Settings.api_rate),
             "MISS_API_BURST": str(Settings.api_burst),
         }
+        if args.job_cpu_seconds:
+            shipped["MISS_JOB_CPU_SECONDS"] = f"{args.job_cpu_seconds:g}"
         proc, url = start_server(folder / "data", args.workers, env={**pacs_env, **shipped})
         stack.callback(proc.kill)
         who = accounts(url)
@@ -286,6 +288,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--no-pacs", action="store_true", help="leave the PACS part out")
+    parser.add_argument("--keep", type=Path, help="a new folder for the run's data, kept")
     parser.add_argument(
         "--job-cpu-seconds", type=float, default=0.0,
         help="MISS_JOB_CPU_SECONDS for the run (0: as shipped): the longest a flood job holds a worker",

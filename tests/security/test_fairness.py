@@ -114,7 +114,8 @@ def test_a_flooding_accounts_job_runs_behind_anothers(seeded_dir: Path, tmp_path
     """Alice has a long job running and another queued; the administrator posts one job.
     Every thread of Alice's worker runs at SCHED_IDLE, every thread of the
     administrator's at SCHED_BATCH, so on a contended core his job gets five times hers
-    (the old workers all ran at SCHED_IDLE: the flood's threads took as much CPU as his)."""
+    (the old workers all ran at SCHED_IDLE: the flood's threads took as much CPU as his).
+    Once he posts a second job, his first goes behind as well."""
     data = copy_seed(seeded_dir, tmp_path / "data")
     alice = _queue_rows(data, [("alice", 300.0), ("alice", 310.0)], **HEAVY)
     with serving(data, tmp_path / "server.log", workers=2, env={"MISS_DEMO": "0"}) as server:
@@ -123,6 +124,13 @@ def test_a_flooding_accounts_job_runs_behind_anothers(seeded_dir: Path, tmp_path
         mine = _computing(server, server.submit(_demo(server), **{**HEAVY, "levels": levels}))
         assert _policies(hers) == {os.SCHED_IDLE}, _policies(hers)
         assert _policies(mine) == {os.SCHED_BATCH}, _policies(mine)
+        # a second job of his, posted while the first runs: the first goes behind too
+        server.submit(_demo(server), **{**HEAVY, "levels": [level + 7 for level in levels]})
+        for _ in range(100):
+            if _policies(mine) == {os.SCHED_IDLE}:
+                break
+            time.sleep(0.1)
+        assert _policies(mine) == {os.SCHED_IDLE}, _policies(mine)
 
 
 @pytest.fixture

@@ -271,7 +271,7 @@ class JobQueue:
                     with self._wake:
                         self._wake.wait(POLL_SECONDS)
                     continue
-                self._run(row.id)
+                self._run(row.id, row.submitted_by)
             except Exception:  # keep the thread alive through a database hiccup
                 log.exception("job thread error")
                 self._stopping.wait(POLL_SECONDS)
@@ -293,7 +293,7 @@ class JobQueue:
                 )
                 self.wake()
 
-    def _run(self, model_id: str) -> None:
+    def _run(self, model_id: str, account: str | None) -> None:
         log_path = self.store.model_dir(model_id) / "worker.log"
         offset = log_path.stat().st_size if log_path.exists() else 0
         started = time.monotonic()
@@ -304,7 +304,7 @@ class JobQueue:
         self.state.set_pid(model_id, proc.pid)
         log.info("job %s started in process %d", model_id, proc.pid)
         try:
-            code = self._wait(model_id, proc)
+            code = self._wait(model_id, proc, account)
         finally:
             self._running.pop(model_id, None)
         log.info("job %s: worker ended with code %d", model_id, code)
@@ -324,17 +324,19 @@ class JobQueue:
             remove_outputs(self.store.model_dir(model_id))  # no half model stays
             log.warning("job %s: %s", model_id, reason)
 
-    def _wait(self, model_id: str, proc: Running) -> int:
+    def _wait(self, model_id: str, proc: Running, account: str | None) -> int:
         """The worker's exit code. Meanwhile, once the job's model can be drawn (its GLB, or
         its levels of detail, in place: the rest is the other formats and the error) and a
         viewer that follows the job has drawn it (:mod:`miss.server.jobs.turn`), the
         runner gets its next worker ready, not before: a spare warming up beside the job,
         at the job's own priority, had slowed its first seconds (the read, the preview)
         while the browser loaded the viewer, and the model's first frame in a browser on
-        the same machine."""
+        the same machine. A job whose account has more jobs waiting (it runs at
+        SCHED_IDLE, behind the spare) gets it ready as soon as that is so: another
+        account's job, posted meanwhile, must not pay a worker's cold start (seconds)."""
         while proc.poll() is None and not self._stopping.is_set():
             try:
-                if self._drawable(model_id):
+                if self._drawable(model_id) or self.state.others_waiting(model_id, account):
                     self.runner.prepare()
                     break
             except Exception:  # never costs the job its supervision: the loop does it after

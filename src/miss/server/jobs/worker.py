@@ -42,6 +42,7 @@ import resource
 import shutil
 import signal
 import sys
+import threading
 import time
 import traceback
 from collections.abc import Mapping
@@ -175,12 +176,37 @@ def limit_cpu(seconds: float) -> None:
     resource.setrlimit(resource.RLIMIT_CPU, (min(soft, new_hard), new_hard))
 
 
+#: Seconds between a job's looks at its account's queue (one count query each).
+BUSY_POLL_SECONDS = 1.0
+
+
+def yield_when_busy(state: JobState, model_id: str, account: str | None) -> None:
+    """Drop this worker to SCHED_IDLE now if ``account`` has more jobs queued or running,
+    else as soon as it has (a thread looks every :data:`BUSY_POLL_SECONDS`): a flood's
+    first job is claimed before its second is posted."""
+    others = state.others_waiting(model_id, account)
+    if others:
+        yield_to_others(others)
+        return
+
+    def watch() -> None:
+        while True:
+            time.sleep(BUSY_POLL_SECONDS)
+            with contextlib.suppress(Exception):  # a database hiccup: look again
+                others = state.others_waiting(model_id, account)
+                if others:
+                    yield_to_others(others)
+                    return
+
+    threading.Thread(target=watch, name="miss-busy", daemon=True).start()
+
+
 def yield_to_others(others: int) -> None:
     """Drop every thread of this worker to SCHED_IDLE: its account has ``others`` more jobs
     queued or running, so another account's job (at the workers' SCHED_BATCH) gets five
     times its share of a contended core. Threads started earlier (numba's and VTK's pools,
-    made by the warm-up) are moved one by one; later ones inherit it. For good: without
-    privilege a process cannot raise its priority again."""
+    made by the warm-up) are moved one by one; later ones inherit it from the thread that
+    starts them. For good: without privilege a process cannot raise its priority again."""
     moved = 0
     with contextlib.suppress(OSError):  # no /proc: not Linux, the policy stays
         for task in os.listdir("/proc/self/task"):
@@ -381,9 +407,7 @@ def run_job(store: Store, model_id: str, parent: int) -> None:
     started, cpu = time.perf_counter(), time.process_time()
     row = store.get_model(model_id)
     state = JobState(store)
-    others = state.others_waiting(model_id, row.submitted_by)
-    if others:
-        yield_to_others(others)
+    yield_when_busy(state, model_id, row.submitted_by)
     limit_memory(store, row.volume_id, memory_cap(os.environ))
     limit_cpu(cpu_seconds(os.environ))
     reporter = Reporter(state, model_id, parent)
