@@ -27,7 +27,7 @@ Schedules
     (:func:`miss.decimate._schroeder._overlay_gap`), so the output is within the bound everywhere,
     not only where it is measured. quadric's target error is an estimate no check at
     points can turn into a bound. Every run is also checked
-    (:func:`miss.measure._jit.bound_check`: every dropped input vertex to the output, every
+    (:func:`miss.measure.bound_check`: every dropped input vertex to the output, every
     new output edge's middle to the input, and for quadric's models every new triangle's
     centroid too); a few input vertices out of
     bound are put back (:func:`_put_back`) and the result checked again; otherwise the
@@ -57,8 +57,7 @@ if TYPE_CHECKING:
 
     import numpy as np
 
-    from miss.measure import Side
-    from miss.measure._jit import BoundCheck
+    from miss.measure import BoundCheck, Side
     from miss.measure.measurer import RemoteSide
     from miss.types import Mesh
 
@@ -69,7 +68,7 @@ METHODS: tuple[str, ...] = ("none", "quadric", "schroeder")
 #: How a bound is held: as a hard cap (measured), or raised as the 1998 pipeline did.
 SCHEDULES: tuple[str, ...] = ("guaranteed", "paper")
 #: Points sampled on each surface by :func:`measured` (a decimation's own check samples
-#: nothing: see :func:`miss.measure._jit.bound_check`).
+#: nothing: see :func:`miss.measure.bound_check`).
 SAMPLES = 100_000
 #: Runs a decimation gets to come within its bound (the last one keeps the input).
 ROUNDS = 8
@@ -184,7 +183,7 @@ def decimate(
     max_error : float
         ``paper`` only: the bound is never raised past this fraction of the diagonal.
     measure : bool
-        Check the result (see :func:`miss.measure._jit.bound_check`) and hold it within the
+        Check the result (see :func:`miss.measure.bound_check`) and hold it within the
         bound; False leaves it unchecked (``bound_held`` None), for quick previews only.
     samples : int
         Unused by the check (kept for callers that pass it; :func:`measured` samples).
@@ -337,7 +336,7 @@ def _held(
     start again, from ``fixed``, when another method takes over); the last round keeps the
     input as it is (0 mm). Returns (faces, bound mm, (check, seconds of checking), rounds
     run, the method that made the faces)."""
-    from miss.measure._jit import surface_adjacency, surface_grid
+    from miss.measure import surface_adjacency, surface_grid
 
     def build() -> tuple[tuple, tuple[np.ndarray, np.ndarray]]:
         # the input's cells, searched in every round's check, and its triangles around each
@@ -372,7 +371,7 @@ def _held(
 
 def measuring_later(before: Mesh, samples: int, pool: ThreadPoolExecutor) -> Future[Side]:
     """Start the half of :func:`measured` that needs only ``before`` (its sample points and
-    grid, :func:`miss.measure._native.side_of`) on ``pool``'s thread at the lowest priority, for
+    grid, :func:`miss.measure.side_of`) on ``pool``'s thread at the lowest priority, for
     a job that decimates ``before`` unmeasured and measures the result after: it is made
     meanwhile, on the core a quadric decimation (one thread) leaves idle."""
 
@@ -412,7 +411,7 @@ def _rounds(
     """:func:`_held`'s rounds; ``inputs()``: the input's grid and adjacency."""
     import numpy as np
 
-    from miss.measure._jit import bound_check
+    from miss.measure import bound_check
 
     fixed = np.zeros(mesh.n_vertices, dtype=bool) if fixed is None else fixed.astype(bool)
     locked = fixed.copy()
@@ -471,7 +470,7 @@ def _put_back(
     512 x 600) had one, its foot beside an edge: put back, schroeder's run (1 s) is saved."""
     import numpy as np
 
-    from miss.measure._jit import nearest_face
+    from miss.measure import nearest_face
 
     stray = np.flatnonzero(np.nan_to_num(check.to_output) > limit_mm)
     if (
@@ -546,7 +545,7 @@ def _strays(mesh: Mesh, faces: np.ndarray, limit_mm: float) -> bool:
     spread over them) lie farther than ``limit_mm`` from it: a run that far out is known out
     of bound without the whole check (a quadric run several times over the bound, as on
     CThead, strays at most of them)."""
-    from miss.measure._jit import distances_to, dropped_vertices
+    from miss.measure import distances_to, dropped_vertices
     from miss.types import Mesh
 
     _, dropped = dropped_vertices(mesh.faces, faces, mesh.n_vertices)
