@@ -45,10 +45,11 @@ from __future__ import annotations
 
 import contextlib
 import math
+import numbers
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
-from typing import TYPE_CHECKING, Any, Literal
+from typing import TYPE_CHECKING, Any, Literal, get_args
 
 from miss.errors import BadParameter
 
@@ -63,10 +64,23 @@ if TYPE_CHECKING:
 
 Method = Literal["none", "quadric", "schroeder"]
 Schedule = Literal["guaranteed", "paper"]
-#: The decimation methods (the job declaration, :mod:`miss.spec`, offers these).
-METHODS: tuple[str, ...] = ("none", "quadric", "schroeder")
-#: How a bound is held: as a hard cap (measured), or raised as the 1998 pipeline did.
-SCHEDULES: tuple[str, ...] = ("guaranteed", "paper")
+#: The decimation methods, ``Method``'s (the job declaration, :mod:`miss.spec`, offers these).
+METHODS: tuple[str, ...] = get_args(Method)
+#: How a bound is held, ``Schedule``'s: as a hard cap (measured), or raised as the 1998
+#: pipeline did.
+SCHEDULES: tuple[str, ...] = get_args(Schedule)
+# The defaults of a decimation, each once: :func:`decimate`'s and the job declaration's
+# (:class:`miss.spec.Decimation`, which the REST API and the command line are made from).
+#: The method: meshoptimizer's, the fast one.
+METHOD: Method = "quadric"
+#: The target fraction of triangles removed.
+REDUCE = 0.9
+#: The error bound, a fraction of the bounding-box diagonal (0.7 mm on a head CT).
+ERROR_BOUND = 0.002
+#: ``paper`` only: the most the bound is raised to, a fraction of the diagonal.
+MAX_ERROR = 0.01
+#: How the bound is held.
+SCHEDULE: Schedule = "guaranteed"
 #: Points sampled on each surface by :func:`measured` (a decimation's own check samples
 #: nothing: see :func:`miss.measure.bound_check`).
 SAMPLES = 100_000
@@ -138,35 +152,44 @@ class DecimationReport:
         }
 
 
-def _check(method: str, reduce: float, error_bound: float, max_error: float, schedule: str) -> None:
-    if schedule not in SCHEDULES:
-        raise BadParameter(f"unknown schedule {schedule!r}; choose one of {', '.join(SCHEDULES)}.")
+def check_decimation(
+    method: str, error_bound: float, reduce: float, max_error: float, schedule: str
+) -> None:
+    """Refuse decimation parameters no run can take, with the fix: the one check of
+    :func:`decimate` and of the job declaration (:class:`miss.spec.Decimation`, whose form
+    names the messages use: ``decimate`` is the method)."""
     if method not in METHODS:
-        raise BadParameter(
-            f"unknown decimation method {method!r}; choose one of {', '.join(METHODS)}."
-        )
+        raise BadParameter(f"decimate must be one of {', '.join(METHODS)}, got {method!r}.")
+    if schedule not in SCHEDULES:
+        raise BadParameter(f"schedule must be one of {', '.join(SCHEDULES)}, got {schedule!r}.")
+    for name, value in (("error_bound", error_bound), ("reduce", reduce), ("max_error", max_error)):
+        # numbers' ABC, not numpy's types: the command line checks a job without numpy
+        real = isinstance(value, numbers.Real) and not isinstance(value, bool)
+        if not real or not math.isfinite(value):
+            raise BadParameter(f"{name} must be a number, got {value!r}.")
     if not 0.0 <= reduce < 1.0:
         raise BadParameter(
-            f"reduce must be a fraction of triangles to remove in [0, 1), got {reduce!r} (e.g. 0.9)."
+            f"reduce must be in [0, 1) (fraction removed, e.g. 0.9), got {reduce!r}."
         )
-    if not 0.0 < error_bound <= (max_error if schedule == "paper" else math.inf):
+    cap = max_error if schedule == "paper" else math.inf
+    if not 0.0 < error_bound <= cap:
         raise BadParameter(
-            f"error bound must be > 0 and <= the maximum error {max_error!r} "
-            f"(fractions of the diagonal, e.g. 0.0002), got {error_bound!r}."
+            f"error_bound must be > 0 (and <= max_error {max_error!r} with schedule "
+            f"'paper'), got {error_bound!r}."
         )
 
 
 def decimate(
     mesh: Mesh,
-    method: Method | str = "quadric",
-    reduce: float = 0.9,
-    error_bound: float = 0.002,
+    method: Method | str = METHOD,
+    reduce: float = REDUCE,
+    error_bound: float = ERROR_BOUND,
     *,
-    max_error: float = 0.01,
+    max_error: float = MAX_ERROR,
     measure: bool = True,
     samples: int = SAMPLES,
     paper_passes: int = 0,
-    schedule: Schedule | str = "guaranteed",
+    schedule: Schedule | str = SCHEDULE,
 ) -> tuple[Mesh, DecimationReport]:
     """Decimate ``mesh``; returns the new mesh and a report with the measured error.
 
@@ -194,7 +217,7 @@ def decimate(
     schedule : "guaranteed" or "paper"
         See the module's docstring.
     """
-    _check(method, reduce, error_bound, max_error, schedule)
+    check_decimation(method, error_bound, reduce, max_error, schedule)
     if paper_passes and (method != "schroeder" or schedule != "paper"):
         raise BadParameter(
             f"paper_passes is the schedule of the paper's own decimation; use method "
@@ -318,7 +341,7 @@ def decimate_held(
     vertices never removed, and its check: measured within ``bound_mm`` (mm). For one
     block of a surface (its border fixed, so that the blocks still meet); the caller
     compacts. ``decimate`` is the whole-mesh function."""
-    _check(method, reduce, 1.0, 1.0, "guaranteed")
+    check_decimation(method, 1.0, reduce, 1.0, "guaranteed")
     diag = mesh.diagonal()
     if method == "none" or mesh.n_triangles == 0 or diag <= 0.0:
         run: Run = lambda locked, _: (mesh.faces, bound_mm, "none")  # noqa: E731
