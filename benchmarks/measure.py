@@ -328,12 +328,12 @@ def peer_searches(a: Any, b: Any, pa: Any, pb: Any) -> dict[str, Callable[[], An
     from miss.measure import _native as measuring
 
     def native() -> Any:
-        d_ab = measuring.distances(pa, measuring.surface_grid(b), ordered=True)
-        return np.concatenate([d_ab, measuring.distances(pb, measuring.surface_grid(a))])
+        d_ab = measuring.distances(pa, measuring.native_grid(b), ordered=True)
+        return np.concatenate([d_ab, measuring.distances(pb, measuring.native_grid(a))])
 
     def numba() -> Any:
-        d_ab = jitted._grid_distances(pa, jitted.surface_grid(b), np.inf, True)
-        return np.concatenate([d_ab, jitted._grid_distances(pb, jitted.surface_grid(a), np.inf)])
+        d_ab = jitted._grid_distances(pa, jitted.jit_grid(b), np.inf, True)
+        return np.concatenate([d_ab, jitted._grid_distances(pb, jitted.jit_grid(a), np.inf)])
 
     searches: dict[str, Callable[[], Any]] = {"MISS native": native, "MISS numba": numba}
     try:

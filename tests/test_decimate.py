@@ -60,9 +60,12 @@ def test_none_returns_the_mesh_unchanged(skull: Mesh) -> None:
 @pytest.mark.parametrize(
     ("kwargs", "message"),
     [
-        ({"method": "vertex"}, "unknown decimation method"),
+        # the job declaration's check and messages (miss.decimate.check_decimation)
+        ({"method": "vertex"}, "decimate must be one of none, quadric, schroeder"),
         ({"reduce": 1.5}, r"reduce must be .* \[0, 1\)"),
-        ({"error_bound": 0.0}, "error bound must be > 0"),
+        ({"error_bound": 0.0}, "error_bound must be > 0"),
+        ({"error_bound": float("nan")}, "error_bound must be a number"),
+        ({"schedule": "paper", "error_bound": 0.02}, "<= max_error 0.01"),
     ],
 )
 def test_bad_parameters(skull: Mesh, kwargs: dict, message: str) -> None:

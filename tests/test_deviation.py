@@ -12,13 +12,13 @@ from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from miss import Mesh
+from miss.measure import surface_grid
 from miss.measure._jit import (
     _sample,
     deviation,
     distances_to,
     sample_surface,
     side_of,
-    surface_grid,
 )
 
 

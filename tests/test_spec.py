@@ -3,6 +3,7 @@ from it, so every field is reachable from both, with one name, one default, one 
 
 from __future__ import annotations
 
+import inspect
 import io
 from dataclasses import fields
 from typing import Any
@@ -17,7 +18,19 @@ from miss.demo import phantom
 from miss.export import WRITERS
 from miss.pipeline import run
 from miss.server.schemas import ModelRequest, PartRequest
-from miss.spec import FORMATS, JobSpec, Structure, default_of, form_fields, form_name
+from miss.smooth import smooth_mesh, windowed_sinc
+from miss.spec import (
+    FORMATS,
+    Decimation,
+    JobSpec,
+    Region,
+    Structure,
+    default_of,
+    form_fields,
+    form_name,
+)
+from miss.structures.labelmap import label_surfaces
+from miss.surface import extract_surface
 
 #: A value unlike the default for every field of the form: (CLI words, JSON value).
 EXAMPLES: dict[str, tuple[list[str], Any]] = {
@@ -200,3 +213,46 @@ def test_rows_stored_before_the_spec_keep_their_keys(changes: dict[str, Any]) ->
     # and so does a body that says so, with the bound the old default had (0.0002)
     body = {**changes, "schedule": "paper", "error_bound": 0.0002}
     assert _api_spec(body).key() == _key_before_the_spec(stored)
+
+
+def _defaults(function: Any) -> dict[str, Any]:
+    return {
+        name: p.default
+        for name, p in inspect.signature(function).parameters.items()
+        if p.default is not inspect.Parameter.empty
+    }
+
+
+def _spec_defaults(cls: type) -> dict[str, Any]:
+    return {f.name: default_of(f) for f in fields(cls)}
+
+
+def test_the_python_api_defaults_are_the_specs() -> None:
+    """miss.decimate, extract_surface, the label-map path and the smoothing take their
+    defaults from the job's declaration: the same as the REST body's and the CLI's."""
+    import miss
+
+    decimation = _spec_defaults(Decimation)
+    assert {k: _defaults(miss.decimate)[k] for k in decimation} == decimation
+    labelled = _defaults(label_surfaces)
+    assert {k: labelled[k] for k in ("method", "reduce", "error_bound", "max_error")} == {
+        k: decimation[k] for k in ("method", "reduce", "error_bound", "max_error")
+    }
+    passband = default_of(Structure.__dataclass_fields__["passband"])
+    assert labelled["passband"] == passband
+    assert _defaults(windowed_sinc)["passband"] == _defaults(smooth_mesh)["passband"] == passband
+    region = _spec_defaults(Region)
+    surface = _defaults(miss.extract_surface)
+    assert surface["sample_rate"] == region["sample_rate"]
+    assert surface["roi"] == region["roi"] and surface["slices"] is None
+    assert region["start_slice"] is region["end_slice"] is None
+    # and today's values (behaviour unchanged)
+    assert decimation == {
+        "method": "quadric",
+        "error_bound": 0.002,
+        "reduce": 0.9,
+        "max_error": 0.01,
+        "schedule": "guaranteed",
+    }
+    assert (passband, region["sample_rate"]) == (0.1, 1)
+    assert extract_surface is miss.extract_surface

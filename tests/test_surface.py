@@ -105,7 +105,10 @@ def test_bad_parameters_have_clear_messages() -> None:
         extract_surface(vol, 5.0)
     with pytest.raises(BadParameter, match="outside 1..16"):
         extract_surface(vol, 0.0, slices=(3, 40))
-    with pytest.raises(BadParameter, match="whole numbers >= 1"):
+    # the job declaration's region check and messages (miss.spec.Region)
+    with pytest.raises(BadParameter, match="sample_rate must be an integer >= 1"):
         extract_surface(vol, 0.0, sample_rate=0)
-    with pytest.raises(BadParameter, match="at least 2 per axis"):
+    with pytest.raises(BadParameter, match="at least 2 along each axis"):
         extract_surface(vol, 0.0, sample_rate=(20, 1, 1))
+    with pytest.raises(BadParameter, match="roi needs six voxel indices"):
+        extract_surface(vol, 0.0, roi=(0, 5, 0, 5))

@@ -13,7 +13,7 @@ from vtkmodules.vtkFiltersCore import vtkWindowedSincPolyDataFilter
 
 from miss._vtk import to_polydata
 from miss.geometry import enclosed_volume, vertex_normals
-from miss.spec import check_smoothing
+from miss.spec import PASSBAND, check_smoothing
 from miss.types import Mesh
 
 #: Relative volume change above which a part's smoothing is reported as not volume-preserving.
@@ -21,7 +21,7 @@ VOLUME_TOLERANCE = 0.02
 
 
 def windowed_sinc(
-    vertices: np.ndarray, faces: np.ndarray, iterations: int, passband: float = 0.1
+    vertices: np.ndarray, faces: np.ndarray, iterations: int, passband: float = PASSBAND
 ) -> np.ndarray:
     """Smoothed vertex positions.
 
@@ -57,7 +57,7 @@ def windowed_sinc(
     return numpy_support.vtk_to_numpy(points).astype(np.float64)
 
 
-def smooth_mesh(mesh: Mesh, iterations: int, passband: float = 0.1) -> tuple[Mesh, float]:
+def smooth_mesh(mesh: Mesh, iterations: int, passband: float = PASSBAND) -> tuple[Mesh, float]:
     """Smooth one closed mesh; returns it and its relative volume change (0.01 = +1 %)."""
     if iterations == 0:
         check_smoothing(iterations, passband)

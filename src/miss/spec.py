@@ -28,7 +28,16 @@ from dataclasses import MISSING, Field, dataclass, field, fields, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
-from miss.decimate import METHODS, SCHEDULES
+from miss.decimate import (
+    ERROR_BOUND,
+    MAX_ERROR,
+    METHOD,
+    METHODS,
+    REDUCE,
+    SCHEDULE,
+    SCHEDULES,
+    check_decimation,
+)
 from miss.errors import BadParameter
 
 if TYPE_CHECKING:
@@ -43,13 +52,43 @@ COMPONENT_MODES: tuple[str, ...] = ("all", "largest", "split")
 FORMATS: tuple[str, ...] = ("wrl", "wrz", "x3d", "glb", "stl", "ply", "obj", "3mf")
 #: Most thresholds one job may have (each is a whole surface).
 MAX_LEVELS = 16
+#: The smoothing passband's default: mild (smaller smooths more).
+PASSBAND = 0.1
+#: Windowed-sinc iterations a label map's parts get when the job leaves ``smooth`` out: label
+#: maps come out of surface nets as voxel blocks, threshold surfaces (none) are already
+#: interpolated.
+LABEL_SMOOTHING = 20
 
 
 def param(default: Any, help: str, **cli: Any) -> Any:
     """A declared field: its default, its help text (REST description and ``--help``)
     and how the command line spells it (``flag``, ``metavar``, ``text`` parser,
-    ``repeat``; ``cli=False`` for fields only the form derives)."""
+    ``repeat``; ``cli=False`` for fields only the form derives); ``form``: the range the
+    web page offers (``{"min": .., "max": ..}``, see :class:`Declared`)."""
     return field(default=default, metadata={"help": help, **cli})
+
+
+@dataclass(frozen=True)
+class Declared:
+    """What :func:`param` declares of a field besides its type and default, typed: what
+    the REST schema (:mod:`miss.server.schemas`) is made of."""
+
+    #: The help text: the REST description and ``--help``.
+    help: str
+    #: In the REST body (False: only the command line or the form derives it).
+    api: bool
+    #: The REST type where it is not the field's own (a colour is sent as text), or None.
+    json: Any
+    #: The range the web page's input offers, ``{"min": .., "max": ..}`` (either may be
+    #: absent): the page's bounds, narrower than the field's check (which the REST API and
+    #: the command line apply) where a wider value is allowed but no one picks it by hand.
+    form: dict[str, float]
+
+
+def declared(f: Field[Any]) -> Declared:
+    """``f``'s :class:`Declared`."""
+    meta = f.metadata
+    return Declared(meta["help"], meta.get("api", True), meta.get("json"), meta.get("form", {}))
 
 
 # ---------------------------------------------------------------- value checks
@@ -146,9 +185,11 @@ class Region:
         metavar="N|X,Y,Z", text="ints",
     )  # fmt: skip
     start_slice: int | None = param(
-        None, "first slice, 1-based, inclusive", metavar="A", text="int"
+        None, "first slice, 1-based, inclusive", metavar="A", text="int", form={"min": 1}
     )
-    end_slice: int | None = param(None, "last slice, 1-based, inclusive", metavar="B", text="int")
+    end_slice: int | None = param(
+        None, "last slice, 1-based, inclusive", metavar="B", text="int", form={"min": 1}
+    )
     roi: tuple[int, int, int, int, int, int] | None = param(
         None, "voxel box i0,i1,j0,j1,k0,k1 (0-based, inclusive)",
         metavar="I0,I1,J0,J1,K0,K1", text="ints",
@@ -269,18 +310,19 @@ class Structure:
     )  # fmt: skip
     min_size_mm3: float = param(
         0.0, "leave out pieces smaller than this volume (mm³)",
-        flag=("--min-size-mm3", "--min-size"), metavar="MM3", text="float",
+        flag=("--min-size-mm3", "--min-size"), metavar="MM3", text="float", form={"min": 0.0},
     )  # fmt: skip
     max_parts: int = param(
         100, "with components split: at most this many parts (largest first)",
         metavar="N", text="int",
     )  # fmt: skip
     smooth: int | None = param(
-        None, "windowed-sinc smoothing iterations (default: 20 for labels, 0 for levels)",
+        None,
+        f"windowed-sinc smoothing iterations (default: {LABEL_SMOOTHING} for labels, 0 for levels)",
         metavar="N", text="int",
     )  # fmt: skip
     passband: float = param(
-        0.1, "smoothing passband in (0, 2); smaller smooths more", metavar="P", text="float"
+        PASSBAND, "smoothing passband in (0, 2); smaller smooths more", metavar="P", text="float"
     )
 
     def __post_init__(self) -> None:
@@ -463,51 +505,33 @@ class Decimation:
     ``paper``: the bound is raised up to ``max_error`` until ``reduce`` is met."""
 
     method: str = param(
-        "quadric", '"none", "schroeder" (the paper\'s) or "quadric" (fast)',
+        METHOD, '"none", "schroeder" (the paper\'s) or "quadric" (fast)',
         name="decimate", choices=METHODS,
     )  # fmt: skip
     error_bound: float = param(
-        0.002, "error bound, fraction of the bounding-box diagonal (paper: 0.0002, 0.002): "
+        ERROR_BOUND, "error bound, fraction of the bounding-box diagonal (paper: 0.0002, 0.002): "
         "the most the model may deviate from the surface, measured (with schedule 'paper', "
         "the first bound); 0.002 is 0.7 mm on a head CT, under a voxel",
-        metavar="E", text="float",
+        metavar="E", text="float", form={"min": 0.00001, "max": 0.01},
     )  # fmt: skip
     reduce: float = param(
-        0.9, "target fraction of triangles removed, 0 <= reduce < 1", metavar="R", text="float"
-    )
+        REDUCE, "target fraction of triangles removed, 0 <= reduce < 1",
+        metavar="R", text="float", form={"min": 0.0, "max": 0.99},
+    )  # fmt: skip
     max_error: float = param(
-        0.01, "schedule 'paper' only: the bound is raised until reduce is met, never past "
+        MAX_ERROR, "schedule 'paper' only: the bound is raised until reduce is met, never past "
         "this fraction of the diagonal",
         metavar="E", text="float",
     )  # fmt: skip
     schedule: str = param(
-        "guaranteed", '"guaranteed" (the bound is a cap, measured to hold) or "paper" '
+        SCHEDULE, '"guaranteed" (the bound is a cap, measured to hold) or "paper" '
         "(the 1998 schedule: the bound raised up to max_error until reduce is met; the report "
         "gives the bound it ended at, also measured to hold)",
         choices=SCHEDULES,
     )  # fmt: skip
 
     def __post_init__(self) -> None:
-        if self.method not in METHODS:
-            raise BadParameter(
-                f"decimate must be one of {', '.join(METHODS)}, got {self.method!r}."
-            )
-        if self.schedule not in SCHEDULES:
-            raise BadParameter(
-                f"schedule must be one of {', '.join(SCHEDULES)}, got {self.schedule!r}."
-            )
-        for name in ("error_bound", "reduce", "max_error"):
-            _finite(name, getattr(self, name))
-        if not 0.0 <= self.reduce < 1.0:
-            raise BadParameter(
-                f"reduce must be in [0, 1) (fraction removed, e.g. 0.9), got {self.reduce!r}."
-            )
-        cap = self.max_error if self.schedule == "paper" else math.inf
-        if not 0.0 < self.error_bound <= cap:
-            raise BadParameter(
-                f"error_bound must be > 0 (and <= max_error {self.max_error!r} with schedule "
-                f"'paper'), got {self.error_bound!r}."
-            )
+        check_decimation(self.method, self.error_bound, self.reduce, self.max_error, self.schedule)
 
 
 @dataclass(frozen=True)

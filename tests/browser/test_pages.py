@@ -192,6 +192,9 @@ def test_generate_view_and_download(
     assert page.input_value("#decimate") == "quadric"
     assert float(page.input_value("#error-bound")) == 0.002
     assert float(page.input_value("#reduce")) == 0.9
+    # the ranges from the API's schema (miss.spec), as the markup had them
+    assert page.get_attribute("#error-bound", "max") == "0.01"
+    assert page.get_attribute("#reduce", "max") == "0.99"
 
     # Drag the end line on the sagittal view down a quarter: the top of the skull is cut off.
     page.wait_for_selector(".view[data-axis=sagittal] img[data-loaded]")

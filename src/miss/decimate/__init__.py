@@ -27,7 +27,7 @@ Schedules
     (:func:`miss.decimate._schroeder._overlay_gap`), so the output is within the bound everywhere,
     not only where it is measured. quadric's target error is an estimate no check at
     points can turn into a bound. Every run is also checked
-    (:func:`miss.measure._jit.bound_check`: every dropped input vertex to the output, every
+    (:func:`miss.measure.bound_check`: every dropped input vertex to the output, every
     new output edge's middle to the input, and for quadric's models every new triangle's
     centroid too); a few input vertices out of
     bound are put back (:func:`_put_back`) and the result checked again; otherwise the
@@ -45,10 +45,11 @@ from __future__ import annotations
 
 import contextlib
 import math
+import numbers
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
-from typing import TYPE_CHECKING, Any, Literal
+from typing import TYPE_CHECKING, Any, Literal, get_args
 
 from miss.errors import BadParameter
 
@@ -57,19 +58,31 @@ if TYPE_CHECKING:
 
     import numpy as np
 
-    from miss.measure import Side
-    from miss.measure._jit import BoundCheck
+    from miss.measure import BoundCheck, Side
     from miss.measure.measurer import RemoteSide
     from miss.types import Mesh
 
 Method = Literal["none", "quadric", "schroeder"]
 Schedule = Literal["guaranteed", "paper"]
-#: The decimation methods (the job declaration, :mod:`miss.spec`, offers these).
-METHODS: tuple[str, ...] = ("none", "quadric", "schroeder")
-#: How a bound is held: as a hard cap (measured), or raised as the 1998 pipeline did.
-SCHEDULES: tuple[str, ...] = ("guaranteed", "paper")
+#: The decimation methods, ``Method``'s (the job declaration, :mod:`miss.spec`, offers these).
+METHODS: tuple[str, ...] = get_args(Method)
+#: How a bound is held, ``Schedule``'s: as a hard cap (measured), or raised as the 1998
+#: pipeline did.
+SCHEDULES: tuple[str, ...] = get_args(Schedule)
+# The defaults of a decimation, each once: :func:`decimate`'s and the job declaration's
+# (:class:`miss.spec.Decimation`, which the REST API and the command line are made from).
+#: The method: meshoptimizer's, the fast one.
+METHOD: Method = "quadric"
+#: The target fraction of triangles removed.
+REDUCE = 0.9
+#: The error bound, a fraction of the bounding-box diagonal (0.7 mm on a head CT).
+ERROR_BOUND = 0.002
+#: ``paper`` only: the most the bound is raised to, a fraction of the diagonal.
+MAX_ERROR = 0.01
+#: How the bound is held.
+SCHEDULE: Schedule = "guaranteed"
 #: Points sampled on each surface by :func:`measured` (a decimation's own check samples
-#: nothing: see :func:`miss.measure._jit.bound_check`).
+#: nothing: see :func:`miss.measure.bound_check`).
 SAMPLES = 100_000
 #: Runs a decimation gets to come within its bound (the last one keeps the input).
 ROUNDS = 8
@@ -139,35 +152,44 @@ class DecimationReport:
         }
 
 
-def _check(method: str, reduce: float, error_bound: float, max_error: float, schedule: str) -> None:
-    if schedule not in SCHEDULES:
-        raise BadParameter(f"unknown schedule {schedule!r}; choose one of {', '.join(SCHEDULES)}.")
+def check_decimation(
+    method: str, error_bound: float, reduce: float, max_error: float, schedule: str
+) -> None:
+    """Refuse decimation parameters no run can take, with the fix: the one check of
+    :func:`decimate` and of the job declaration (:class:`miss.spec.Decimation`, whose form
+    names the messages use: ``decimate`` is the method)."""
     if method not in METHODS:
-        raise BadParameter(
-            f"unknown decimation method {method!r}; choose one of {', '.join(METHODS)}."
-        )
+        raise BadParameter(f"decimate must be one of {', '.join(METHODS)}, got {method!r}.")
+    if schedule not in SCHEDULES:
+        raise BadParameter(f"schedule must be one of {', '.join(SCHEDULES)}, got {schedule!r}.")
+    for name, value in (("error_bound", error_bound), ("reduce", reduce), ("max_error", max_error)):
+        # numbers' ABC, not numpy's types: the command line checks a job without numpy
+        real = isinstance(value, numbers.Real) and not isinstance(value, bool)
+        if not real or not math.isfinite(value):
+            raise BadParameter(f"{name} must be a number, got {value!r}.")
     if not 0.0 <= reduce < 1.0:
         raise BadParameter(
-            f"reduce must be a fraction of triangles to remove in [0, 1), got {reduce!r} (e.g. 0.9)."
+            f"reduce must be in [0, 1) (fraction removed, e.g. 0.9), got {reduce!r}."
         )
-    if not 0.0 < error_bound <= (max_error if schedule == "paper" else math.inf):
+    cap = max_error if schedule == "paper" else math.inf
+    if not 0.0 < error_bound <= cap:
         raise BadParameter(
-            f"error bound must be > 0 and <= the maximum error {max_error!r} "
-            f"(fractions of the diagonal, e.g. 0.0002), got {error_bound!r}."
+            f"error_bound must be > 0 (and <= max_error {max_error!r} with schedule "
+            f"'paper'), got {error_bound!r}."
         )
 
 
 def decimate(
     mesh: Mesh,
-    method: Method | str = "quadric",
-    reduce: float = 0.9,
-    error_bound: float = 0.002,
+    method: Method | str = METHOD,
+    reduce: float = REDUCE,
+    error_bound: float = ERROR_BOUND,
     *,
-    max_error: float = 0.01,
+    max_error: float = MAX_ERROR,
     measure: bool = True,
     samples: int = SAMPLES,
     paper_passes: int = 0,
-    schedule: Schedule | str = "guaranteed",
+    schedule: Schedule | str = SCHEDULE,
 ) -> tuple[Mesh, DecimationReport]:
     """Decimate ``mesh``; returns the new mesh and a report with the measured error.
 
@@ -184,7 +206,7 @@ def decimate(
     max_error : float
         ``paper`` only: the bound is never raised past this fraction of the diagonal.
     measure : bool
-        Check the result (see :func:`miss.measure._jit.bound_check`) and hold it within the
+        Check the result (see :func:`miss.measure.bound_check`) and hold it within the
         bound; False leaves it unchecked (``bound_held`` None), for quick previews only.
     samples : int
         Unused by the check (kept for callers that pass it; :func:`measured` samples).
@@ -195,7 +217,7 @@ def decimate(
     schedule : "guaranteed" or "paper"
         See the module's docstring.
     """
-    _check(method, reduce, error_bound, max_error, schedule)
+    check_decimation(method, error_bound, reduce, max_error, schedule)
     if paper_passes and (method != "schroeder" or schedule != "paper"):
         raise BadParameter(
             f"paper_passes is the schedule of the paper's own decimation; use method "
@@ -319,7 +341,7 @@ def decimate_held(
     vertices never removed, and its check: measured within ``bound_mm`` (mm). For one
     block of a surface (its border fixed, so that the blocks still meet); the caller
     compacts. ``decimate`` is the whole-mesh function."""
-    _check(method, reduce, 1.0, 1.0, "guaranteed")
+    check_decimation(method, 1.0, reduce, 1.0, "guaranteed")
     diag = mesh.diagonal()
     if method == "none" or mesh.n_triangles == 0 or diag <= 0.0:
         run: Run = lambda locked, _: (mesh.faces, bound_mm, "none")  # noqa: E731
@@ -337,7 +359,7 @@ def _held(
     start again, from ``fixed``, when another method takes over); the last round keeps the
     input as it is (0 mm). Returns (faces, bound mm, (check, seconds of checking), rounds
     run, the method that made the faces)."""
-    from miss.measure._jit import surface_adjacency, surface_grid
+    from miss.measure import surface_adjacency, surface_grid
 
     def build() -> tuple[tuple, tuple[np.ndarray, np.ndarray]]:
         # the input's cells, searched in every round's check, and its triangles around each
@@ -372,7 +394,7 @@ def _held(
 
 def measuring_later(before: Mesh, samples: int, pool: ThreadPoolExecutor) -> Future[Side]:
     """Start the half of :func:`measured` that needs only ``before`` (its sample points and
-    grid, :func:`miss.measure._native.side_of`) on ``pool``'s thread at the lowest priority, for
+    grid, :func:`miss.measure.side_of`) on ``pool``'s thread at the lowest priority, for
     a job that decimates ``before`` unmeasured and measures the result after: it is made
     meanwhile, on the core a quadric decimation (one thread) leaves idle."""
 
@@ -412,7 +434,7 @@ def _rounds(
     """:func:`_held`'s rounds; ``inputs()``: the input's grid and adjacency."""
     import numpy as np
 
-    from miss.measure._jit import bound_check
+    from miss.measure import bound_check
 
     fixed = np.zeros(mesh.n_vertices, dtype=bool) if fixed is None else fixed.astype(bool)
     locked = fixed.copy()
@@ -471,7 +493,7 @@ def _put_back(
     512 x 600) had one, its foot beside an edge: put back, schroeder's run (1 s) is saved."""
     import numpy as np
 
-    from miss.measure._jit import nearest_face
+    from miss.measure import nearest_face
 
     stray = np.flatnonzero(np.nan_to_num(check.to_output) > limit_mm)
     if (
@@ -546,7 +568,7 @@ def _strays(mesh: Mesh, faces: np.ndarray, limit_mm: float) -> bool:
     spread over them) lie farther than ``limit_mm`` from it: a run that far out is known out
     of bound without the whole check (a quadric run several times over the bound, as on
     CThead, strays at most of them)."""
-    from miss.measure._jit import distances_to, dropped_vertices
+    from miss.measure import distances_to, dropped_vertices
     from miss.types import Mesh
 
     _, dropped = dropped_vertices(mesh.faces, faces, mesh.n_vertices)

@@ -31,3 +31,11 @@ def schroeder(
         locked=locked,
     )
     return faces, float(info["final_bound_mm"])
+
+
+def warm_up() -> None:
+    """Compile (or load from numba's cache) schroeder's kernels now, on a small sphere: for
+    a process that runs jobs later (a server's spare worker)."""
+    from miss.decimate._schroeder import warm_up as warm
+
+    warm()

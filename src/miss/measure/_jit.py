@@ -326,9 +326,9 @@ def _grid_distances(points, grid, cap2, ordered=False):
     return out
 
 
-def surface_grid(mesh: Mesh) -> tuple:
-    """The cells of ``mesh``'s triangles that :func:`distances_to` searches; made once for
-    several queries against one surface."""
+def jit_grid(mesh: Mesh) -> tuple:
+    """The cells of ``mesh``'s triangles that :func:`distances_to` searches, made by numba's
+    kernels (:func:`miss.measure.surface_grid` picks these or the native ones, the same cells)."""
     # float32 vertices and int32 faces as they are (the kernels compute in float64): no copies
     verts = np.ascontiguousarray(mesh.vertices)
     faces = np.ascontiguousarray(mesh.faces)
@@ -351,13 +351,13 @@ def distances_to(
     Distances up to ``cap`` (mm) are exact; a larger one is only known to exceed it (a
     check against a bound needs no more, and a point far from every triangle, where a
     piece was lost, would otherwise search the whole grid). ``grid``: ``mesh``'s
-    :func:`surface_grid`, when the caller keeps it. ``ordered``: the points come with their
+    :func:`miss.measure.surface_grid`, when the caller keeps it. ``ordered``: the points come with their
     neighbours already (a mesh's vertices, edges or triangles in order), so they are
     searched as they come rather than sorted by cell first (same answers)."""
     pts = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
     if mesh.n_triangles == 0:
         return np.full(len(pts), np.inf)
-    grid = grid or surface_grid(mesh)
+    grid = grid or jit_grid(mesh)
     return _grid_distances(pts, grid, cap * cap, ordered)
 
 
@@ -379,7 +379,7 @@ def deviation(
 #: numba's kernels, as :func:`miss.measure._native.measure` takes them.
 JITTED = Kernels(
     sample=lambda mesh, count, rng: _sample(mesh, count, rng, drawn=False),
-    grid=surface_grid,
+    grid=jit_grid,
     search=lambda points, grid, ordered: _grid_distances(points, grid, math.inf, ordered),
 )
 
@@ -615,7 +615,7 @@ def bound_check(
     are only known to exceed it (see :func:`distances_to`). A triangle or an edge the input
     has too lies on it: only the new triangles and their new edges are measured (found
     among the input's triangles around their corners). ``grid`` (``before``'s
-    :func:`surface_grid`) and ``adjacency`` (its :func:`surface_adjacency`): kept by a
+    :func:`miss.measure.surface_grid`) and ``adjacency`` (its :func:`surface_adjacency`): kept by a
     caller that checks several outputs of one input.
 
     ``centroids`` False leaves the new triangles' centroids out (``faces`` and ``face_mm``
@@ -635,7 +635,7 @@ def bound_check(
     with ThreadPoolExecutor(max_workers=1) as pool:
         # the output's cells are made on the second core while this one finds what is new
         # (both serial; 35 ms of CThead bone's check were)
-        making = pool.submit(surface_grid, after) if len(dropped) and len(faces) else None
+        making = pool.submit(jit_grid, after) if len(dropped) and len(faces) else None
         start, items = adjacency or surface_adjacency(before)
         inputs = np.ascontiguousarray(before.faces)
         new = _new_faces(inputs, start, items, faces)

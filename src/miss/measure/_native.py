@@ -135,8 +135,8 @@ def _sample(mesh: Mesh, count: int, rng: np.random.Generator) -> np.ndarray:
     return out
 
 
-def surface_grid(mesh: Mesh) -> tuple:
-    """The cells of ``mesh``'s triangles, :func:`miss.measure._jit.surface_grid`'s (origin,
+def native_grid(mesh: Mesh) -> tuple:
+    """The cells of ``mesh``'s triangles, :func:`miss.measure._jit.jit_grid`'s (origin,
     cell size, counts, CSR offsets and items, each triangle's corners in a row)."""
     lib = _library()
     assert lib is not None
@@ -167,7 +167,7 @@ def distances(
     points: np.ndarray, grid: tuple, cap: float = math.inf, ordered: bool = False
 ) -> np.ndarray:
     """Exact distance (mm) from each of (P, 3) points to the nearest triangle of ``grid``'s
-    surface (:func:`surface_grid`), up to ``cap`` (see :func:`miss.measure._jit.distances_to`);
+    surface (:func:`native_grid`), up to ``cap`` (see :func:`miss.measure._jit.distances_to`);
     ``ordered``: searched in the points' own order, else by blocks of cells."""
     lib = _library()
     assert lib is not None
@@ -189,7 +189,7 @@ def distances(
 #: The native kernels, as :func:`measure` takes them.
 NATIVE = Kernels(
     sample=lambda mesh, count, rng: _sample(mesh, count, rng),
-    grid=surface_grid,
+    grid=native_grid,
     search=lambda points, grid, ordered: distances(points, grid, ordered=ordered),
 )
 

@@ -18,7 +18,7 @@ from miss.errors import BadParameter
 from miss.export import FORMATS, WRITERS
 from miss.server.errors import BodyTooLarge
 from miss.server.storage.db import DONE, RUNNING, ModelRow, VolumeRow
-from miss.spec import GROUPS, JobSpec, Structure, default_of, form_name
+from miss.spec import GROUPS, JobSpec, Structure, declared, default_of, form_name
 
 #: Largest JSON request body: the biggest real one (a job with many labels) is under 2 KB.
 MAX_JSON_BYTES = 64 * 1024
@@ -80,11 +80,14 @@ def _fields_of(cls: type) -> dict[str, Any]:
     hints = get_type_hints(cls)
     out: dict[str, Any] = {}
     for f in dataclass_fields(cls):
-        if f.metadata.get("api") is False:
+        about = declared(f)
+        if not about.api:
             continue
-        tp = f.metadata.get("json", None)
-        tp = _json_type(hints[f.name]) if tp is None else tp | None
-        out[form_name(f)] = (tp, Field(default_of(f), description=f.metadata["help"]))
+        tp = _json_type(hints[f.name]) if about.json is None else about.json | None
+        # the page's range, for the page (GET /openapi.json): documented, not a check
+        extra = {"x-form": about.form} if about.form else None
+        field = Field(default_of(f), description=about.help, json_schema_extra=extra)
+        out[form_name(f)] = (tp, field)
     return out
 
 

@@ -30,7 +30,7 @@ from miss.errors import BadParameter, EmptySurface
 from miss.measure import measurer, native
 from miss.scene import DEFAULT_SCENE_TITLE, Part, Scene
 from miss.smooth import VOLUME_TOLERANCE, smooth_mesh
-from miss.spec import Decimation, JobSpec, Structure
+from miss.spec import LABEL_SMOOTHING, Decimation, JobSpec, Structure
 from miss.structures.block_components import blockwise_components, component_surfaces
 from miss.structures.components import relabel_components, select_components
 from miss.structures.labelmap import (
@@ -64,9 +64,6 @@ if TYPE_CHECKING:
     from miss.measure import Side
     from miss.measure.measurer import RemoteSide
 
-#: Windowed-sinc iterations when none are asked for: label maps come out of surface
-#: nets as voxel blocks, threshold surfaces are already interpolated.
-LABEL_SMOOTHING = 20
 #: Opacity of every iso-level below the highest when there are several.
 TRANSLUCENT = 0.35
 

@@ -28,10 +28,19 @@ from vtkmodules.util import numpy_support
 from vtkmodules.vtkFiltersCore import vtkSurfaceNets3D
 
 from miss._vtk import image_data, polydata_to_arrays
-from miss.decimate import DecimationReport, decimate, measured
+from miss.decimate import (
+    ERROR_BOUND,
+    MAX_ERROR,
+    METHOD,
+    REDUCE,
+    DecimationReport,
+    decimate,
+    measured,
+)
 from miss.errors import BadParameter, EmptySurface
 from miss.geometry import compact, vertex_normals
 from miss.smooth import windowed_sinc
+from miss.spec import PASSBAND
 from miss.structures.counts import label_counts
 from miss.types import Mesh, Volume
 
@@ -125,11 +134,11 @@ def label_surfaces(
     labels: Sequence[int],
     *,
     smooth: int = 0,
-    passband: float = 0.1,
-    method: str = "quadric",
-    reduce: float = 0.9,
-    error_bound: float = 0.002,
-    max_error: float = 0.01,
+    passband: float = PASSBAND,
+    method: str = METHOD,
+    reduce: float = REDUCE,
+    error_bound: float = ERROR_BOUND,
+    max_error: float = MAX_ERROR,
     measure: bool = True,
 ) -> list[LabelSurface]:
     """Closed surfaces of ``labels`` that share their boundaries, in patient mm.

@@ -24,47 +24,12 @@ from vtkmodules.vtkFiltersCore import vtkFlyingEdges3D
 
 from miss._vtk import image_data
 from miss.errors import BadParameter, EmptySurface
+from miss.spec import Region
 from miss.types import Mesh, Volume
 
 SampleRate = int | Sequence[int]
 _Arrays = tuple[np.ndarray, np.ndarray, np.ndarray]  # vertices, faces, normals
 Roi = Sequence[int]  # (i0, i1, j0, j1, k0, k1), 0-based, inclusive
-
-
-def _sample_steps(sample_rate: SampleRate) -> tuple[int, int, int]:
-    steps = (sample_rate,) * 3 if np.isscalar(sample_rate) else tuple(sample_rate)
-    if len(steps) != 3:
-        raise BadParameter(f"sample rate needs one integer or three (x,y,z), got {sample_rate!r}.")
-    if any(int(s) != s or s < 1 for s in steps):
-        raise BadParameter(f"sample rate must be whole numbers >= 1, got {sample_rate!r}.")
-    return int(steps[0]), int(steps[1]), int(steps[2])
-
-
-def _region(
-    dims: tuple[int, int, int], slices: tuple[int, int] | None, roi: Roi | None
-) -> list[tuple[int, int]]:
-    """0-based inclusive (start, stop) per axis after the slice range and ROI."""
-    box = [(0, d - 1) for d in dims]
-    if roi is not None:
-        if len(roi) != 6:
-            raise BadParameter("ROI needs six voxel indices: i0,i1,j0,j1,k0,k1.")
-        box = [(int(roi[2 * a]), int(roi[2 * a + 1])) for a in range(3)]
-    if slices is not None:
-        start, end = slices
-        if not 1 <= start <= end <= dims[2]:
-            raise BadParameter(
-                f"slice range {start}..{end} is outside 1..{dims[2]} (1-based, start <= end); "
-                f"pick start and end slices within the volume's {dims[2]} slices."
-            )
-        k0, k1 = box[2]
-        box[2] = (max(k0, start - 1), min(k1, end - 1))
-    for axis, (lo, hi) in enumerate(box):
-        if not 0 <= lo < hi <= dims[axis] - 1:
-            raise BadParameter(
-                f"region {lo}..{hi} on axis {'xyz'[axis]} is empty or outside 0..{dims[axis] - 1}; "
-                "a surface needs at least two voxels along every axis."
-            )
-    return box
 
 
 def pad_value(dtype: np.dtype, level: float, span: float) -> tuple[np.dtype, float]:
@@ -269,18 +234,18 @@ def checked_region(
     slices: tuple[int, int] | None,
     roi: Roi | None,
 ) -> tuple[tuple[int, int, int], list[tuple[int, int]], tuple[int, ...]]:
-    """The sample steps, the region's voxel box and its sampled shape, checked: a finite
-    level and at least 2 voxels per axis."""
+    """The sample steps, the region's voxel box and its sampled shape, checked by the job
+    declaration's :class:`~miss.spec.Region` (its one check): a finite level and at least
+    2 voxels per axis."""
     if not np.isfinite(level):
         raise BadParameter(f"level must be a finite number, got {level!r}.")
-    steps = _sample_steps(sample_rate)
-    box = _region(dims, slices, roi)
+    start, end = slices if slices is not None else (None, None)
+    rate = sample_rate if np.isscalar(sample_rate) else tuple(sample_rate)  # type: ignore[arg-type]
+    voxels = None if roi is None else tuple(roi)
+    region = Region(rate, start, end, voxels)  # type: ignore[arg-type]
+    box = region.box(dims)
+    steps = (int(region.steps[0]), int(region.steps[1]), int(region.steps[2]))
     shape = tuple(len(range(lo, hi + 1, st)) for (lo, hi), st in zip(box, steps, strict=True))
-    if min(shape) < 2:
-        raise BadParameter(
-            f"sample rate {steps} leaves {shape} voxels; a surface needs at least 2 per axis. "
-            "Lower the sample rate or widen the slice range."
-        )
     return steps, box, shape
 
 
@@ -296,7 +261,7 @@ def check_level(level: float, lo: float, hi: float) -> None:
 def extract_surface(
     volume: Volume,
     level: float,
-    sample_rate: SampleRate = 1,
+    sample_rate: SampleRate = Region.sample_rate,
     slices: tuple[int, int] | None = None,
     roi: Roi | None = None,
     *,

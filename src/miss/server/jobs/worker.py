@@ -485,7 +485,7 @@ def warm_up() -> None:
 
     import numpy as np
 
-    from miss.decimate._schroeder import warm_up as warm_schroeder
+    from miss.decimate.schroeder import warm_up as warm_schroeder
     from miss.demo import phantom
     from miss.pipeline import run
     from miss.types import Volume

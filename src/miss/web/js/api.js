@@ -83,6 +83,9 @@ export const api = {
 	models: ( volumeId ) => request( 'GET', `/api/models?volume=${enc( volumeId )}` ),
 	model: ( id ) => request( 'GET', `/api/models/${enc( id )}` ),
 	createModel: ( params ) => request( 'POST', '/api/models', params ),
+	// The job form's fields (miss.spec) as the API's schema declares them: defaults, and
+	// the range the page offers (`x-form`).
+	modelForm: () => request( 'GET', '/openapi.json' ).then( ( doc ) => doc.components.schemas.ModelRequest ),
 	identity: ( id ) => request( 'GET', `/api/volumes/${enc( id )}/identity` ),
 	me: () => request( 'GET', '/api/auth/me' ),
 	login: ( username, password, next = '/' ) => request( 'POST', '/api/auth/login', { username, password, next }, { login: false } ),

@@ -204,6 +204,32 @@ function structures() {
 	} ) );
 }
 
+// The form's inputs and the job fields (miss.spec) they fill.
+const FORM_FIELDS = {
+	components: 'components',
+	min_size_mm3: 'min-size',
+	start_slice: 'start-slice',
+	end_slice: 'end-slice',
+	sample_rate: 'sample-rate',
+	decimate: 'decimate',
+	error_bound: 'error-bound',
+	reduce: 'reduce',
+};
+
+// Each input's default and range from the API's schema (GET /openapi.json), which the job's
+// declaration makes: the page, the REST API and the command line default alike. The slice
+// range's values come from the volume (setupViews).
+function setupForm( schema ) {
+	for ( const [ name, id ] of Object.entries( FORM_FIELDS ) ) {
+		const field = schema.properties[ name ];
+		const input = $( id );
+		const range = field[ 'x-form' ] || {};
+		if ( range.min != null ) input.min = range.min;
+		if ( range.max != null ) input.max = range.max;
+		if ( field.default != null ) input.value = [ field.default ].flat().join( ',' );
+	}
+}
+
 function sampleRate() {
 	const parts = $( 'sample-rate' ).value.split( ',' ).map( ( s ) => Number( s.trim() ) );
 	return parts.length === 1 ? parts[ 0 ] : parts;
@@ -328,7 +354,8 @@ async function loadModels() {
 async function main() {
 	showSession();
 	try {
-		const [ volume, hist ] = await Promise.all( [ api.volume( volumeId ), api.histogram( volumeId ) ] );
+		const [ volume, hist, form ] = await Promise.all( [ api.volume( volumeId ), api.histogram( volumeId ), api.modelForm() ] );
+		setupForm( form );
 		hist.bins = binEdges( hist );
 		document.title = `MISS · ${volume.name}`;
 		$( 'volume-name' ).textContent = volume.name;
