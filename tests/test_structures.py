@@ -514,3 +514,15 @@ def test_a_scenes_report_names_the_methods_that_made_its_parts() -> None:
     mixed = combined_report([part("schroeder"), part("quadric"), part(None)])
     assert mixed.finished_with == "quadric/schroeder"
     assert combined_report([part("none", "none")]).summary()["finished_with"] == "none"
+
+
+@pytest.mark.parametrize("schedule", ["paper", "guaranteed"])
+def test_a_label_map_job_keeps_its_schedule(schedule: str) -> None:
+    """A label map decimated by vertex removal runs the schedule the job asked for (it
+    used to run "guaranteed" whatever was asked)."""
+    field = _balls(balls=(((28.0, 28.0, 30.0), 12.0),))
+    labels = Volume(np.asfortranarray((field.data > 0).astype(np.uint8) * 3), field.affine, {})
+    spec = JobSpec.of(
+        labels="all", decimate="schroeder", schedule=schedule, reduce=0.9, formats=("glb",)
+    )
+    assert run(labels, spec).report.schedule == schedule

@@ -35,7 +35,7 @@ Environment variables (all optional):
 ``MISS_PACS_URL``         DICOMweb root of the hospital's PACS (none); ``MISS_PACS_NAME``,
                           ``MISS_PACS_AUTH_FILE``, ``MISS_PACS_TIMEOUT`` and more PACS as
                           ``MISS_PACS2_URL`` ...: see ``miss.pacs.server``
-``MISS_PACS_IMPORTS``     PACS series imported at once (2)
+``MISS_PACS_IMPORTS``     PACS series imported at once (2; one account at most all but one)
 ``MISS_PACS_IMPORTS_PER_USER`` PACS imports one account may have queued or running (10);
                           more get 429
 ``MISS_PACS_SEND_UPLOADS`` send a model of an uploaded (not PACS-imported) volume to the

@@ -496,7 +496,7 @@ def _label_parts(
     surfaces = label_surfaces(
         work, sorted(origin, key=lambda i: origin[i]), smooth=iterations, passband=first.passband,
         method=decimation.method, reduce=decimation.reduce, error_bound=decimation.error_bound,
-        max_error=decimation.max_error, measure=measure,
+        max_error=decimation.max_error, measure=measure, schedule=decimation.schedule,
     )  # fmt: skip
     styles = {p.labels[0]: p for p in items if isinstance(p.labels, tuple) and len(p.labels) == 1}
     parts = _named_parts(surfaces, origin, table, label_counts(work) or {}, work, notes)

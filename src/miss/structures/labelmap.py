@@ -33,6 +33,7 @@ from miss.decimate import (
     MAX_ERROR,
     METHOD,
     REDUCE,
+    SCHEDULE,
     DecimationReport,
     decimate,
     measured,
@@ -140,6 +141,7 @@ def label_surfaces(
     error_bound: float = ERROR_BOUND,
     max_error: float = MAX_ERROR,
     measure: bool = True,
+    schedule: str = SCHEDULE,
 ) -> list[LabelSurface]:
     """Closed surfaces of ``labels`` that share their boundaries, in patient mm.
 
@@ -151,7 +153,7 @@ def label_surfaces(
         Labels to build parts for; the other labels present still bound them.
     smooth, passband
         Windowed-sinc iterations (0 = none) and passband, see :mod:`miss.smooth`.
-    method, reduce, error_bound, max_error
+    method, reduce, error_bound, max_error, schedule
         As :func:`miss.decimate`. ``"quadric"`` decimates shared patches and keeps
         every interface exact; ``"schroeder"`` decimates each part on its own, so
         neighbours then agree only within the error bound.
@@ -166,6 +168,7 @@ def label_surfaces(
             mesh, report = decimate(
                 full[label], method, reduce, error_bound,
                 max_error=max_error, measure=measure, samples=MEASURE_SAMPLES,
+                schedule=schedule,
             )  # fmt: skip
             out.append(LabelSurface(label, full[label], mesh, report))
         return out
