@@ -545,10 +545,9 @@ def _overlay_gap(pts, v, fn, n, loop, n_loop, tris, ntri, nrm, xyh, limit):
     distance to that chord, largest at v or where a spoke crosses it, bounds it.
 
     A bound, not a sample: with the error each triangle already carries (see _try_delete)
-    the whole surface stays within it however deletions chain. The points measured before
-    this (v, the spokes' and chords' midpoints, the triangles' centroids) missed the most
-    where the surfaces part between them: 21-69 % over the bound on CThead and the MR head
-    (benchmarks/bounds.py's "dense max", 2026-11-27). Returns as soon as it passes limit.
+    the whole surface stays within it however deletions chain, where a share measured at
+    points (v, midpoints, centroids) misses where the surfaces part between them
+    (benchmarks/bounds.py's "dense max"). Returns as soon as it passes limit.
     """
     if not _unit_normal_sum(fn, 0, n, n, nrm):
         return np.inf

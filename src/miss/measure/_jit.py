@@ -18,13 +18,8 @@ checked against brute force in tests/test_deviation.py.
 :func:`deviation` draws the same samples as :func:`sample_surface` (so the same figures) but
 keeps them in vertex and triangle order, and makes one surface's grid in a second thread
 while it samples the other (the decimated one's, when the undecimated one's half was made
-while it was decimated: :func:`side_of`). On CThead's bone (545 796 triangles against
-its 10 % decimation, 100 000 samples a side, 2 shared cores), medians right after the job:
-0.10 s against 0.18 s before these changes (5858f1f), with the same samples and distances
-(``benchmarks/measure.py``, results/measure.md); with that half made: 0.090 s against
-0.101 s before the grid and the order above (25 alternating runs, the same figures).
-``vtkImplicitPolyDataDistance``, used before the grid, took 0.57 s for the 100 000 points of
-one side alone, serially.
+while it was decimated: :func:`side_of`). The grid and the query order are what make the
+exact search cheap enough to run after every job (``benchmarks/measure.py``).
 """
 
 from __future__ import annotations

@@ -8,8 +8,8 @@ may use, as numba's ``prange`` did.
 
 A process that measures needs numba then only for what else it does. For ``miss convert
 --measure`` under the paper's schedule that is nothing: numba's start (0.6-0.9 s on the
-2-core test machine), which a measuring process of its own used to take on the other core
-(:mod:`miss.measure.measurer`), is not paid at all.
+2-core test machine), which a measuring process of its own takes on the other core where
+the extension is missing (:mod:`miss.measure.measurer`), is not paid at all.
 
 Where numba is loaded already (a server's warmed-up worker), both functions are numba's:
 its kernels, compiled for the very CPU they run on, searched 10-20 % faster than these

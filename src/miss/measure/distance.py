@@ -77,7 +77,7 @@ def triangle_sq(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz):
 
 
 #: njit options for kernels that allocate nothing: no reference counting of the arrays
-#: they take and index (numba's own option; a numba without it counts, as before). Each
+#: they take and index (numba's own option; a numba without it counts them). Each
 #: count is an atomic instruction on the array's shared header: in schroeder's pass loop
 #: they were a fifth of the run (see :mod:`miss.decimate._schroeder`).
 NO_REFCOUNT: dict[str, bool] = {"_nrt": False} if hasattr(CPUTargetOptions, "_nrt") else {}

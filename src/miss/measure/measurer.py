@@ -16,7 +16,7 @@ samples: the same figures to the bit.
 
 A process that has numba loaded already (a server's warmed-up worker) measures on a
 thread instead (:func:`miss.decimate.measuring_later`). Anything amiss with the child
-(it cannot start, dies, answers nonsense) and the measurement is made here, as before.
+(it cannot start, dies, answers nonsense) and the measurement is made here.
 
 The child is this package's own code run by the same interpreter; the pipe carries only
 what this process sends it (pickled arrays) and its answers.

@@ -111,7 +111,7 @@ class SceneBuild:
 
 #: Parts of one build whose measurement is started while it decimates (see
 #: :class:`_Ahead`); a split surface may have 100 parts, each measured with 100,000 samples a
-#: side, and the rest are measured after as before.
+#: side, and the rest are measured after decimating.
 SIDES_AHEAD = 8
 
 
@@ -127,7 +127,7 @@ class _Ahead:
     would wait for that import (measured: the job as a whole was no sooner, 2.80 against
     2.78 s); there the parts go to a measuring process (:mod:`miss.measure.measurer`), which
     starts numba on the other core and measures them, or, where none starts, are measured
-    after the GLB, as before."""
+    after the GLB."""
 
     def __init__(self) -> None:
         self.pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="miss-side")

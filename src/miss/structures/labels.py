@@ -165,7 +165,7 @@ def _has_extensions(path: Path) -> bool:
         with open_stream(path) as stream:
             head = stream.read(544)
     except (*TRUNCATION_ERRORS, OSError):
-        return True  # let nibabel try, and fail, as before
+        return True  # let nibabel try, and fail with its own message
     at = 540 if head[4:8] in NIFTI2_MAGICS else 348
     return len(head) <= at or head[at] != 0
 

@@ -417,12 +417,9 @@ class Welder:
     own) had, which take that vertex's number. So the work is done while the other
     blocks are being made, and what is left when the last one arrives is that block's
     own. The result equals a weld of all blocks at the end in arrival order (vertex for
-    vertex). At 1024 x 1024 x 1200 (15.7 M triangles, 810 blocks) the weld at the end
-    took about 0.9 s after the last block, the workers waiting; welded as they came, the
-    surface took 4.9-5.3 s on 2 workers against 5.4-5.7 s, and 7.8-8.4 s on 1 against
-    8.2-8.9 s (alternating, 3 jobs each). Blocks made on threads of this process wait for
-    :meth:`result` (``as_they_come=False``): there the weld would hold the interpreter
-    while they run, and it was no faster (512 x 512 x 600, threads: 0.84-0.98 s either way).
+    vertex); a weld left to the end keeps the workers waiting for it. Blocks made on
+    threads of this process wait for :meth:`result` (``as_they_come=False``): there the
+    weld would hold the interpreter while they run, and it is no faster.
 
     ``in_order``: :meth:`result` renumbers the mesh welded in arrival order to the one a
     weld in the blocks' order makes (the order each block was given to :meth:`add`), for

@@ -186,10 +186,8 @@ def _on_dask(
 
 #: Blocks one Dask task makes, at most, one after the other (neighbours: they share
 #: chunks). A task costs the scheduler, the client and the worker some milliseconds
-#: whatever it does. 125 blocks of 512 x 512 x 600 on 1 / 2 workers (medians of 5): a
-#: block a task, all submitted at once as before, 1.63 / 1.34 s, the job's process
-#: spending 0.67 s of CPU; in runs (below), a block a task 1.57 / 1.16 s and 0.57 s, 8 a
-#: task 1.21 / 0.82 s and 0.22 s, 16 a task 1.27 / 1.05 s (too few tasks to even out).
+#: whatever it does; 8 blocks a task were the fastest on 1 and 2 workers (16 leave too
+#: few tasks to even out).
 _GROUP = 8
 
 
@@ -359,10 +357,9 @@ def _in_runs(
     gets an equal run of consecutive items, a few at a time (:data:`_BATCH` more once it
     has no more than one a thread left); one that has finished its run takes the far end
     of the longest run left. The work evens out without Dask's work stealing, which the
-    blocks' uneven cost defeated. Submitted all at once (a block a task), 2 workers
-    decompressed 1.7x the chunks of one (a block's next one mostly went to the other
-    worker); with one run each, one worker had finished long before the other (512 x
-    512 x 600: 0.5 s against 1.15 s of blocks).
+    blocks' uneven cost defeated: submitted all at once, a block's neighbour mostly went
+    to the other worker, which decompressed the seam's chunks again; with one fixed run
+    each, one worker finished long before the other.
 
     A worker is a preference, not a restriction: an item whose worker has gone runs on
     another (and so do the next ones of its run).
