@@ -242,8 +242,12 @@ class Sink(Protocol):
     error: the server's waits while a viewer draws the model on the same machine
     (:mod:`miss.server.jobs.turn`)."""
 
-    wants_preview: bool
-    lod_triangles: int | None
+    # read-only: the pipeline reads them, and a sink may fix them on its class
+    @property
+    def wants_preview(self) -> bool: ...
+
+    @property
+    def lod_triangles(self) -> int | None: ...
 
     def put(self, fmt: str, data: bytes) -> None: ...
 

@@ -80,22 +80,24 @@ def parse_labels(labels: str | Sequence[int] | int | None) -> str | tuple[int, .
     """``None``, ``"all"``, ``"1,4,7"``, ``7`` or ``[1, 4, 7]`` -> None, "all" or sorted ids."""
     if labels is None or labels == "all":
         return labels
-    if _is_int(labels):
-        labels = [int(labels)]  # type: ignore[arg-type, list-item]
+    # checked here whatever it is: it comes from a user
+    given: Any = labels
+    if _is_int(given):
+        given = [int(given)]
     try:
-        if isinstance(labels, str):
-            ids = [int(p) for p in labels.split(",")]
+        if isinstance(given, str):
+            ids = [int(p) for p in given.split(",")]
         else:
-            ids = [int(p) for p in labels if not isinstance(p, bool | float)]  # type: ignore[union-attr]
-            if len(ids) != len(labels):  # type: ignore[arg-type]
+            ids = [int(p) for p in given if not isinstance(p, bool | float)]
+            if len(ids) != len(given):
                 raise ValueError
     except (TypeError, ValueError):
         raise BadParameter(
-            f"labels must be 'all' or label numbers such as 1,4,7; got {labels!r}."
+            f"labels must be 'all' or label numbers such as 1,4,7; got {given!r}."
         ) from None
     if not ids or min(ids) < 1:
         raise BadParameter(
-            f"label numbers are whole numbers >= 1 (0 is background); got {labels!r}."
+            f"label numbers are whole numbers >= 1 (0 is background); got {given!r}."
         )
     return tuple(sorted(set(ids)))
 
@@ -155,7 +157,7 @@ class Region:
     )  # fmt: skip
 
     def __post_init__(self) -> None:
-        sr = self.sample_rate
+        sr: Any = self.sample_rate  # checked here whatever it is: it comes from a user
         if isinstance(sr, list | tuple) and len(sr) == 1:
             sr = sr[0]
         if isinstance(sr, list | tuple):
@@ -451,7 +453,8 @@ class Structures:
             return None
         if "all" in wanted:
             return "all"
-        return tuple(sorted({i for ids in wanted for i in ids}))  # type: ignore[union-attr]
+        # past "all", every part's labels are ids
+        return tuple(sorted({i for ids in wanted if not isinstance(ids, str) for i in ids}))
 
 
 @dataclass(frozen=True)

@@ -72,11 +72,13 @@ class _Parser(argparse.ArgumentParser):
         self, args: Sequence[str] | None = None, namespace: argparse.Namespace | None = None
     ) -> tuple[argparse.Namespace, list[str]]:
         self._words = list(sys.argv[1:] if args is None else args)
-        namespace, extras = super().parse_known_args(self._words, namespace)
+        # argparse's own default, made here so that the typed answer is a Namespace
+        fresh = argparse.Namespace() if namespace is None else namespace
+        parsed, extras = super().parse_known_args(self._words, fresh)
         if extras and not _Parser._lenient:
             # Said by the parser that met them, so the hint names the command typed.
             self.error(self._unknown(extras) or f"unrecognized arguments: {' '.join(extras)}")
-        return namespace, extras
+        return parsed, extras
 
     def error(self, message: str) -> NoReturn:
         if _Parser._lenient:

@@ -483,7 +483,7 @@ def _put_back(
         return None
     verts = np.asarray(mesh.vertices, dtype=np.float64)
     out = np.ascontiguousarray(faces, dtype=np.int32)
-    for u in stray:
+    for u in stray.tolist():  # Python ints, as the triangles hold
         f = nearest_face(verts[u], verts, out)
         a, b, c = (int(i) for i in out[f])
         normal = np.cross(verts[b] - verts[a], verts[c] - verts[a])
@@ -496,12 +496,13 @@ def _put_back(
             float(np.cross(verts[q] - verts[u], verts[r] - verts[u]) @ normal) / area2
             for q, r in ((b, c), (c, a), (a, b))
         ]
+        split: list[tuple[int | None, tuple[int, int, int]]]
         if min(parts) > _PUT_BACK_MARGIN:
             split = [(f, (a, b, u)), (None, (b, c, u)), (None, (c, a, u))]
+        elif (edge := _edge_split(verts, out, f, u, parts)) is not None:
+            split = edge
         else:
-            split = _edge_split(verts, out, f, u, parts)
-            if split is None:
-                return None
+            return None
         added = [tri for row, tri in split if row is None]
         out = np.concatenate([out, np.asarray(added, dtype=np.int32).reshape(-1, 3)])
         for row, tri in split:

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -120,7 +121,7 @@ def plan(scene: Scene, tile_triangles: int = TILE_TRIANGLES) -> TileNode:
     return root
 
 
-def etag(files: dict[str, bytes]) -> str:
+def etag(files: Mapping[str, bytes]) -> str:
     """One tag for a whole tileset: changes when any of its files does."""
     digest = hashlib.sha256()
     for name in sorted(files):

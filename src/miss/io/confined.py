@@ -440,8 +440,9 @@ def _described(described: Any) -> tuple[np.ndarray, dict[str, Any], dict[str, An
         raise UnreadableVolume("the file reader gave an unusable geometry.") from None
     if affine.shape != (4, 4):
         raise UnreadableVolume("the file reader gave an unusable geometry.")
-    meta = described.get("meta") if isinstance(described.get("meta"), dict) else {}
-    patient = described.get("patient") if isinstance(described.get("patient"), dict) else {}
+    meta, patient = described.get("meta"), described.get("patient")
+    meta = meta if isinstance(meta, dict) else {}
+    patient = patient if isinstance(patient, dict) else {}
     return affine, meta, patient
 
 

@@ -127,6 +127,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         _say_confinement(confinement)
         app.state.reading = (confinement, settings.parse_limits())
         app.state.pacs_imports = PacsImports(store, settings, lambda: app.state.reading)
+        assert settings.room_reserved is not None  # Settings fills it in
         app.state.rooms = Hub(
             store,
             max_people=settings.room_max_people,

@@ -231,9 +231,11 @@ class Settings:
             raise ValueError(
                 f"MISS_UPLOAD_IDLE_SECONDS must be positive, got {self.upload_idle_seconds}."
             )
-        if self.room_reserved is None:
-            object.__setattr__(self, "room_reserved", max(0, min(5, self.room_max_people - 1)))
-        if not 0 <= self.room_reserved < self.room_max_people:
+        reserved = self.room_reserved
+        if reserved is None:
+            reserved = max(0, min(5, self.room_max_people - 1))
+            object.__setattr__(self, "room_reserved", reserved)
+        if not 0 <= reserved < self.room_max_people:
             raise ValueError(
                 "MISS_ROOM_RESERVED must be 0 or more and less than MISS_ROOM_MAX_PEOPLE "
                 f"({self.room_max_people}), got {self.room_reserved}."

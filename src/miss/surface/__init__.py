@@ -16,6 +16,7 @@ from __future__ import annotations
 import os
 import sys
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 from vtkmodules.util import numpy_support
@@ -32,7 +33,8 @@ Roi = Sequence[int]  # (i0, i1, j0, j1, k0, k1), 0-based, inclusive
 
 
 def _sample_steps(sample_rate: SampleRate) -> tuple[int, int, int]:
-    steps = (sample_rate,) * 3 if np.isscalar(sample_rate) else tuple(sample_rate)
+    given: Any = sample_rate  # checked here whatever it is: it comes from a user
+    steps = (given,) * 3 if np.isscalar(given) else tuple(given)
     if len(steps) != 3:
         raise BadParameter(f"sample rate needs one integer or three (x,y,z), got {sample_rate!r}.")
     if any(int(s) != s or s < 1 for s in steps):
@@ -41,7 +43,7 @@ def _sample_steps(sample_rate: SampleRate) -> tuple[int, int, int]:
 
 
 def _region(
-    dims: tuple[int, int, int], slices: tuple[int, int] | None, roi: Roi | None
+    dims: Sequence[int], slices: tuple[int, int] | None, roi: Roi | None
 ) -> list[tuple[int, int]]:
     """0-based inclusive (start, stop) per axis after the slice range and ROI."""
     box = [(0, d - 1) for d in dims]
@@ -147,9 +149,9 @@ class _SeamMismatch(Exception):
 
 def _surface_whole(block: np.ndarray, level: float, span: float, normals: bool = True) -> _Arrays:
     """One padded copy, one flying-edges run; vertices in block index coordinates."""
-    verts, faces, normals = _flying_edges(_pad_below(block, level, span), level, normals)
+    verts, faces, vertex_normals = _flying_edges(_pad_below(block, level, span), level, normals)
     verts -= np.float32(1.0)  # the pad shifted every index by one
-    return verts, faces, normals
+    return verts, faces, vertex_normals
 
 
 def _surface_in_slabs(

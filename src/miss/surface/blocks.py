@@ -254,7 +254,7 @@ def surface_block(
     if context:
         lo = np.array([a for a, _ in box], dtype=np.float64) - origin
         hi = np.array([b for _, b in box], dtype=np.float64) - origin
-        beyond = ((verts < lo) | (verts > hi)).any(axis=1)
+        beyond = np.any((verts < lo) | (verts > hi), axis=1)  # an array to numpy's stubs
         faces = faces[~(beyond[faces].any(axis=1))]
         used = np.zeros(len(verts), dtype=bool)
         used[faces.ravel()] = True
@@ -602,6 +602,7 @@ class _Rows:
             self._current()[index] = values
 
     def _current(self) -> np.ndarray:
+        assert self.memory is not None  # callers look first
         rows = np.frombuffer(self.memory, self.dtype, count=self.count * self.width)
         return rows.reshape(self.count, self.width)
 
