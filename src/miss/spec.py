@@ -184,6 +184,7 @@ class Region:
 
     @property
     def steps(self) -> tuple[int, int, int]:
+        """The sample rate along x, y and z."""
         sr = self.sample_rate
         return (sr, sr, sr) if _is_int(sr) else (sr[0], sr[1], sr[2])  # type: ignore[index, return-value]
 
@@ -572,6 +573,7 @@ class FileSource:
     )  # fmt: skip
 
     def load(self, labels: bool) -> Loaded:
+        """Read the volume file; with ``labels``, its label map and label table too."""
         from miss.io import load_volume
         from miss.structures.labels import resolve_table
 
@@ -608,6 +610,7 @@ def form_fields() -> Iterator[tuple[str, type, Field[Any]]]:
 
 
 def default_of(f: Field[Any]) -> Any:
+    """A dataclass field's default, None when it has none."""
     return None if f.default is MISSING else f.default
 
 
@@ -682,9 +685,11 @@ class JobSpec:
         return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:32]
 
     def with_formats(self, formats: Sequence[str]) -> JobSpec:
+        """This job writing ``formats`` instead."""
         return replace(self, outputs=Outputs(tuple(formats)))
 
     def with_source(self, source: Source | None) -> JobSpec:
+        """This job reading ``source`` instead."""
         return replace(self, source=source)
 
 

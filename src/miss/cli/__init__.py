@@ -104,7 +104,7 @@ class _Parser(argparse.ArgumentParser):
                 action.required = True
 
     def _unknown(self, words: list[str]) -> str | None:
-        """ "unknown option --x" for the first option-like word, with the nearest known one."""
+        """``"unknown option --x"`` for the first option-like word, with the nearest known one."""
         for word in words:
             if word == "--":
                 break
@@ -134,6 +134,7 @@ def _command_in(argv: Sequence[str]) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """Run the ``miss`` command line with ``argv`` (default ``sys.argv[1:]``); the exit status."""
     from miss.errors import MissError
 
     argv = sys.argv[1:] if argv is None else list(argv)

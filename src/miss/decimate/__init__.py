@@ -117,6 +117,7 @@ class DecimationReport:
     finished_with: str | None = None
 
     def to_dict(self) -> dict[str, object]:
+        """Every field, by name."""
         return asdict(self)
 
     def summary(self) -> dict[str, Any]:
@@ -375,7 +376,6 @@ def measuring_later(before: Mesh, samples: int, pool: ThreadPoolExecutor) -> Fut
     grid, :func:`miss.measure._native.side_of`) on ``pool``'s thread at the lowest priority, for
     a job that decimates ``before`` unmeasured and measures the result after: it is made
     meanwhile, on the core a quadric decimation (one thread) leaves idle."""
-
     # numpy's random generator, which the samples are drawn with, imported here: its first
     # import (13-17 ms of bytecode) on the thread at nice 19 held the GIL there, and the
     # decimation, on cores the thread hardly got, waited for it (a fresh `miss convert

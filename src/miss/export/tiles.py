@@ -63,6 +63,7 @@ class TileNode:
 
     @property
     def n_members(self) -> int:
+        """Faces inside this tile, over all parts."""
         return sum(len(m) for m in self.members)
 
 

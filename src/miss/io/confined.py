@@ -126,6 +126,7 @@ class Confinement:
 
     @property
     def confined(self) -> bool:
+        """True when uploads are read confined (a mechanism, no problem)."""
         return bool(self.mechanism) and not self.problem
 
 
@@ -144,6 +145,7 @@ class Parsed:
     voxel_file: BinaryIO | None = None
 
     def close(self) -> None:
+        """Close the voxel file the planes are read from, if any."""
         if self.voxel_file is not None:
             self.voxel_file.close()
 

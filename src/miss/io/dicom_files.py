@@ -212,6 +212,6 @@ def _member_fetcher(archive: zipfile.ZipFile, name: str, zip_name: str) -> Calla
 
 
 def _unsafe_member(name: str) -> bool:
-    """True for absolute names (``/x``, ``\\x``, ``C:x``) and names with a ``..`` part."""
+    r"""True for absolute names (``/x``, ``\x``, ``C:x``) and names with a ``..`` part."""
     parts = re.split(r"[\\/]", name)
     return name.startswith(("/", "\\")) or bool(re.match(r"^[A-Za-z]:", name)) or ".." in parts

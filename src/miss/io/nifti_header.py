@@ -187,15 +187,18 @@ def open_stream(path: Path) -> io.BufferedIOBase:
 
 
 def gzipped(path: Path) -> bool:
+    """True when the file's first bytes are gzip's magic, whatever its name."""
     with path.open("rb") as stream:
         return stream.read(2) == GZIP_MAGIC
 
 
 def magic_ok(header: bytes) -> bool:
+    """True when ``header`` holds NIfTI-1 or NIfTI-2 magic where each puts it."""
     return header[344:348] in NIFTI1_MAGICS or header[4:8] in NIFTI2_MAGICS
 
 
 def truncated(path: Path, detail: str) -> UnreadableVolume:
+    """The error for a file that ends early or is damaged, with ``detail``."""
     return UnreadableVolume(
         f"{path.name}: the file is truncated or damaged ({detail}); copy or download it again."
     )

@@ -13,6 +13,7 @@ from miss._numba import njit
 
 @njit(cache=True, inline="always")
 def dot(ax, ay, az, bx, by, bz):
+    """The dot product of vectors a and b, given by coordinates."""
     return ax * bx + ay * by + az * bz
 
 

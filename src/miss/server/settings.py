@@ -136,7 +136,7 @@ class Settings:
     ws_connects_per_minute: float = 60.0
     parse_memory_mb: float = 4096.0
 
-    def __post_init__(self) -> None:
+    def __post_init__(self) -> None:  # noqa: C901, PLR0915 (to split: issue 40)
         # Resolve once so the worker subprocesses, which get these as arguments, see the
         # same folder whatever their working directory.
         object.__setattr__(self, "data_dir", Path(self.data_dir).expanduser().resolve())

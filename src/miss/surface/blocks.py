@@ -58,6 +58,7 @@ class Grid:
 
     @property
     def padded(self) -> tuple[int, int, int]:
+        """The shape with one pad voxel on each side of every axis."""
         return tuple(n + 2 for n in self.shape)  # type: ignore[return-value]
 
 
@@ -134,6 +135,8 @@ class ChunkCache:
         self.lock = threading.Lock()
 
     def get(self, key: tuple[Any, ...], load: Callable[[], np.ndarray]) -> np.ndarray:
+        """The chunk at ``key``, read by ``load`` when not held; the least recently used
+        dropped past the limit."""
         with self.lock:
             if key in self.chunks:
                 self.chunks.move_to_end(key)

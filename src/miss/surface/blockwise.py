@@ -341,6 +341,7 @@ def _decimate_block(part: BlockMesh, method: str, reduce: float, bound_mm: float
 
 
 def counted(report: Progress, start: float, width: float, done: int, total: int) -> None:
+    """Report ``done`` of ``total`` blocks as a fraction from ``start`` over ``width``."""
     report("surface", start + width * done / total)
 
 
