@@ -185,8 +185,8 @@ class Region:
     @property
     def steps(self) -> tuple[int, int, int]:
         """The sample rate along x, y and z."""
-        sr = self.sample_rate
-        return (sr, sr, sr) if _is_int(sr) else (sr[0], sr[1], sr[2])  # type: ignore[index, return-value]
+        sr = self.sample_rate  # checked: a whole number or three
+        return (sr[0], sr[1], sr[2]) if isinstance(sr, tuple) else (sr, sr, sr)
 
     def slices(self, n_slices: int) -> tuple[int, int] | None:
         """The 1-based inclusive slice range, a missing end filled from ``n_slices``."""

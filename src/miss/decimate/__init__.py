@@ -609,7 +609,7 @@ def measured(
         # a side that failed (e.g. out of memory on its thread) is made again here, as one
         # not done
         done = side is not None and side.done() and side.exception() is None
-        ready = side.result() if done else None  # type: ignore[union-attr]
+        ready = side.result() if side is not None and done else None
         dev = deviation(before, after, samples=samples, side=ready)
         figures = dev.max_mm, dev.mean_mm
     return replace(

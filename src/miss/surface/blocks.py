@@ -59,7 +59,8 @@ class Grid:
     @property
     def padded(self) -> tuple[int, int, int]:
         """The shape with one pad voxel on each side of every axis."""
-        return tuple(n + 2 for n in self.shape)  # type: ignore[return-value]
+        x, y, z = self.shape
+        return x + 2, y + 2, z + 2
 
 
 @dataclass(frozen=True)
