@@ -75,11 +75,13 @@ PG_TESTS := tests/server/test_api.py tests/server/test_rooms.py tests/server/tes
 test: $(VENV)/.bench-installed web-deps validators vrml-reader chromium pacs-servers postgres
 	$(VENV)/bin/ruff check src tests benchmarks
 	$(VENV)/bin/ruff format --check src tests benchmarks
+	$(VENV)/bin/mypy
 	$(VENV)/bin/pytest -q
 	MISS_TEST_DATABASE=postgres $(VENV)/bin/pytest -q $(PG_TESTS)
 
 lint:
 	$(VENV)/bin/ruff check src tests benchmarks
+	$(VENV)/bin/mypy
 
 format:
 	$(VENV)/bin/ruff format src tests benchmarks

@@ -39,7 +39,9 @@ def image_data(block: np.ndarray) -> vtkImageData:
     image.SetDimensions(*block.shape)
     arr = numpy_support.numpy_to_vtk(flat, deep=False)
     image.GetPointData().SetScalars(arr)
-    image._miss_keepalive = flat  # numpy_to_vtk(deep=False) does not own the memory
+    # numpy_to_vtk(deep=False) does not own the memory; a VTK object takes Python
+    # attributes, which its stubs don't know
+    image._miss_keepalive = flat  # type: ignore[attr-defined]
     return image
 
 

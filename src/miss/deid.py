@@ -278,7 +278,8 @@ def _original_span(text: str, origin: list[int], start: int, end: int) -> tuple[
 
 def _cut(text: str, spans: list[tuple[int, int]]) -> str:
     """``text`` with each run of overlapping or touching ``spans`` replaced by REMOVED."""
-    out, at = [], 0
+    out: list[str] = []
+    at = 0
     for start, end in sorted(spans):
         if start > at or not out:
             out.append(text[at:start])

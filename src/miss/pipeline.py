@@ -242,14 +242,23 @@ class Sink(Protocol):
     error: the server's waits while a viewer draws the model on the same machine
     (:mod:`miss.server.jobs.turn`)."""
 
-    wants_preview: bool
-    lod_triangles: int | None
+    # read-only: the pipeline reads them, and a sink may fix them on its class
+    @property
+    def wants_preview(self) -> bool:
+        """True when a coarse ``preview`` GLB is wanted before the model."""
 
-    def put(self, fmt: str, data: bytes) -> None: ...
+    @property
+    def lod_triangles(self) -> int | None:
+        """Past this many triangles the scene also goes to ``put_lod``; None: never."""
 
-    def put_lod(self, files: Mapping[str, bytes]) -> None: ...
+    def put(self, fmt: str, data: bytes) -> None:
+        """Take one encoded file, of format ``fmt``."""
 
-    def deliver(self, result: JobResult) -> Any: ...
+    def put_lod(self, files: Mapping[str, bytes]) -> None:
+        """Take the levels of detail, {name: bytes}, one tileset."""
+
+    def deliver(self, result: JobResult) -> Any:
+        """Take the finished result (every file put, the error measured)."""
 
 
 @dataclass(frozen=True)
@@ -262,13 +271,16 @@ class Files:
     lod_triangles = None
 
     def put_lod(self, files: Mapping[str, bytes]) -> None:
+        """Levels of detail are not written to files."""
         return None
 
     def put(self, fmt: str, data: bytes) -> None:
+        """Write ``data`` to each path of format ``fmt``."""
         for path in self.paths.get(fmt, ()):
             write_atomic(path, data)
 
     def deliver(self, result: JobResult) -> list[dict[str, Any]]:
+        """Each file written, with its size in bytes."""
         return [
             {"path": str(path), "bytes": path.stat().st_size}
             for paths in self.paths.values()

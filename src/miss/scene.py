@@ -112,10 +112,12 @@ class Scene:
 
     @property
     def n_triangles(self) -> int:
+        """Triangles over all parts."""
         return sum(p.mesh.n_triangles for p in self.parts)
 
     @property
     def n_vertices(self) -> int:
+        """Vertices over all parts."""
         return sum(p.mesh.n_vertices for p in self.parts)
 
     def bounds(self) -> np.ndarray:

@@ -119,22 +119,24 @@ def parse_labels(labels: str | Sequence[int] | int | None) -> str | tuple[int, .
     """``None``, ``"all"``, ``"1,4,7"``, ``7`` or ``[1, 4, 7]`` -> None, "all" or sorted ids."""
     if labels is None or labels == "all":
         return labels
-    if _is_int(labels):
-        labels = [int(labels)]  # type: ignore[arg-type, list-item]
+    # checked here whatever it is: it comes from a user
+    given: Any = labels
+    if _is_int(given):
+        given = [int(given)]
     try:
-        if isinstance(labels, str):
-            ids = [int(p) for p in labels.split(",")]
+        if isinstance(given, str):
+            ids = [int(p) for p in given.split(",")]
         else:
-            ids = [int(p) for p in labels if not isinstance(p, bool | float)]  # type: ignore[union-attr]
-            if len(ids) != len(labels):  # type: ignore[arg-type]
+            ids = [int(p) for p in given if not isinstance(p, bool | float)]
+            if len(ids) != len(given):
                 raise ValueError
     except (TypeError, ValueError):
         raise BadParameter(
-            f"labels must be 'all' or label numbers such as 1,4,7; got {labels!r}."
+            f"labels must be 'all' or label numbers such as 1,4,7; got {given!r}."
         ) from None
     if not ids or min(ids) < 1:
         raise BadParameter(
-            f"label numbers are whole numbers >= 1 (0 is background); got {labels!r}."
+            f"label numbers are whole numbers >= 1 (0 is background); got {given!r}."
         )
     return tuple(sorted(set(ids)))
 
@@ -196,7 +198,7 @@ class Region:
     )  # fmt: skip
 
     def __post_init__(self) -> None:
-        sr = self.sample_rate
+        sr: Any = self.sample_rate  # checked here whatever it is: it comes from a user
         if isinstance(sr, list | tuple) and len(sr) == 1:
             sr = sr[0]
         if isinstance(sr, list | tuple):
@@ -223,8 +225,9 @@ class Region:
 
     @property
     def steps(self) -> tuple[int, int, int]:
-        sr = self.sample_rate
-        return (sr, sr, sr) if _is_int(sr) else (sr[0], sr[1], sr[2])  # type: ignore[index, return-value]
+        """The sample rate along x, y and z."""
+        sr = self.sample_rate  # checked: a whole number or three
+        return (sr[0], sr[1], sr[2]) if isinstance(sr, tuple) else (sr, sr, sr)
 
     def slices(self, n_slices: int) -> tuple[int, int] | None:
         """The 1-based inclusive slice range, a missing end filled from ``n_slices``."""
@@ -493,7 +496,8 @@ class Structures:
             return None
         if "all" in wanted:
             return "all"
-        return tuple(sorted({i for ids in wanted for i in ids}))  # type: ignore[union-attr]
+        # past "all", every part's labels are ids
+        return tuple(sorted({i for ids in wanted if not isinstance(ids, str) for i in ids}))
 
 
 @dataclass(frozen=True)
@@ -593,6 +597,7 @@ class FileSource:
     )  # fmt: skip
 
     def load(self, labels: bool) -> Loaded:
+        """Read the volume file; with ``labels``, its label map and label table too."""
         from miss.io import load_volume
         from miss.structures.labels import resolve_table
 
@@ -629,6 +634,7 @@ def form_fields() -> Iterator[tuple[str, type, Field[Any]]]:
 
 
 def default_of(f: Field[Any]) -> Any:
+    """A dataclass field's default, None when it has none."""
     return None if f.default is MISSING else f.default
 
 
@@ -703,9 +709,11 @@ class JobSpec:
         return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:32]
 
     def with_formats(self, formats: Sequence[str]) -> JobSpec:
+        """This job writing ``formats`` instead."""
         return replace(self, outputs=Outputs(tuple(formats)))
 
     def with_source(self, source: Source | None) -> JobSpec:
+        """This job reading ``source`` instead."""
         return replace(self, source=source)
 
 

@@ -99,10 +99,12 @@ class Mesh:
 
     @property
     def n_vertices(self) -> int:
+        """Vertices (N)."""
         return int(self.vertices.shape[0])
 
     @property
     def n_triangles(self) -> int:
+        """Triangles (F)."""
         return int(self.faces.shape[0])
 
     def bounds(self) -> np.ndarray:

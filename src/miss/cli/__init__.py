@@ -72,11 +72,13 @@ class _Parser(argparse.ArgumentParser):
         self, args: Sequence[str] | None = None, namespace: argparse.Namespace | None = None
     ) -> tuple[argparse.Namespace, list[str]]:
         self._words = list(sys.argv[1:] if args is None else args)
-        namespace, extras = super().parse_known_args(self._words, namespace)
+        # argparse's own default, made here so that the typed answer is a Namespace
+        fresh = argparse.Namespace() if namespace is None else namespace
+        parsed, extras = super().parse_known_args(self._words, fresh)
         if extras and not _Parser._lenient:
             # Said by the parser that met them, so the hint names the command typed.
             self.error(self._unknown(extras) or f"unrecognized arguments: {' '.join(extras)}")
-        return namespace, extras
+        return parsed, extras
 
     def error(self, message: str) -> NoReturn:
         if _Parser._lenient:
@@ -102,7 +104,7 @@ class _Parser(argparse.ArgumentParser):
                 action.required = True
 
     def _unknown(self, words: list[str]) -> str | None:
-        """ "unknown option --x" for the first option-like word, with the nearest known one."""
+        """``"unknown option --x"`` for the first option-like word, with the nearest known one."""
         for word in words:
             if word == "--":
                 break
@@ -132,6 +134,7 @@ def _command_in(argv: Sequence[str]) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """Run the ``miss`` command line with ``argv`` (default ``sys.argv[1:]``); the exit status."""
     from miss.errors import MissError
 
     argv = sys.argv[1:] if argv is None else list(argv)

@@ -1,3 +1,5 @@
+"""``python -m miss.cli``: the ``miss`` command."""
+
 import sys
 
 from miss.cli import main

@@ -13,6 +13,7 @@ if TYPE_CHECKING:
 
 
 def serve_arguments(serve: argparse.ArgumentParser) -> None:
+    """``miss serve``: host, port, data folder and server processes."""
     serve.add_argument("--host", default=None)
     serve.add_argument("--port", type=int, default=None)
     serve.add_argument("--data-dir", default=None)
@@ -53,11 +54,13 @@ def user_arguments(user: argparse.ArgumentParser) -> None:
 
 
 def backup_arguments(backup: argparse.ArgumentParser) -> None:
+    """``miss backup``: the folder to copy the data folder into."""
     backup.add_argument("dest", help="a new or empty folder for the backup")
     backup.add_argument("--data-dir", default=None)
 
 
 def restore_arguments(restore: argparse.ArgumentParser) -> None:
+    """``miss restore``: the backup folder to bring back."""
     restore.add_argument("src", help="a folder made by 'miss backup'")
     restore.add_argument("--data-dir", default=None)
 
@@ -71,6 +74,7 @@ def audit_arguments(audit: argparse.ArgumentParser) -> None:
 
 
 def cmd_serve(args: argparse.Namespace) -> int:
+    """Run the web system until it is stopped; the exit status."""
     from miss.server.main import serve
 
     return serve(host=args.host, port=args.port, data_dir=args.data_dir, processes=args.processes)
@@ -151,6 +155,7 @@ def _usage_table(store: Store, quota: int) -> str:
 
 
 def cmd_audit(args: argparse.Namespace) -> int:
+    """Print the audit log's newest entries; the exit status."""
     from miss.server import audit
     from miss.server.settings import Settings
     from miss.server.storage.store import Store

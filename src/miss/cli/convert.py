@@ -13,6 +13,7 @@ from miss.cli.options import add_job_options, add_source_options, job_form, sour
 
 
 def add_arguments(conv: argparse.ArgumentParser) -> None:
+    """``miss convert``: the source, the job's options and the output files."""
     add_source_options(conv)
     conv.add_argument(
         "-o", "--output", action="append", required=True, metavar="OUT",
@@ -101,6 +102,7 @@ def _outputs(names: list[str]) -> dict[str, tuple[Path, ...]]:
 
 
 def cmd_convert(args: argparse.Namespace) -> int:
+    """Run one job from the command line and write its files; the exit status."""
     from miss.spec import JobSpec
 
     paths = _outputs(args.output)

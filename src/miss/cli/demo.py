@@ -6,10 +6,12 @@ import argparse
 
 
 def add_arguments(demo: argparse.ArgumentParser) -> None:
+    """``miss demo``: the NIfTI file to write."""
     demo.add_argument("output", help="e.g. demo-head.nii.gz")
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
+    """Write the CT head phantom (HU) as a NIfTI file; the exit status."""
     import nibabel as nib
     import numpy as np
 

@@ -8,6 +8,7 @@ from typing import Any
 
 
 def add_arguments(info: argparse.ArgumentParser) -> None:
+    """``miss info``: the volume (path and series) and ``--json``."""
     from miss.cli.options import add_source_options
 
     add_source_options(info, "path", "series")
@@ -15,6 +16,8 @@ def add_arguments(info: argparse.ArgumentParser) -> None:
 
 
 def describe(volume: Any) -> dict[str, Any]:
+    """A volume's dimensions, spacing (mm), affine, value type and range, and metadata,
+    as JSON values."""
     import numpy as np
 
     lo, hi = volume.value_range()
@@ -32,6 +35,7 @@ def describe(volume: Any) -> dict[str, Any]:
 
 
 def cmd_info(args: argparse.Namespace) -> int:
+    """Print what a volume holds, as text or JSON; the exit status."""
     from miss.io import load_volume
 
     volume = load_volume(args.path, series=args.series)

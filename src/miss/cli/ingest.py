@@ -12,6 +12,7 @@ from pathlib import Path
 
 
 def add_arguments(ingest: argparse.ArgumentParser) -> None:
+    """``miss ingest``: the scan to add, the name to list it by and the data folder."""
     ingest.add_argument("path", help="DICOM folder/zip, NIfTI, NRRD or MetaImage file")
     ingest.add_argument(
         "--name",

@@ -138,7 +138,9 @@ def source_of(args: argparse.Namespace) -> Source:
     if str(args.path).startswith("dicomweb:"):
         from miss.pacs.source import PacsSeries, parse, pick_server
 
-        study, series = parse(args.path)  # type: ignore[misc]
+        found = parse(args.path)
+        assert found is not None  # the prefix is there
+        study, series = found
         return PacsSeries(pick_server(), study, series)
     given = {f.name: getattr(args, f.name) for f in fields(FileSource)}
     for name in ("path", "label_map"):  # said at once, before the job's libraries load

@@ -17,6 +17,7 @@ from typing import Any
 
 
 def add_arguments(pacs: argparse.ArgumentParser) -> None:
+    """``miss pacs search|series|...``: one subcommand per PACS question."""
     pacs_sub = pacs.add_subparsers(dest="pacs_command", required=True, parser_class=type(pacs))
     search = pacs_sub.add_parser("search", help="find studies (QIDO-RS)")
     for flag, text in (
@@ -54,6 +55,7 @@ def add_arguments(pacs: argparse.ArgumentParser) -> None:
 
 
 def cmd_pacs(args: argparse.Namespace) -> int:
+    """Ask the PACS what the subcommand asks and print the answer; the exit status."""
     from miss.pacs.source import pick_server
 
     server = pick_server(args.pacs)

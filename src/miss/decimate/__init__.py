@@ -130,6 +130,7 @@ class DecimationReport:
     finished_with: str | None = None
 
     def to_dict(self) -> dict[str, object]:
+        """Every field, by name."""
         return asdict(self)
 
     def summary(self) -> dict[str, Any]:
@@ -397,7 +398,6 @@ def measuring_later(before: Mesh, samples: int, pool: ThreadPoolExecutor) -> Fut
     grid, :func:`miss.measure.side_of`) on ``pool``'s thread at the lowest priority, for
     a job that decimates ``before`` unmeasured and measures the result after: it is made
     meanwhile, on the core a quadric decimation (one thread) leaves idle."""
-
     # numpy's random generator, which the samples are drawn with, imported here: its first
     # import (13-17 ms of bytecode) on the thread at nice 19 held the GIL there, and the
     # decimation, on cores the thread hardly got, waited for it (a fresh `miss convert
@@ -505,7 +505,7 @@ def _put_back(
         return None
     verts = np.asarray(mesh.vertices, dtype=np.float64)
     out = np.ascontiguousarray(faces, dtype=np.int32)
-    for u in stray:
+    for u in stray.tolist():  # Python ints, as the triangles hold
         f = nearest_face(verts[u], verts, out)
         a, b, c = (int(i) for i in out[f])
         normal = np.cross(verts[b] - verts[a], verts[c] - verts[a])
@@ -518,12 +518,13 @@ def _put_back(
             float(np.cross(verts[q] - verts[u], verts[r] - verts[u]) @ normal) / area2
             for q, r in ((b, c), (c, a), (a, b))
         ]
+        split: list[tuple[int | None, tuple[int, int, int]]]
         if min(parts) > _PUT_BACK_MARGIN:
             split = [(f, (a, b, u)), (None, (b, c, u)), (None, (c, a, u))]
+        elif (edge := _edge_split(verts, out, f, u, parts)) is not None:
+            split = edge
         else:
-            split = _edge_split(verts, out, f, u, parts)
-            if split is None:
-                return None
+            return None
         added = [tri for row, tri in split if row is None]
         out = np.concatenate([out, np.asarray(added, dtype=np.int32).reshape(-1, 3)])
         for row, tri in split:
@@ -630,7 +631,7 @@ def measured(
         # a side that failed (e.g. out of memory on its thread) is made again here, as one
         # not done
         done = side is not None and side.done() and side.exception() is None
-        ready = side.result() if done else None  # type: ignore[union-attr]
+        ready = side.result() if side is not None and done else None
         dev = deviation(before, after, samples=samples, side=ready)
         figures = dev.max_mm, dev.mean_mm
     return replace(

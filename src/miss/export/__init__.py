@@ -67,10 +67,12 @@ class Writer:
 
     @property
     def write(self) -> Callable[..., bytes]:
+        """The format's ``write(mesh, ...) -> bytes``, imported when first asked for."""
         return self._function("write")
 
     @property
     def write_scene(self) -> Callable[..., bytes]:
+        """The format's ``write_scene(scene, ...) -> bytes``, imported when first asked for."""
         return self._function("write_scene")
 
     def _function(self, name: str) -> Callable[..., bytes]:

@@ -1,4 +1,4 @@
-"""Fast fixed-point text for the text formats (VRML, X3D, OBJ).
+r"""Fast fixed-point text for the text formats (VRML, X3D, OBJ).
 
 Python's ``%`` formatting costs about 0.2 us a number even in the fastest form
 (one ``"%.3f %.3f %.3f\n" * n`` template over a tuple), and ``numpy.savetxt``
@@ -46,14 +46,14 @@ _CHUNK_ROWS = 65536
 
 
 def format_rows(values: np.ndarray, template: bytes, decimals: int = 0) -> bytes:
-    """Print each row of ``values`` through ``template``.
+    r"""Print each row of ``values`` through ``template``.
 
     Parameters
     ----------
     values : (n, k) float or int array
         Numbers to print, rounded half-to-even to ``decimals`` places.
     template : bytes
-        One row of output with ``k`` ``{}`` placeholders, e.g. ``b"v {} {} {}\\n"``.
+        One row of output with ``k`` ``{}`` placeholders, e.g. ``b"v {} {} {}\n"``.
     decimals : int
         Digits after the point, 0 to 6 (0 prints integers without a point).
 

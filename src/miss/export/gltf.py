@@ -301,7 +301,11 @@ def _scene(
         {"bufferView": i, **s.accessor, "count": len(s.data)} for i, s in enumerate(streams)
     ]
     primitive = {"attributes": {"POSITION": 0, "NORMAL": 1}, "indices": 2, "material": 0, "mode": 4}
-    root = {"name": "patient LPS mm to glTF m", "matrix": _column_major(FRAME), "children": [1]}
+    root: dict[str, Any] = {
+        "name": "patient LPS mm to glTF m",
+        "matrix": _column_major(FRAME),
+        "children": [1],
+    }
     # Node extras become three.js userData: the viewer finds provenance on the model itself.
     root["extras"] = {"frame": "glTF +X = patient left, +Y = superior, +Z = anterior; data in mm"}
     if metadata:

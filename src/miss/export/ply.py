@@ -14,7 +14,8 @@ from miss.scene import Scene
 from miss.types import Mesh
 
 # "<": the header says binary_little_endian, so the body is little-endian on any host.
-_VERTEX = np.dtype([(name, "<f4") for name in ("x", "y", "z", "nx", "ny", "nz")])
+_VERTEX_NAMES = ("x", "y", "z", "nx", "ny", "nz")
+_VERTEX = np.dtype([(name, "<f4") for name in _VERTEX_NAMES])
 # A PLY list property: uchar count (always 3) then three int indices; packed, 13 bytes.
 _FACE = np.dtype([("count", "u1"), ("indices", "<i4", (3,))])
 
@@ -48,7 +49,7 @@ def _header(mesh: Mesh, title: str | None, metadata: dict[str, str] | None) -> b
         "format binary_little_endian 1.0",
         *(f"comment {_one_line(text)}" for text in comments),
         f"element vertex {mesh.n_vertices}",
-        *(f"property float {name}" for name in _VERTEX.names),
+        *(f"property float {name}" for name in _VERTEX_NAMES),
         f"element face {mesh.n_triangles}",
         "property list uchar int vertex_indices",
         "end_header",

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -62,6 +63,7 @@ class TileNode:
 
     @property
     def n_members(self) -> int:
+        """Faces inside this tile, over all parts."""
         return sum(len(m) for m in self.members)
 
 
@@ -120,7 +122,7 @@ def plan(scene: Scene, tile_triangles: int = TILE_TRIANGLES) -> TileNode:
     return root
 
 
-def etag(files: dict[str, bytes]) -> str:
+def etag(files: Mapping[str, bytes]) -> str:
     """One tag for a whole tileset: changes when any of its files does."""
     digest = hashlib.sha256()
     for name in sorted(files):

@@ -92,7 +92,7 @@ def viewpoint(mesh: Mesh) -> tuple[str, str]:
 
 
 def _sf_string(text: str) -> str:
-    """A VRML SFString literal: double quotes, with ``"`` and ``\\`` backslash-escaped."""
+    r"""A VRML SFString literal: double quotes, with ``"`` and ``\`` backslash-escaped."""
     return '"' + str(text).replace("\\", "\\\\").replace('"', '\\"') + '"'
 
 

@@ -34,12 +34,14 @@ Progress = Callable[[int], None]
 
 
 def is_zip(path: Path) -> bool:
+    """True for a ``.zip`` name or zip magic in the first four bytes."""
     with open(path, "rb") as f:
         head = f.read(4)
     return path.suffix.lower() == ".zip" or head in (b"PK\x03\x04", b"PK\x05\x06")
 
 
 def too_large(what: str, limit: int) -> str:
+    """The message for a ``what`` over ``limit`` bytes, naming the settings that raise it."""
     return (
         f"the {what} is larger than the limit of {limit / 2**20:g} MB; send a smaller "
         "series or raise MISS_MAX_UPLOAD_MB / MISS_MAX_UNZIPPED_MB on the server."
@@ -150,6 +152,7 @@ def _extract_member(
 
 
 def volume_suffix(path: Path) -> str:
+    """The volume extension ``path`` ends with (``.nii.gz`` ...), else ``""``."""
     name = path.name.lower()
     return next((s for s in VOLUME_SUFFIXES if name.endswith(s)), "")
 

@@ -188,7 +188,7 @@ def finite_values(path: Path, values: np.ndarray, notes: list[str]) -> np.ndarra
 
 def check_declared_size(
     path: Path,
-    shape: Sequence[int],
+    shape: Sequence[float],
     itemsize: int,
     compressed_bytes: int | None = None,
     fix: str = "fix the sizes in its header",
@@ -266,7 +266,9 @@ def zyx_to_xyz(stack: np.ndarray) -> np.ndarray:
 
 
 def affine_from(
-    directions: np.ndarray, spacing: Sequence[float], origin: Sequence[float]
+    directions: np.ndarray,
+    spacing: Sequence[float] | np.ndarray,
+    origin: Sequence[float] | np.ndarray,
 ) -> np.ndarray:
     """(4, 4) affine from unit axis directions (3x3, one axis per column), mm steps, origin."""
     aff = np.eye(4)

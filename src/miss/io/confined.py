@@ -128,6 +128,7 @@ class Confinement:
 
     @property
     def confined(self) -> bool:
+        """True when uploads are read confined (a mechanism, no problem)."""
         return bool(self.mechanism) and not self.problem
 
 
@@ -146,6 +147,7 @@ class Parsed:
     voxel_file: BinaryIO | None = None
 
     def close(self) -> None:
+        """Close the voxel file the planes are read from, if any."""
         if self.voxel_file is not None:
             self.voxel_file.close()
 
@@ -443,8 +445,9 @@ def _described(described: Any) -> tuple[np.ndarray, dict[str, Any], dict[str, An
         raise UnreadableVolume("the file reader gave an unusable geometry.") from None
     if affine.shape != (4, 4):
         raise UnreadableVolume("the file reader gave an unusable geometry.")
-    meta = described.get("meta") if isinstance(described.get("meta"), dict) else {}
-    patient = described.get("patient") if isinstance(described.get("patient"), dict) else {}
+    meta, patient = described.get("meta"), described.get("patient")
+    meta = meta if isinstance(meta, dict) else {}
+    patient = patient if isinstance(patient, dict) else {}
     return affine, meta, patient
 
 

@@ -16,7 +16,7 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
-from typing import BinaryIO
+from typing import BinaryIO, cast
 
 import pydicom
 from pydicom.dataset import Dataset
@@ -201,7 +201,7 @@ def _member_fetcher(archive: zipfile.ZipFile, name: str, zip_name: str) -> Calla
 
     def fetch() -> BinaryIO:
         try:
-            return archive.open(name)
+            return cast(BinaryIO, archive.open(name))  # typeshed says IO[bytes]: a binary file
         except (RuntimeError, NotImplementedError, zipfile.BadZipFile, ValueError) as exc:
             raise UnreadableVolume(
                 f"{zip_name}: cannot open member {name!r} ({exc}); use a plain zip (deflated or "
@@ -212,6 +212,6 @@ def _member_fetcher(archive: zipfile.ZipFile, name: str, zip_name: str) -> Calla
 
 
 def _unsafe_member(name: str) -> bool:
-    """True for absolute names (``/x``, ``\\x``, ``C:x``) and names with a ``..`` part."""
+    r"""True for absolute names (``/x``, ``\x``, ``C:x``) and names with a ``..`` part."""
     parts = re.split(r"[\\/]", name)
     return name.startswith(("/", "\\")) or bool(re.match(r"^[A-Za-z]:", name)) or ".." in parts

@@ -299,15 +299,15 @@ def _geometry(fields: dict[str, str], ndims: int) -> tuple[np.ndarray, np.ndarra
     SimpleITK hangs on a TransformMatrix holding 1e308, so values must be finite and
     moderate, and the axes must span space, before it sees the file.
     """
-    spacing = _numbers(fields, ("ElementSpacing", "ElementSize"), [1.0] * ndims)
-    origin = _numbers(fields, ("Offset", "Origin", "Position"), [0.0] * ndims)
+    spacing_given = _numbers(fields, ("ElementSpacing", "ElementSize"), [1.0] * ndims)
+    origin_given = _numbers(fields, ("Offset", "Origin", "Position"), [0.0] * ndims)
     matrix = _numbers(
         fields, ("TransformMatrix", "Rotation", "Orientation"), list(np.eye(ndims).ravel())
     )
     if len(matrix) != ndims * ndims:
         raise ValueError(f"TransformMatrix has {len(matrix)} values, not NDims^2 = {ndims**2}")
-    spacing = np.array((spacing + [1.0] * ndims)[:ndims], float)  # short: MetaIO's defaults
-    origin = np.array((origin + [0.0] * ndims)[:ndims], float)
+    spacing = np.array((spacing_given + [1.0] * ndims)[:ndims], float)  # short: MetaIO's defaults
+    origin = np.array((origin_given + [0.0] * ndims)[:ndims], float)
     # MetaIO stores one axis direction after another: those are the columns.
     direction = np.array(matrix, float).reshape(ndims, ndims).T
     values = np.concatenate([spacing, origin, direction.ravel()])

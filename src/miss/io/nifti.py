@@ -19,7 +19,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from functools import partial
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 
@@ -51,6 +51,9 @@ from miss.types import Volume
 if TYPE_CHECKING:
     import nibabel as nib
 
+#: What a volume read as CT gains in its metadata.
+_CT_META: dict[str, Any] = {"modality": "CT", "units": "HU"}
+
 
 def sniff(path: Path, head: bytes) -> bool:
     """``.nii``/``.nii.gz`` names, or NIfTI magic in an uncompressed header."""
@@ -81,7 +84,7 @@ def read(path: Path, series: str | None) -> Volume:
         notes=notes,
         rescale=(slope, inter),
         series_description=description,
-        **({"modality": "CT", "units": "HU"} if ct else {}),
+        **(_CT_META if ct else {}),
     )
 
 
@@ -96,9 +99,10 @@ def stream(path: Path) -> Streamed | None:
         return None
     with np.errstate(all="ignore"):
         affine = checked_affine(path, RAS_TO_LPS @ declared.sform(), "nifti")
-    dims = tuple(int(n) for n in declared.shape)
+    x, y, z = (int(n) for n in declared.shape)  # plain: three
+    dims = (x, y, z)
     return Streamed(
-        dims,  # type: ignore[arg-type]
+        dims,
         declared.dtype,
         affine,
         _plain_planes(path, declared),
@@ -117,7 +121,7 @@ def _streamed_meta(
         "nifti",
         notes,
         series_description=description,
-        **({"modality": "CT", "units": "HU"} if ct else {}),
+        **(_CT_META if ct else {}),
     )
     meta["series"] = [describe(meta, dims)]
     return meta
@@ -227,7 +231,7 @@ def _load(path: Path, declared: Declared) -> nib.Nifti1Image:
     import nibabel as nib
 
     if path.name.lower().endswith(".gz") == gzipped(path) or declared.pair:
-        return nib.load(path, mmap=False)
+        return cast("nib.Nifti1Image", nib.load(path, mmap=False))  # sniffed: a NIfTI
     klass = nib.Nifti2Image if declared.version == 2 else nib.Nifti1Image
     with open_stream(path) as stream:
         content = io.BytesIO(stream.read(declared.needed))

@@ -10,12 +10,13 @@ goes to nibabel.
 from __future__ import annotations
 
 import gzip
+import io
 import math
 import struct
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
-from typing import BinaryIO
+from typing import Literal
 
 import numpy as np
 
@@ -56,7 +57,7 @@ class Declared:
     shape: tuple[int, ...]  # dim[1] .. dim[dim[0]]
     dtype: np.dtype  # native byte order
     vox_offset: float
-    endian: str  # "<" or ">"
+    endian: Literal["<", ">"]
     head: bytes
 
     @property
@@ -132,7 +133,7 @@ def _declared(path: Path, header: bytes) -> Declared:
     if version == 2 and len(header) < 540:
         raise truncated(path, f"the NIfTI-2 header stops after {len(header)} of 540 bytes")
     size, layout = (540, NIFTI2_LAYOUT) if version == 2 else (348, NIFTI1_LAYOUT)
-    endian = "<" if struct.unpack("<i", header[:4])[0] == size else ">"
+    endian: Literal["<", ">"] = "<" if struct.unpack("<i", header[:4])[0] == size else ">"
     dim_fmt, dim_at, code_at, offset_fmt, offset_at = layout
     dim = struct.unpack_from(endian + dim_fmt, header, dim_at)
     code = struct.unpack_from(endian + "h", header, code_at)[0]
@@ -180,21 +181,24 @@ def _check_size(path: Path, declared: Declared) -> None:
         codecs.check_decoded(path, declared.needed, on_disk, "gzip", what)
 
 
-def open_stream(path: Path) -> BinaryIO:
+def open_stream(path: Path) -> io.BufferedIOBase:
     """The file's bytes, inflated when they are gzipped (whatever its name says)."""
     return gzip.open(path, "rb") if gzipped(path) else path.open("rb")
 
 
 def gzipped(path: Path) -> bool:
+    """True when the file's first bytes are gzip's magic, whatever its name."""
     with path.open("rb") as stream:
         return stream.read(2) == GZIP_MAGIC
 
 
 def magic_ok(header: bytes) -> bool:
+    """True when ``header`` holds NIfTI-1 or NIfTI-2 magic where each puts it."""
     return header[344:348] in NIFTI1_MAGICS or header[4:8] in NIFTI2_MAGICS
 
 
 def truncated(path: Path, detail: str) -> UnreadableVolume:
+    """The error for a file that ends early or is damaged, with ``detail``."""
     return UnreadableVolume(
         f"{path.name}: the file is truncated or damaged ({detail}); copy or download it again."
     )

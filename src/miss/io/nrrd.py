@@ -150,7 +150,10 @@ def _decode(path: Path, name: str, chunk: bytes, header: NrrdHeader) -> bytes:
 def _skips(path: Path, header: NrrdHeader) -> tuple[int, int]:
     """``line skip`` and ``byte skip`` as integers (line skip >= 0, byte skip >= -1)."""
     try:
-        lines, skip = int(header.get("line skip", "0")), int(header.get("byte skip", "0"))
+        lines, skip = (
+            int(header.fields.get("line skip", "0")),
+            int(header.fields.get("byte skip", "0")),
+        )
     except ValueError as exc:
         raise UnreadableVolume(
             f"{path.name}: bad NRRD header: 'line skip' and 'byte skip' must be integers "

@@ -73,19 +73,23 @@ class NrrdHeader:
     data_offset: int | None  # where attached data starts in the header file
 
     def get(self, name: str, default: str | None = None) -> str | None:
+        """The raw text of field ``name``, else ``default``."""
         return self.fields.get(name, default)
 
     @property
     def sizes(self) -> list[int]:
+        """Voxels along each axis (``sizes``)."""
         return [int(v) for v in self.fields["sizes"].split()]
 
     @property
     def dtype(self) -> np.dtype:
+        """The stored value type in the file's byte order (``type``, ``endian``)."""
         endian = ">" if self.fields.get("endian", "little") == "big" else "<"
         return np.dtype(endian + TYPES[self.fields["type"]])
 
     @property
     def encoding(self) -> str:
+        """The data's encoding, by its canonical name (``encoding``, default raw)."""
         return ENCODINGS[self.fields.get("encoding", "raw")]
 
 

@@ -5,9 +5,10 @@ same figures either way."""
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -31,7 +32,7 @@ class Side:
 
     points: np.ndarray
     grid: tuple
-    state: dict
+    state: Mapping[str, Any]  # numpy's bit generator state
 
 
 def grid_shape(verts: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:

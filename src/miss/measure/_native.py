@@ -22,6 +22,7 @@ functions are numba's.
 from __future__ import annotations
 
 import ctypes
+import importlib
 import math
 import os
 from functools import cache
@@ -61,9 +62,9 @@ def _checked(failed: int) -> None:
 def _library() -> ctypes.CDLL | None:
     """The built kernels, or None where the extension is not there or does not load."""
     try:
-        from miss.measure import _nearest  # type: ignore[attr-defined]
-
-        lib = ctypes.CDLL(_nearest.__file__)
+        # by name: a compiled module, absent where nothing built it
+        nearest = importlib.import_module("miss.measure._nearest")
+        lib = ctypes.CDLL(nearest.__file__)
         for name, args in _SIGNATURES.items():
             getattr(lib, name).argtypes = args
             # those that allocate answer 1 where they ran out of memory (see _checked)

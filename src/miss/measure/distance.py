@@ -4,6 +4,8 @@ they are called): the measurement's kernels (:mod:`miss.measure._jit`) and Schro
 
 from __future__ import annotations
 
+from typing import Any
+
 from numba.core.cpu import CPUTargetOptions
 
 from miss._numba import njit
@@ -11,6 +13,7 @@ from miss._numba import njit
 
 @njit(cache=True, inline="always")
 def dot(ax, ay, az, bx, by, bz):
+    """The dot product of vectors a and b, given by coordinates."""
     return ax * bx + ay * by + az * bz
 
 
@@ -80,7 +83,8 @@ def triangle_sq(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz):
 #: they take and index (numba's own option; a numba without it counts them). Each
 #: count is an atomic instruction on the array's shared header: in schroeder's pass loop
 #: they were a fifth of the run (see :mod:`miss.decimate._schroeder`).
-NO_REFCOUNT: dict[str, bool] = {"_nrt": False} if hasattr(CPUTargetOptions, "_nrt") else {}
+#: (``Any``: numba types each njit keyword apart, and the dict is spread into them.)
+NO_REFCOUNT: dict[str, Any] = {"_nrt": False} if hasattr(CPUTargetOptions, "_nrt") else {}
 
 
 @njit(cache=True, **NO_REFCOUNT)

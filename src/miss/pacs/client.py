@@ -122,7 +122,8 @@ def _session() -> Any:
         defines as wildcards anyway; some PACS (Orthanc 1.10) then match them literally.
         Sent as they are, every PACS reads them as wildcards."""
 
-        def request(self, method: str, url: str, *args: Any, **kwargs: Any) -> Any:
+        # typeshed's url is str | bytes; dicomweb-client passes str
+        def request(self, method: str, url: str, *args: Any, **kwargs: Any) -> Any:  # type: ignore[override]
             url = url.replace("%2A", "*").replace("%3F", "?")
             return super().request(method, url, *args, **kwargs)
 
@@ -336,8 +337,8 @@ def search_studies(
                 "PatientSex",
             ],
         )
-    rows = [_study(item) for item in found[: limit + 1] if isinstance(item, Mapping)]
-    rows = [r for r in rows if r]
+    studies = [_study(item) for item in found[: limit + 1] if isinstance(item, Mapping)]
+    rows = [r for r in studies if r]
     return Page(rows[:limit], offset, limit, len(rows) > limit)
 
 
@@ -371,8 +372,8 @@ def search_series(server: PacsServer, study: str) -> list[dict[str, Any]]:
             limit=1000,
             fields=["SeriesDescription", "SeriesNumber", "NumberOfSeriesRelatedInstances"],
         )
-    rows = [_series(item) for item in found[:1000] if isinstance(item, Mapping)]
-    rows = [r for r in rows if r]
+    series = [_series(item) for item in found[:1000] if isinstance(item, Mapping)]
+    rows = [r for r in series if r]
     return sorted(rows, key=lambda r: (r["number"] is None, r["number"] or 0, r["description"]))
 
 
@@ -600,15 +601,16 @@ def study_origin(
     from miss.pacs.stl import Origin
 
     patient = check_study(server, study, series or "", patient_id, issuer)
-    frame, sources = generate_uid(), []
+    frame: str = generate_uid()
+    sources: list[tuple[str, str]] = []
     if series:
         client = connect(server)
         with calling(server, "reading the series' metadata"):
             metadata = client.retrieve_series_metadata(study, check_uid(series, "series"))
-        frames = {_uid_of(m, "00200052") for m in metadata} - {None}
+        frames = {u for u in (_uid_of(m, "00200052") for m in metadata) if u is not None}
         frame = frames.pop() if len(frames) == 1 else frame
-        sources = [(_uid_of(m, "00080016"), _uid_of(m, "00080018")) for m in metadata]
-        sources = [(c, i) for c, i in sources if c and i]
+        pairs = [(_uid_of(m, "00080016"), _uid_of(m, "00080018")) for m in metadata]
+        sources = [(c, i) for c, i in pairs if c and i]
     return Origin(study, series or "", frame, patient, sources)
 
 

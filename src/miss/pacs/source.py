@@ -59,6 +59,7 @@ class PacsSeries:
     series: str
 
     def load(self, labels: bool) -> Loaded:
+        """Retrieve the series into a temporary folder and read it as an upload is read."""
         from miss.io.confined import Limits, parse_upload, probe
 
         if labels:

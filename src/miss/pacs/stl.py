@@ -88,7 +88,7 @@ def _instance(
     now: datetime,
 ) -> Any:
     from pydicom.dataset import Dataset, FileMetaDataset
-    from pydicom.uid import PYDICOM_IMPLEMENTATION_UID, ExplicitVRLittleEndian, generate_uid
+    from pydicom.uid import PYDICOM_IMPLEMENTATION_UID, UID, ExplicitVRLittleEndian, generate_uid
 
     ds = Dataset()
     ds.SpecificCharacterSet = "ISO_IR 192"  # UTF-8: names as the PACS spelled them
@@ -129,7 +129,7 @@ def _instance(
     ds.InstanceCreationDate, ds.InstanceCreationTime = ds.ContentDate, ds.ContentTime
     meta = FileMetaDataset()
     meta.MediaStorageSOPClassUID, meta.MediaStorageSOPInstanceUID = (
-        ENCAPSULATED_STL,
+        UID(ENCAPSULATED_STL),  # what pydicom makes of the str anyway
         ds.SOPInstanceUID,
     )
     meta.TransferSyntaxUID = ExplicitVRLittleEndian

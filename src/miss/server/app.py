@@ -115,7 +115,7 @@ async def _over_limit(request: Request, exc: Exception) -> JSONResponse:
     return too_many(str(exc), exc.wait)
 
 
-def create_app(settings: Settings | None = None) -> FastAPI:
+def create_app(settings: Settings | None = None) -> FastAPI:  # noqa: PLR0915 (to split: issue 40)
     """A MISS server app; ``settings`` default to the environment (``Settings.from_env``)."""
     settings = settings or Settings.from_env()
 
@@ -127,6 +127,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         _say_confinement(confinement)
         app.state.reading = (confinement, settings.parse_limits())
         app.state.pacs_imports = PacsImports(store, settings, lambda: app.state.reading)
+        assert settings.room_reserved is not None  # Settings fills it in
         app.state.rooms = Hub(
             store,
             max_people=settings.room_max_people,

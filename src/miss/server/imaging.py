@@ -156,7 +156,8 @@ def histogram_of(parts: Sequence[np.ndarray], bins: int = 256) -> dict[str, Any]
     else:
         edges = np.linspace(lo, hi if hi > lo else lo + 1.0, bins + 1)
     # Each value falls in the same bin counted alone or with the others: sums are exact.
-    counts = sum(np.histogram(p, bins=edges)[0] for p in parts)
+    start = np.zeros(len(edges) - 1, dtype=np.int64)  # histogram's counts
+    counts = sum((np.histogram(p, bins=edges)[0] for p in parts), start)
     return {"edges": edges.tolist(), "counts": counts.tolist(), "range": [lo, hi]}
 
 

@@ -274,7 +274,8 @@ def store_streamed(store: Store, streamed: Streamed, key: bytes, name: str) -> S
         check_storable_range(summary.lo, summary.hi, name)
         lazy, _, _ = chunked.open_array(folder / DATA)
         meta = streamed.meta(summary.lo, summary.hi)
-        volume = Volume(lazy, streamed.affine, meta=meta, patient=streamed.patient)
+        # a lazy (X, Y, Z) array: Volume's data is typed as the numpy array it mostly is
+        volume = Volume(lazy, streamed.affine, meta=meta, patient=streamed.patient)  # type: ignore[arg-type]
         clean = deidentify(volume, key)
         info = finish(folder, clean.volume, summary, clean.report)
     except BaseException:  # a full disk, a bad slice: no half-written folder stays behind

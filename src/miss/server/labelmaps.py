@@ -120,7 +120,7 @@ def _table(rows: list[dict[str, Any]]) -> LabelTable:
             color = tuple(float(c) for c in row.get("color") or ())
             table[int(row["label"])] = LabelInfo(
                 str(row.get("name", ""))[:200],
-                color if len(color) == 3 else None,  # type: ignore[arg-type]
+                color if len(color) == 3 else None,
                 float(row.get("opacity", 1.0)),
             )
         except (KeyError, TypeError, ValueError):

@@ -1,4 +1,4 @@
-"""Where the login may send a browser afterwards: one rule, applied by the server.
+r"""Where the login may send a browser afterwards: one rule, applied by the server.
 
 A ``next`` value is read as a browser's URL parser (the WHATWG URL standard, as chromium
 and firefox implement it) would resolve it against this site, and accepted only when it
@@ -6,7 +6,7 @@ stays a path on this site. The pages never judge ``next`` themselves: the login 
 the checked path and the page goes there (see ``routes/auth.py``).
 
 What browsers do that a naive check misses: they drop tabs and newlines anywhere, read
-``\\`` as ``/``, decode ``%2e`` as a dot in ``.`` and ``..`` segments and remove those
+``\`` as ``/``, decode ``%2e`` as a dot in ``.`` and ``..`` segments and remove those
 segments, so ``/.//evil.example``, ``/%2e//evil.example`` and ``/a/..//evil.example``
 all become the path ``//evil.example``, which a later navigation to that path reads as
 another host. So the check runs on the resolved path, not on the text.
@@ -32,7 +32,7 @@ _QUERY_SAFE = _PATH_SAFE + "/?"
 
 
 def safe_next(target: str) -> str:
-    """The path on this site that ``target`` leads to, else ``"/"``.
+    r"""The path on this site that ``target`` leads to, else ``"/"``.
 
     Parameters
     ----------
@@ -43,7 +43,7 @@ def safe_next(target: str) -> str:
     Returns
     -------
     str
-        ``"/"`` or a path that starts with one ``/`` followed by neither ``/`` nor ``\\``,
+        ``"/"`` or a path that starts with one ``/`` followed by neither ``/`` nor ``\``,
         holds no dot segments, no backslash and no control character or space, with its
         query and fragment: a browser resolves it to this site, and to itself.
     """

@@ -18,6 +18,7 @@ an uploaded volume's model goes, if ``MISS_PACS_SEND_UPLOADS`` allows, as a new 
 
 from __future__ import annotations
 
+import builtins
 import io
 import json
 import logging
@@ -270,7 +271,7 @@ class PacsImports:
         server: PacsServer,
         volume: VolumeRow,
         work: Path,
-        listed: list[dict[str, Any]],
+        listed: builtins.list[dict[str, Any]],  # builtins': this class has a list()
         reading: Reading,
     ) -> int:
         """Lay the study's SEG or RT-STRUCT of this series over the volume; its label
@@ -385,7 +386,7 @@ def _back_home(
         series=series,
         frame_of_reference=back.get(volume.info.get("frame_of_reference") or "", ""),
         patient=patient | {k: v for k, v in held.items() if v},
-        sources=[tuple(i) for i in came.get("instances") or []],  # type: ignore[misc]
+        sources=[tuple(i) for i in came.get("instances") or []],
     )
 
 

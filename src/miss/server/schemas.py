@@ -6,7 +6,16 @@ from collections.abc import Callable, Coroutine
 from dataclasses import fields as dataclass_fields
 from datetime import UTC, datetime
 from types import UnionType
-from typing import Annotated, Any, Union, get_args, get_origin, get_type_hints
+from typing import (
+    TYPE_CHECKING,
+    Annotated,
+    Any,
+    Union,
+    get_args,
+    get_origin,
+    get_type_hints,
+    overload,
+)
 from urllib.parse import quote
 
 from fastapi import Request, Response
@@ -85,13 +94,13 @@ def _fields_of(cls: type) -> dict[str, Any]:
             continue
         tp = _json_type(hints[f.name]) if about.json is None else about.json | None
         # the page's range, for the page (GET /openapi.json): documented, not a check
-        extra = {"x-form": about.form} if about.form else None
+        extra: dict[str, Any] | None = {"x-form": about.form} if about.form else None
         field = Field(default_of(f), description=about.help, json_schema_extra=extra)
         out[form_name(f)] = (tp, field)
     return out
 
 
-PartRequest = create_model(  # type: ignore[call-overload]
+PartRequest = create_model(
     "PartRequest",
     __config__=ConfigDict(extra="forbid"),
     __doc__="One part: a threshold (level) or labels, with its name, colour and cleanup.",
@@ -114,7 +123,7 @@ class _ModelForm(BaseModel):
         return JobSpec.from_dict({**values, "formats": list(FORMATS)})
 
 
-ModelRequest = create_model(  # type: ignore[call-overload]
+_ModelRequest = create_model(
     "ModelRequest",
     __base__=_ModelForm,
     **{
@@ -124,6 +133,10 @@ ModelRequest = create_model(  # type: ignore[call-overload]
         for name, definition in _fields_of(cls).items()
     },
 )
+if TYPE_CHECKING:  # to mypy, the generated form is its base (pydantic checks its fields)
+    ModelRequest = _ModelForm
+else:
+    ModelRequest = _ModelRequest
 
 
 class VolumeOut(BaseModel):
@@ -200,6 +213,10 @@ class ModelOut(BaseModel):
     )
 
 
+@overload
+def _utc(value: datetime) -> datetime: ...
+@overload
+def _utc(value: None) -> None: ...
 def _utc(value: datetime | None) -> datetime | None:
     """The database keeps naive UTC; say so, or browsers read it as local time."""
     return value.replace(tzinfo=UTC) if value is not None else None

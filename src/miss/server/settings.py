@@ -136,7 +136,7 @@ class Settings:
     ws_connects_per_minute: float = 60.0
     parse_memory_mb: float = 4096.0
 
-    def __post_init__(self) -> None:
+    def __post_init__(self) -> None:  # noqa: C901, PLR0915 (to split: issue 40)
         # Resolve once so the worker subprocesses, which get these as arguments, see the
         # same folder whatever their working directory.
         object.__setattr__(self, "data_dir", Path(self.data_dir).expanduser().resolve())
@@ -231,9 +231,11 @@ class Settings:
             raise ValueError(
                 f"MISS_UPLOAD_IDLE_SECONDS must be positive, got {self.upload_idle_seconds}."
             )
-        if self.room_reserved is None:
-            object.__setattr__(self, "room_reserved", max(0, min(5, self.room_max_people - 1)))
-        if not 0 <= self.room_reserved < self.room_max_people:
+        reserved = self.room_reserved
+        if reserved is None:
+            reserved = max(0, min(5, self.room_max_people - 1))
+            object.__setattr__(self, "room_reserved", reserved)
+        if not 0 <= reserved < self.room_max_people:
             raise ValueError(
                 "MISS_ROOM_RESERVED must be 0 or more and less than MISS_ROOM_MAX_PEOPLE "
                 f"({self.room_max_people}), got {self.room_reserved}."

@@ -65,7 +65,7 @@ def create(
 
 
 def status(row: ShareRow, now: datetime | None = None) -> str:
-    """ "active", "expired" or "revoked"."""
+    """``"active"``, ``"expired"`` or ``"revoked"``."""
     if row.revoked_at is not None:
         return "revoked"
     return "expired" if row.expires_at <= (now or utcnow()) else "active"

@@ -17,7 +17,7 @@ import os
 import re
 import time
 from collections import deque
-from collections.abc import AsyncIterator
+from collections.abc import AsyncGenerator
 from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
 from typing import IO, Any
@@ -238,7 +238,7 @@ class Pace:
             )
 
 
-async def paced(receive: Receive, pace: Pace) -> AsyncIterator[bytes]:
+async def paced(receive: Receive, pace: Pace) -> AsyncGenerator[bytes, None]:
     """The request body's chunks as they arrive, raising :class:`UploadTooSlow` as soon as
     it falls behind ``pace``; checked while waiting for the next chunk too, since a client
     that sends nothing never wakes a plain ``async for``. Read from the ASGI ``receive``

@@ -161,7 +161,7 @@ def _region_mask(grid: Grid, box: Box, level: float) -> tuple[np.ndarray, tuple[
 def _label_box(mask: np.ndarray) -> tuple[np.ndarray, int]:
     from scipy import ndimage
 
-    return ndimage.label(mask, structure=_CONNECTIVITY, output=np.int32)  # type: ignore[return-value]
+    return ndimage.label(mask, structure=_CONNECTIVITY, output=np.int32)
 
 
 def label_task(grid: Grid, box: Box, level: float) -> Labelled:

@@ -480,8 +480,9 @@ def _label_parts(
     parts share their cleanup (:class:`~miss.spec.Structures` checks that)."""
     first = items[0]
     wanted: str | list[int] = "all"
-    if all(isinstance(p.labels, tuple) for p in items):
-        wanted = sorted({i for p in items for i in p.labels})  # type: ignore[union-attr]
+    ids = [p.labels for p in items if isinstance(p.labels, tuple)]
+    if len(ids) == len(items):
+        wanted = sorted({i for each in ids for i in each})
     chosen = _chosen_labels(labels_volume, wanted, notes)
     data, origin = labels_volume.data, {label: (label, 0) for label in chosen}
     if first.components != "all" or first.min_size_mm3 > 0:
@@ -536,6 +537,7 @@ def _named_parts(
     for surface in surfaces:
         label, rank = origin[surface.label]
         info = describe(label, table)
+        assert info.color is not None  # describe fills it in
         name = f"{info.name} {rank + 1}" if pieces[label] > 1 else info.name
         out.append((Part(name, surface.mesh, info.color, info.opacity, label), surface.report))
         # Unsmoothed surface nets enclose exactly the voxels: the change is smoothing's.

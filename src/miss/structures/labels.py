@@ -22,6 +22,7 @@ import re
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
+from typing import cast
 
 from miss.errors import BadParameter, UnreadableVolume
 from miss.structures.labels_totalseg import TOTALSEG_TOTAL
@@ -147,7 +148,8 @@ def nifti_label_table(path: str | os.PathLike[str]) -> LabelTable | None:
     import nibabel as nib  # 0.3 s to load: for NIfTI files with header extensions only
 
     try:
-        extensions = nib.load(path).header.extensions
+        # a .nii file: a NIfTI image, whose header has extensions
+        extensions = cast("nib.Nifti1Image", nib.load(path)).header.extensions
     except Exception:  # a damaged header is the reader's to diagnose, not ours
         return None
     for extension in extensions:

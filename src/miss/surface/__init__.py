@@ -112,9 +112,9 @@ class _SeamMismatch(Exception):
 
 def _surface_whole(block: np.ndarray, level: float, span: float, normals: bool = True) -> _Arrays:
     """One padded copy, one flying-edges run; vertices in block index coordinates."""
-    verts, faces, normals = _flying_edges(_pad_below(block, level, span), level, normals)
+    verts, faces, vertex_normals = _flying_edges(_pad_below(block, level, span), level, normals)
     verts -= np.float32(1.0)  # the pad shifted every index by one
-    return verts, faces, normals
+    return verts, faces, vertex_normals
 
 
 def _surface_in_slabs(

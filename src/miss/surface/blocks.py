@@ -58,7 +58,9 @@ class Grid:
 
     @property
     def padded(self) -> tuple[int, int, int]:
-        return tuple(n + 2 for n in self.shape)  # type: ignore[return-value]
+        """The shape with one pad voxel on each side of every axis."""
+        x, y, z = self.shape
+        return x + 2, y + 2, z + 2
 
 
 @dataclass(frozen=True)
@@ -134,6 +136,8 @@ class ChunkCache:
         self.lock = threading.Lock()
 
     def get(self, key: tuple[Any, ...], load: Callable[[], np.ndarray]) -> np.ndarray:
+        """The chunk at ``key``, read by ``load`` when not held; the least recently used
+        dropped past the limit."""
         with self.lock:
             if key in self.chunks:
                 self.chunks.move_to_end(key)
@@ -254,7 +258,7 @@ def surface_block(
     if context:
         lo = np.array([a for a, _ in box], dtype=np.float64) - origin
         hi = np.array([b for _, b in box], dtype=np.float64) - origin
-        beyond = ((verts < lo) | (verts > hi)).any(axis=1)
+        beyond = np.any((verts < lo) | (verts > hi), axis=1)  # an array to numpy's stubs
         faces = faces[~(beyond[faces].any(axis=1))]
         used = np.zeros(len(verts), dtype=bool)
         used[faces.ravel()] = True
@@ -599,6 +603,7 @@ class _Rows:
             self._current()[index] = values
 
     def _current(self) -> np.ndarray:
+        assert self.memory is not None  # callers look first
         rows = np.frombuffer(self.memory, self.dtype, count=self.count * self.width)
         return rows.reshape(self.count, self.width)
 

@@ -56,9 +56,10 @@ Progress = Callable[[str, float], None]
 
 def block_edges(block: BlockShape) -> tuple[int, int, int]:
     """(ex, ey, ez) cells per block from an int, three ints, or None (auto)."""
+    given: Any = block  # checked here whatever it is: it comes from a user
     edges = (
-        (AUTO_BLOCK,) * 3 if block is None else (block,) * 3 if np.isscalar(block) else tuple(block)
-    )  # type: ignore[arg-type]
+        (AUTO_BLOCK,) * 3 if given is None else (given,) * 3 if np.isscalar(given) else tuple(given)
+    )
     if len(edges) != 3 or any(int(e) != e or e < 1 for e in edges):
         raise BadParameter(
             f"block size needs one whole number >= 1 or three (x,y,z), got {block!r}."
@@ -213,11 +214,11 @@ def _blockwise(
     # first, and each block reports its own (checked once all are in). Float data's pad
     # lies below the range, which a first pass finds (big blocks, few tasks).
     in_one_pass = np.issubdtype(dtype, np.integer) and np.iinfo(dtype).min < contour
-    lo, hi, start = np.inf, -np.inf, 0.0
+    lo, hi, progress_from = np.inf, -np.inf, 0.0
     if not in_one_pass:
         lo, hi = _range(grid, voxel_boxes(grid, RANGE_BLOCK), run, report)
         check_level(level, lo, hi)
-        start = 0.1
+        progress_from = 0.1
     pad_dtype, pad = pad_value(dtype, contour, hi - lo if not in_one_pass else 0.0)
     grid = Grid(grid.data, grid.start, grid.step, grid.shape, pad, np.dtype(pad_dtype).str)
     offset = np.array([b[0] for b in box], dtype=np.float64)
@@ -232,7 +233,7 @@ def _blockwise(
         surface_task, level=contour, normals=normals, affine=volume.affine, steps=steps,
         offset=offset,
     )  # fmt: skip
-    done = partial(counted, report, start, 1.0 - start)
+    done = partial(counted, report, progress_from, 1.0 - progress_from)
     second: list[float] = []  # when the blocks' decimation (the second wave) began
     then = None if decimation is None else (_extent, partial(_decide, decimation, second))
     stages: list[Decimated] | None = None if decimation is None else []
@@ -340,6 +341,7 @@ def _decimate_block(part: BlockMesh, method: str, reduce: float, bound_mm: float
 
 
 def counted(report: Progress, start: float, width: float, done: int, total: int) -> None:
+    """Report ``done`` of ``total`` blocks as a fraction from ``start`` over ``width``."""
     report("surface", start + width * done / total)
 
 

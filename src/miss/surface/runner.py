@@ -15,7 +15,7 @@ shared memory for it (:func:`_left`).
 from __future__ import annotations
 
 import os
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager, suppress
 from dataclasses import dataclass
@@ -368,7 +368,7 @@ def _in_runs(
 
     from distributed import as_completed as dask_completed
 
-    workers: list[str | None] = sorted(info) or [None]  # none yet: all at once, anywhere
+    workers: list[str | None] = [*sorted(info)] or [None]  # none yet: all at once, anywhere
     n, count = len(items), len(workers)
     threads = [int(info[w].get("nthreads", 1)) if w else n for w in workers]
     runs = [deque(range(n * k // count, n * (k + 1) // count)) for k in range(count)]
@@ -411,7 +411,7 @@ def _in_runs(
         yield int(future.key.rsplit("-", 1)[1]), future
 
 
-def _results(futures: Iterator[Any], release: bool = True) -> Iterator[Any]:
+def _results(futures: Iterable[Any], release: bool = True) -> Iterator[Any]:
     """Each future's result as it finishes; a failure as :class:`BlockTaskFailed`."""
     for future in futures:
         try:

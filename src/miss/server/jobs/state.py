@@ -222,10 +222,10 @@ class JobState:
             if bus.is_alive(runner):
                 continue
             with self.store.session() as s:
-                query = select(ModelRow).where(
+                running = select(ModelRow).where(
                     ModelRow.status == RUNNING, ModelRow.runner == runner
                 )
-                rows = list(s.scalars(query))
+                rows = list(s.scalars(running))
             for row in rows:
                 if row.attempts >= max_attempts:
                     reason = (

@@ -480,7 +480,7 @@ def warm_up() -> None:
     VTK, meshoptimizer, the numba kernels, every writer, the measurement), so that a spare
     worker's job starts computing at once: a few seconds of imports and first calls done
     before it comes. (Reading is the first thing a job does, before its preview: zarr's
-    import alone took 0.39-0.47 s of a first pixel at 1.2-1.7 s.)"""
+    import alone took 0.39-0.47 s of a first pixel at 1.2-1.7 s)."""
     import tempfile
 
     import numpy as np

@@ -681,7 +681,7 @@ class Hub:
             )
         try:
             message = json.loads(raw)
-        except ValueError as exc:
+        except json.JSONDecodeError as exc:
             raise Invalid("malformed", f"not valid JSON ({exc.msg} at {exc.pos}).") from None
         except RecursionError:  # "[[[[..." thousands deep: the parser's own limit
             raise Invalid(

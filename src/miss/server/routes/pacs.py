@@ -10,7 +10,7 @@ counts, never the patient's name or ID).
 from __future__ import annotations
 
 from datetime import datetime
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Literal, cast
 
 from fastapi import APIRouter, Depends, Query, Request
 from fastapi.responses import JSONResponse
@@ -110,10 +110,13 @@ class ImportRequest(BaseModel):
     pacs: str | None = Field(default=None, max_length=64, description="default: the first PACS")
 
 
+ImportStatus = Literal["queued", "running", "done", "failed"]
+
+
 class ImportOut(BaseModel):
     id: str
     pacs: str
-    status: Literal["queued", "running", "done", "failed"]
+    status: ImportStatus
     stage: str
     progress: float
     name: str
@@ -143,7 +146,7 @@ class SendOut(BaseModel):
 
 def import_out(row: PacsImportRow) -> ImportOut:
     return ImportOut(
-        id=row.id, pacs=row.pacs, status=row.status, stage=row.stage, progress=row.progress,
+        id=row.id, pacs=row.pacs, status=cast(ImportStatus, row.status), stage=row.stage, progress=row.progress,
         name=row.name, volume_id=row.volume_id, labels=row.labels, error=row.error,
         created_at=row.created_at, finished_at=row.finished_at,
     )  # fmt: skip

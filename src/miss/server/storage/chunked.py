@@ -58,7 +58,7 @@ DTYPES = frozenset(
     ["uint8", "int8", "uint16", "int16", "uint32", "int32", "int64", "uint64", "float32", "float64"]
 )
 #: The compressor, as zarr.json names it; the only one :func:`open_array` accepts.
-BLOSC = {"cname": "zstd", "clevel": 3, "shuffle": "bitshuffle"}
+BLOSC: dict[str, Any] = {"cname": "zstd", "clevel": 3, "shuffle": "bitshuffle"}
 _MAX_CHUNK_SIDE = 1024
 _BYTES = {"name": "bytes", "configuration": {"endian": "little"}}
 _MAX_META_BYTES = 1 << 20
@@ -161,11 +161,11 @@ class Voxels:
 
     @property
     def shape(self) -> tuple[int, int, int]:
-        return tuple(self.stored.shape[::-1])  # type: ignore[return-value]
+        return tuple(self.stored.shape[::-1])
 
     @property
     def chunks(self) -> tuple[int, int, int]:
-        return tuple(self.stored.chunks[::-1])  # type: ignore[return-value]
+        return tuple(self.stored.chunks[::-1])
 
     @property
     def dtype(self) -> np.dtype:
@@ -201,13 +201,17 @@ class Voxels:
                 i = int(k) + n if k < 0 else int(k)
                 if not 0 <= i < n:
                     return None
-                box.append((i, i + 1)), steps.append(1), drop.append(True)
+                box.append((i, i + 1))
+                steps.append(1)
+                drop.append(True)
             elif isinstance(k, slice):
                 start, stop, step = k.indices(n)
                 if step < 1:
                     return None
                 stop = max(start, stop)
-                box.append((start, stop)), steps.append(step), drop.append(False)
+                box.append((start, stop))
+                steps.append(step)
+                drop.append(False)
             else:
                 return None
         return box, steps, drop
@@ -228,7 +232,7 @@ class Voxels:
         jobs = list(itertools.product(*picks))
 
         def put(job: tuple[tuple[int, slice, slice], ...]) -> None:
-            chunk = self.chunk(tuple(j[0] for j in job))
+            chunk = self.chunk((job[0][0], job[1][0], job[2][0]))
             out[tuple(j[2] for j in job)] = chunk[tuple(j[1] for j in job)]
 
         if len(jobs) < _PARALLEL_CHUNKS:

@@ -5,14 +5,14 @@ connection (``config.attributes["connection"]``); ``alembic`` on the command lin
 from __future__ import annotations
 
 from alembic import context
-from sqlalchemy import create_engine
+from sqlalchemy import Connection, create_engine
 
 from miss.server.storage.db import Base
 
 config = context.config
 
 
-def run(connection: object) -> None:
+def run(connection: Connection) -> None:
     # Batch mode: SQLite alters a table by copying it, which Alembic does for us.
     context.configure(
         connection=connection,
@@ -31,6 +31,8 @@ else:
     url = context.get_x_argument(as_dictionary=True).get("url") or config.get_main_option(
         "sqlalchemy.url"
     )
+    if not url:
+        raise RuntimeError("no database URL: pass -x url=... or set sqlalchemy.url")
     engine = create_engine(url)
     with engine.connect() as conn:
         run(conn)
