@@ -16,7 +16,7 @@ from miss.cli.options import flags, job_form
 from miss.demo import phantom
 from miss.export import WRITERS
 from miss.pipeline import run
-from miss.server.schemas import ModelRequest, PartRequest
+from miss.server.core.schemas import ModelRequest, PartRequest
 from miss.spec import FORMATS, JobSpec, Structure, default_of, form_fields, form_name
 
 #: A value unlike the default for every field of the form: (CLI words, JSON value).

@@ -13,8 +13,8 @@ from fastapi.testclient import TestClient
 
 from miss.cli import main as cli
 from miss.server.app import create_app
+from miss.server.core.settings import Settings
 from miss.server.routes.auth import failed_login_limits
-from miss.server.settings import Settings
 
 PUBLIC = {"/api/auth/login", "/api/health"}
 

@@ -25,8 +25,8 @@ from realserver import Server, serving, wait_dead
 from sqlalchemy import create_engine, text
 
 from miss.export import FORMATS
+from miss.server.core.settings import Settings
 from miss.server.jobs import crash_reason, read_log
-from miss.server.settings import Settings
 from miss.server.storage.store import Store
 
 MB = 1 << 20

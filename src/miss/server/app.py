@@ -17,22 +17,11 @@ from uvicorn.middleware.proxy_headers import ProxyHeadersMiddleware
 
 from miss import __version__
 from miss.io import confined
-from miss.server import errors
 from miss.server.accounts import ADMIN_NAME, ensure_admin
-from miss.server.deps import current_admin, current_user
-from miss.server.headers import SecurityHeaders
-from miss.server.ingest import register_demo
-from miss.server.jobs import JobQueue, WorkerProcess
-from miss.server.metrics import (
-    Metrics,
-    RequestMetrics,
-    check_data_folder,
-    check_database,
-    is_scraper,
-    scrape_token,
-)
-from miss.server.pacs import PacsImports, fail_interrupted
-from miss.server.ratelimit import (
+from miss.server.core import errors
+from miss.server.core.deps import current_admin, current_user
+from miss.server.core.headers import SecurityHeaders
+from miss.server.core.ratelimit import (
     ApiLimits,
     JobLimit,
     OpenStreams,
@@ -43,13 +32,24 @@ from miss.server.ratelimit import (
     too_many,
     ws_connect_limits,
 )
+from miss.server.core.settings import Settings
+from miss.server.jobs import JobQueue, WorkerProcess
+from miss.server.metrics.registry import (
+    Metrics,
+    RequestMetrics,
+    check_data_folder,
+    check_database,
+    is_scraper,
+    scrape_token,
+)
+from miss.server.pacs_exchange import PacsImports, fail_interrupted
 from miss.server.rooms import Hub
 from miss.server.routes import audit, auth, models, pacs, pages, rooms, shares, volumes
 from miss.server.routes.pages import WEB
-from miss.server.settings import Settings
 from miss.server.storage.caches import ByteCaches
 from miss.server.storage.store import CHUNK_CACHE, Store
-from miss.server.uploads import UploadSlots
+from miss.server.volumes.ingest import register_demo
+from miss.server.volumes.uploads import UploadSlots
 
 log = logging.getLogger("miss.server")
 

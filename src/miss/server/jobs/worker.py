@@ -54,10 +54,9 @@ from miss.errors import BadParameter, MissError
 from miss.export import FORMATS, WRITERS
 from miss.export.tiles import etag
 from miss.pipeline import PREVIEW, JobResult, execute
-from miss.server import labelmaps
+from miss.server.core.settings import Settings
 from miss.server.jobs import turn
 from miss.server.jobs.state import JobState
-from miss.server.settings import Settings
 from miss.server.storage import chunked
 from miss.server.storage.db import VolumeRow
 from miss.server.storage.store import (
@@ -69,6 +68,7 @@ from miss.server.storage.store import (
     remove_outputs,
     write_atomic,
 )
+from miss.server.volumes import labelmaps
 from miss.spec import JobSpec, Loaded
 
 #: Seconds between progress writes within one stage: enough for a live bar, light on the DB.

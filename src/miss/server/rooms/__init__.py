@@ -40,7 +40,7 @@ from typing import Any
 from starlette.concurrency import run_in_threadpool
 from starlette.websockets import WebSocket, WebSocketDisconnect
 
-from miss.server.ratelimit import TokenBucket
+from miss.server.core.ratelimit import TokenBucket
 from miss.server.rooms import record as roomlog
 from miss.server.storage.db import utcnow
 from miss.server.storage.store import Store

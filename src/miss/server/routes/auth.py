@@ -13,13 +13,13 @@ from starlette.concurrency import run_in_threadpool
 
 from miss.errors import BadParameter, UnsupportedFormat
 from miss.server import accounts, audit, quota
-from miss.server.auth import CSRF_COOKIE, SESSION_COOKIE, presented_token
-from miss.server.deps import AdminDep, SettingsDep, StoreDep, UserDep
-from miss.server.errors import Forbidden, Unauthorized
-from miss.server.nextpath import safe_next
-from miss.server.ratelimit import KeyedBuckets, OverLimit, PasswordChecks, retry_after
-from miss.server.schemas import JSONRoute
-from miss.server.settings import Settings
+from miss.server.core.auth import CSRF_COOKIE, SESSION_COOKIE, presented_token
+from miss.server.core.deps import AdminDep, SettingsDep, StoreDep, UserDep
+from miss.server.core.errors import Forbidden, Unauthorized
+from miss.server.core.nextpath import safe_next
+from miss.server.core.ratelimit import KeyedBuckets, OverLimit, PasswordChecks, retry_after
+from miss.server.core.schemas import JSONRoute
+from miss.server.core.settings import Settings
 from miss.server.storage.store import Store
 
 router = APIRouter(tags=["accounts"], route_class=JSONRoute)

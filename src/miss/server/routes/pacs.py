@@ -21,10 +21,10 @@ from miss.pacs import client
 from miss.pacs.server import PacsServer
 from miss.server import audit, quota
 from miss.server.accounts import User
-from miss.server.deps import ModelDep, SettingsDep, StoreDep, UserDep
-from miss.server.errors import NotFound
-from miss.server.pacs import PacsImports, send_model
-from miss.server.settings import Settings
+from miss.server.core.deps import ModelDep, SettingsDep, StoreDep, UserDep
+from miss.server.core.errors import NotFound
+from miss.server.core.settings import Settings
+from miss.server.pacs_exchange import PacsImports, send_model
 from miss.server.storage.db import PacsImportRow
 
 router = APIRouter(tags=["pacs"])

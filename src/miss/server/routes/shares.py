@@ -20,13 +20,14 @@ from starlette.concurrency import run_in_threadpool
 from miss import __version__
 from miss.errors import BadParameter
 from miss.export import WRITERS
-from miss.server import assets, audit, shares
+from miss.server import audit, shares
 from miss.server.accounts import User
-from miss.server.deps import StoreDep, UserDep, visible_model, visible_volume
-from miss.server.errors import Forbidden, Gone, MissError, NotFound, NotReady, status_of
+from miss.server.core import assets
+from miss.server.core.deps import StoreDep, UserDep, visible_model, visible_volume
+from miss.server.core.errors import Forbidden, Gone, MissError, NotFound, NotReady, status_of
+from miss.server.core.schemas import JSONRoute, lod_url, params_of
 from miss.server.routes.models import lod_response, model_file
 from miss.server.routes.pages import WEB
-from miss.server.schemas import JSONRoute, lod_url, params_of
 from miss.server.storage.db import DONE, FAILED, ModelRow, ShareRow, VolumeRow
 from miss.server.storage.store import Store
 

@@ -15,9 +15,9 @@ from fastapi import APIRouter, Query, Request, Response, status
 from fastapi.responses import FileResponse, JSONResponse
 from starlette.concurrency import run_in_threadpool
 
-from miss.server import audit, imaging, labelmaps, quota
+from miss.server import audit, quota
 from miss.server.accounts import User, get_user
-from miss.server.deps import (
+from miss.server.core.deps import (
     BytesDep,
     QueueDep,
     SettingsDep,
@@ -26,13 +26,14 @@ from miss.server.deps import (
     VolumeDep,
     rendering,
 )
-from miss.server.errors import Forbidden, NotFound
-from miss.server.ingest import ingest
-from miss.server.schemas import IdentityOut, VolumeOut, volume_out
-from miss.server.settings import Settings
+from miss.server.core.errors import Forbidden, NotFound
+from miss.server.core.schemas import IdentityOut, VolumeOut, volume_out
+from miss.server.core.settings import Settings
 from miss.server.storage.db import VolumeRow
 from miss.server.storage.store import Store
-from miss.server.uploads import Pace, Upload, receive
+from miss.server.volumes import imaging, labelmaps
+from miss.server.volumes.ingest import ingest
+from miss.server.volumes.uploads import Pace, Upload, receive
 
 router = APIRouter(prefix="/api/volumes", tags=["volumes"])
 

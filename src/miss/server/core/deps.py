@@ -13,11 +13,11 @@ from fastapi import Depends, Request
 from starlette.concurrency import run_in_threadpool
 
 from miss.server.accounts import User, session_cached
-from miss.server.auth import can_see, presented_token, user_for_request
-from miss.server.errors import Forbidden, NotFound
+from miss.server.core.auth import can_see, presented_token, user_for_request
+from miss.server.core.errors import Forbidden, NotFound
+from miss.server.core.ratelimit import ApiLimits, JobLimit
+from miss.server.core.settings import Settings
 from miss.server.jobs import JobQueue
-from miss.server.ratelimit import ApiLimits, JobLimit
-from miss.server.settings import Settings
 from miss.server.storage.caches import ByteCaches
 from miss.server.storage.db import ModelRow, VolumeRow
 from miss.server.storage.store import Store

@@ -32,7 +32,7 @@ from prometheus_client.registry import Collector
 from sqlalchemy import func, select, text
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from miss.server.metricfiles import (
+from miss.server.metrics.files import (
     FolderCollector,
     SampleFiles,
     SharedCounter,
