@@ -19,9 +19,9 @@ from fastapi.testclient import TestClient
 from sqlalchemy import update
 from starlette.websockets import WebSocketDisconnect
 
-from miss.server import rooms
-from miss.server.rooms import BURST, MAX_MESSAGE_BYTES, RATE
+from miss.server.rooms import hub as rooms
 from miss.server.rooms import record as roomlog
+from miss.server.rooms.hub import BURST, MAX_MESSAGE_BYTES, RATE
 from miss.server.storage.db import ShareRow, utcnow
 
 NOBODY = {"Authorization": ""}  # overrides the client's own admin token
