@@ -17,7 +17,7 @@ from fastapi.testclient import TestClient
 from starlette.websockets import WebSocketDisconnect
 
 from miss.server.core.ratelimit import KeyedBuckets, SharedBuckets, split
-from miss.server.rooms.hub import Close
+from miss.server.rooms import Close
 
 NOBODY = {"Authorization": ""}  # overrides the client's own admin token
 SLOW = 0.01  # requests per second: nothing refills during a test

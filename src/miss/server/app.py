@@ -33,7 +33,7 @@ from miss.server.core.settings import Settings
 from miss.server.jobs.queue import JobQueue, WorkerProcess
 from miss.server.metrics.registry import Metrics, RequestMetrics
 from miss.server.pacs_exchange import PacsImports, fail_interrupted
-from miss.server.rooms.hub import Hub
+from miss.server.rooms import Hub
 from miss.server.routes import audit, auth, health, models, pacs, pages, rooms, shares, volumes
 from miss.server.routes.pages import WEB
 from miss.server.storage.caches import ByteCaches

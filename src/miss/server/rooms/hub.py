@@ -1,57 +1,38 @@
-"""Live consultation rooms: one per model, joined over a WebSocket by its owner (or an
-administrator) or by a share link that allows annotation.
-
-The server relays and checks; the browsers draw. Positions travel in patient LPS
-millimetres, so a participant in VRML mode and one in GLB mode point at the same anatomy.
-Every message is JSON text of at most ``MAX_MESSAGE_BYTES``; each connection has a token
-bucket (``BURST`` at once, ``RATE`` per second). Bad input gets an ``error`` frame naming
-the problem and the connection stays; a client that keeps flooding, whose link expires or
-is revoked, or that reads too slowly is closed with a code saying why. Nobody else in the
-room notices any of it.
-
-Each participant has an outgoing queue drained by its own task, so one slow browser
-never holds up a broadcast to the others.
-
-Places: guests fill at most ``max_people - reserved`` of a room, and at most
-``per_link`` through one link, so the guests of one leaked link cannot lock out the
-owner, the administrators or the guests of the owner's other links. What people see of
-each other is display names, colours and a per-room pseudonym (:func:`public_key`): never
-an account's id or another link's id.
-"""
+"""All open rooms of one server process (:class:`Hub`): joining, leaving, the watcher
+that closes connections whose grant ended, and the same room on other processes
+(``storage.bus``)."""
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
-import hashlib
 import json
 import logging
-import math
-import secrets
 import threading
 import time
 import weakref
-from collections import deque
-from collections.abc import Awaitable, Callable
-from dataclasses import dataclass
-from datetime import datetime
+from collections.abc import Callable
 from typing import Any
 
 from starlette.concurrency import run_in_threadpool
 from starlette.websockets import WebSocket, WebSocketDisconnect
 
-from miss.server.core.ratelimit import TokenBucket
 from miss.server.rooms import record as roomlog
+from miss.server.rooms.messages import HANDLERS
+from miss.server.rooms.people import (
+    MAX_MESSAGE_BYTES,
+    Close,
+    Invalid,
+    Participant,
+    Refused,
+    Visitor,
+)
+from miss.server.rooms.room import Room, unlisted
 from miss.server.storage.db import utcnow
 from miss.server.storage.store import Store
 
 log = logging.getLogger("miss.server.rooms")
 
-MAX_MESSAGE_BYTES = 16 * 1024
-RATE, BURST = 30.0, 60
-#: Dropped messages within ``FLOOD_WINDOW`` seconds after which a client is cut off.
-FLOOD_LIMIT, FLOOD_WINDOW = 200, 10.0
-OUTBOX = 512
 #: Connections one room takes at once (a consultation, not a broadcast): a leaked link
 #: opened thousands of times must not hold thousands of sockets and queues. Counted over
 #: every server process (the others' people as the bus has told them: a room opened
@@ -60,84 +41,6 @@ MAX_PEOPLE = 50
 #: Places of ``MAX_PEOPLE`` no guest may take (kept for the owner and administrators),
 #: and guests one link lets in at once: ``MISS_ROOM_RESERVED``, ``MISS_ROOM_GUESTS_PER_LINK``.
 RESERVED, GUESTS_PER_LINK = 5, 20
-MAX_NOTE, MAX_CHAT, MAX_NAME = 500, 2000, 40
-#: The presenter's camera goes to the replay at most this often (seconds).
-VIEW_EVERY = 1.0
-COLOURS = (
-    "#e6194b",
-    "#3cb44b",
-    "#4363d8",
-    "#f58231",
-    "#911eb4",
-    "#42d4f4",
-    "#f032e6",
-    "#9a6324",
-    "#469990",
-    "#808000",
-)
-
-
-class Close:
-    """WebSocket close codes MISS uses (4000-4999 are the application's own)."""
-
-    POLICY = 1008  # kept flooding
-    TOO_BIG = 1009
-    SLOW = 1013  # could not keep up with the room
-    UNAUTHORIZED = 4401
-    FORBIDDEN = 4403
-    NOT_FOUND = 4404
-    GONE = 4410
-    FULL = 4429  # the room, its places for guests or the link's are taken
-    TOO_MANY = 4429  # the address opened too many connections
-
-
-class Refused(Exception):
-    """A connection that may not join (or stay): close ``code`` with ``reason``."""
-
-    def __init__(self, code: int, reason: str) -> None:
-        super().__init__(reason)
-        self.code, self.reason = code, reason
-
-
-class Invalid(Exception):
-    """A message refused; the sender gets ``{"type": "error", "code", "error"}``."""
-
-    def __init__(self, code: str, text: str) -> None:
-        super().__init__(text)
-        self.code, self.text = code, text
-
-
-@dataclass(frozen=True)
-class Visitor:
-    """Who joins: a user (``key`` "u:<id>") or a share link's guest ("s:<share id>:<n>",
-    one per connection, so guests of one link cannot remove each other's pins), and the
-    grants that let them in: when any of those ends, the connection closes."""
-
-    key: str
-    name: str
-    guest: bool
-    owner: bool  # may remove anyone's pins
-    expires: datetime | None = None  # naive UTC, like the database
-    share_id: str | None = None
-    user_id: str | None = None
-    session: str | None = None  # the login session's token hash
-    volume_id: str | None = None
-
-    def grants(self, model_id: str) -> set[tuple[str, str]]:
-        """What this connection stands on: ("session", hash), ("user", id), ("share", id),
-        ("model", id), ("volume", id)."""
-        found = {("model", model_id)}
-        for kind, value in (
-            ("session", self.session),
-            ("user", self.user_id),
-            ("share", self.share_id),
-            ("volume", self.volume_id),
-        ):
-            if value:
-                found.add((kind, value))
-        return found
-
-
 #: Why a connection closes when a grant ends, by kind.
 ENDED = {
     "session": "you logged out, or your password was changed",
@@ -157,218 +60,6 @@ REMEMBER_ENDED = 30.0
 #: Every this many checks, the connected users' logins are looked up in the database, and
 #: the server processes of the people listed from other processes checked alive.
 RECHECK_TICKS = 8
-
-
-def public_key(model_id: str, key: str) -> str:
-    """A participant's key (``Visitor.key``) as the others in the room see it: the same
-    for the same author in this room, so a browser knows its own pins, but a digest that
-    does not give away the account's id or the link's id it came from."""
-    if not key.startswith(("u:", "s:")):
-        return key
-    digest = hashlib.sha256(f"{model_id}\0{key}".encode()).hexdigest()
-    return f"p:{digest[:16]}"
-
-
-def public_item(model_id: str, item: dict[str, Any]) -> dict[str, Any]:
-    """A pin or measurement as sent to the room: its author's key as :func:`public_key`."""
-    if isinstance(item.get("by"), str):
-        return item | {"by": public_key(model_id, item["by"])}
-    return item
-
-
-def guest_name(raw: str) -> str:
-    """A display name a guest chose, printable and short, marked as a guest's."""
-    clean = "".join(ch for ch in raw if ch.isprintable()).strip()[:MAX_NAME] or "Guest"
-    return f"{clean} (guest)"
-
-
-class Participant:
-    """One connection: its socket, outgoing queue, colour and rate limit."""
-
-    def __init__(self, ws: WebSocket, visitor: Visitor, colour: str, model_id: str) -> None:
-        self.id = secrets.token_hex(4)
-        self.ws, self.visitor, self.colour = ws, visitor, colour
-        self.model_id = model_id
-        self.outbox: asyncio.Queue[tuple[str, Any]] = asyncio.Queue(OUTBOX)
-        self.bucket = TokenBucket(BURST, RATE)
-        self.dropped: deque[float] = deque()
-        self.last_limit_notice = 0.0
-        self.closing = False
-
-    def public(self) -> dict[str, Any]:
-        """What everyone in the room may know of this person: no account or link id."""
-        v = self.visitor
-        return {
-            "id": self.id,
-            "name": v.name,
-            "colour": self.colour,
-            "guest": v.guest,
-            "owner": v.owner,
-            "key": public_key(self.model_id, v.key),
-        }
-
-    def listed(self) -> dict[str, Any]:
-        """:meth:`public` and, for the other server processes only (they count a link's
-        guests too), a digest of the link it came through."""
-        link = self.visitor.share_id
-        return self.public() | ({"link": public_key(self.model_id, f"s:{link}")} if link else {})
-
-    def send(self, message: dict[str, Any]) -> None:
-        """Queue a frame; a reader too slow to take its frames is closed, not waited for."""
-        if self.closing:
-            return
-        try:
-            self.outbox.put_nowait(("text", json.dumps(message, separators=(",", ":"))))
-        except asyncio.QueueFull:
-            self.close(Close.SLOW, "your connection could not keep up with the room; reconnect.")
-
-    def error(self, code: str, text: str) -> None:
-        self.send({"type": "error", "code": code, "error": text})
-
-    def close(self, code: int, reason: str) -> None:
-        """Send what is queued, then close with ``code``; a full queue is dropped first."""
-        if self.closing:
-            return
-        self.closing = True
-        while self.outbox.full():
-            self.outbox.get_nowait()
-        self.outbox.put_nowait(("close", (code, reason)))
-
-    def expired(self) -> bool:
-        return self.visitor.expires is not None and self.visitor.expires <= utcnow()
-
-    def admit(self) -> bool:
-        """Rate limit: False (and a notice at most once a second) when over; a sustained
-        flood closes the connection."""
-        if self.bucket.take():
-            return True
-        now = time.monotonic()
-        self.dropped.append(now)
-        while self.dropped and self.dropped[0] < now - FLOOD_WINDOW:
-            self.dropped.popleft()
-        if len(self.dropped) > FLOOD_LIMIT:
-            self.error("flood", "too many messages; the connection is closed.")
-            self.close(Close.POLICY, "flooding: too many messages")
-        elif now - self.last_limit_notice > 1.0:
-            self.last_limit_notice = now
-            self.error(
-                "rate_limited",
-                f"too many messages: at most {RATE:g} per second (bursts of {BURST}); "
-                "messages beyond that are dropped.",
-            )
-        return False
-
-
-# -- checking what clients send ------------------------------------------------------------
-
-
-def point(value: Any, name: str) -> list[float]:
-    """Three finite numbers (patient mm)."""
-    numbers = (
-        isinstance(value, list)
-        and len(value) == 3
-        and all(isinstance(v, int | float) and not isinstance(v, bool) for v in value)
-    )
-    if numbers and all(math.isfinite(v) and abs(v) < 1e6 for v in value):
-        return [float(v) for v in value]
-    raise Invalid("invalid", f"{name} must be [x, y, z]: three finite numbers in millimetres.")
-
-
-def text(value: Any, name: str, limit: int, required: bool = True) -> str:
-    if value is None and not required:
-        return ""
-    if not isinstance(value, str) or (required and not value.strip()):
-        raise Invalid("invalid", f"{name} must be a non-empty string.")
-    if len(value) > limit:
-        raise Invalid("invalid", f"{name} is {len(value)} characters long; at most {limit}.")
-    return value.strip()
-
-
-def event_id(value: Any, known: dict[int, Any], what: str) -> int:
-    if not isinstance(value, int) or isinstance(value, bool) or value not in known:
-        raise Invalid("invalid", f"no {what} with id {value!r} in this room.")
-    return value
-
-
-class Room:
-    """The people in one model's room and what they have left there."""
-
-    def __init__(
-        self,
-        model_id: str,
-        session: int,
-        state: roomlog.RoomState,
-        bounds: Any,
-        writing: asyncio.Lock,
-    ) -> None:
-        self.model_id, self.session, self.state = model_id, session, state
-        self.bounds = bounds  # [[min x, y, z], [max x, y, z]] in mm, or None when unknown
-        self.people: dict[str, Participant] = {}
-        #: People in this room on other server processes (``Participant.public()``), and
-        #: the process (bus origin) each is on.
-        self.remote: dict[str, dict[str, Any]] = {}
-        self.remote_on: dict[str, str] = {}
-        self.presenter: str | None = None
-        self.view: dict[str, Any] | None = None  # the presenter's latest camera, for late joiners
-        self.last_view = 0.0
-        self.writing = writing  # the model's, shared with its other sessions (Hub.writing)
-
-    def colour(self) -> str:
-        used = {p.colour for p in self.people.values()}
-        free = [c for c in COLOURS if c not in used]
-        return free[0] if free else COLOURS[len(self.people) % len(COLOURS)]
-
-    def broadcast(self, message: dict[str, Any], skip: Participant | None = None) -> None:
-        for person in list(self.people.values()):
-            if person is skip:
-                continue
-            if person.expired():
-                person.error("expired", "your access to this room has expired.")
-                person.close(Close.GONE, "access expired")
-            else:
-                person.send(message)
-
-    def welcome(self, you: Participant) -> dict[str, Any]:
-        return {
-            "type": "welcome",
-            "model": self.model_id,
-            "session": self.session,
-            "you": you.public(),
-            "participants": [p.public() for p in self.people.values()]
-            + [_unlisted(p) for p in self.remote.values()],
-            "presenter": self.presenter,
-            "view": self.view if self.presenter else None,
-            "bounds": self.bounds,
-            "limits": {"max_bytes": MAX_MESSAGE_BYTES, "rate": RATE, "burst": BURST},
-            **self.state.snapshot(lambda item: public_item(self.model_id, item)),
-        }
-
-    def guests(self, link: str | None = None) -> int:
-        """Guests here and on other processes; only those of ``link`` (a share id) if given."""
-        tag = link and public_key(self.model_id, f"s:{link}")
-        here = [p.visitor for p in self.people.values() if p.visitor.guest]
-        there = [p for p in self.remote.values() if p.get("guest")]
-        if link is None:
-            return len(here) + len(there)
-        return sum(v.share_id == link for v in here) + sum(p.get("link") == tag for p in there)
-
-    def on_model(self, p: list[float], name: str) -> list[float]:
-        """Refuse a point far from this model: most likely meant for another one."""
-        if self.bounds is None:
-            return p
-        lo, hi = self.bounds
-        margin = 0.05 * math.dist(lo, hi) + 1.0
-        outside = max(max(lo[i] - p[i], p[i] - hi[i], 0.0) for i in range(3))
-        if outside > margin:
-            raise Invalid(
-                "off_model",
-                f"{name} lies {outside:.0f} mm outside this model; pins and measurements "
-                "must be on its surface (is it meant for another model?).",
-            )
-        return p
-
-
-Handler = Callable[["Hub", Room, Participant, dict[str, Any]], Awaitable[None]]
 
 
 class Hub:
@@ -459,7 +150,7 @@ class Hub:
                 return  # already known (an answer to a hello)
             room.remote[message["participant"]["id"]] = message["participant"]
             room.remote_on[message["participant"]["id"]] = str(data.get("on", ""))
-            message = message | {"participant": _unlisted(message["participant"])}
+            message = message | {"participant": unlisted(message["participant"])}
         elif kind == "left":
             room.remote.pop(message["id"], None)
             room.remote_on.pop(message["id"], None)
@@ -701,125 +392,7 @@ class Hub:
         self.close_ended()
 
 
-def _unlisted(entry: dict[str, Any]) -> dict[str, Any]:
-    """A person listed by another process as the people here see them (no link digest)."""
-    return {k: v for k, v in entry.items() if k != "link"}
-
-
 def _log_failure(task: asyncio.Future[Any]) -> None:
     if not task.cancelled() and task.exception() is not None:
         # The model was deleted meanwhile: nothing left to record the event on.
         log.info("room event not recorded: %s", task.exception())
-
-
-# -- message handlers ---------------------------------------------------------------------
-
-
-def _check_model(room: Room, message: dict[str, Any]) -> None:
-    target = message.get("model")
-    if target is not None and target != room.model_id:
-        raise Invalid(
-            "wrong_model",
-            f"this room is model {room.model_id!r}; refused an item for model {target!r} "
-            "(open that model's room to annotate it).",
-        )
-
-
-async def on_ping(hub: Hub, room: Room, person: Participant, message: dict[str, Any]) -> None:
-    person.send({"type": "pong"})
-
-
-async def on_presenter(hub: Hub, room: Room, person: Participant, message: dict[str, Any]) -> None:
-    on = message.get("on")
-    if not isinstance(on, bool):
-        raise Invalid("invalid", '"on" must be true (present) or false (stop presenting).')
-    if on:
-        room.presenter, room.view = person.id, None
-    elif room.presenter == person.id:
-        room.presenter, room.view = None, None
-    else:
-        return
-    name = person.visitor.name if on else None
-    hub.broadcast(room, {"type": "presenter", "id": room.presenter, "name": name})
-    await hub.store_event(room, person, "presenter", {"on": on})
-
-
-async def on_camera(hub: Hub, room: Room, person: Participant, message: dict[str, Any]) -> None:
-    if room.presenter != person.id:
-        raise Invalid("not_presenter", "only the presenter's view is shared; press Present first.")
-    view = {k: point(message.get(k), k) for k in ("position", "target", "up")}
-    room.view = view
-    hub.broadcast(room, {"type": "camera", "from": person.id, **view}, skip=person)
-    now = time.monotonic()
-    if now - room.last_view >= VIEW_EVERY:  # the replay gets a view a second, not sixty
-        room.last_view = now
-        await hub.store_event(room, person, "view", view)
-
-
-async def on_laser(hub: Hub, room: Room, person: Participant, message: dict[str, Any]) -> None:
-    _check_model(room, message)
-    at = message.get("point")
-    at = None if at is None else room.on_model(point(at, "point"), "the laser point")
-    frame = {"type": "laser", "from": person.id, "colour": person.colour, "point": at}
-    hub.broadcast(room, frame, skip=person)
-
-
-async def on_pin(hub: Hub, room: Room, person: Participant, message: dict[str, Any]) -> None:
-    _check_model(room, message)
-    data = {
-        "point": room.on_model(point(message.get("point"), "point"), "the pin"),
-        "note": text(message.get("note"), "note", MAX_NOTE, required=False),
-        "colour": person.colour,
-        "by": person.visitor.key,
-    }
-    await _keep(hub, room, person, "pin", data)
-
-
-async def on_measure(hub: Hub, room: Room, person: Participant, message: dict[str, Any]) -> None:
-    _check_model(room, message)
-    a = room.on_model(point(message.get("a"), "a"), "the first point")
-    b = room.on_model(point(message.get("b"), "b"), "the second point")
-    data = {"a": a, "b": b, "mm": round(math.dist(a, b), 2), "colour": person.colour}
-    await _keep(hub, room, person, "measure", data | {"by": person.visitor.key})
-
-
-async def on_chat(hub: Hub, room: Room, person: Participant, message: dict[str, Any]) -> None:
-    data = {"text": text(message.get("text"), "text", MAX_CHAT), "colour": person.colour}
-    await _keep(hub, room, person, "chat", data)
-
-
-async def _keep(hub: Hub, room: Room, person: Participant, kind: str, data: dict[str, Any]) -> None:
-    """Store an event, fold it into the room and send it to everyone (the sender too:
-    it learns the id)."""
-    stored_id, at = await hub.store_event(room, person, kind, data)
-    room.state.apply(stored_id, at, kind, person.visitor.name, data)
-    item = {"id": stored_id, "author": person.visitor.name, "at": at, **data}
-    item = public_item(room.model_id, item)
-    event = (stored_id, at, kind, person.visitor.name, data)
-    hub.broadcast(room, {"type": kind, "item": item}, event=event)
-
-
-async def on_remove(hub: Hub, room: Room, person: Participant, message: dict[str, Any]) -> None:
-    """``unpin`` / ``unmeasure``: by their author or the model's owner."""
-    kind = message["type"]
-    items = room.state.pins if kind == "unpin" else room.state.measurements
-    target = event_id(message.get("id"), items, "pin" if kind == "unpin" else "measurement")
-    if items[target].get("by") != person.visitor.key and not person.visitor.owner:
-        raise Invalid("forbidden", "only its author or the model's owner may remove it.")
-    stored_id, at = await hub.store_event(room, person, kind, {"id": target})
-    room.state.apply(stored_id, at, kind, person.visitor.name, {"id": target})
-    event = (stored_id, at, kind, person.visitor.name, {"id": target})
-    hub.broadcast(room, {"type": kind, "id": target}, event=event)
-
-
-HANDLERS: dict[str, Handler] = {
-    "ping": on_ping,
-    "presenter": on_presenter,
-    "camera": on_camera,
-    "laser": on_laser,
-    "pin": on_pin,
-    "unpin": on_remove,
-    "measure": on_measure,
-    "unmeasure": on_remove,
-    "chat": on_chat,
-}

@@ -14,8 +14,8 @@ from miss.server.core.auth import authenticate, same_origin
 from miss.server.core.deps import ModelDep, StoreDep, visible_model
 from miss.server.core.errors import Gone, NotFound, Unauthorized
 from miss.server.core.ratelimit import retry_after
+from miss.server.rooms import Close, Refused, Visitor, guest_name
 from miss.server.rooms import record as roomlog
-from miss.server.rooms.hub import Close, Refused, Visitor, guest_name
 from miss.server.storage.store import Store
 
 router = APIRouter(tags=["rooms"])
