@@ -26,7 +26,7 @@ from sqlalchemy import create_engine, text
 
 from miss.export import FORMATS
 from miss.server.core.settings import Settings
-from miss.server.jobs.queue import crash_reason, read_log
+from miss.server.jobs import crash_reason, read_log
 from miss.server.storage.store import Store
 
 MB = 1 << 20
@@ -245,7 +245,7 @@ def test_kill_during_upload_leaves_no_partial_file(
 def test_workers_yield_the_cores_to_the_server() -> None:
     """A worker's first lines (run before its imports) lower its priority: nice 10 and
     SCHED_IDLE, so viewers are answered first while a conversion runs."""
-    from miss.server.jobs.queue import _BOOTSTRAP, WORKER_NICE
+    from miss.server.jobs.process import _BOOTSTRAP, WORKER_NICE
 
     head, tail = _BOOTSTRAP.split("from miss.server.jobs.worker import main")
     report = "print(os.getpriority(os.PRIO_PROCESS, 0), os.sched_getscheduler(0))\n"

@@ -25,7 +25,7 @@ from miss.export import FORMATS
 from miss.pipeline import PREVIEW, JobResult, run
 from miss.server.core.schemas import model_out
 from miss.server.core.settings import Settings
-from miss.server.jobs.queue import JobQueue
+from miss.server.jobs import JobQueue
 from miss.server.jobs.state import JobState
 from miss.server.jobs.worker import DataFolder
 from miss.server.routes import models as model_routes

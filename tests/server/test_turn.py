@@ -16,8 +16,7 @@ from server.conftest import running_row
 from miss.demo import phantom
 from miss.export import FORMATS
 from miss.pipeline import run
-from miss.server.jobs import turn
-from miss.server.jobs.queue import JobQueue
+from miss.server.jobs import JobQueue, turn
 from miss.server.jobs.state import JobState
 from miss.server.jobs.worker import DataFolder
 from miss.server.storage.store import Store, new_id

@@ -30,7 +30,7 @@ from miss.server.core.ratelimit import (
     ws_connect_limits,
 )
 from miss.server.core.settings import Settings
-from miss.server.jobs.queue import JobQueue, WorkerProcess
+from miss.server.jobs import JobQueue, WorkerProcess
 from miss.server.metrics.registry import Metrics, RequestMetrics
 from miss.server.pacs_exchange import PacsImports, fail_interrupted
 from miss.server.rooms import Hub

@@ -17,7 +17,7 @@ from miss.server.core.auth import can_see, presented_token, user_for_request
 from miss.server.core.errors import Forbidden, NotFound
 from miss.server.core.ratelimit import ApiLimits, JobLimit
 from miss.server.core.settings import Settings
-from miss.server.jobs.queue import JobQueue
+from miss.server.jobs import JobQueue
 from miss.server.storage.caches import ByteCaches
 from miss.server.storage.db import ModelRow, VolumeRow
 from miss.server.storage.store import Store

@@ -1,6 +1,6 @@
 """One job in its own process.
 
-The server starts it through a short bootstrap (``jobs.queue._BOOTSTRAP``); by hand it runs as
+The server starts it through a short bootstrap (``jobs.process._BOOTSTRAP``); by hand it runs as
 ``python -m miss.server.jobs.worker <model-id> <data-dir> <db-url> <parent-pid>``; the server
 passes ``-`` as the URL and writes the real one to the worker's stdin, so that it never
 shows in the process list.
