@@ -12,7 +12,7 @@ from starlette.concurrency import run_in_threadpool
 
 from miss import __version__
 from miss.server.core import errors
-from miss.server.core.deps import current_admin, current_user
+from miss.server.core.deps import MetricsDep, StoreDep, current_admin, current_user
 from miss.server.core.settings import Settings
 from miss.server.metrics.registry import check_data_folder, check_database, is_scraper, scrape_token
 
@@ -40,11 +40,11 @@ async def health(request: Request, deep: bool = False) -> dict[str, Any] | JSONR
 
 
 @router.get("/metrics", tags=["server"], include_in_schema=False)
-async def metrics(request: Request) -> Response:
+async def metrics(request: Request, store: StoreDep, registry: MetricsDep) -> Response:
     """Prometheus text format, for administrators or ``MISS_METRICS_TOKEN``'s bearer."""
     if not is_scraper(request.headers.get("authorization", ""), scrape_token()):
-        await current_admin(await current_user(request, request.app.state.store))
-    body = await run_in_threadpool(request.app.state.metrics.text)
+        await current_admin(await current_user(request, store))
+    body = await run_in_threadpool(registry.text)
     return Response(body, media_type="text/plain; version=0.0.4; charset=utf-8")
 
 

@@ -21,6 +21,7 @@ from miss.server.core.deps import (
     JobLimitDep,
     ModelDep,
     QueueDep,
+    RoomsDep,
     SettingsDep,
     StoreDep,
     UserDep,
@@ -180,11 +181,11 @@ async def get_model(model: ModelDep, store: StoreDep) -> ModelOut:
 
 
 @router.delete("/{model_id}", status_code=204)
-def delete_model(model: ModelDep, store: StoreDep, queue: QueueDep, request: Request) -> Response:
+def delete_model(model: ModelDep, store: StoreDep, queue: QueueDep, rooms: RoomsDep) -> Response:
     """Delete a model (its running job is stopped); its room's connections close."""
     queue.cancel(model.id)
     store.delete_model(model.id)
-    request.app.state.rooms.end("model", model.id)
+    rooms.end("model", model.id)
     return Response(status_code=204)
 
 

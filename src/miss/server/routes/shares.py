@@ -23,7 +23,7 @@ from miss.export import WRITERS
 from miss.server import audit, shares
 from miss.server.accounts import User
 from miss.server.core import assets
-from miss.server.core.deps import StoreDep, UserDep, visible_model, visible_volume
+from miss.server.core.deps import RoomsDep, StoreDep, UserDep, visible_model, visible_volume
 from miss.server.core.errors import Forbidden, Gone, MissError, NotFound, NotReady, status_of
 from miss.server.core.schemas import JSONRoute, lod_url, params_of
 from miss.server.routes.models import lod_response, model_file
@@ -100,11 +100,13 @@ def _own_share(store: Store, user: User, share_id: str) -> ShareRow:
 
 
 @router.delete("/api/shares/{share_id}", status_code=204)
-async def revoke_share(share_id: str, store: StoreDep, user: UserDep, request: Request) -> Response:
+async def revoke_share(
+    share_id: str, store: StoreDep, user: UserDep, request: Request, rooms: RoomsDep
+) -> Response:
     """Revoke a link: its page, files and room close to it at once."""
     row = await run_in_threadpool(_own_share, store, user, share_id)
     await run_in_threadpool(shares.revoke, store, row.id)
-    await request.app.state.rooms.revoke_share(row.id)
+    await rooms.revoke_share(row.id)
     where = audit.address(request)
     await run_in_threadpool(audit.record, store, "revoke", user.name, row.id, where)
     return Response(status_code=204)
