@@ -47,7 +47,7 @@ import numpy as np
 from common import markdown_table, paper_volume_file, save, write_nifti
 from load import PASSWORD, log_in, start_server, submit, upload
 
-from miss.server.settings import Settings
+from miss.server.core.settings import Settings
 from miss.types import Volume
 
 

@@ -24,7 +24,7 @@ from typing import Any
 
 import pytest
 
-from miss.server.settings import Settings
+from miss.server.core.settings import Settings
 
 
 def _bin() -> Path:

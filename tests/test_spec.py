@@ -17,7 +17,7 @@ from miss.cli.options import flags, job_form
 from miss.demo import phantom
 from miss.export import WRITERS
 from miss.pipeline import run
-from miss.server.schemas import ModelRequest, PartRequest
+from miss.server.core.schemas import ModelRequest, PartRequest
 from miss.smooth import smooth_mesh, windowed_sinc
 from miss.spec import (
     FORMATS,

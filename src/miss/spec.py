@@ -10,7 +10,7 @@
 - ``outputs``: :class:`Outputs`, the formats written.
 
 Every field carries its help text and its command-line spelling in ``metadata``; the
-REST body (:func:`miss.server.schemas.model_request`) and ``miss convert``'s options
+REST body (:func:`miss.server.core.schemas.model_request`) and ``miss convert``'s options
 (:mod:`miss.cli.options`) are generated from them, so one name, one default and one
 check hold in both. The *form* (:meth:`JobSpec.from_dict` / :meth:`JobSpec.to_dict`)
 is the 1998 web form, one flat name per field: what the REST API takes and the

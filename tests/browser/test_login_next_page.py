@@ -1,6 +1,6 @@
 """The login page in chromium, with ``next`` spelled every way we know of: after logging
 in, the browser is on this server. And the rule the server applies
-(``miss.server.nextpath.safe_next``) agrees with chromium's own URL parser: what it
+(``miss.server.core.nextpath.safe_next``) agrees with chromium's own URL parser: what it
 accepts, chromium resolves to this server and to the same path; whatever chromium
 resolves to another host, it refuses."""
 
@@ -74,7 +74,7 @@ RESOLVE = """([values, base]) => values.map((value) => {
 
 
 def test_the_rule_agrees_with_chromium(browser: Any, server: Server) -> None:
-    from miss.server.nextpath import safe_next
+    from miss.server.core.nextpath import safe_next
 
     page = browser.new_page()
     page.goto(server.url + "/login")

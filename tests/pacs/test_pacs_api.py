@@ -15,7 +15,7 @@ from server.conftest import ADMIN_PASSWORD, TestClient, bearer, log_in, wait_for
 
 from miss.pacs.server import PacsServer
 from miss.server.app import create_app
-from miss.server.settings import Settings
+from miss.server.core.settings import Settings
 from pacs.conftest import Series
 from pacs.orthanc import Orthanc
 

@@ -18,7 +18,7 @@ from server.conftest import ADMIN_PASSWORD, TestClient, log_in, wait_for_model
 
 from miss.pacs.server import PacsServer
 from miss.server.app import create_app
-from miss.server.settings import Settings
+from miss.server.core.settings import Settings
 from pacs import orthanc as orthanc_mod
 from pacs.conftest import PATIENTS, Series, read_series, stow
 from pacs.orthanc import Orthanc, free_port
@@ -245,7 +245,7 @@ def test_an_import_under_way_when_the_server_stopped_fails_with_the_reason(
 ) -> None:
     """A server killed mid-import: at the next start the import says what happened (and
     the owner imports again); nothing stays 'running' for ever."""
-    from miss.server.pacs import RESTARTED
+    from miss.server.pacs_exchange import RESTARTED
     from miss.server.storage.db import PacsImportRow, UserRow
     from miss.server.storage.store import Store
 

@@ -238,7 +238,7 @@ def test_an_upload_of_a_bomb_gets_422_and_nothing_is_kept(
 
 def test_the_confined_reader_has_a_memory_cap_by_default() -> None:
     """It had the machine's physical memory: now ``MISS_PARSE_MEMORY_MB``, 4096 MB."""
-    from miss.server.settings import Settings
+    from miss.server.core.settings import Settings
 
     limits = Settings.from_env({}).parse_limits()
     assert limits.memory_bytes == 4096 * MiB

@@ -24,7 +24,7 @@ from test_access import add_user, as_user, own_model, room, token_of
 from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect
 
-from miss.server.settings import Settings
+from miss.server.core.settings import Settings
 from miss.server.storage.store import Store
 
 BOUNDARY = "trickle-boundary"

@@ -16,7 +16,7 @@ from realserver import Server, serving
 from starlette.routing import Route
 
 from miss.server.app import create_app
-from miss.server.settings import Settings
+from miss.server.core.settings import Settings
 
 REQUIRED = {
     "content-security-policy": "frame-ancestors 'none'",

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import pytest
 
-from miss.server.ratelimit import KeyedBuckets, OverLimit
+from miss.server.core.ratelimit import KeyedBuckets, OverLimit
 from miss.server.routes.auth import LoginLimits
 
 

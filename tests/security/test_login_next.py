@@ -2,7 +2,7 @@
 ``next`` is spelled. The finding: ``/login?next=/.//evil.example/phish`` (and ``/%2e//``,
 ``/a/..//``) passed the page's own check and landed on another host, because the browser
 removes dot segments and what remains, ``//evil.example/phish``, names a host. One rule
-decides now, on the URL as a browser resolves it (``miss.server.nextpath``), and the
+decides now, on the URL as a browser resolves it (``miss.server.core.nextpath``), and the
 page goes where the login's answer says. chromium's verdict on the same spellings:
 ``tests/browser/test_login_next_page.py``."""
 
@@ -86,14 +86,14 @@ ON_THIS_SERVER = re.compile(r"/(?![/\\])[^\x00-\x20\x7f\\]*\Z")
 
 @pytest.mark.parametrize("target", OFFSITE)
 def test_offsite_spellings_lead_home(target: str) -> None:
-    from miss.server.nextpath import safe_next
+    from miss.server.core.nextpath import safe_next
 
     assert safe_next(target) == "/"
 
 
 @pytest.mark.parametrize(("target", "path"), ONSITE.items())
 def test_paths_here_are_kept(target: str, path: str) -> None:
-    from miss.server.nextpath import safe_next
+    from miss.server.core.nextpath import safe_next
 
     assert safe_next(target) == path
     assert ON_THIS_SERVER.match(path) and safe_next(path) == path  # a fixed point

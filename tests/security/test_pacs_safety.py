@@ -39,7 +39,7 @@ from server.conftest import ADMIN_PASSWORD, TestClient, log_in, make_model
 
 from miss.pacs.server import PacsServer
 from miss.server.app import create_app
-from miss.server.settings import Settings
+from miss.server.core.settings import Settings
 
 orthanc = pacs_fixtures.orthanc
 pacs_series = pacs_fixtures.pacs_series

@@ -108,7 +108,7 @@ def test_password_checks_wait_their_turn(proxied: Server) -> None:
     ],
 )
 def test_bad_settings_are_named(name: str, value: str, says: str) -> None:
-    from miss.server.settings import Settings
+    from miss.server.core.settings import Settings
 
     with pytest.raises(ValueError, match=name) as refused:
         Settings.from_env({name: value})

@@ -22,10 +22,10 @@ with warnings.catch_warnings():
 from pg import copy_seed, database_url, settings_for
 
 from miss.server.app import create_app
-from miss.server.ingest import register_demo
-from miss.server.settings import Settings
+from miss.server.core.settings import Settings
 from miss.server.storage.db import RUNNING, ModelRow
 from miss.server.storage.store import Store, new_id
+from miss.server.volumes.ingest import register_demo
 from miss.spec import JobSpec
 
 JOB_TIMEOUT = 120.0

@@ -21,7 +21,7 @@ from pg import settings_for
 from PIL import Image
 
 from miss.server.app import create_app
-from miss.server.assets import MODULES, WEB
+from miss.server.core.assets import MODULES, WEB
 from miss.server.storage import chunked
 
 DEMO = "Demo head phantom (synthetic CT)"

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 from sqlalchemy import event, func, select
 
-from miss.server.settings import Settings
+from miss.server.core.settings import Settings
 from miss.server.storage.db import AuditRow, utcnow
 from miss.server.storage.store import Store
 

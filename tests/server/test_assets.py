@@ -1,4 +1,4 @@
-"""The pages' files under versioned URLs (miss.server.assets): a browser keeps them a year
+"""The pages' files under versioned URLs (miss.server.core.assets): a browser keeps them a year
 and asks again only for a new version; the plain URLs answer 304 to a copy it holds."""
 
 from __future__ import annotations
@@ -13,8 +13,8 @@ from pathlib import Path
 import pytest
 from fastapi.testclient import TestClient
 
-from miss.server import assets
-from miss.server.headers import import_map_hashes
+from miss.server.core import assets
+from miss.server.core.headers import import_map_hashes
 
 URL = re.compile(r"""["'](/(?:v/[0-9a-f]+/)?(?:static|vendor)/[^"']+)["']""")
 

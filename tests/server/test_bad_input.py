@@ -31,7 +31,7 @@ from fastapi.testclient import TestClient
 from pg import copy_seed, settings_for
 
 from miss.server.app import create_app
-from miss.server.schemas import MAX_JSON_BYTES
+from miss.server.core.schemas import MAX_JSON_BYTES
 from miss.spec import MAX_LEVELS
 
 PASSWORD = "admin-password-for-bad-input"

@@ -16,9 +16,9 @@ from fastapi.testclient import TestClient
 from sqlalchemy import event, text
 from starlette.responses import FileResponse
 
-from miss.server.deps import here_or_threadpool
-from miss.server.schemas import attachment
-from miss.server.settings import Settings
+from miss.server.core.deps import here_or_threadpool
+from miss.server.core.schemas import attachment
+from miss.server.core.settings import Settings
 from miss.server.storage.caches import ByteCaches, BytesLRU, RowCache
 from miss.server.storage.db import POOL_SIZE, RUNNING
 from miss.server.storage.store import Store
@@ -224,8 +224,8 @@ def test_slices_render_a_core_at_a_time_while_the_loop_answers(
     """Many viewers asking for slices nobody rendered yet: at most ``RENDERS_AT_ONCE``
     renders run at a time (the threadpool's 40 at once kept the GIL from the event loop),
     and a cached model file is still answered meanwhile."""
-    import miss.server.deps as deps
-    from miss.server import imaging
+    import miss.server.core.deps as deps
+    from miss.server.volumes import imaging
 
     client, model = done_model
     monkeypatch.setattr(deps, "RENDERS_AT_ONCE", 2)

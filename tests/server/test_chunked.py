@@ -18,9 +18,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from miss.errors import DiskFull, UnreadableVolume
-from miss.server import imaging
 from miss.server.storage import chunked
-from miss.server.summary import Summary
+from miss.server.volumes import imaging
+from miss.server.volumes.summary import Summary
 from miss.surface.blocks import ChunkCache
 
 AFFINE = np.array([[-0.8, 0, 0, 100.5], [0, -0.7, 0.1, -20], [0, 0, 2.5, 33], [0, 0, 0, 1]])
@@ -328,8 +328,8 @@ def test_source_hash_of_a_real_scan_is_unchanged(datasets: Path, tmp_path: Path)
     """The stored source_sha256 of a real DICOM series and a real NIfTI (streamed) is the
     one the whole-array hash gives."""
     from miss.io import load_volume
-    from miss.server.ingest import ingest_path
     from miss.server.storage.store import Store
+    from miss.server.volumes.ingest import ingest_path
 
     store = Store(tmp_path / "data", f"sqlite:///{tmp_path / 'data' / 'miss.sqlite3'}")
     store.init()
@@ -354,8 +354,8 @@ def test_streamed_nifti_is_stored_as_a_whole_read_stores_it(tmp_path: Path) -> N
 
     from miss.deid import deidentify
     from miss.io import load_volume
-    from miss.server.ingest import UID_KEY, ingest_path, stage
     from miss.server.storage.store import Store
+    from miss.server.volumes.ingest import UID_KEY, ingest_path, stage
 
     i, j, k = np.indices((60, 50, 70))
     ct = np.where((i - 30) ** 2 + (j - 25) ** 2 + (k - 35) ** 2 < 400, 1200, -1000)

@@ -25,8 +25,8 @@ from realserver import Server, serving, wait_dead
 from sqlalchemy import create_engine, text
 
 from miss.export import FORMATS
+from miss.server.core.settings import Settings
 from miss.server.jobs import crash_reason, read_log
-from miss.server.settings import Settings
 from miss.server.storage.store import Store
 
 MB = 1 << 20
@@ -246,7 +246,7 @@ def test_workers_yield_the_cores_to_the_server() -> None:
     """A worker's first lines (run before its imports) lower its priority: nice 19 and
     SCHED_BATCH, so viewers are answered first while a conversion runs (a job of an
     account with more waiting goes lower still: tests/security/test_fairness.py)."""
-    from miss.server.jobs import _BOOTSTRAP, WORKER_NICE
+    from miss.server.jobs.process import _BOOTSTRAP, WORKER_NICE
 
     head, tail = _BOOTSTRAP.split("from miss.server.jobs.worker import main")
     report = "print(os.getpriority(os.PRIO_PROCESS, 0), os.sched_getscheduler(0))\n"

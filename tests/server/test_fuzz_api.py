@@ -26,7 +26,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from miss.server.app import create_app
-from miss.server.settings import Settings
+from miss.server.core.settings import Settings
 
 PASSWORD = "admin-password-for-fuzzing"
 FUZZ = settings(

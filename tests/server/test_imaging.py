@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from miss.server.imaging import slice_plane
+from miss.server.volumes.imaging import slice_plane
 
 
 @pytest.mark.parametrize("axis", [0, 1, 2])

@@ -16,7 +16,7 @@ import pytest
 from fastapi.testclient import TestClient
 from starlette.websockets import WebSocketDisconnect
 
-from miss.server.ratelimit import KeyedBuckets, SharedBuckets, split
+from miss.server.core.ratelimit import KeyedBuckets, SharedBuckets, split
 from miss.server.rooms import Close
 
 NOBODY = {"Authorization": ""}  # overrides the client's own admin token

@@ -13,8 +13,8 @@ from fastapi.testclient import TestClient
 from pg import copy_seed
 from server.conftest import started as start_logged_in
 
-from miss.server import labelmaps
 from miss.server.storage import chunked
+from miss.server.volumes import labelmaps
 from miss.structures.labelmap import label_counts
 from miss.types import Volume
 

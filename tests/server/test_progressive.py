@@ -23,12 +23,12 @@ from server.conftest import running_row
 from miss.demo import phantom
 from miss.export import FORMATS
 from miss.pipeline import PREVIEW, JobResult, run
+from miss.server.core.schemas import model_out
+from miss.server.core.settings import Settings
 from miss.server.jobs import JobQueue
 from miss.server.jobs.state import JobState
 from miss.server.jobs.worker import DataFolder
 from miss.server.routes import models as model_routes
-from miss.server.schemas import model_out
-from miss.server.settings import Settings
 from miss.server.storage import chunked
 from miss.server.storage.store import Store
 from miss.spec import JobSpec

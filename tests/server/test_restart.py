@@ -10,9 +10,9 @@ from pathlib import Path
 import pytest
 from realserver import Server, alive, free_port, serving
 
+from miss.server.core.settings import Settings
 from miss.server.jobs.state import JobState
 from miss.server.main import serve
-from miss.server.settings import Settings
 from miss.server.storage.db import FAILED, QUEUED, RUNNING, ModelRow, VolumeRow
 from miss.server.storage.store import Store
 

@@ -19,8 +19,9 @@ from fastapi.testclient import TestClient
 from sqlalchemy import update
 from starlette.websockets import WebSocketDisconnect
 
-from miss.server import rooms
 from miss.server.rooms import BURST, MAX_MESSAGE_BYTES, RATE
+from miss.server.rooms import hub as room_hub
+from miss.server.rooms import people as room_people
 from miss.server.rooms import record as roomlog
 from miss.server.storage.db import ShareRow, utcnow
 
@@ -268,7 +269,9 @@ def test_revoking_or_expiring_a_link_closes_its_guests(
                 share_id = client.get("/api/shares", headers=alice).json()[0]["id"]
                 assert client.delete(f"/api/shares/{share_id}", headers=alice).status_code == 204
             else:  # two hours later: the link has run out, the owner's login has not
-                monkeypatch.setattr(rooms, "utcnow", lambda: utcnow() + timedelta(hours=2))
+                later = lambda: utcnow() + timedelta(hours=2)  # noqa: E731
+                monkeypatch.setattr(room_people, "utcnow", later)  # access checks
+                monkeypatch.setattr(room_hub, "utcnow", later)  # event times
                 guest.send_json({"type": "ping"})
             assert until(guest, "error")["code"] == {"revoke": "revoked", "expire": "expired"}[how]
             with pytest.raises(WebSocketDisconnect) as closed:
@@ -287,7 +290,9 @@ def test_an_expired_link_closes_its_guests_unasked(
     model, alice = room["model"], room["alice"]
     token = link_for(client, alice, model, hours=1)
     with joined(client, url(model, token, "Quiet guest")) as guest:
-        monkeypatch.setattr(rooms, "utcnow", lambda: utcnow() + timedelta(hours=2))
+        later = lambda: utcnow() + timedelta(hours=2)  # noqa: E731
+        monkeypatch.setattr(room_people, "utcnow", later)  # access checks
+        monkeypatch.setattr(room_hub, "utcnow", later)  # event times
         start = time.monotonic()
         assert until(guest, "error")["code"] == "expired"
         with pytest.raises(WebSocketDisconnect) as closed:

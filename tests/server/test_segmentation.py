@@ -20,7 +20,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tests/, for test
 from pacs.dicom_data import write_ct_series, write_rtstruct, write_small_seg  # noqa: E402
 
 from miss.errors import BadParameter  # noqa: E402
-from miss.server import labelmaps  # noqa: E402
+from miss.server.volumes import labelmaps  # noqa: E402
 
 
 def _zip(folder: Path) -> bytes:

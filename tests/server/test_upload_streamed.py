@@ -19,9 +19,9 @@ from realserver import serving
 from miss.deid import deidentify
 from miss.io import load_volume
 from miss.io.confined import _jsonable
-from miss.server.ingest import UID_KEY, check_storable, stage
 from miss.server.storage import chunked
 from miss.server.storage.store import Store
+from miss.server.volumes.ingest import UID_KEY, check_storable, stage
 from miss.types import Volume
 
 #: Streamed in the child (a DICOM folder, plain NIfTI-1) and read whole there (gantry

@@ -100,7 +100,7 @@ def cmd_user(args: argparse.Namespace) -> int:
     (``accounts.announce_change``): the ended logins, the taken permission count at their
     next request."""
     from miss.server import accounts, audit
-    from miss.server.settings import Settings
+    from miss.server.core.settings import Settings
     from miss.server.storage.private import owner_only
     from miss.server.storage.store import Store
 
@@ -157,7 +157,7 @@ def _usage_table(store: Store, quota: int) -> str:
 def cmd_audit(args: argparse.Namespace) -> int:
     """Print the audit log's newest entries; the exit status."""
     from miss.server import audit
-    from miss.server.settings import Settings
+    from miss.server.core.settings import Settings
     from miss.server.storage.store import Store
 
     settings = Settings.from_env(data_dir=args.data_dir)
@@ -175,7 +175,7 @@ def cmd_audit(args: argparse.Namespace) -> int:
 def cmd_backup(args: argparse.Namespace) -> int:
     """``miss backup DEST``: the database (online: SQLite's backup API or ``pg_dump``),
     then the volumes and models, each file with its SHA-256 in ``manifest.json``."""
-    from miss.server.settings import Settings
+    from miss.server.core.settings import Settings
     from miss.server.storage.backup import backup
     from miss.server.storage.private import owner_only
 
@@ -192,7 +192,7 @@ def cmd_backup(args: argparse.Namespace) -> int:
 
 def cmd_restore(args: argparse.Namespace) -> int:
     """``miss restore SRC``: into an empty data folder (and an empty database)."""
-    from miss.server.settings import Settings
+    from miss.server.core.settings import Settings
     from miss.server.storage.backup import restore
     from miss.server.storage.private import UMASK
 

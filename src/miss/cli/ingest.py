@@ -26,10 +26,10 @@ def cmd_ingest(args: argparse.Namespace) -> int:
     """Print the new volume's id."""
     from miss.errors import BadParameter
     from miss.server import audit
-    from miss.server.ingest import ingest_path
-    from miss.server.settings import Settings
+    from miss.server.core.settings import Settings
     from miss.server.storage.private import owner_only
     from miss.server.storage.store import Store
+    from miss.server.volumes.ingest import ingest_path
 
     path = Path(args.path)
     if not path.exists():

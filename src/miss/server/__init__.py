@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     from miss.server.app import create_app
-    from miss.server.settings import Settings
+    from miss.server.core.settings import Settings
 
 __all__ = ["Settings", "create_app"]
 
@@ -24,7 +24,7 @@ def __getattr__(name: str) -> Any:
 
         return create_app
     if name == "Settings":
-        from miss.server.settings import Settings
+        from miss.server.core.settings import Settings
 
         return Settings
     raise AttributeError(f"module 'miss.server' has no attribute {name!r}")

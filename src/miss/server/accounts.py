@@ -20,7 +20,7 @@ from sqlalchemy import delete, select, update
 from sqlalchemy.exc import IntegrityError
 
 from miss.errors import BadParameter
-from miss.server.errors import NotFound
+from miss.server.core.errors import NotFound
 from miss.server.storage.db import SessionRow, UserRow, VolumeRow, utcnow
 from miss.server.storage.store import Store, always, new_id
 

@@ -4,35 +4,21 @@ routes."""
 from __future__ import annotations
 
 import logging
-import os
 import sys
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
-from typing import Any
 
 from fastapi import FastAPI, Request
-from fastapi.responses import JSONResponse, Response
+from fastapi.responses import JSONResponse
 from starlette.concurrency import run_in_threadpool
 from uvicorn.middleware.proxy_headers import ProxyHeadersMiddleware
 
 from miss import __version__
 from miss.io import confined
-from miss.server import errors
 from miss.server.accounts import ADMIN_NAME, ensure_admin
-from miss.server.deps import current_admin, current_user
-from miss.server.headers import SecurityHeaders
-from miss.server.ingest import register_demo
-from miss.server.jobs import JobQueue, WorkerProcess
-from miss.server.metrics import (
-    Metrics,
-    RequestMetrics,
-    check_data_folder,
-    check_database,
-    is_scraper,
-    scrape_token,
-)
-from miss.server.pacs import PacsImports, fail_interrupted
-from miss.server.ratelimit import (
+from miss.server.core import errors
+from miss.server.core.headers import SecurityHeaders
+from miss.server.core.ratelimit import (
     ApiLimits,
     JobLimit,
     OpenStreams,
@@ -43,13 +29,17 @@ from miss.server.ratelimit import (
     too_many,
     ws_connect_limits,
 )
+from miss.server.core.settings import Settings
+from miss.server.jobs import JobQueue, WorkerProcess
+from miss.server.metrics.registry import Metrics, RequestMetrics
+from miss.server.pacs_exchange import PacsImports, fail_interrupted
 from miss.server.rooms import Hub
-from miss.server.routes import audit, auth, models, pacs, pages, rooms, shares, volumes
+from miss.server.routes import audit, auth, health, models, pacs, pages, rooms, shares, volumes
 from miss.server.routes.pages import WEB
-from miss.server.settings import Settings
 from miss.server.storage.caches import ByteCaches
 from miss.server.storage.store import CHUNK_CACHE, Store
-from miss.server.uploads import UploadSlots
+from miss.server.volumes.ingest import register_demo
+from miss.server.volumes.uploads import UploadSlots
 
 log = logging.getLogger("miss.server")
 
@@ -196,60 +186,5 @@ def create_app(settings: Settings | None = None) -> FastAPI:  # noqa: PLR0915 (t
     app.include_router(audit.router)
     app.include_router(pacs.router)
     app.include_router(pages.router)
-
-    @app.get("/api/health", tags=["server"], response_model=None)
-    async def health(request: Request, deep: bool = False) -> dict[str, Any] | JSONResponse:
-        """Without ``deep``: answered on the event loop itself (no thread, no database), its
-        latency is the loop's, which load tests watch while jobs and uploads run. With
-        ``?deep=1``: the database, the data folder and the job runners checked too; 503
-        when any of them is not well (for a load balancer's health check). Only
-        administrators and the scrape token read the details (free space, the errors)."""
-        if not deep:
-            return {"status": "ok", "version": __version__}
-        checks = await run_in_threadpool(_deep_checks, request.app)
-        well = all(c["ok"] for c in checks.values())
-        body: dict[str, Any] = {"status": "ok" if well else "failing", "version": __version__}
-        if await _is_operator(request):
-            body |= checks
-            body["process"] = os.getpid()  # which of several server processes answered
-        else:
-            body |= {name: {"ok": check["ok"]} for name, check in checks.items()}
-        return JSONResponse(body, status_code=200 if well else 503)
-
-    @app.get("/metrics", tags=["server"], include_in_schema=False)
-    async def metrics(request: Request) -> Response:
-        """Prometheus text format, for administrators or ``MISS_METRICS_TOKEN``'s bearer."""
-        if not is_scraper(request.headers.get("authorization", ""), scrape_token()):
-            await current_admin(await current_user(request, request.app.state.store))
-        body = await run_in_threadpool(request.app.state.metrics.text)
-        return Response(body, media_type="text/plain; version=0.0.4; charset=utf-8")
-
+    app.include_router(health.router)
     return app
-
-
-async def _is_operator(request: Request) -> bool:
-    """An administrator's session or the scrape token (``MISS_METRICS_TOKEN``)."""
-    if is_scraper(request.headers.get("authorization", ""), scrape_token()):
-        return True
-    try:
-        await current_admin(await current_user(request, request.app.state.store))
-    except (errors.Unauthorized, errors.Forbidden):
-        return False
-    return True
-
-
-def _deep_checks(app: FastAPI) -> dict[str, dict[str, Any]]:
-    """Each check's answer, or its failure in words (never raised: the answer is the 503)."""
-    settings: Settings = app.state.settings
-    checks = {
-        "database": lambda: check_database(app.state.store),
-        "data_folder": lambda: check_data_folder(app.state.store, settings.min_free_bytes),
-        "job_runners": lambda: app.state.queue.health(),
-    }
-    out: dict[str, dict[str, Any]] = {}
-    for name, check in checks.items():
-        try:
-            out[name] = check()
-        except Exception as exc:  # what an operator needs to read is the reason
-            out[name] = {"ok": False, "error": f"{type(exc).__name__}: {exc}"[:300]}
-    return out

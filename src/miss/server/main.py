@@ -8,10 +8,10 @@ import sys
 
 import uvicorn
 
-from miss.server import logmask
 from miss.server.app import create_app
+from miss.server.core import logmask
+from miss.server.core.settings import Settings
 from miss.server.rooms import MAX_MESSAGE_BYTES
-from miss.server.settings import Settings
 from miss.server.storage.private import owner_only
 from miss.server.storage.store import DataDirInUse, Store
 

@@ -21,7 +21,7 @@ from pathlib import Path
 
 from miss.errors import DiskFull
 from miss.server.accounts import User, list_users
-from miss.server.errors import UploadTooLarge
+from miss.server.core.errors import UploadTooLarge
 from miss.server.storage.store import Store
 
 MB = 1024 * 1024

@@ -16,7 +16,7 @@ from sqlalchemy import select, update
 
 from miss.errors import BadParameter
 from miss.server.accounts import User, get_user, token_hash
-from miss.server.errors import Gone, NotFound
+from miss.server.core.errors import Gone, NotFound
 from miss.server.storage.db import DONE, ModelRow, ShareRow, utcnow
 from miss.server.storage.store import Store, new_id
 

@@ -1,6 +1,6 @@
 """One job in its own process.
 
-The server starts it through a short bootstrap (``jobs._BOOTSTRAP``); by hand it runs as
+The server starts it through a short bootstrap (``jobs.process._BOOTSTRAP``); by hand it runs as
 ``python -m miss.server.jobs.worker <model-id> <data-dir> <db-url> <parent-pid>``; the server
 passes ``-`` as the URL and writes the real one to the worker's stdin, so that it never
 shows in the process list.
@@ -55,10 +55,9 @@ from miss.errors import BadParameter, MissError
 from miss.export import FORMATS, WRITERS
 from miss.export.tiles import etag
 from miss.pipeline import PREVIEW, JobResult, execute
-from miss.server import labelmaps
+from miss.server.core.settings import Settings
 from miss.server.jobs import turn
 from miss.server.jobs.state import JobState
-from miss.server.settings import Settings
 from miss.server.storage import chunked
 from miss.server.storage.db import VolumeRow
 from miss.server.storage.store import (
@@ -70,6 +69,7 @@ from miss.server.storage.store import (
     remove_outputs,
     write_atomic,
 )
+from miss.server.volumes import labelmaps
 from miss.spec import JobSpec, Loaded
 
 #: Seconds between progress writes within one stage: enough for a live bar, light on the DB.

@@ -7,7 +7,7 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Query
 
 from miss.server import audit
-from miss.server.deps import AdminDep, StoreDep
+from miss.server.core.deps import AdminDep, StoreDep
 
 router = APIRouter(prefix="/api/audit", tags=["audit"])
 

@@ -4,22 +4,30 @@
 from __future__ import annotations
 
 from datetime import UTC, datetime, timedelta
-from typing import Any
+from typing import Annotated, Any
 
-from fastapi import APIRouter, Request, Response
+from fastapi import APIRouter, Depends, Request, Response
 from fastapi.responses import JSONResponse
 from pydantic import BaseModel, ConfigDict, Field
 from starlette.concurrency import run_in_threadpool
 
 from miss.errors import BadParameter, UnsupportedFormat
 from miss.server import accounts, audit, quota
-from miss.server.auth import CSRF_COOKIE, SESSION_COOKIE, presented_token
-from miss.server.deps import AdminDep, SettingsDep, StoreDep, UserDep
-from miss.server.errors import Forbidden, Unauthorized
-from miss.server.nextpath import safe_next
-from miss.server.ratelimit import KeyedBuckets, OverLimit, PasswordChecks, retry_after
-from miss.server.schemas import JSONRoute
-from miss.server.settings import Settings
+from miss.server.core.auth import CSRF_COOKIE, SESSION_COOKIE, presented_token
+from miss.server.core.deps import (
+    AdminDep,
+    PasswordChecksDep,
+    RoomsDep,
+    SettingsDep,
+    StoreDep,
+    UserDep,
+)
+from miss.server.core.errors import Forbidden, Unauthorized
+from miss.server.core.nextpath import safe_next
+from miss.server.core.ratelimit import KeyedBuckets, OverLimit, retry_after
+from miss.server.core.schemas import JSONRoute
+from miss.server.core.settings import Settings
+from miss.server.rooms import Hub
 from miss.server.storage.store import Store
 
 router = APIRouter(tags=["accounts"], route_class=JSONRoute)
@@ -70,6 +78,13 @@ def _at(wait: float) -> str:
 def failed_login_limits() -> LoginLimits:
     """One set of login limits per app."""
     return LoginLimits()
+
+
+async def get_login_limits(request: Request) -> LoginLimits:
+    return request.app.state.failed_logins
+
+
+LoginLimitsDep = Annotated[LoginLimits, Depends(get_login_limits)]
 
 
 #: What the audit log records for a failed login with a name that is no account: never
@@ -128,7 +143,12 @@ def _require_json(request: Request) -> None:
     },
 )
 async def login(
-    body: LoginRequest, request: Request, store: StoreDep, settings: SettingsDep
+    body: LoginRequest,
+    request: Request,
+    store: StoreDep,
+    settings: SettingsDep,
+    limits: LoginLimitsDep,
+    checks: PasswordChecksDep,
 ) -> JSONResponse:
     """Check name and password; answer ``{"token", "csrf", "expires", "user", "next"}``
     and set the session cookie (HttpOnly) and the CSRF cookie the pages echo in
@@ -136,15 +156,13 @@ async def login(
     on this server (``nextpath.safe_next``), else "/"."""
     _require_json(request)
     where = audit.address(request)
-    limits: LoginLimits = request.app.state.failed_logins
     limits.attempt(where, body.username)  # counted first: raises 429 when locked
-    checks: PasswordChecks = request.app.state.password_checks
     try:
         user = await checks.run(_authenticate, store, body.username, body.password)
     except OverLimit:
         limits.succeeded(where, body.username)  # no password was checked: not a guess
         raise
-    return await run_in_threadpool(_answer, body, request, store, settings, where, user)
+    return await run_in_threadpool(_answer, body, request, store, settings, limits, where, user)
 
 
 def _authenticate(
@@ -163,6 +181,7 @@ def _answer(
     request: Request,
     store: Store,
     settings: Settings,
+    limits: LoginLimits,
     where: str,
     user: accounts.User | None | accounts.Disabled,
 ) -> JSONResponse:
@@ -176,7 +195,7 @@ def _answer(
             store, "login_failed", body.username if known else UNKNOWN_ACCOUNT, where=where
         )
         raise Unauthorized("wrong user name or password.")
-    request.app.state.failed_logins.succeeded(where, body.username)
+    limits.succeeded(where, body.username)
     token, csrf, expires = accounts.start_session(store, user, settings.session_hours)
     audit.record(store, "login", user.name, where=where)
     body_out = {
@@ -200,10 +219,10 @@ def _set_cookies(response: Response, request: Request, token: str, csrf: str, ag
 
 
 @router.post("/api/auth/logout", status_code=204)
-def logout(request: Request, store: StoreDep, user: UserDep) -> Response:
+def logout(request: Request, store: StoreDep, user: UserDep, rooms: RoomsDep) -> Response:
     """End this session (the token stops working at once) and clear the cookies."""
     token, _ = presented_token(request.headers, request.cookies)
-    request.app.state.rooms.end("session", accounts.end_session(store, token))
+    rooms.end("session", accounts.end_session(store, token))
     audit.record(store, "logout", user.name, where=audit.address(request))
     response = Response(status_code=204)
     response.delete_cookie(SESSION_COOKIE, path="/")
@@ -265,20 +284,26 @@ class PasswordChange(BaseModel):
     responses={403: {"description": "the old password is wrong"}},
 )
 async def change_password(
-    body: PasswordChange, request: Request, store: StoreDep, user: UserDep
+    body: PasswordChange,
+    request: Request,
+    store: StoreDep,
+    user: UserDep,
+    limits: LoginLimitsDep,
+    checks: PasswordChecksDep,
+    rooms: RoomsDep,
 ) -> Response:
     """Change your password (the old one first); every other login of yours ends, and
     their rooms close. This session stays."""
     where = audit.address(request)
-    limits: LoginLimits = request.app.state.failed_logins
     limits.attempt(where, user.name)  # the old password is a guess like any other
-    checks: PasswordChecks = request.app.state.password_checks
     try:
         right = await checks.run(accounts.check_password_of, store, user.id, body.old)
     except OverLimit:
         limits.succeeded(where, user.name)  # nothing was checked
         raise
-    return await run_in_threadpool(_new_password, body, request, store, user, where, right)
+    return await run_in_threadpool(
+        _new_password, body, request, store, user, where, right, limits, rooms
+    )
 
 
 def _new_password(
@@ -288,9 +313,10 @@ def _new_password(
     user: accounts.User,
     where: str,
     right: bool,
+    limits: LoginLimits,
+    rooms: Hub,
 ) -> Response:
     """The password change once the old one was checked (database work: a thread)."""
-    limits: LoginLimits = request.app.state.failed_logins
     if not right:
         audit.record(store, "password_failed", user.name, where=where)
         raise Forbidden("the old password is wrong; type your current password.")
@@ -299,7 +325,7 @@ def _new_password(
     token, _ = presented_token(request.headers, request.cookies)
     ended = accounts.end_sessions(store, user.id, keep=accounts.token_hash(token))
     for session in ended:
-        request.app.state.rooms.end("session", session)
+        rooms.end("session", session)
     audit.record(store, "password", user.name, where=where, sessions_ended=len(ended))
     return Response(status_code=204)
 
@@ -314,7 +340,12 @@ class UserChange(BaseModel):
 
 @router.patch("/api/users/{name}", response_model=UserOut)
 def change_user(
-    name: str, body: UserChange, request: Request, store: StoreDep, admin: AdminDep
+    name: str,
+    body: UserChange,
+    request: Request,
+    store: StoreDep,
+    admin: AdminDep,
+    rooms: RoomsDep,
 ) -> Any:
     """Disable or enable an account, or set its password (administrators). Disabling and
     a new password end all of its logins at once, and close its rooms."""
@@ -328,7 +359,7 @@ def change_user(
     if body.pacs is not None:
         accounts.set_pacs(store, user.id, body.pacs)
     if body.password is not None or body.disabled:
-        request.app.state.rooms.end("user", user.id)  # first: its rooms hear why
+        rooms.end("user", user.id)  # first: its rooms hear why
         accounts.end_sessions(store, user.id)
     changes = {k: v for k, v in (("disabled", body.disabled), ("pacs", body.pacs)) if v is not None}
     audit.record(

@@ -15,22 +15,22 @@ from starlette.concurrency import run_in_threadpool
 
 from miss.errors import BadParameter, EmptySurface
 from miss.export import FORMATS, WRITERS
-from miss.server import audit, labelmaps, quota
-from miss.server.deps import (
+from miss.server import audit, quota
+from miss.server.core.deps import (
     EventStreamDep,
     JobLimitDep,
     ModelDep,
     QueueDep,
+    RoomsDep,
     SettingsDep,
     StoreDep,
     UserDep,
     here_or_threadpool,
     visible_volume,
 )
-from miss.server.errors import NotFound, NotReady
-from miss.server.jobs import turn
-from miss.server.ratelimit import would_queue
-from miss.server.schemas import (
+from miss.server.core.errors import NotFound, NotReady
+from miss.server.core.ratelimit import would_queue
+from miss.server.core.schemas import (
     JSONRoute,
     ModelOut,
     ModelRequest,
@@ -39,9 +39,11 @@ from miss.server.schemas import (
     mime_for,
     model_out,
 )
+from miss.server.jobs import turn
 from miss.server.storage.caches import ByteCaches
 from miss.server.storage.db import DONE, FAILED, RUNNING, ModelRow, VolumeRow
 from miss.server.storage.store import LOD_DIR, PREVIEW_FILE, Store
+from miss.server.volumes import labelmaps
 from miss.spec import JobSpec
 from miss.structures.labelmap import label_counts
 
@@ -179,11 +181,11 @@ async def get_model(model: ModelDep, store: StoreDep) -> ModelOut:
 
 
 @router.delete("/{model_id}", status_code=204)
-def delete_model(model: ModelDep, store: StoreDep, queue: QueueDep, request: Request) -> Response:
+def delete_model(model: ModelDep, store: StoreDep, queue: QueueDep, rooms: RoomsDep) -> Response:
     """Delete a model (its running job is stopped); its room's connections close."""
     queue.cancel(model.id)
     store.delete_model(model.id)
-    request.app.state.rooms.end("model", model.id)
+    rooms.end("model", model.id)
     return Response(status_code=204)
 
 

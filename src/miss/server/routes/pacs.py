@@ -21,10 +21,10 @@ from miss.pacs import client
 from miss.pacs.server import PacsServer
 from miss.server import audit, quota
 from miss.server.accounts import User
-from miss.server.deps import ModelDep, SettingsDep, StoreDep, UserDep
-from miss.server.errors import NotFound
-from miss.server.pacs import PacsImports, send_model
-from miss.server.settings import Settings
+from miss.server.core.deps import ModelDep, PacsImportsDep, SettingsDep, StoreDep, UserDep
+from miss.server.core.errors import NotFound
+from miss.server.core.settings import Settings
+from miss.server.pacs_exchange import send_model
 from miss.server.storage.db import PacsImportRow
 
 router = APIRouter(tags=["pacs"])
@@ -53,10 +53,6 @@ def _server(settings: Settings, name: str | None) -> PacsServer:
         names = ", ".join(p.name for p in settings.pacs)
         raise NotFound(f"no PACS named {name!r}; this server knows {names}.")
     return server
-
-
-def _imports(request: Request) -> PacsImports:
-    return request.app.state.pacs_imports
 
 
 class PacsOut(BaseModel):
@@ -210,7 +206,12 @@ def list_series(
     responses={404: {"description": "no PACS access"}},
 )
 def start_import(
-    body: ImportRequest, request: Request, store: StoreDep, settings: SettingsDep, user: PacsUserDep
+    body: ImportRequest,
+    request: Request,
+    store: StoreDep,
+    settings: SettingsDep,
+    user: PacsUserDep,
+    imports: PacsImportsDep,
 ) -> JSONResponse:
     """Bring a series in as a volume (de-identified at the door, as an upload is). Answers
     at once with the import; poll ``GET /api/pacs/imports/{id}`` until ``done`` (it then
@@ -222,7 +223,7 @@ def start_import(
         client.check_uid(body.segmentation, "segmentation")
     store.check_free_space(settings.min_free_bytes)
     quota.check(store, user, settings.quota_bytes)  # 507 once the account's quota is full
-    row = _imports(request).submit(user, server, body.study, body.series, body.segmentation)
+    row = imports.submit(user, server, body.study, body.series, body.segmentation)
     audit.record(
         store, "pacs_import_start", user.name, row.id, audit.address(request), pacs=server.name
     )
@@ -231,14 +232,14 @@ def start_import(
 
 
 @router.get("/api/pacs/imports", response_model=list[ImportOut])
-def list_imports(request: Request, user: PacsUserDep) -> list[ImportOut]:
+def list_imports(user: PacsUserDep, imports: PacsImportsDep) -> list[ImportOut]:
     """Your imports, newest first."""
-    return [import_out(row) for row in _imports(request).list(user)]
+    return [import_out(row) for row in imports.list(user)]
 
 
 @router.get("/api/pacs/imports/{import_id}", response_model=ImportOut)
-def get_import(import_id: str, request: Request, user: PacsUserDep) -> ImportOut:
-    return import_out(_imports(request).get(import_id, user))
+def get_import(import_id: str, user: PacsUserDep, imports: PacsImportsDep) -> ImportOut:
+    return import_out(imports.get(import_id, user))
 
 
 @router.post(

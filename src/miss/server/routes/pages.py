@@ -10,12 +10,13 @@ from urllib.parse import quote
 from fastapi import APIRouter, Request
 from fastapi.responses import FileResponse, RedirectResponse, Response
 
-from miss.server import assets, audit
+from miss.server import audit
 from miss.server.accounts import User
-from miss.server.auth import page_user
-from miss.server.deps import StoreDep, visible_model
-from miss.server.errors import NotFound
-from miss.server.nextpath import safe_next
+from miss.server.core import assets
+from miss.server.core.auth import page_user
+from miss.server.core.deps import StoreDep, visible_model
+from miss.server.core.errors import NotFound
+from miss.server.core.nextpath import safe_next
 from miss.server.storage.store import Store
 
 WEB = assets.WEB
@@ -56,7 +57,7 @@ def _page(name: str, inline_styles: bool = False) -> Response:
 
 def _asset(path: Path, request: Request, version: str | None = None) -> Response:
     """``path`` as a static file: kept a year under the current ``version``
-    (:mod:`miss.server.assets`), else ``no-cache`` (asked for each time, so an edited
+    (:mod:`miss.server.core.assets`), else ``no-cache`` (asked for each time, so an edited
     module is picked up at once), and a copy the browser holds already (its ETag in
     ``If-None-Match``) answered 304 without the file."""
     keep = version is not None and version == assets.version()

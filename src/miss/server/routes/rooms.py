@@ -10,10 +10,10 @@ from fastapi import APIRouter, Query, WebSocket
 from starlette.concurrency import run_in_threadpool
 
 from miss.server import audit, shares
-from miss.server.auth import authenticate, same_origin
-from miss.server.deps import ModelDep, StoreDep, visible_model
-from miss.server.errors import Gone, NotFound, Unauthorized
-from miss.server.ratelimit import retry_after
+from miss.server.core.auth import authenticate, same_origin
+from miss.server.core.deps import ModelDep, StoreDep, visible_model
+from miss.server.core.errors import Gone, NotFound, Unauthorized
+from miss.server.core.ratelimit import retry_after
 from miss.server.rooms import Close, Refused, Visitor, guest_name
 from miss.server.rooms import record as roomlog
 from miss.server.storage.store import Store

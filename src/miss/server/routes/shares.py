@@ -20,13 +20,14 @@ from starlette.concurrency import run_in_threadpool
 from miss import __version__
 from miss.errors import BadParameter
 from miss.export import WRITERS
-from miss.server import assets, audit, shares
+from miss.server import audit, shares
 from miss.server.accounts import User
-from miss.server.deps import StoreDep, UserDep, visible_model, visible_volume
-from miss.server.errors import Forbidden, Gone, MissError, NotFound, NotReady, status_of
+from miss.server.core import assets
+from miss.server.core.deps import RoomsDep, StoreDep, UserDep, visible_model, visible_volume
+from miss.server.core.errors import Forbidden, Gone, MissError, NotFound, NotReady, status_of
+from miss.server.core.schemas import JSONRoute, lod_url, params_of
 from miss.server.routes.models import lod_response, model_file
 from miss.server.routes.pages import WEB
-from miss.server.schemas import JSONRoute, lod_url, params_of
 from miss.server.storage.db import DONE, FAILED, ModelRow, ShareRow, VolumeRow
 from miss.server.storage.store import Store
 
@@ -99,11 +100,13 @@ def _own_share(store: Store, user: User, share_id: str) -> ShareRow:
 
 
 @router.delete("/api/shares/{share_id}", status_code=204)
-async def revoke_share(share_id: str, store: StoreDep, user: UserDep, request: Request) -> Response:
+async def revoke_share(
+    share_id: str, store: StoreDep, user: UserDep, request: Request, rooms: RoomsDep
+) -> Response:
     """Revoke a link: its page, files and room close to it at once."""
     row = await run_in_threadpool(_own_share, store, user, share_id)
     await run_in_threadpool(shares.revoke, store, row.id)
-    await request.app.state.rooms.revoke_share(row.id)
+    await rooms.revoke_share(row.id)
     where = audit.address(request)
     await run_in_threadpool(audit.record, store, "revoke", user.name, row.id, where)
     return Response(status_code=204)

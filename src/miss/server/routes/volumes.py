@@ -15,24 +15,28 @@ from fastapi import APIRouter, Query, Request, Response, status
 from fastapi.responses import FileResponse, JSONResponse
 from starlette.concurrency import run_in_threadpool
 
-from miss.server import audit, imaging, labelmaps, quota
+from miss.server import audit, quota
 from miss.server.accounts import User, get_user
-from miss.server.deps import (
+from miss.server.core.deps import (
     BytesDep,
     QueueDep,
+    ReadingDep,
+    RoomsDep,
     SettingsDep,
     StoreDep,
+    UploadSlotsDep,
     UserDep,
     VolumeDep,
     rendering,
 )
-from miss.server.errors import Forbidden, NotFound
-from miss.server.ingest import ingest
-from miss.server.schemas import IdentityOut, VolumeOut, volume_out
-from miss.server.settings import Settings
+from miss.server.core.errors import Forbidden, NotFound
+from miss.server.core.schemas import IdentityOut, VolumeOut, volume_out
+from miss.server.core.settings import Settings
 from miss.server.storage.db import VolumeRow
 from miss.server.storage.store import Store
-from miss.server.uploads import Pace, Upload, receive
+from miss.server.volumes import imaging, labelmaps
+from miss.server.volumes.ingest import ingest
+from miss.server.volumes.uploads import Pace, Upload, UploadSlots, receive
 
 router = APIRouter(prefix="/api/volumes", tags=["volumes"])
 
@@ -88,14 +92,14 @@ def upload_pace(settings: Settings) -> Pace:
 
 @asynccontextmanager
 async def received(
-    request: Request, store: Store, settings: Settings, user: User
+    request: Request, store: Store, settings: Settings, user: User, slots: UploadSlots
 ) -> AsyncIterator[tuple[Upload, Path]]:
     """An upload received into a fresh folder under ``tmp/`` (as one of the account's
     uploads at once, else 429; with free space, else 507), and that folder removed
     afterwards whatever happened: a stored volume was moved out of it before."""
     await run_in_threadpool(store.check_free_space, settings.min_free_bytes)
     await run_in_threadpool(quota.check, store, user, settings.quota_bytes, _declared(request))
-    with request.app.state.upload_slots.slot(user.id):
+    with slots.slot(user.id):
         work = await run_in_threadpool(store.tmp_dir)
         try:
             with store.disk_full_as_507():
@@ -118,14 +122,17 @@ async def received(
     },
 )
 async def upload_volume(
-    request: Request, store: StoreDep, settings: SettingsDep, user: UserDep
+    request: Request,
+    store: StoreDep,
+    settings: SettingsDep,
+    user: UserDep,
+    slots: UploadSlotsDep,
+    reading: ReadingDep,
 ) -> JSONResponse:
     """Upload a scan; it is read once (in a confined process), de-identified and stored
     for slicing and jobs."""
-    async with received(request, store, settings, user) as (upload, work):
-        row = await run_in_threadpool(
-            ingest, store, upload, work, request.app.state.reading, user.id
-        )
+    async with received(request, store, settings, user, slots) as (upload, work):
+        row = await run_in_threadpool(ingest, store, upload, work, reading, user.id)
     await run_in_threadpool(_within_quota, store, user, settings.quota_bytes, row)
     await run_in_threadpool(
         audit.record, store, "upload", user.name, row.id, audit.address(request), name=row.name
@@ -191,16 +198,22 @@ def _check_owner(volume: VolumeRow, user: User) -> None:
     },
 )
 async def upload_labelmap(
-    volume: VolumeDep, request: Request, store: StoreDep, settings: SettingsDep, user: UserDep
+    volume: VolumeDep,
+    request: Request,
+    store: StoreDep,
+    settings: SettingsDep,
+    user: UserDep,
+    slots: UploadSlotsDep,
+    reading: ReadingDep,
 ) -> VolumeOut:
     """Lay a label map over the volume (replacing any earlier one); jobs with ``labels``
     then build its labels, resampled onto the volume's grid in patient mm."""
     _check_owner(volume, user)
-    async with received(request, store, settings, user) as (upload, work):
+    async with received(request, store, settings, user, slots) as (upload, work):
         assert upload.path is not None
         scan = await run_in_threadpool(store.open_volume, volume.id)
         labels, meta = await run_in_threadpool(
-            labelmaps.read_labelmap, upload.path, scan, work, request.app.state.reading
+            labelmaps.read_labelmap, upload.path, scan, work, reading
         )
         await run_in_threadpool(labelmaps.save, store, volume.id, labels, meta)
     out = volume_out(volume, owner_name(store, volume))
@@ -223,14 +236,19 @@ def delete_labelmap(volume: VolumeDep, store: StoreDep, user: UserDep) -> Respon
 
 @router.delete("/{volume_id}", status_code=status.HTTP_204_NO_CONTENT)
 def delete_volume(
-    volume: VolumeDep, store: StoreDep, queue: QueueDep, user: UserDep, request: Request
+    volume: VolumeDep,
+    store: StoreDep,
+    queue: QueueDep,
+    user: UserDep,
+    request: Request,
+    rooms: RoomsDep,
 ) -> Response:
     """Delete a volume with all its models (running jobs are stopped), its identity
     record and its share links."""
     for model in store.list_models(volume.id):
         queue.cancel(model.id)
     store.delete_volume(volume.id)
-    request.app.state.rooms.end("volume", volume.id)  # its models' rooms close
+    rooms.end("volume", volume.id)  # its models' rooms close
     audit.record(store, "delete", user.name, volume.id, audit.address(request), name=volume.name)
     return Response(status_code=204)
 

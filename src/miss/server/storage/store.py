@@ -38,7 +38,7 @@ from sqlalchemy import delete, func, select, update
 from sqlalchemy.exc import IntegrityError
 
 from miss.errors import is_disk_full
-from miss.server.errors import DiskFull, NotFound
+from miss.server.core.errors import DiskFull, NotFound
 from miss.server.storage import chunked, schema
 from miss.server.storage.appender import Appender
 from miss.server.storage.bus import Bus

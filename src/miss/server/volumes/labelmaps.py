@@ -18,9 +18,9 @@ import numpy as np
 
 from miss.errors import BadParameter, MissError
 from miss.io.confined import Confinement, Limits, parse_upload
-from miss.server.ingest import source_hash
 from miss.server.storage import chunked
 from miss.server.storage.store import Store, write_atomic
+from miss.server.volumes.ingest import source_hash
 from miss.structures.labelmap import align_labels, label_counts
 from miss.structures.labels import LabelInfo, LabelTable, describe
 from miss.types import Volume

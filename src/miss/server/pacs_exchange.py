@@ -3,7 +3,7 @@ back into the patient's study as Encapsulated STL).
 
 An import is a small job of its own, run on a thread (:class:`PacsImports`): it lists the
 series' instances, retrieves them into a private folder under ``tmp/``, and hands that
-folder to :func:`miss.server.ingest.ingest`, the same door an upload goes through: the
+folder to :func:`miss.server.volumes.ingest.ingest`, the same door an upload goes through: the
 confined reader, the same checks and messages, de-identification, the original identity
 kept for the owner only (with where it came from: the PACS, the original study, series
 and image UIDs and the study's patient ID as the PACS has it, so the model can be sent
@@ -41,9 +41,8 @@ from miss.pacs.server import PacsServer
 from miss.pacs.stl import Origin, encapsulate
 from miss.server import audit
 from miss.server.accounts import User
-from miss.server.errors import NotFound, NotReady, TooManyRequests
-from miss.server.ingest import Reading, ingest
-from miss.server.settings import Settings
+from miss.server.core.errors import NotFound, NotReady, TooManyRequests
+from miss.server.core.settings import Settings
 from miss.server.storage.db import (
     DONE,
     FAILED,
@@ -55,7 +54,8 @@ from miss.server.storage.db import (
     utcnow,
 )
 from miss.server.storage.store import Store, new_id
-from miss.server.uploads import Upload
+from miss.server.volumes.ingest import Reading, ingest
+from miss.server.volumes.uploads import Upload
 
 log = logging.getLogger("miss.server")
 
@@ -276,7 +276,7 @@ class PacsImports:
     ) -> int:
         """Lay the study's SEG or RT-STRUCT of this series over the volume; its label
         count (0: none found)."""
-        from miss.server import labelmaps
+        from miss.server.volumes import labelmaps
 
         found = find_segmentation(server, row.study, row.series, row.segmentation, work, listed)
         if found is None:

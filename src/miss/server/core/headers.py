@@ -3,7 +3,7 @@ handler, the rate limiter, Starlette's own 404 and 405).
 
 The Content-Security-Policy lets a page run only MISS's own files: no inline script
 (a page's import map is allowed by its SHA-256: the page sets the policy for the map it
-sends, :func:`miss.server.assets.page`; other responses get the hashes of the pages' maps
+sends, :func:`miss.server.core.assets.page`; other responses get the hashes of the pages' maps
 as they are on disk),
 no other origin for anything, no plug-ins, no framing (``frame-ancestors 'none'``: MISS
 is never embedded; a share link opens in a tab of its own). ``'wasm-unsafe-eval'`` lets
@@ -101,7 +101,7 @@ class SecurityHeaders:
         async def send_with_headers(message: Message) -> None:
             if message["type"] == "http.response.start":
                 kept = [(k, v) for k, v in message.get("headers", []) if k.lower() not in names]
-                # a page's own policy (miss.server.assets.page: its import map as sent)
+                # a page's own policy (miss.server.core.assets.page: its import map as sent)
                 own = any(k.lower() == CSP for k, _ in kept)
                 message = {**message, "headers": kept + extra + ([] if own else [csp])}
             await send(message)

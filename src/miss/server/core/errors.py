@@ -26,7 +26,7 @@ from miss.errors import (
     UnsupportedFormat,
     WrongStudy,
 )
-from miss.server.logmask import mask
+from miss.server.core.logmask import mask
 
 log = logging.getLogger("miss.server")
 

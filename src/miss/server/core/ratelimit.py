@@ -34,8 +34,8 @@ from starlette.requests import HTTPConnection
 from starlette.responses import JSONResponse
 from starlette.types import ASGIApp, Receive, Scope, Send
 
-from miss.server.auth import presented_token
-from miss.server.errors import TooManyRequests
+from miss.server.core.auth import presented_token
+from miss.server.core.errors import TooManyRequests
 from miss.server.storage.bus import Bus
 from miss.server.storage.db import FAILED, QUEUED, RUNNING, ModelRow
 from miss.server.storage.store import Store

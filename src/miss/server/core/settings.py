@@ -6,7 +6,7 @@ Environment variables (all optional):
 ``MISS_DATABASE_URL``     SQLAlchemy URL (SQLite file in the data folder; PostgreSQL with
                           ``miss[postgres]``, needed for several server processes)
 ``MISS_METRICS_TOKEN``    bearer token ``/metrics`` accepts besides administrators
-                          (read by ``miss.server.metrics``; none by default)
+                          (read by ``miss.server.metrics.registry``; none by default)
 ``MISS_MAX_UPLOAD_MB``    largest accepted upload, MB (2048)
 ``MISS_MAX_UNZIPPED_MB``  largest total size a zip may expand to, MB (4 x the upload limit)
 ``MISS_WORKERS``          jobs run at the same time, each in its own process (1)

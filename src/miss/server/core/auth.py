@@ -20,7 +20,7 @@ from urllib.parse import urlsplit
 from starlette.requests import HTTPConnection, Request
 
 from miss.server.accounts import User, session_for
-from miss.server.errors import Forbidden, Unauthorized
+from miss.server.core.errors import Forbidden, Unauthorized
 from miss.server.storage.db import SessionRow
 from miss.server.storage.store import Store
 

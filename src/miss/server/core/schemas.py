@@ -25,7 +25,7 @@ from starlette.requests import ClientDisconnect
 
 from miss.errors import BadParameter
 from miss.export import FORMATS, WRITERS
-from miss.server.errors import BodyTooLarge
+from miss.server.core.errors import BodyTooLarge
 from miss.server.storage.db import DONE, RUNNING, ModelRow, VolumeRow
 from miss.spec import GROUPS, JobSpec, Structure, declared, default_of, form_name
 

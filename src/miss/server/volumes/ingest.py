@@ -4,7 +4,7 @@ The scan is parsed here and never again: the voxels go to ``data.zarr`` (real un
 (X, Y, Z), chunked and compressed: :mod:`miss.server.storage.chunked`) that jobs and
 slice images read, plane by plane, and everything the pages need (affine, spacing,
 range, histogram, presets, thumbnail) is gathered from the planes on their way
-(:mod:`miss.server.summary`), so a volume streamed from its file (``miss ingest``) is
+(:mod:`miss.server.volumes.summary`), so a volume streamed from its file (``miss ingest``) is
 never whole in memory. Patient identity is taken off here, at the door (``miss.deid``):
 what is stored for sharing carries none, and the original identity goes to the owner's
 record in its own table.
@@ -28,13 +28,13 @@ from miss.deid import REMOVED, deidentify, identity_values, remap_uid, scrub, sc
 from miss.errors import BadParameter, EmptySurface, MissError, UnreadableVolume
 from miss.io.common import Streamed
 from miss.io.confined import Confinement, Limits, parse_upload
-from miss.server import imaging
-from miss.server.errors import UploadTooLarge
+from miss.server.core.errors import UploadTooLarge
 from miss.server.storage import chunked
 from miss.server.storage.db import VolumeRow
 from miss.server.storage.store import DATA, Store, write_atomic
-from miss.server.summary import Summary
-from miss.server.uploads import Upload
+from miss.server.volumes import imaging
+from miss.server.volumes.summary import Summary
+from miss.server.volumes.uploads import Upload
 from miss.types import Volume
 
 #: How uploads are read here: the confinement found at start and the child's limits.

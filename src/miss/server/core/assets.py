@@ -67,7 +67,7 @@ def versioned(html: str, current: str) -> str:
 
 @functools.lru_cache(maxsize=32)
 def _page(name: str, current: str) -> tuple[bytes, str, str]:
-    from miss.server.headers import import_map_hashes, policy
+    from miss.server.core.headers import import_map_hashes, policy
 
     html = versioned((WEB / name).read_text(encoding="utf-8"), current)
     hashes = import_map_hashes(html)

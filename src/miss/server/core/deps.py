@@ -13,14 +13,19 @@ from fastapi import Depends, Request
 from starlette.concurrency import run_in_threadpool
 
 from miss.server.accounts import User, session_cached
-from miss.server.auth import can_see, presented_token, user_for_request
-from miss.server.errors import Forbidden, NotFound
+from miss.server.core.auth import can_see, presented_token, user_for_request
+from miss.server.core.errors import Forbidden, NotFound
+from miss.server.core.ratelimit import ApiLimits, JobLimit, PasswordChecks
+from miss.server.core.settings import Settings
 from miss.server.jobs import JobQueue
-from miss.server.ratelimit import ApiLimits, JobLimit
-from miss.server.settings import Settings
+from miss.server.metrics.registry import Metrics
+from miss.server.pacs_exchange import PacsImports
+from miss.server.rooms import Hub
 from miss.server.storage.caches import ByteCaches
 from miss.server.storage.db import ModelRow, VolumeRow
 from miss.server.storage.store import Store
+from miss.server.volumes.ingest import Reading
+from miss.server.volumes.uploads import UploadSlots
 
 
 # ``async``: a look-up on the app, answered on the event loop. FastAPI would otherwise
@@ -43,6 +48,31 @@ async def get_job_limit(request: Request) -> JobLimit:
 
 async def get_byte_caches(request: Request) -> ByteCaches:
     return request.app.state.bytes
+
+
+async def get_rooms(request: Request) -> Hub:
+    return request.app.state.rooms
+
+
+async def get_upload_slots(request: Request) -> UploadSlots:
+    return request.app.state.upload_slots
+
+
+async def get_reading(request: Request) -> Reading:
+    """How uploads are read: the confinement probed at start and the parse limits."""
+    return request.app.state.reading
+
+
+async def get_pacs_imports(request: Request) -> PacsImports:
+    return request.app.state.pacs_imports
+
+
+async def get_password_checks(request: Request) -> PasswordChecks:
+    return request.app.state.password_checks
+
+
+async def get_metrics(request: Request) -> Metrics:
+    return request.app.state.metrics
 
 
 P = ParamSpec("P")
@@ -84,6 +114,12 @@ StoreDep = Annotated[Store, Depends(get_store)]
 QueueDep = Annotated[JobQueue, Depends(get_queue)]
 JobLimitDep = Annotated[JobLimit, Depends(get_job_limit)]
 BytesDep = Annotated[ByteCaches, Depends(get_byte_caches)]
+RoomsDep = Annotated[Hub, Depends(get_rooms)]
+UploadSlotsDep = Annotated[UploadSlots, Depends(get_upload_slots)]
+ReadingDep = Annotated[Reading, Depends(get_reading)]
+PacsImportsDep = Annotated[PacsImports, Depends(get_pacs_imports)]
+PasswordChecksDep = Annotated[PasswordChecks, Depends(get_password_checks)]
+MetricsDep = Annotated[Metrics, Depends(get_metrics)]
 
 
 # The look-ups below run on the event loop when the rows are cached (a viewer's usual

@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from miss.server import imaging
+from miss.server.volumes import imaging
 
 
 @dataclass

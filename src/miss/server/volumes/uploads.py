@@ -29,8 +29,8 @@ from starlette.types import Message, Receive
 
 from miss.errors import BadParameter, UnsupportedFormat
 from miss.io.archive import too_large
-from miss.server.errors import UploadTooLarge, UploadTooSlow
-from miss.server.ratelimit import HeldCounts, OverLimit
+from miss.server.core.errors import UploadTooLarge, UploadTooSlow
+from miss.server.core.ratelimit import HeldCounts, OverLimit
 from miss.server.storage.store import is_disk_full
 
 CHUNK = 1 << 20

@@ -11,7 +11,7 @@ that shares the data folder (``miss serve --processes N`` behind one port, or se
 ``miss serve``): requests, latencies and job times summed over them, those of processes
 that have exited included (the totals never go back while any server runs; they start
 from zero again when the first server starts after all had stopped, as after a
-restart); room connections summed over the running ones (``metricfiles``). Jobs by state
+restart); room connections summed over the running ones (``metrics.files``). Jobs by state
 come from the shared database: the same on every host. Several hosts on one data folder
 each answer for their own processes: scrape one process per host.
 """
@@ -32,7 +32,7 @@ from prometheus_client.registry import Collector
 from sqlalchemy import func, select, text
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from miss.server.metricfiles import (
+from miss.server.metrics.files import (
     FolderCollector,
     SampleFiles,
     SharedCounter,
@@ -50,7 +50,7 @@ JOB_BUCKETS = (1, 2, 5, 10, 20, 30, 60, 120, 300, 600, 1800, 3600)
 
 class Metrics:
     """The server's metrics, in this app's files in the host's folder of the data folder
-    (``metricfiles.host_folder``); ``text()`` reads every process's files there."""
+    (``files.host_folder``); ``text()`` reads every process's files there."""
 
     def __init__(self, data_dir: Path) -> None:
         self.files = SampleFiles(host_folder(data_dir))

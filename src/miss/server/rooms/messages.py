@@ -1,0 +1,160 @@
+"""What clients send a room: each message type's handler, and the checks of its fields
+(points in patient mm, texts of bounded length, ids of the room's own items)."""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Awaitable, Callable
+from typing import TYPE_CHECKING, Any
+
+from miss.server.rooms.people import Invalid, Participant, public_item
+from miss.server.rooms.room import Room
+
+if TYPE_CHECKING:
+    from miss.server.rooms.hub import Hub
+
+MAX_NOTE, MAX_CHAT = 500, 2000
+#: The presenter's camera goes to the replay at most this often (seconds).
+VIEW_EVERY = 1.0
+
+
+def point(value: Any, name: str) -> list[float]:
+    """Three finite numbers (patient mm)."""
+    numbers = (
+        isinstance(value, list)
+        and len(value) == 3
+        and all(isinstance(v, int | float) and not isinstance(v, bool) for v in value)
+    )
+    if numbers and all(math.isfinite(v) and abs(v) < 1e6 for v in value):
+        return [float(v) for v in value]
+    raise Invalid("invalid", f"{name} must be [x, y, z]: three finite numbers in millimetres.")
+
+
+def text(value: Any, name: str, limit: int, required: bool = True) -> str:
+    if value is None and not required:
+        return ""
+    if not isinstance(value, str) or (required and not value.strip()):
+        raise Invalid("invalid", f"{name} must be a non-empty string.")
+    if len(value) > limit:
+        raise Invalid("invalid", f"{name} is {len(value)} characters long; at most {limit}.")
+    return value.strip()
+
+
+def event_id(value: Any, known: dict[int, Any], what: str) -> int:
+    if not isinstance(value, int) or isinstance(value, bool) or value not in known:
+        raise Invalid("invalid", f"no {what} with id {value!r} in this room.")
+    return value
+
+
+Handler = Callable[["Hub", Room, Participant, dict[str, Any]], Awaitable[None]]
+
+
+def _check_model(room: Room, message: dict[str, Any]) -> None:
+    target = message.get("model")
+    if target is not None and target != room.model_id:
+        raise Invalid(
+            "wrong_model",
+            f"this room is model {room.model_id!r}; refused an item for model {target!r} "
+            "(open that model's room to annotate it).",
+        )
+
+
+async def on_ping(hub: Hub, room: Room, person: Participant, message: dict[str, Any]) -> None:
+    person.send({"type": "pong"})
+
+
+async def on_presenter(hub: Hub, room: Room, person: Participant, message: dict[str, Any]) -> None:
+    on = message.get("on")
+    if not isinstance(on, bool):
+        raise Invalid("invalid", '"on" must be true (present) or false (stop presenting).')
+    if on:
+        room.presenter, room.view = person.id, None
+    elif room.presenter == person.id:
+        room.presenter, room.view = None, None
+    else:
+        return
+    name = person.visitor.name if on else None
+    hub.broadcast(room, {"type": "presenter", "id": room.presenter, "name": name})
+    await hub.store_event(room, person, "presenter", {"on": on})
+
+
+async def on_camera(hub: Hub, room: Room, person: Participant, message: dict[str, Any]) -> None:
+    if room.presenter != person.id:
+        raise Invalid("not_presenter", "only the presenter's view is shared; press Present first.")
+    view = {k: point(message.get(k), k) for k in ("position", "target", "up")}
+    room.view = view
+    hub.broadcast(room, {"type": "camera", "from": person.id, **view}, skip=person)
+    now = time.monotonic()
+    if now - room.last_view >= VIEW_EVERY:  # the replay gets a view a second, not sixty
+        room.last_view = now
+        await hub.store_event(room, person, "view", view)
+
+
+async def on_laser(hub: Hub, room: Room, person: Participant, message: dict[str, Any]) -> None:
+    _check_model(room, message)
+    at = message.get("point")
+    at = None if at is None else room.on_model(point(at, "point"), "the laser point")
+    frame = {"type": "laser", "from": person.id, "colour": person.colour, "point": at}
+    hub.broadcast(room, frame, skip=person)
+
+
+async def on_pin(hub: Hub, room: Room, person: Participant, message: dict[str, Any]) -> None:
+    _check_model(room, message)
+    data = {
+        "point": room.on_model(point(message.get("point"), "point"), "the pin"),
+        "note": text(message.get("note"), "note", MAX_NOTE, required=False),
+        "colour": person.colour,
+        "by": person.visitor.key,
+    }
+    await _keep(hub, room, person, "pin", data)
+
+
+async def on_measure(hub: Hub, room: Room, person: Participant, message: dict[str, Any]) -> None:
+    _check_model(room, message)
+    a = room.on_model(point(message.get("a"), "a"), "the first point")
+    b = room.on_model(point(message.get("b"), "b"), "the second point")
+    data = {"a": a, "b": b, "mm": round(math.dist(a, b), 2), "colour": person.colour}
+    await _keep(hub, room, person, "measure", data | {"by": person.visitor.key})
+
+
+async def on_chat(hub: Hub, room: Room, person: Participant, message: dict[str, Any]) -> None:
+    data = {"text": text(message.get("text"), "text", MAX_CHAT), "colour": person.colour}
+    await _keep(hub, room, person, "chat", data)
+
+
+async def _keep(hub: Hub, room: Room, person: Participant, kind: str, data: dict[str, Any]) -> None:
+    """Store an event, fold it into the room and send it to everyone (the sender too:
+    it learns the id)."""
+    stored_id, at = await hub.store_event(room, person, kind, data)
+    room.state.apply(stored_id, at, kind, person.visitor.name, data)
+    item = {"id": stored_id, "author": person.visitor.name, "at": at, **data}
+    item = public_item(room.model_id, item)
+    event = (stored_id, at, kind, person.visitor.name, data)
+    hub.broadcast(room, {"type": kind, "item": item}, event=event)
+
+
+async def on_remove(hub: Hub, room: Room, person: Participant, message: dict[str, Any]) -> None:
+    """``unpin`` / ``unmeasure``: by their author or the model's owner."""
+    kind = message["type"]
+    items = room.state.pins if kind == "unpin" else room.state.measurements
+    target = event_id(message.get("id"), items, "pin" if kind == "unpin" else "measurement")
+    if items[target].get("by") != person.visitor.key and not person.visitor.owner:
+        raise Invalid("forbidden", "only its author or the model's owner may remove it.")
+    stored_id, at = await hub.store_event(room, person, kind, {"id": target})
+    room.state.apply(stored_id, at, kind, person.visitor.name, {"id": target})
+    event = (stored_id, at, kind, person.visitor.name, {"id": target})
+    hub.broadcast(room, {"type": kind, "id": target}, event=event)
+
+
+HANDLERS: dict[str, Handler] = {
+    "ping": on_ping,
+    "presenter": on_presenter,
+    "camera": on_camera,
+    "laser": on_laser,
+    "pin": on_pin,
+    "unpin": on_remove,
+    "measure": on_measure,
+    "unmeasure": on_remove,
+    "chat": on_chat,
+}
