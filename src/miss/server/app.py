@@ -44,7 +44,7 @@ from miss.server.ratelimit import (
     ws_connect_limits,
 )
 from miss.server.rooms import Hub
-from miss.server.routes import audit, auth, models, pacs, pages, rooms, shares, volumes
+from miss.server.routes import audit, auth, models, pacs, pages, rooms, shares, volumes, voxels
 from miss.server.routes.pages import WEB
 from miss.server.settings import Settings
 from miss.server.storage.caches import ByteCaches
@@ -189,6 +189,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_exception_handler(OverLimit, _over_limit)
     app.include_router(auth.router)
     app.include_router(volumes.router)
+    app.include_router(voxels.router)
     app.include_router(models.router)
     app.include_router(rooms.router)
     app.include_router(shares.router)
