@@ -11,7 +11,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 import miss
-from miss.server.schemas import ModelRequest
+from miss.server.core.schemas import ModelRequest
 from miss.spec import default_of, form_fields, form_name
 
 WEB = Path(miss.__file__).parent / "web"

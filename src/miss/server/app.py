@@ -34,7 +34,18 @@ from miss.server.jobs import JobQueue, WorkerProcess
 from miss.server.metrics.registry import Metrics, RequestMetrics
 from miss.server.pacs_exchange import PacsImports, fail_interrupted
 from miss.server.rooms import Hub
-from miss.server.routes import audit, auth, health, models, pacs, pages, rooms, shares, volumes
+from miss.server.routes import (
+    audit,
+    auth,
+    health,
+    models,
+    pacs,
+    pages,
+    rooms,
+    shares,
+    volumes,
+    voxels,
+)
 from miss.server.routes.pages import WEB
 from miss.server.storage.caches import ByteCaches
 from miss.server.storage.store import CHUNK_CACHE, Store
@@ -180,6 +191,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:  # noqa: PLR0915 (t
     app.add_exception_handler(OverLimit, _over_limit)
     app.include_router(auth.router)
     app.include_router(volumes.router)
+    app.include_router(voxels.router)
     app.include_router(models.router)
     app.include_router(rooms.router)
     app.include_router(shares.router)

@@ -68,6 +68,7 @@ Environment variables (all optional):
                           headers are ignored, whoever sends them)
 ``MISS_PASSWORD_CHECKS``  passwords one server process checks at once (2); more logins
                           wait a few seconds for a turn, then get 429
+``MISS_VOXEL_BUDGET_MB``  most voxel bytes a volume's full level sends the viewer (128)
 """
 
 from __future__ import annotations
@@ -135,6 +136,7 @@ class Settings:
     sse_per_user: int = 10
     ws_connects_per_minute: float = 60.0
     parse_memory_mb: float = 4096.0
+    voxel_budget_mb: float = 128.0
 
     def __post_init__(self) -> None:  # noqa: C901, PLR0915 (to split: issue 40)
         # Resolve once so the worker subprocesses, which get these as arguments, see the
@@ -304,6 +306,10 @@ class Settings:
     def quota_bytes(self) -> int:
         return int(self.quota_mb * MB)
 
+    @property
+    def voxel_budget_bytes(self) -> int:
+        return int(self.voxel_budget_mb * MB)
+
     def job_env(self) -> dict[str, str]:
         """The job limits as the worker reads them from its environment, so that settings
         given to ``create_app`` reach it as well as those of the server's environment."""
@@ -368,6 +374,7 @@ _ENV: tuple[tuple[str, str, Any], ...] = (
     ("sse_per_user", "MISS_SSE_PER_USER", int),
     ("ws_connects_per_minute", "MISS_WS_CONNECTS_PER_MINUTE", float),
     ("parse_memory_mb", "MISS_PARSE_MEMORY_MB", float),
+    ("voxel_budget_mb", "MISS_VOXEL_BUDGET_MB", float),
 )
 
 

@@ -13,6 +13,7 @@ import { StructuresPanel } from '../viewer/structures-panel.js';
 import { fillDownloads, fillStats, overlay, setupDisplay } from '../viewer/viewer-ui.js';
 import { status } from '../test-hooks.js';
 import { ModelViewer } from '../viewer/viewer.js';
+import { VolumePanel } from '../viewer/volume-panel.js';
 
 const $ = ( id ) => document.getElementById( id );
 // The page's model, from its address when the page starts (the volume page may load this
@@ -144,6 +145,9 @@ export async function start() {
 	const display = setupDisplay( viewer, urlOf, { onLoaded } );
 	try {
 		let model = await asked;
+		const volumePanel = new VolumePanel( viewer, model.volume );
+		const volumeView = new URLSearchParams( location.search ).get( 'view' ) === 'volume';
+		if ( volumeView ) volumePanel.prefetch(); // arrives while the model loads
 		const volume = api.volume( model.volume );
 		volume.then( showVolume ).catch( () => {} );
 		let drawn = false;
@@ -157,6 +161,7 @@ export async function start() {
 		const replay = new Replay( viewer, modelId, $( 'history' ), consult );
 		replay.list().catch( () => {} );
 		await display( new URLSearchParams( location.search ).get( 'mode' ), { drawn } );
+		if ( volumeView ) await volumePanel.show( true );
 	} catch ( err ) {
 		overlay( 'This model cannot be shown', err.message || String( err ) );
 		status.error = err.message || String( err );

@@ -68,6 +68,21 @@ function softwareWebGL() {
 	}
 }
 
+// A quad that copies a linear colour texture to the canvas (in the canvas's colour space).
+function fullScreenCopy( texture ) {
+	const material = new THREE.ShaderMaterial( {
+		uniforms: { map: { value: texture } },
+		vertexShader: 'varying vec2 vUv; void main() { vUv = uv; gl_Position = vec4( position.xy, 0.0, 1.0 ); }',
+		fragmentShader: 'uniform sampler2D map; varying vec2 vUv; void main() { gl_FragColor = texture2D( map, vUv ); \n#include <colorspace_fragment>\n }',
+		depthTest: false, depthWrite: false,
+	} );
+	const scene = new THREE.Scene();
+	const quad = new THREE.Mesh( new THREE.PlaneGeometry( 2, 2 ), material );
+	quad.frustumCulled = false;
+	scene.add( quad );
+	return { scene, camera: new THREE.OrthographicCamera( - 1, 1, 1, - 1, 0, 1 ) };
+}
+
 export class ModelViewer {
 	constructor( container ) {
 		this.container = container;
@@ -211,7 +226,8 @@ export class ModelViewer {
 		r.setClearColor( BACKGROUNDS[ this.background ] );
 		r.clear();
 		this.tiles?.update( this.camera, height );
-		r.render( this.scene, this.camera );
+		if ( this.volume?.mesh.visible ) this.renderWithVolume();
+		else r.render( this.scene, this.camera );
 		// Read before the gizmo's own render resets the counts.
 		status.drawnTriangles = r.info.render.triangles;
 		if ( this.tiles ) {
@@ -230,6 +246,44 @@ export class ModelViewer {
 			}
 		}
 		for ( const then of this.afterRender.splice( 0 ) ) then();
+	}
+
+	// The scan's volume (a VolumeLayer of volume.js) drawn in this scene, or none (null).
+	setVolume( layer ) {
+		if ( this.volume ) {
+			this.scene.remove( this.volume.mesh );
+			this.volume.dispose();
+		}
+		this.volume = layer;
+		if ( layer ) {
+			layer.place( this.lpsToWorld );
+			this.scene.add( layer.mesh );
+		}
+		this.requestRender();
+	}
+
+	// The surfaces first, into a target whose depth then ends the volume's rays where a
+	// surface is (the surfaces hide what lies behind them), its colour copied to the
+	// canvas; then the volume alone, blended over it.
+	renderWithVolume() {
+		const r = this.renderer;
+		const size = r.getDrawingBufferSize( new THREE.Vector2() );
+		if ( ! this.surfaceTarget ) {
+			this.surfaceTarget = new THREE.WebGLRenderTarget( 1, 1, { type: THREE.HalfFloatType, depthTexture: new THREE.DepthTexture( 1, 1 ) } );
+			this.copyQuad = fullScreenCopy( this.surfaceTarget.texture );
+		}
+		this.surfaceTarget.setSize( size.x, size.y );
+		this.volume.mesh.visible = false;
+		r.setRenderTarget( this.surfaceTarget );
+		r.setClearColor( BACKGROUNDS[ this.background ] );
+		r.clear();
+		r.render( this.scene, this.camera );
+		r.setRenderTarget( null );
+		this.volume.mesh.visible = true;
+		r.render( this.copyQuad.scene, this.copyQuad.camera );
+		this.volume.setDepth( this.surfaceTarget.depthTexture, this.camera );
+		r.render( this.volume.mesh, this.camera );
+		status.volumeFrames = ( status.volumeFrames || 0 ) + 1;
 	}
 
 	// Resolves once the GPU has finished the next frame: a fence put after it, looked at

@@ -1,0 +1,122 @@
+// The "Volume" section of the model page: a toggle that shows the scan itself in the 3-D
+// view (volume.js, loaded the first time it is asked for), its presets and its window.
+// ?view=volume in the address turns it on as the page opens (a deep link), and the
+// toggle keeps the address in step.
+
+import { status } from '../test-hooks.js';
+
+const $ = ( id ) => document.getElementById( id );
+
+export class VolumePanel {
+	constructor( viewer, volumeId ) {
+		this.viewer = viewer;
+		this.volumeId = volumeId;
+		this.layer = null;
+		this.loading = null;
+		this.button = $( 'volume-toggle' );
+		if ( ! this.button ) return; // a page without the section
+		this.button.hidden = false;
+		this.button.addEventListener( 'click', () => this.show( this.button.getAttribute( 'aria-pressed' ) !== 'true' ) );
+		$( 'volume-preset' ).addEventListener( 'change', ( e ) => this.setPreset( e.target.value ) );
+		for ( const id of [ 'volume-level', 'volume-window' ] ) $( id ).addEventListener( 'input', () => this.setWindow() );
+	}
+
+	// The voxels and the renderer's module, fetched once (a deep link asks before the
+	// model is drawn, so both arrive while it loads).
+	prefetch() {
+		if ( ! this.loading ) {
+			const url = `/api/volumes/${encodeURIComponent( this.volumeId )}/voxels?level=0`;
+			const body = fetch( url, { credentials: 'same-origin' } ).then( ( r ) => {
+				if ( ! r.ok ) throw new Error( `the scan's voxels could not be fetched (${r.status})` );
+				return r.arrayBuffer();
+			} );
+			this.loading = Promise.all( [ import( './volume.js' ), body ] );
+			this.loading.catch( () => {} );
+		}
+		return this.loading;
+	}
+
+	async show( on ) {
+		if ( ! this.button ) return;
+		this.button.setAttribute( 'aria-pressed', String( on ) );
+		$( 'volume-controls' ).hidden = ! on;
+		const url = new URL( location.href );
+		if ( on ) url.searchParams.set( 'view', 'volume' );
+		else url.searchParams.delete( 'view' );
+		history.replaceState( history.state, '', url );
+		if ( ! on ) {
+			if ( this.layer ) this.layer.mesh.visible = false;
+			if ( status.softwareWebGL ) this.viewer.setCoarse( false );
+			status.volume = { ...status.volume, on: false };
+			return this.viewer.requestRender();
+		}
+		try {
+			await this.load();
+		} catch ( err ) {
+			$( 'volume-note' ).textContent = err.message || String( err );
+			status.volume = { on: false, error: String( err.message || err ) };
+			return;
+		}
+		this.layer.mesh.visible = true;
+		// Software WebGL pays for every ray: half the pixels a side while the volume shows.
+		if ( status.softwareWebGL ) this.viewer.setCoarse( true );
+		await this.drawn();
+	}
+
+	async load() {
+		if ( this.layer ) return;
+		$( 'volume-note' ).textContent = 'Loading the scan…';
+		const [ module, body ] = await this.prefetch();
+		const { header, data } = module.decode( body );
+		this.layer = new module.VolumeLayer( header, data, this.viewer.lpsToWorld );
+		this.viewer.setVolume( this.layer );
+		// For the benchmark: one frame (surfaces, then the volume) from asked to finished, ms.
+		status.timeVolumeFrame = async ( turn = 0.05 ) => {
+			const { camera, controls } = this.viewer; // turned about the target, as a drag does
+			camera.position.sub( controls.target ).applyAxisAngle( camera.up, turn ).add( controls.target );
+			camera.lookAt( controls.target );
+			const t = performance.now();
+			await this.viewer.whenDrawn();
+			return performance.now() - t;
+		};
+		// For the tests: where a voxel of the sent grid lands on the canvas (CSS pixels).
+		status.voxelToScreen = ( ijk ) => {
+			const p = new this.viewer.camera.position.constructor( ...ijk ).applyMatrix4( this.layer.mesh.matrixWorld ).project( this.viewer.camera );
+			const rect = this.viewer.renderer.domElement.getBoundingClientRect();
+			return [ ( p.x + 1 ) / 2 * rect.width, ( 1 - p.y ) / 2 * rect.height ];
+		};
+		const select = $( 'volume-preset' );
+		select.replaceChildren( ...Object.keys( this.layer.presets ).map( ( name ) => new Option( name, name ) ) );
+		this.fillWindow();
+		const [ nx, ny, nz ] = header.dims;
+		$( 'volume-note' ).textContent = `${nx} × ${ny} × ${nz} voxels${header.factors.some( ( f ) => f > 1 ) ? ' (a coarse level)' : ''}`;
+	}
+
+	async drawn() {
+		await this.viewer.whenDrawn();
+		status.volume = {
+			on: true, preset: this.layer.preset, level: this.layer.level, window: this.layer.width,
+			dims: this.layer.header.dims, frames: status.volumeFrames, drawnAt: performance.now(),
+		};
+	}
+
+	fillWindow() {
+		$( 'volume-level' ).value = String( Math.round( this.layer.level ) );
+		$( 'volume-window' ).value = String( Math.round( this.layer.width ) );
+	}
+
+	setPreset( name ) {
+		if ( ! this.layer ) return;
+		this.layer.setPreset( name );
+		this.fillWindow();
+		this.drawn();
+	}
+
+	setWindow() {
+		const level = Number( $( 'volume-level' ).value );
+		const width = Number( $( 'volume-window' ).value );
+		if ( ! this.layer || ! Number.isFinite( level ) || ! ( width > 0 ) ) return;
+		this.layer.setWindow( level, width );
+		this.drawn();
+	}
+}

@@ -1,0 +1,89 @@
+"""The scan itself in the model page's 3-D view: a synthetic CT (HU) with a 700 HU cube
+in the middle and two 2000 HU beads at opposite corners; the model is the beads alone
+(level 1500), so what shows where the cube projects is the volume rendering. Turning the
+volume on paints the cube there and leaves air alone; the lung preset (nothing at 700 HU)
+takes it away again, MIP shows it grey.
+
+Screenshots go to test-artifacts/browser/volume-*.png.
+"""
+
+from __future__ import annotations
+
+import io
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from PIL import Image
+
+N = 64
+CUBE = slice(20, 44)
+
+
+@pytest.fixture(scope="module")
+def cube_scan(tmp_path_factory: pytest.TempPathFactory) -> bytes:
+    nib = pytest.importorskip("nibabel")
+    data = np.full((N, N, N), -1000, dtype=np.int16)
+    data[CUBE, CUBE, CUBE] = 700
+    data[1:4, 1:4, 1:4] = data[-4:-1, -4:-1, -4:-1] = 2000
+    path = tmp_path_factory.mktemp("cube") / "cube.nii.gz"
+    nib.save(nib.Nifti1Image(data, np.diag([2.0, 2.0, 2.0, 1.0])), path)
+    return path.read_bytes()
+
+
+def canvas(page: Any, path: Path) -> np.ndarray:
+    """The canvas once the last change is drawn (two animation frames), as RGB."""
+    page.evaluate("() => new Promise((r) => requestAnimationFrame(() => requestAnimationFrame(r)))")
+    shot = page.locator("#stage canvas").screenshot()
+    path.write_bytes(shot)
+    return np.asarray(Image.open(io.BytesIO(shot)).convert("RGB"), dtype=np.int16)
+
+
+def around(image: np.ndarray, xy: list[float], r: int = 3) -> np.ndarray:
+    """Mean colour of a small square about a canvas point (CSS pixels = screenshot pixels)."""
+    x, y = round(xy[0]), round(xy[1])
+    return image[y - r : y + r + 1, x - r : x + r + 1].reshape(-1, 3).mean(axis=0)
+
+
+def test_volume_rendering_of_a_bright_cube(
+    page: Any, server: Any, cube_scan: bytes, artifacts: Path
+) -> None:
+    csrf = next(c["value"] for c in page.context.cookies() if c["name"] == "miss_csrf")
+    file = {"name": "cube.nii.gz", "mimeType": "application/gzip", "buffer": cube_scan}
+    response = page.request.post(
+        "/api/volumes", headers={"X-CSRF-Token": csrf}, multipart={"file": file}
+    )
+    assert response.status == 201, response.text()
+    volume_id = response.json()["id"]
+    job = server.post("/api/models", {"volume": volume_id, "level": 1500, "decimate": "none"})
+    assert server.wait_model(job["id"])["status"] == "done"
+
+    page.goto(f"/models/{job['id']}")
+    page.wait_for_function("() => window.__miss.ready === true")
+    before = canvas(page, artifacts / "volume-off.png")
+    page.click("#volume-toggle")
+    page.wait_for_function("() => window.__miss.volume && window.__miss.volume.on")
+    after = canvas(page, artifacts / "volume-bone.png")
+    assert "view=volume" in page.url  # the address says what is shown
+
+    middle = page.evaluate(f"() => window.__miss.voxelToScreen([{N // 2}, {N // 2}, {N // 2}])")
+    air = page.evaluate(f"() => window.__miss.voxelToScreen([8, {N - 8}, 8])")
+    edge = [5.0, 5.0]  # the canvas's corner: outside the box
+    assert np.abs(around(after, middle) - around(before, middle)).max() > 60
+    assert np.abs(around(after, edge) - around(before, edge)).max() < 4
+    assert np.abs(around(after, air) - around(before, air)).max() < 12
+    assert page.evaluate("() => window.__miss.volume.preset") == "CT bone"
+
+    page.select_option("#volume-preset", "CT lung")
+    page.wait_for_function("() => window.__miss.volume.preset === 'CT lung'")
+    lung = canvas(page, artifacts / "volume-lung.png")
+    assert np.abs(around(lung, middle) - around(before, middle)).max() < 12  # nothing at 700 HU
+
+    page.select_option("#volume-preset", "MIP")
+    page.wait_for_function("() => window.__miss.volume.preset === 'MIP'")
+    mip = canvas(page, artifacts / "volume-mip.png")
+    grey = around(mip, middle)
+    assert np.ptp(grey) < 10 and 100 < grey.mean() < 230, grey  # 700 HU, a 400/1600 window
+    assert np.abs(around(mip, edge) - around(before, edge)).max() < 4
+    assert np.abs(around(mip, air) - around(before, air)).max() < 12  # air lets through
