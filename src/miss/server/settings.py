@@ -68,6 +68,10 @@ Environment variables (all optional):
                           headers are ignored, whoever sends them)
 ``MISS_PASSWORD_CHECKS``  passwords one server process checks at once (2); more logins
                           wait a few seconds for a turn, then get 429
+``MISS_FORMAT_CACHE_MB``  disk the formats made on a model's first download (STL, PLY,
+                          OBJ, VRML, X3D, 3MF) may take over all models, MB (2048; 0: no
+                          cap); over it the least recently downloaded are removed, to be
+                          made again when asked (``miss.server.storage.formats``)
 """
 
 from __future__ import annotations
@@ -135,6 +139,8 @@ class Settings:
     sse_per_user: int = 10
     ws_connects_per_minute: float = 60.0
     parse_memory_mb: float = 4096.0
+    #: Disk the formats made on request may take, MB (0: no cap).
+    format_cache_mb: float = 2048.0
 
     def __post_init__(self) -> None:
         # Resolve once so the worker subprocesses, which get these as arguments, see the
@@ -196,6 +202,7 @@ class Settings:
             ("MISS_JOB_CPU_SECONDS", self.job_cpu_seconds),
             ("MISS_JOB_WRITE_MB", self.job_write_mb),
             ("MISS_QUOTA_MB", self.quota_mb),
+            ("MISS_FORMAT_CACHE_MB", self.format_cache_mb),
         ):
             if not value >= 0:
                 raise ValueError(f"{key} must be 0 (no limit) or more, got {value}.")
@@ -302,6 +309,10 @@ class Settings:
     def quota_bytes(self) -> int:
         return int(self.quota_mb * MB)
 
+    @property
+    def format_cache_bytes(self) -> int:
+        return int(self.format_cache_mb * MB)
+
     def job_env(self) -> dict[str, str]:
         """The job limits as the worker reads them from its environment, so that settings
         given to ``create_app`` reach it as well as those of the server's environment."""
@@ -366,6 +377,7 @@ _ENV: tuple[tuple[str, str, Any], ...] = (
     ("sse_per_user", "MISS_SSE_PER_USER", int),
     ("ws_connects_per_minute", "MISS_WS_CONNECTS_PER_MINUTE", float),
     ("parse_memory_mb", "MISS_PARSE_MEMORY_MB", float),
+    ("format_cache_mb", "MISS_FORMAT_CACHE_MB", float),
 )
 
 
