@@ -398,6 +398,7 @@ def test_disk_full_fails_job_and_upload_cleanly(
         body = server.wait(job, ("done", "failed"))
         assert body["status"] == "done", body
         got = downloads(server, job)
+        body = server.http.get(f"/api/models/{job}").json()  # sizes of the formats made now
         assert {fmt: len(got[fmt]) for fmt in FORMATS} == {
             fmt: body["files"][fmt]["bytes"] for fmt in FORMATS
         }

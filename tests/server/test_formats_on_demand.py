@@ -17,7 +17,15 @@ from typing import Any
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
+from realserver import serving
 from server.conftest import wait_for_model
+from server.test_faults import (
+    ball_nifti,
+    can_mount_tmpfs,  # noqa: F401 - a fixture, used below
+    fill,
+    tmpfs_wrap,
+    upload,
+)
 from test_x3d_schema import validate as x3d_errors
 
 from miss.export import FORMATS, export
@@ -216,3 +224,30 @@ def test_the_cache_setting_is_checked() -> None:
     assert Settings().format_cache_bytes == 2048 * 2**20
     with pytest.raises(ValueError, match="MISS_FORMAT_CACHE_MB"):
         Settings.from_env({"MISS_FORMAT_CACHE_MB": "-1"})
+
+
+@pytest.mark.usefixtures("can_mount_tmpfs")
+def test_a_format_that_does_not_fit_on_the_disk_gives_507_and_leaves_nothing(
+    tmp_path: Path,
+) -> None:
+    """The data folder on a real 32 MB tmpfs, filled but for less than the OBJ needs:
+    507 naming the problem and the fix, no file left; with room again, the OBJ."""
+    data = tmp_path / "data"
+    data.mkdir()
+    env = {"MISS_DEMO": "0", "MISS_MIN_FREE_MB": "1"}
+    with serving(data, tmp_path / "server.log", env=env, wrap=tmpfs_wrap(data, 32)) as server:
+        inside = server.path(data)
+        volume = upload(server, ball_nifti((96, 96, 96)), "ball.nii.gz")
+        job = server.submit(volume, level=0, sample_rate=1, decimate="none")
+        assert server.wait(job, ("done", "failed"))["status"] == "done"
+        folder = inside / "models" / job
+        kept = sorted(p.name for p in folder.iterdir())
+        fill(inside / "filler", leave=200 * 1024)  # the OBJ is about 2 MB
+        r = server.http.get(f"/api/models/{job}/model.obj")
+        assert r.status_code == 507, r.text
+        detail = r.json()["detail"]
+        assert detail.startswith("disk full") and "free space" in detail, detail
+        assert sorted(p.name for p in folder.iterdir() if p.suffix != ".lock") == kept
+        (inside / "filler").unlink()
+        r = server.http.get(f"/api/models/{job}/model.obj")
+        assert r.status_code == 200 and len(r.content) > 1_000_000, r.text
