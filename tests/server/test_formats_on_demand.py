@@ -9,6 +9,7 @@ import fcntl
 import json
 import os
 import threading
+import zipfile
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -29,6 +30,7 @@ from server.test_faults import (
 from test_x3d_schema import validate as x3d_errors
 
 from miss.export import FORMATS, export
+from miss.geometry import vertex_normals
 from miss.pipeline import run
 from miss.scene import Part, Scene
 from miss.server import quota
@@ -42,7 +44,8 @@ JOB = {"level": 300, "sample_rate": 2}
 
 
 def _scene() -> Scene:
-    """Two parts: one with its own normals and face labels, one without either."""
+    """Three parts: one with its own normals and face labels, one without either, one with
+    the normals the writers would compute."""
     rng = np.random.default_rng(41)
     vertices = rng.normal(size=(50, 3)).astype(np.float32) * 20
     faces = rng.integers(0, 50, size=(80, 3)).astype(np.int32)
@@ -50,16 +53,19 @@ def _scene() -> Scene:
     labels = np.arange(80) % 3
     first = Part("skin (−400 HU)", Mesh(vertices, faces, normals, labels), (0.9, 0.7, 0.6), 0.5)
     second = Part("bone", Mesh(vertices[:30] * 0.5, faces[:40] % 30), (1.0, 1.0, 0.9), 1.0, 7)
-    return Scene((first, second), "a title", ("a note",))
+    made = Mesh(vertices, faces[::-1], vertex_normals(vertices, faces[::-1]))
+    return Scene((first, second, Part("made", made)), "a title", ("a note",))
 
 
-@pytest.mark.parametrize("parts", [1, 2])
+@pytest.mark.parametrize("parts", [1, 3])
 def test_the_stored_form_gives_every_writer_the_same_bytes(tmp_path: Path, parts: int) -> None:
     scene = Scene(_scene().parts[:parts], "a title", ("a note",))
     metadata = {"software": "MISS test", "created": "2026-11-28T12:00:00+00:00"}
     path = tmp_path / formats.MESH_FILE
     path.write_bytes(formats.scene_bytes(scene, "Head CT", metadata))
     stored = formats.read_scene(path)
+    kept = set(zipfile.ZipFile(path).namelist())
+    assert "n0.npy" in kept and "n2.npy" not in kept  # made again from the faces
     assert (stored.title, stored.metadata) == ("Head CT", metadata)
     for got, want in zip(stored.scene.parts, scene.parts, strict=True):
         for name in ("vertices", "faces", "normals", "labels"):
