@@ -57,6 +57,7 @@ class JobResult:
     artifacts: dict[str, bytes]
     seconds: dict[str, float]
     metadata: dict[str, str] = field(default_factory=dict)  # provenance in the files
+    title: str | None = None  # the title the writers were given
 
     @cached_property
     def mesh(self) -> Mesh:
@@ -151,7 +152,7 @@ def run(
     report("done", 1.0)
     artifacts = {fmt: artifacts[fmt] for fmt in spec.outputs.formats}  # in the asked order
     report_ = combined_report(built.reports)
-    return JobResult(built.scene, report_, artifacts, seconds, dict(metadata or {}))
+    return JobResult(built.scene, report_, artifacts, seconds, dict(metadata or {}), title)
 
 
 #: The name a sink gets a job's preview under (a coarse GLB, before the model).

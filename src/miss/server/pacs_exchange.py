@@ -43,6 +43,7 @@ from miss.server import audit
 from miss.server.accounts import User
 from miss.server.core.errors import NotFound, NotReady, TooManyRequests
 from miss.server.core.settings import Settings
+from miss.server.storage import formats
 from miss.server.storage.db import (
     DONE,
     FAILED,
@@ -412,10 +413,10 @@ def new_study(patient: dict[str, Any]) -> Origin:
     return Origin(generate_uid(), "", generate_uid(), attributes)
 
 
-def stl_parts(folder: Path) -> list[tuple[str, bytes]]:
-    """(part name, STL bytes) of a finished model: ``model.stl`` is one STL, or a zip with
-    one STL a part and ``scene.json``."""
-    data = (folder / "model.stl").read_bytes()
+def stl_parts(folder: Path, data: bytes | None = None) -> list[tuple[str, bytes]]:
+    """(part name, STL bytes) of a finished model: ``model.stl`` (or ``data``, its bytes) is
+    one STL, or a zip with one STL a part and ``scene.json``."""
+    data = (folder / "model.stl").read_bytes() if data is None else data
     if not data.startswith(b"PK\x03\x04"):
         return [("", data)]
     with zipfile.ZipFile(io.BytesIO(data)) as archive:
@@ -457,7 +458,10 @@ def send_model(
     if model.status != DONE:
         raise NotReady(f"model {model.id!r} is {model.status}; send it once it is done.")
     origin = destination(store, settings, server, volume)
-    parts = stl_parts(store.model_dir(model.id))
+    folder, data = store.model_dir(model.id), None
+    if ((model.files or {}).get("stl") or {}).get("on_request"):  # the download's STL
+        data = formats.read(folder, "stl", settings.format_cache_bytes)
+    parts = stl_parts(folder, data)
     description = describe(model, volume)
     titles = [p.get("name", "") for p in (model.stats or {}).get("parts") or []]
     named = [(title or name or description, stl) for (name, stl), title in _pad(parts, titles)]

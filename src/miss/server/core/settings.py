@@ -69,6 +69,10 @@ Environment variables (all optional):
 ``MISS_PASSWORD_CHECKS``  passwords one server process checks at once (2); more logins
                           wait a few seconds for a turn, then get 429
 ``MISS_VOXEL_BUDGET_MB``  most voxel bytes a volume's full level sends the viewer (128)
+``MISS_FORMAT_CACHE_MB``  disk the formats made on a model's first download (STL, PLY,
+                          OBJ, VRML, X3D, 3MF) may take over all models, MB (2048; 0: no
+                          cap); over it the least recently downloaded are removed, to be
+                          made again when asked (``miss.server.storage.formats``)
 """
 
 from __future__ import annotations
@@ -137,6 +141,8 @@ class Settings:
     ws_connects_per_minute: float = 60.0
     parse_memory_mb: float = 4096.0
     voxel_budget_mb: float = 128.0
+    #: Disk the formats made on request may take, MB (0: no cap).
+    format_cache_mb: float = 2048.0
 
     def __post_init__(self) -> None:  # noqa: C901, PLR0915 (to split: issue 40)
         # Resolve once so the worker subprocesses, which get these as arguments, see the
@@ -198,6 +204,7 @@ class Settings:
             ("MISS_JOB_CPU_SECONDS", self.job_cpu_seconds),
             ("MISS_JOB_WRITE_MB", self.job_write_mb),
             ("MISS_QUOTA_MB", self.quota_mb),
+            ("MISS_FORMAT_CACHE_MB", self.format_cache_mb),
         ):
             if not value >= 0:
                 raise ValueError(f"{key} must be 0 (no limit) or more, got {value}.")
@@ -310,6 +317,10 @@ class Settings:
     def voxel_budget_bytes(self) -> int:
         return int(self.voxel_budget_mb * MB)
 
+    @property
+    def format_cache_bytes(self) -> int:
+        return int(self.format_cache_mb * MB)
+
     def job_env(self) -> dict[str, str]:
         """The job limits as the worker reads them from its environment, so that settings
         given to ``create_app`` reach it as well as those of the server's environment."""
@@ -375,6 +386,7 @@ _ENV: tuple[tuple[str, str, Any], ...] = (
     ("ws_connects_per_minute", "MISS_WS_CONNECTS_PER_MINUTE", float),
     ("parse_memory_mb", "MISS_PARSE_MEMORY_MB", float),
     ("voxel_budget_mb", "MISS_VOXEL_BUDGET_MB", float),
+    ("format_cache_mb", "MISS_FORMAT_CACHE_MB", float),
 )
 
 

@@ -7,7 +7,8 @@ shows in the process list.
 
 Marching cubes and decimation run in native code (VTK, numba) that can crash or run
 out of memory; in a child process that costs one job, never the server. The child
-reports progress straight to the database, writes every format atomically, and
+reports progress straight to the database, writes its files atomically (the GLB and the
+scene the other formats are made from on request: :mod:`miss.server.storage.formats`), and
 records its own failure when it can; the parent records the ones it cannot (signals).
 
 Memory: before the job starts, the worker caps its own address space (RLIMIT_AS) at what
@@ -58,7 +59,7 @@ from miss.pipeline import PREVIEW, JobResult, execute
 from miss.server.core.settings import Settings
 from miss.server.jobs import turn
 from miss.server.jobs.state import JobState
-from miss.server.storage import chunked
+from miss.server.storage import chunked, formats
 from miss.server.storage.db import VolumeRow
 from miss.server.storage.store import (
     LOD_DIR,
@@ -377,6 +378,17 @@ class DataFolder:
     def deliver(self, result: JobResult) -> dict[str, Any]:
         return {fmt: self.files[fmt] for fmt in result.artifacts}
 
+    def keep_scene(self, result: JobResult) -> dict[str, Any]:
+        """Store the scene the job encoded (:mod:`miss.server.storage.formats`), from which
+        the other formats are made on their first download; every format's ``files``
+        entry in the formats' order, those not made yet without bytes nor ETag."""
+        data = formats.scene_bytes(result.scene, result.title, result.metadata)
+        self.count(len(data))
+        write_atomic(self.folder / formats.MESH_FILE, data)
+        made = {fmt: meta | {"on_request": False} for fmt, meta in self.files.items()}
+        listed = formats.entries(result.scene) | made
+        return {fmt: listed[fmt] for fmt in FORMATS if fmt in listed}
+
 
 def summarize(
     result: JobResult, ready_seconds: float | None = None, lod: dict[str, Any] | None = None
@@ -412,14 +424,17 @@ def run_job(store: Store, model_id: str, parent: int) -> None:
     limit_cpu(cpu_seconds(os.environ))
     reporter = Reporter(state, model_id, parent)
     source = StoredVolume(store, row.volume_id)
-    spec = JobSpec.from_dict({**row.spec, "formats": FORMATS}, source)
+    spec = JobSpec.from_dict({**row.spec, "formats": formats.KEPT}, source)
     folder = DataFolder(
         store.model_dir(model_id), state, model_id, lod_triangles=lod_budget(os.environ),
         write_limit=write_bytes(os.environ), started=started,
     )  # fmt: skip
     turn.forget(folder.folder)
-    result, files = execute(spec, folder, reporter, export_options=EXPORT_OPTIONS)
+    result, _ = execute(spec, folder, reporter, export_options=EXPORT_OPTIONS)
     reporter("store", 1.0)
+    kept = time.perf_counter()
+    files = folder.keep_scene(result)
+    result.seconds["keep"] = time.perf_counter() - kept  # the scene for the other formats
     print(  # what an administrator sizes MISS_JOB_CPU_SECONDS and MISS_JOB_WRITE_MB by
         f"job {model_id}: {time.process_time() - cpu:.1f} s of CPU, "
         f"{folder.written / 2**20:.1f} MB of model files written",

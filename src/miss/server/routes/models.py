@@ -1,4 +1,5 @@
-"""``/api/models``: submit a job, follow it, download the model in every format."""
+"""``/api/models``: submit a job, follow it, download the model in every format (all but
+the GLB made on their first download: :mod:`miss.server.storage.formats`)."""
 
 from __future__ import annotations
 
@@ -39,7 +40,9 @@ from miss.server.core.schemas import (
     mime_for,
     model_out,
 )
+from miss.server.core.settings import Settings
 from miss.server.jobs import turn
+from miss.server.storage import formats
 from miss.server.storage.caches import ByteCaches
 from miss.server.storage.db import DONE, FAILED, RUNNING, ModelRow, VolumeRow
 from miss.server.storage.store import LOD_DIR, PREVIEW_FILE, Store
@@ -318,10 +321,12 @@ async def download(
 def file_in_memory(model: ModelRow, fmt: str, request: Request, store: Store) -> bool:
     """True when ``model_file`` will answer from this process's memory: the volume's row
     and the whole file (not a range of it) are cached."""
-    etag = ((model.files or {}).get(fmt) or {}).get("etag")
+    entry = (model.files or {}).get(fmt) or {}
+    etag = entry.get("etag")
     caches: ByteCaches = request.app.state.bytes
     return (
         etag is not None
+        and not entry.get("on_request")  # made on request: its use is recorded on disk
         and "range" not in request.headers
         and store.cached_volume(model.volume_id) is not None
         and caches.model_files.peek((model.id, fmt, etag)) is not None
@@ -338,15 +343,19 @@ def model_file(model: ModelRow, fmt: str, request: Request, store: Store) -> Res
         raise NotReady(
             f"model {model.id} is {model.status}{reason}; download it once its status is done."
         )
+    tag = model.files[fmt]["etag"]
+    if model.files[fmt].get("on_request"):  # made on its first download, then read
+        tag = made_on_request(model, fmt, request, store)
     mime = mime_for(fmt, request.headers.get("accept", ""))
-    etag = f'"{model.files[fmt]["etag"]}{"-legacy" if mime != WRITERS[fmt].mime else ""}"'
+    etag = f'"{tag}{"-legacy" if mime != WRITERS[fmt].mime else ""}"'
     headers = {"ETag": etag, "Cache-Control": "private, max-age=86400", "Vary": "Accept"}
     if _etag_matches(request.headers.get("if-none-match"), etag):
         return Response(status_code=304, headers=headers)
     name = download_name(store.get_volume(model.volume_id), model, fmt)
-    key, ranged = (model.id, fmt, model.files[fmt]["etag"]), "range" in request.headers
+    key, ranged = (model.id, fmt, tag), "range" in request.headers
     caches: ByteCaches = request.app.state.bytes  # shares' routes call this too
-    data = None if ranged else caches.model_files.peek(key)
+    on_request = bool(model.files[fmt].get("on_request"))
+    data = None if ranged or on_request else caches.model_files.peek(key)
     if data is None:
         path = store.model_dir(model.id) / f"model.{fmt}"
         if not path.is_file():
@@ -356,8 +365,24 @@ def model_file(model: ModelRow, fmt: str, request: Request, store: Store) -> Res
         if ranged or path.stat().st_size > caches.max_file:
             return FileResponse(path, media_type=mime, filename=name, headers=headers)
         data = path.read_bytes()
-        caches.model_files.put(key, data)
+        if not on_request:
+            caches.model_files.put(key, data)
     return Response(data, media_type=mime, headers=headers | attachment(name))
+
+
+def made_on_request(model: ModelRow, fmt: str, request: Request, store: Store) -> str:
+    """Make ``fmt`` of a finished model unless it is in its folder (waiting while another
+    download makes it: :func:`formats.ensure`), record its size and ETag in the model's
+    ``files`` the first time; its ETag."""
+    settings: Settings = request.app.state.settings
+    folder = store.model_dir(model.id)
+    path, made = formats.ensure(folder, fmt, settings.format_cache_bytes)
+    known = (model.files or {}).get(fmt, {}).get("etag")
+    if made is None and known is None:  # made by another process; this row is older
+        made = formats.describe(path.read_bytes())
+    if made is not None and made["etag"] != known:
+        formats.record(store, model.id, fmt, made)
+    return made["etag"] if made is not None else known
 
 
 #: The files of a tileset (``miss.export.tiles``): nothing else is served from lod/.

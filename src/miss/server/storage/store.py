@@ -10,7 +10,9 @@ Layout of the data folder::
     volumes/<id>/meta.json    affine, spacing, range, modality, series, presets (no patient data)
     volumes/<id>/labels.zarr, labels.json   a label map laid over it (``labelmaps``)
     volumes/<id>/histogram.json, thumbnail.png
-    models/<id>/model.<fmt>   one file per output format, written by the job's worker
+    models/<id>/model.<fmt>   one file per output format: the GLB and model.mesh.npz (its
+                              scene) by the job's worker, the others on their first
+                              download (``formats``)
     models/<id>/worker.log    the worker's stderr, for the rare crash
     tmp/                      uploads and half-made volumes; emptied on start
 
