@@ -253,6 +253,7 @@ def measure(ana: Ana, series: dict[str, str] | None, repeats: int) -> dict[str, 
 def run(args: argparse.Namespace) -> dict[str, Any]:
     with tempfile.TemporaryDirectory(prefix="miss-flood-") as tmp, ExitStack() as stack:
         folder = Path(args.keep or tmp)
+        folder.mkdir(parents=True, exist_ok=True)
         series, pacs_env = (None, {}) if args.no_pacs else pacs_series(stack, folder)
         shipped = {
             "MISS_API_RATE": str(Settings.api_rate),
