@@ -17,8 +17,8 @@ import pytest
 import trimesh
 from fastapi.testclient import TestClient
 from lxml import etree
-from pg import settings_for
 from PIL import Image
+from support.pg import settings_for
 
 from miss.server.app import create_app
 from miss.server.assets import MODULES, WEB

@@ -28,13 +28,13 @@ import pytest
 from corpus.cases import generate
 from corpus.upload import as_upload
 from fastapi.testclient import TestClient
-from pg import copy_seed, settings_for
+from support import ADMIN_PASSWORD
+from support.pg import copy_seed, settings_for
 
 from miss.server.app import create_app
 from miss.server.schemas import MAX_JSON_BYTES
 from miss.spec import MAX_LEVELS
 
-PASSWORD = "admin-password-for-bad-input"
 #: High enough that the rate limiter never answers in place of the code under test.
 UNLIMITED = {"api_rate": 1e6, "api_burst": 1e6}
 FAST = {"level": 300, "sample_rate": 4, "decimate": "none"}
@@ -44,7 +44,7 @@ GARBAGE: list[Any] = [None, [1, "two", None], {"deep": {"er": [{"x": None}, []]}
 
 
 def log_in(client: TestClient) -> None:
-    r = client.post("/api/auth/login", json={"username": "admin", "password": PASSWORD})
+    r = client.post("/api/auth/login", json={"username": "admin", "password": ADMIN_PASSWORD})
     assert r.status_code == 200, r.text
     client.cookies.clear()
     client.headers["Authorization"] = f"Bearer {r.json()['token']}"
@@ -123,7 +123,7 @@ class Site:
 @pytest.fixture(scope="module")
 def site(seeded_dir: Path, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Site]:
     data = copy_seed(seeded_dir, tmp_path_factory.mktemp("bad-input") / "data")
-    settings = settings_for(data, admin_password=PASSWORD, **UNLIMITED)
+    settings = settings_for(data, admin_password=ADMIN_PASSWORD, **UNLIMITED)
     with TestClient(create_app(settings)) as c:
         log_in(c)
         yield Site(c)
@@ -137,7 +137,7 @@ def valid_bodies(site: Site) -> dict[str, dict[str, Any]]:
     return {
         "/api/models": {"volume": site.demo["id"], **FAST},
         "/api/shares": {"model": site.model["id"], "expires_in": 3600, "label": "x"},
-        "/api/auth/login": {"username": "admin", "password": PASSWORD},
+        "/api/auth/login": {"username": "admin", "password": ADMIN_PASSWORD},
         "/api/users": {"name": "carol", "password": "carol-password"},
     }
 
@@ -537,7 +537,7 @@ class RealServer:
         self.data, self.log, self.port = data, log, _free_port()
         cmd = [sys.executable, "-m", "miss.cli", "serve", "--port", str(self.port),
                "--data-dir", str(data)]  # fmt: skip
-        extra = {"MISS_ADMIN_PASSWORD": PASSWORD, "MISS_DEMO": "0", **env}
+        extra = {"MISS_ADMIN_PASSWORD": ADMIN_PASSWORD, "MISS_DEMO": "0", **env}
         with open(log, "ab") as out:
             self.proc = subprocess.Popen(
                 cmd, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
@@ -554,7 +554,9 @@ class RealServer:
                 pass
             assert time.monotonic() < deadline, log.read_text()
             time.sleep(0.2)
-        r = self.http.post("/api/auth/login", json={"username": "admin", "password": PASSWORD})
+        r = self.http.post(
+            "/api/auth/login", json={"username": "admin", "password": ADMIN_PASSWORD}
+        )
         self.token = r.json()["token"]
 
     def memory(self) -> dict[str, int]:

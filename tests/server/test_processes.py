@@ -15,10 +15,10 @@ from pathlib import Path
 from typing import Any
 
 import httpx
-import pg
 import pytest
 from prometheus_client.parser import text_string_to_metric_families
-from realserver import Server
+from support import pg
+from support.realserver import Server
 from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import ClientConnection, connect
 

@@ -1,32 +1,33 @@
-"""A real ``miss serve`` in a subprocess, for the tests that kill, restart or starve it.
+"""A real ``miss serve`` in a subprocess: the one starter of the server, browser, PACS and
+attack tests that need a process (to kill, restart or starve it, or to load its pages).
 
-Not a fixture module: ``Server`` is started and stopped by each test, because those tests
-are about what happens between a start and the next one.
+Not a fixture module: ``Server`` is started and stopped by each test (or by the browser
+tests' session fixture), because those tests are about what a real process does.
 """
 
 from __future__ import annotations
 
+import json
 import os
 import signal
-import socket
 import subprocess
 import sys
 import time
+import urllib.request
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
 import httpx
-from pg import database_url
 
-ADMIN_PASSWORD = "admin-password-for-restarts"
+from support import ADMIN_PASSWORD, REPO, free_port
+from support.models import JOB_TIMEOUT, wait_for_model
+from support.pg import database_url
 
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+STARTUP_SECONDS = 90  # a cold start on a busy 2-core machine
+#: With a worker count set, the tests queue several jobs at once.
+QUEUE_SEVERAL = {"MISS_MAX_JOBS_PER_USER": "100"}
 
 
 def alive(pid: int) -> bool:
@@ -48,16 +49,19 @@ def wait_dead(pid: int, timeout: float = 10) -> bool:
 class Server:
     """``miss serve`` in a subprocess on a free loopback port, logged in as admin.
 
+    ``workers`` sets ``MISS_WORKERS`` (None: the server's own default and limits);
     ``env`` adds to the environment (``MISS_*`` settings); ``wrap`` is a command prefix
     that ends by running its arguments (e.g. ``unshare -m sh -c '... exec "$@"' sh``);
-    ``args`` are more options of ``miss serve``.
+    ``args`` are more options of ``miss serve``. ``http`` is an httpx client carrying
+    the admin's token; ``get``/``post``/``delete`` are urllib JSON calls that raise
+    ``urllib.error.HTTPError`` on a 4xx or 5xx, as a script's would.
     """
 
     def __init__(
         self,
         data_dir: Path,
         log: Path,
-        workers: int = 1,
+        workers: int | None = 1,
         env: dict[str, str] | None = None,
         wrap: Sequence[str] = (),
         args: Sequence[str] = (),
@@ -77,33 +81,31 @@ class Server:
             str(data_dir),
             *args,
         ]
-        environ = {
-            **os.environ,
-            "MISS_WORKERS": str(workers),
-            "MISS_ADMIN_PASSWORD": ADMIN_PASSWORD,
-            "MISS_MAX_JOBS_PER_USER": "100",  # these tests queue several jobs at once
-            **(env or {}),
-        }
+        environ = {**os.environ, "MISS_ADMIN_PASSWORD": ADMIN_PASSWORD}
+        if workers is not None:
+            environ |= {"MISS_WORKERS": str(workers), **QUEUE_SEVERAL}
+        environ |= env or {}
         if "MISS_DATABASE_URL" not in environ and (url := database_url(data_dir)):
-            environ["MISS_DATABASE_URL"] = url  # MISS_TEST_DATABASE=postgres: tests/pg.py
+            environ["MISS_DATABASE_URL"] = url  # MISS_TEST_DATABASE=postgres: support/pg.py
         with open(log, "ab") as out:
             self.proc = subprocess.Popen(
-                cmd, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=environ
-            )
+                cmd, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                env=environ, cwd=REPO,
+            )  # fmt: skip
         self.http = httpx.Client(base_url=self.url, timeout=120)  # a busy machine
         self._wait_ready()
-        self._log_in()
+        self.log_in()
 
-    def _log_in(self) -> None:
-        r = self.http.post(
-            "/api/auth/login", json={"username": "admin", "password": ADMIN_PASSWORD}
-        )
+    def log_in(self, name: str = "admin", password: str = ADMIN_PASSWORD) -> str:
+        """Log ``http`` (and the JSON calls) in with a bearer token; returns the token."""
+        r = self.http.post("/api/auth/login", json={"username": name, "password": password})
         assert r.status_code == 200, r.text
         self.http.cookies.clear()
         self.token = r.json()["token"]
         self.http.headers["Authorization"] = f"Bearer {self.token}"
+        return self.token
 
-    def _wait_ready(self, timeout: float = 60) -> None:
+    def _wait_ready(self, timeout: float = STARTUP_SECONDS) -> None:
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
             assert self.proc.poll() is None, f"server exited early:\n{self.log.read_text()}"
@@ -123,16 +125,34 @@ class Server:
     def model(self, model_id: str) -> dict[str, Any]:
         return self.http.get(f"/api/models/{model_id}").json()
 
-    def wait(self, model_id: str, until: tuple[str, ...], timeout: float = 120) -> dict[str, Any]:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            body = self.model(model_id)
-            if body["status"] in until:
-                return body
-            time.sleep(0.1)
-        raise AssertionError(
-            f"{model_id} not {until} after {timeout} s: {body}\n{self.log.read_text()}"
-        )
+    def wait(
+        self, model_id: str, until: tuple[str, ...], timeout: float = JOB_TIMEOUT
+    ) -> dict[str, Any]:
+        try:
+            return wait_for_model(self.http.get, model_id, until, timeout, poll=0.1)
+        except AssertionError as e:
+            raise AssertionError(f"{e}\n{self.log.read_text()}") from None
+
+    def wait_model(self, model_id: str, timeout: float = JOB_TIMEOUT) -> dict[str, Any]:
+        """The model once done or failed (the browser tests' spelling)."""
+        return wait_for_model(self.get, model_id, timeout=timeout, poll=0.5)
+
+    def _send(self, path: str, body: dict[str, Any] | None, method: str) -> Any:
+        headers = {"Content-Type": "application/json", "Authorization": f"Bearer {self.token}"}
+        data = json.dumps(body).encode() if body is not None else None
+        request = urllib.request.Request(self.url + path, data=data, headers=headers, method=method)
+        with urllib.request.urlopen(request, timeout=30) as response:
+            text = response.read()
+        return json.loads(text) if text else None
+
+    def get(self, path: str) -> Any:
+        return self._send(path, None, "GET")
+
+    def post(self, path: str, body: dict[str, Any]) -> Any:
+        return self._send(path, body, "POST")
+
+    def delete(self, path: str) -> Any:
+        return self._send(path, None, "DELETE")
 
     def submit(self, volume: str, **params: Any) -> str:
         r = self.http.post("/api/models", json={"volume": volume, **params})
@@ -146,10 +166,15 @@ class Server:
 
 
 @contextmanager
-def serving(data_dir: Path, log: Path, workers: int = 1, **kwargs: Any) -> Iterator[Server]:
+def serving(data_dir: Path, log: Path, workers: int | None = 1, **kwargs: Any) -> Iterator[Server]:
+    """A started :class:`Server`, stopped (SIGTERM, then SIGKILL) when the block ends."""
     server = Server(data_dir, log, workers, **kwargs)
     try:
         yield server
     finally:
         if server.proc.poll() is None:
-            server.stop(signal.SIGTERM)
+            try:
+                server.stop(signal.SIGTERM)
+            except subprocess.TimeoutExpired:
+                server.proc.kill()
+                server.proc.wait()
