@@ -51,6 +51,7 @@ def started(data: Path) -> TestClient:
     return start_logged_in(data, ADMIN_PASSWORD)
 
 
+@pytest.mark.slow
 def test_backup_while_a_job_runs_and_restore_into_a_fresh_folder(
     data_dir: Path, tmp_path: Path, small_nifti: bytes, upload_for, model_for
 ) -> None:

@@ -64,6 +64,7 @@ def ingest(*args: str) -> dict:
     return json.loads(proc.stdout)
 
 
+@pytest.mark.slow
 def test_ingest_of_a_big_gzipped_nifti_stays_far_under_its_size(
     big_nifti: Path, tmp_path: Path
 ) -> None:
@@ -138,6 +139,7 @@ def write_series(folder: Path, slices: int) -> None:
         ds.save_as(folder / f"{k:05d}.dcm", enforce_file_format=True)
 
 
+@pytest.mark.slow
 def test_ingest_of_a_long_dicom_series_stays_far_under_its_size(tmp_path: Path) -> None:
     """A folder of slices is decoded one slice at a time (twice: the value range picks the
     dtype first), never stacked whole; the patient goes to the owner-only record."""

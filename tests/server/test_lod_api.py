@@ -37,6 +37,7 @@ def model(client: TestClient, volume: str, **form: Any) -> dict[str, Any]:
     return done
 
 
+@pytest.mark.slow
 def test_a_model_over_the_budget_has_levels_of_detail(
     client: TestClient, demo_id: str, people: dict[str, dict[str, str]]
 ) -> None:

@@ -35,6 +35,7 @@ def _work(client: TestClient, name: str) -> Path:
     return work
 
 
+@pytest.mark.slow
 def test_segmentations_become_named_coloured_parts(
     client: TestClient,
     people: dict[str, dict[str, str]],
