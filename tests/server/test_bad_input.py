@@ -590,6 +590,8 @@ def real_server(tmp_path: Path) -> Iterator[Any]:
 TWO_GB = 2_200_000_000
 
 
+@pytest.mark.processes  # a real ``miss serve``, 2.2 GB through the loopback
+@pytest.mark.slow
 @pytest.mark.parametrize(
     ("limit_mb", "declare"),
     [(None, True), ("16", False)],
