@@ -56,7 +56,7 @@ pacs-servers:
 	fi
 
 # Debian's PostgreSQL for the tests that run the server on it; each test run starts its own
-# throw-away cluster (tests/pg.py), never the system's service.
+# throw-away cluster (tests/support/pg.py), never the system's service.
 postgres:
 	@if ! ls /usr/lib/postgresql/*/bin/postgres >/dev/null 2>&1; then \
 		echo "installing Debian's postgresql for the PostgreSQL tests"; \
