@@ -6,7 +6,7 @@ PIP := $(PY) -m pip
 WEB := src/miss/web
 VALIDATORS := tests/validators
 
-.PHONY: run test lint format bench web-deps validators vrml-reader chromium pacs-servers postgres clean
+.PHONY: run test test-fast lint format bench web-deps validators vrml-reader chromium pacs-servers postgres clean
 
 $(VENV)/.installed: pyproject.toml setup.py src/miss/measure/_nearest.cpp
 	$(PYTHON) -m venv $(VENV)
@@ -56,7 +56,7 @@ pacs-servers:
 	fi
 
 # Debian's PostgreSQL for the tests that run the server on it; each test run starts its own
-# throw-away cluster (tests/pg.py), never the system's service.
+# throw-away cluster (tests/support/pg.py), never the system's service.
 postgres:
 	@if ! ls /usr/lib/postgresql/*/bin/postgres >/dev/null 2>&1; then \
 		echo "installing Debian's postgresql for the PostgreSQL tests"; \
@@ -78,6 +78,11 @@ test: $(VENV)/.bench-installed web-deps validators vrml-reader chromium pacs-ser
 	$(VENV)/bin/mypy
 	$(VENV)/bin/pytest -q
 	MISS_TEST_DATABASE=postgres $(VENV)/bin/pytest -q $(PG_TESTS)
+
+# The inner loop of a change: library and API tests, no browser, PACS, PostgreSQL, real
+# server or worker processes, nothing marked slow (a few minutes on 2 cores; `make test` is all).
+test-fast: $(VENV)/.bench-installed web-deps validators
+	$(VENV)/bin/pytest -q -m "not slow"
 
 lint:
 	$(VENV)/bin/ruff check src tests benchmarks

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from collections.abc import Callable
@@ -44,7 +45,9 @@ BOUNDS: tuple[float, ...] = (0.0001, 0.0002, 0.0005, 0.001, 0.002)
 REDUCE = 0.99
 #: Random points inside each surface's triangles for :func:`dense`, each way.
 DENSE_SAMPLES = 1_000_000
-DATASETS = Path(__file__).resolve().parents[2] / "shared" / "datasets"
+DATASETS = Path(
+    os.environ.get("MISS_DATASETS", Path(__file__).resolve().parents[2] / "shared" / "datasets")
+)
 
 
 def cases(root: Path = DATASETS) -> dict[str, tuple[Path, float]]:

@@ -59,7 +59,10 @@ import httpx
 from common import CACHE, markdown_table, save, write_nifti
 from load import PASSWORD, log_in, start_server, upload
 
-CTHEAD = Path(__file__).resolve().parents[2] / "shared/datasets/ct_head_stanford_cthead/CThead.nhdr"
+DATASETS = Path(
+    os.environ.get("MISS_DATASETS", Path(__file__).resolve().parents[2] / "shared/datasets")
+)
+CTHEAD = DATASETS / "ct_head_stanford_cthead" / "CThead.nhdr"
 CHROMIUM = "/usr/bin/chromium"
 CHROMIUM_ARGS = [
     "--headless",

@@ -593,7 +593,7 @@ def main(argv: list[str] | None = None) -> int:
     cluster = None
     if args.database == "postgres":
         sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-        import pg
+        from support import pg
 
         cluster = pg.Cluster()
     results, tables, problems = [], [], []

@@ -1,8 +1,8 @@
-"""Shared fixtures: the real scans in ../shared/datasets, skipped with a reason when absent."""
+"""Shared fixtures: the real scans in ../shared/datasets, skipped with a reason when absent;
+the server fixtures (``support.server_app``) for every folder; the markers, set by folder."""
 
 from __future__ import annotations
 
-import os
 import subprocess
 import sys
 from collections.abc import Iterator
@@ -11,12 +11,62 @@ from typing import Any
 
 import numpy as np
 import pytest
+from support import DATASETS
+from support.pg import ENGINE
 
 from miss.scene import Scene
 from miss.types import Mesh
 
-REPO = Path(__file__).resolve().parents[1]
-DATASETS = Path(os.environ.get("MISS_DATASETS", REPO.parent / "shared" / "datasets"))
+pytest_plugins = ["support.server_app"]
+
+#: Markers by where a test lives (a folder, or a file of tests/ or tests/server/).
+#: The fast lane, ``pytest -m "not slow"``, leaves out everything marked slow here or by
+#: an explicit ``@pytest.mark.slow`` (a test over about 3 s on a 2-core machine).
+MARKS_BY_PLACE = {
+    "browser/": ("browser", "slow"),
+    "pacs/": ("pacs", "slow"),
+    # real ``miss serve`` or worker processes, killed, restarted or starved
+    "server/test_processes.py": ("processes", "postgres", "slow"),
+    "server/test_restart.py": ("processes", "slow"),
+    "server/test_faults.py": ("processes", "slow"),
+    "server/test_upload_streamed.py": ("processes", "slow"),
+    "test_blocks_cluster.py": ("processes", "slow"),  # local Dask clusters
+    "test_bench.py": ("slow",),  # the benchmarks' own code, run small
+    "test_vrml_castle.py": ("slow",),  # Castle Game Engine's reader, a process per scene
+}
+#: Attack tests whose file starts a real server for (nearly) every test.
+MARKS_BY_PLACE |= {
+    f"security/test_{name}.py": ("processes", "slow")
+    for name in [
+        "access",
+        "account_changes",
+        "attack_corpus",
+        "connection_limits",
+        "deid_attacks",
+        "deid_spellings",
+        "fairness",
+        "file_attacks",
+        "file_modes",
+        "guest_errors",
+        "headers",
+        "pacs_safety",
+        "proxy_and_passwords",
+        "room_limits",
+    ]
+}
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Mark each test by its place (``MARKS_BY_PLACE``); on a PostgreSQL run
+    (``MISS_TEST_DATABASE=postgres``), every test ``postgres`` too."""
+    tests = Path(__file__).parent
+    for item in items:
+        place = item.path.relative_to(tests).as_posix()
+        names = [m for key, marks in MARKS_BY_PLACE.items() if place.startswith(key) for m in marks]
+        if ENGINE == "postgres":
+            names.append("postgres")
+        for name in dict.fromkeys(names):
+            item.add_marker(name)
 
 
 @pytest.fixture(scope="session")

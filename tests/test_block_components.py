@@ -56,6 +56,7 @@ def _same_parts(lazy: Volume, memory: Volume, block: object, **form: object) -> 
 
 
 @pytest.mark.parametrize("block", [24, (50, 37, 29)])
+@pytest.mark.slow
 def test_cthead_largest_and_split_equal_the_in_memory_path(cthead, lazy_cthead, block) -> None:
     notes = _same_parts(lazy_cthead, cthead, block, components="largest")
     assert notes == ["bone: 125 smaller piece(s) left out"]

@@ -78,6 +78,7 @@ def cthead_reference(cthead: Volume) -> tuple[Mesh, Mesh]:
 
 
 @pytest.mark.parametrize("block", [7, 32, (50, 37, 29)])
+@pytest.mark.slow
 def test_cthead_blockwise_equals_single_pass(cthead, cthead_reference, block) -> None:
     single, one_block = cthead_reference
     mesh = blockwise_surface(cthead, 1500.0, normals=False, block=block)
@@ -92,12 +93,14 @@ def test_cthead_from_zarr_chunks_equals_numpy(cthead, cthead_reference, tmp_path
 
 
 @pytest.mark.parametrize("block", [32, (50, 37, 29)])
+@pytest.mark.slow
 def test_mr_head_blockwise_equals_single_pass(mr_head, block) -> None:
     single = extract_surface(mr_head, 300.0, normals=False)
     mesh = blockwise_surface(mr_head, 300.0, normals=False, block=block)
     assert_same_surface(mesh, single, FLOAT32_ROUNDING_MM)
 
 
+@pytest.mark.slow
 def test_mr_head_blocks_of_seven_from_zarr(mr_head, tmp_path) -> None:
     """Blocks of 7 over a quarter of the head (the whole one takes a minute here)."""
     roi = (100, 355, 60, 315, 20, 99)
@@ -216,6 +219,7 @@ def _as_subset(full: Mesh, out: Mesh) -> np.ndarray:
 
 
 @pytest.mark.parametrize(("method", "block"), [("quadric", 48), ("schroeder", (50, 37, 29))])
+@pytest.mark.slow
 def test_decimated_in_blocks_holds_the_bound_against_the_full_surface(
     cthead, method, block
 ) -> None:

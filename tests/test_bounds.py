@@ -100,6 +100,7 @@ def dense_max(before: Mesh, after: Mesh, samples: int = 200_000) -> float:
     bound=st.sampled_from(BOUNDS),
     schedule=st.sampled_from(["guaranteed", "paper"]),
 )
+@pytest.mark.slow
 def test_output_within_its_bound(
     kind: str, seed: int, noise: float, pieces: int, method: str, bound: float, schedule: str
 ) -> None:
@@ -207,6 +208,7 @@ def test_a_run_far_out_is_screened_and_a_guaranteed_bound_is_schroeders() -> Non
 
 @settings(max_examples=20, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(seed=st.integers(0, 2**16), noise=st.sampled_from([0.02, 0.2]))
+@pytest.mark.slow
 def test_vertices_out_of_bound_are_put_back_on_the_surface(seed: int, noise: float) -> None:
     # a run whose edges and triangles are within a bound but a few dropped input vertices
     # are not: each goes back into the triangle nearest to it, split in three, and lies

@@ -157,6 +157,7 @@ def test_cthead_bone_gives_about_545k_triangles(datasets: Path, tmp_path: Path) 
     assert stats["triangles"] == pytest.approx(545_000, rel=0.03)
 
 
+@pytest.mark.slow
 def test_json_keeps_its_keys(demo_file: Path, tmp_path: Path) -> None:
     """``--json`` still says everything it said: scripts read these names."""
     args = ["convert", str(demo_file), "--level", "300", "--sample-rate", "3", "--json"]

@@ -34,6 +34,7 @@ def test_two_levels_give_translucent_skin_and_opaque_bone(demo_file: Path, tmp_p
     assert out.read_text().count(" Shape {") == 2
 
 
+@pytest.mark.slow
 def test_components_split_finds_the_lesion_apart_from_the_skull(
     demo_file: Path, tmp_path: Path
 ) -> None:
@@ -54,6 +55,7 @@ def test_components_split_finds_the_lesion_apart_from_the_skull(
     assert len(json.loads(miss(*args, *small).stdout)["parts"]) == 1
 
 
+@pytest.mark.slow
 def test_labels_of_the_frog_with_a_colour_table(datasets: Path, tmp_path: Path) -> None:
     for name in ("frogtissue.mhd", "frogtissue.zraw"):
         shutil.copy(datasets / "labels_frogtissue" / name, tmp_path / name)

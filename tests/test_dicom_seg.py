@@ -59,6 +59,7 @@ def _grid(series: Path) -> Volume:
 # --------------------------------------------------------------------------- DICOM SEG
 
 
+@pytest.mark.slow
 def test_seg_of_totalsegmentator_labels_matches_the_nifti_voxel_for_voxel(
     abdomen_seg: Path, datasets: Path
 ) -> None:
@@ -298,6 +299,7 @@ def _confinements(tmp_path: Path) -> list[confined.Confinement]:
     return ways
 
 
+@pytest.mark.slow
 def test_the_confined_child_reads_a_seg_and_an_rtstruct(phantom: Path, tmp_path: Path) -> None:
     grid = _grid(phantom / "ct")
     mask = np.zeros(grid.dims, bool)

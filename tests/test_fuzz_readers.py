@@ -49,6 +49,7 @@ def test_mutations_change_the_input() -> None:
         assert apply(data, [(kind, 40, 7)]) != data, kind
 
 
+@pytest.mark.slow
 def test_fuzz_loop_counts_every_case() -> None:
     """The bounded loop the robustness benchmark runs (a short run here)."""
     report = fuzz_readers(seconds=3.0, seed=1)

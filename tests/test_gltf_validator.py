@@ -89,6 +89,7 @@ def test_phantom_scenes_split_and_layered(validate: Validate) -> None:
     assert_valid(validate(files))
 
 
+@pytest.mark.slow
 def test_real_scans(validate: Validate, real_scenes: dict[str, Scene]) -> None:
     assert len(real_scenes["frog-labels"].parts) > 20
     files: dict[str, bytes] = {}

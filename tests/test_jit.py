@@ -111,6 +111,7 @@ print(np.array_equal(dot(a, a.T), a @ a.T))
 """
 
 
+@pytest.mark.slow
 def test_numba_starts_without_importing_scipy_for_a_blas_check() -> None:
     # MISS's kernels run in a fresh process without numba importing scipy.linalg (a BLAS
     # check they never need); a jitted np.dot still finds the BLAS when it is compiled

@@ -542,6 +542,7 @@ def closed_components(faces: np.ndarray, labels: np.ndarray) -> set[int]:
     return set(labels[faces[:, 0]].tolist()) - set(labels[boundary_edges(faces)[:, 0]].tolist())
 
 
+@pytest.mark.slow
 def test_cthead_bone_reaches_85_percent(cthead):
     vertices, faces, new, info, _ = cthead
     assert len(faces) > 500_000
@@ -565,6 +566,7 @@ def test_cthead_bone_mean_deviation_within_final_bound(cthead):
     assert dist.mean() <= info["final_bound_mm"]
 
 
+@pytest.mark.slow
 def test_cthead_bone_max_deviation_like_decimatepro(cthead):
     # vtkDecimatePro judges vertices by the same local distance, so with its maximum error
     # set to our final bound it should stack up about as much error at the same reduction.
@@ -590,6 +592,7 @@ def test_cthead_bone_max_deviation_like_decimatepro(cthead):
     assert dist.max() <= 1.5 * pro_dist.max()
 
 
+@pytest.mark.slow
 def test_cthead_bone_max_deviation_within_final_bound(cthead_held):
     # each triangle carries the error already spent on it (accumulated error) and the result
     # is checked, so deviations no longer stack up past the bound over chained deletions;

@@ -193,6 +193,7 @@ def frog(frog_copy: Path) -> tuple[Volume, Scene]:
     )
 
 
+@pytest.mark.slow
 def test_frog_gives_one_closed_surface_per_label_present(frog: tuple[Volume, Scene]) -> None:
     volume, scene = frog
     present = label_counts(volume)
@@ -272,6 +273,7 @@ def test_frog_neighbours_share_their_boundary_after_decimation(
         assert distances_to(centres[pick], parts[b].mesh).max() < 1e-3  # the very same surface
 
 
+@pytest.mark.slow
 def test_frog_parts_leave_no_gap_and_no_overlap_where_organs_meet(frog_copy: Path) -> None:
     # Undecimated: independent patch decimation may cross within its error bound near
     # the curves where three labels meet; the extraction itself must be exact. One

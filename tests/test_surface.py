@@ -55,6 +55,7 @@ def test_sphere_area_volume_and_orientation() -> None:
     assert (outward > 0).mean() > 0.999
 
 
+@pytest.mark.slow
 def test_without_normals_the_same_surface() -> None:
     # tall enough for three slabs, so the welding without normal columns is covered too
     vol, _ = ellipsoid_volume(np.diag([0.8, 0.8, 0.8, 1.0]), (160, 160, 400), (50.0, 50.0, 140.0))

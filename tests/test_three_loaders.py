@@ -47,6 +47,7 @@ def meshes(datasets: Path | None, degenerate: miss.Mesh) -> dict[str, miss.Mesh]
 
 
 @pytest.mark.parametrize("fmt", FORMATS)
+@pytest.mark.slow
 def test_three_and_trimesh_read_every_triangle(
     fmt: str, tmp_path: Path, request: pytest.FixtureRequest, degenerate_mesh: miss.Mesh
 ) -> None:

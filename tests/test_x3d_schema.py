@@ -184,6 +184,7 @@ def test_part_names_that_clash_or_are_no_xml_names(degenerate_mesh: miss.Mesh) -
     assert_valid({"names": x3d(Scene(parts, title="<scene>"), metadata=METADATA)})
 
 
+@pytest.mark.slow
 def test_real_scans(real_scenes: dict[str, Scene]) -> None:
     assert len(real_scenes["frog-labels"].parts) > 20
     files = {name: export(scene, "x3d") for name, scene in real_scenes.items()}

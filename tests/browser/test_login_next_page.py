@@ -10,7 +10,8 @@ import time
 from typing import Any
 from urllib.parse import quote, urlsplit
 
-from conftest import ADMIN_PASSWORD, Server
+from support import ADMIN_PASSWORD
+from support.realserver import Server
 from test_security_pages import offline_context
 
 EVIL = "evil.example"

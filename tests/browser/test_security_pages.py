@@ -8,7 +8,9 @@ from typing import Any
 from urllib.parse import quote, urlsplit
 
 import pytest
-from conftest import ADMIN_PASSWORD, LAPTOP, Server
+from browser.conftest import LAPTOP
+from support import ADMIN_PASSWORD
+from support.realserver import Server
 
 #: ReDoc's menu footer asks for its maker's logo from a CDN; the CSP blocks it (nothing
 #: leaves the machine) and the console says so. Nothing else may be refused.

@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from server.conftest import ADMIN_PASSWORD, TestClient, bearer, log_in, wait_for_model
+from support.server_app import ADMIN_PASSWORD, TestClient, bearer, log_in, wait_for_model
 
 from miss.pacs.server import PacsServer
 from miss.server.app import create_app

@@ -16,7 +16,7 @@ import pytest
 # chromium, its flags, the window and where screenshots go, as every browser test has
 # them (that module skips these tests where chromium or Playwright is missing)
 from browser.conftest import ARTIFACTS, LAPTOP
-from server.realserver import Server, serving
+from support.realserver import Server, serving
 
 from pacs.conftest import Series
 from pacs.orthanc import Orthanc

@@ -14,7 +14,7 @@ import numpy as np
 import pydicom
 import pytest
 from pydicom.uid import generate_uid
-from server.conftest import ADMIN_PASSWORD, TestClient, log_in, wait_for_model
+from support.server_app import ADMIN_PASSWORD, TestClient, log_in, wait_for_model
 
 from miss.pacs.server import PacsServer
 from miss.server.app import create_app

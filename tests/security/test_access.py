@@ -21,7 +21,8 @@ from typing import Any
 
 import httpx
 import pytest
-from realserver import ADMIN_PASSWORD, Server, serving
+from support import ADMIN_PASSWORD
+from support.realserver import Server, serving
 from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import ClientConnection, connect
 

@@ -12,8 +12,8 @@ from collections.abc import Iterator
 
 import httpx
 import pytest
-from pg import database_url
-from realserver import Server, serving
+from support.pg import database_url
+from support.realserver import Server, serving
 
 PASSWORD = "a-good-long-password"
 #: The change must count within a second; the poll allows a busy machine one more.

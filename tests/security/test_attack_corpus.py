@@ -5,19 +5,16 @@ byte of that file; none gets a 5xx."""
 from __future__ import annotations
 
 import secrets
-import sys
 from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
 import pytest
-from realserver import Server, serving
+from corpus.attacks import Attack, attacks, distinctive
+from support.realserver import Server, serving
 
 from miss.server.storage import chunked
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from corpus.attacks import Attack, attacks, distinctive  # noqa: E402
 
 
 @pytest.fixture(scope="module")

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from realserver import Server, serving
+from support.realserver import Server, serving
 
 from miss.io import codecs
 
@@ -223,6 +223,7 @@ def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
 
 
 @pytest.mark.parametrize("key", list(BOMBS))
+@pytest.mark.slow
 def test_an_upload_of_a_bomb_gets_422_and_nothing_is_kept(
     key: str, bombs: dict[str, Path], server: Server
 ) -> None:

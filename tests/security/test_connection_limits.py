@@ -17,9 +17,9 @@ from typing import Any
 
 import httpx
 import pytest
-from pg import settings_for
-from realserver import Server, serving
-from server_fixtures import running_row
+from support.pg import settings_for
+from support.realserver import Server, serving
+from support.server_app import running_row
 from test_access import add_user, as_user, own_model, room, token_of
 from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect

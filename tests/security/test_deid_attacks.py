@@ -9,18 +9,14 @@ from __future__ import annotations
 import gzip
 import io
 import re
-import sys
 import zipfile
 from collections.abc import Iterator
-from pathlib import Path
 
 import nibabel as nib
 import numpy as np
 import pytest
-from realserver import Server, serving
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from corpus.files import dicom_bytes, dicom_slice  # noqa: E402
+from corpus.files import dicom_bytes, dicom_slice
+from support.realserver import Server, serving
 
 
 @pytest.fixture(scope="module")

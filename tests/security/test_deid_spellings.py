@@ -21,17 +21,15 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from corpus.files import OTHER_SERIES_UID, dicom_bytes, dicom_slice
 from fastapi.testclient import TestClient
-from pg import settings_for
-from realserver import Server
+from support.pg import settings_for
+from support.realserver import Server
 from test_deid_attacks import RANDOM, ct_series, everything_shown, nifti
 from test_deid_attacks import server as server  # the fixture: one real server for the file
+from test_tiles import glb_json
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from corpus.files import OTHER_SERIES_UID, dicom_bytes, dicom_slice  # noqa: E402
-from test_tiles import glb_json  # noqa: E402
-
-from miss.server.app import create_app  # noqa: E402
+from miss.server.app import create_app
 
 #: Header values in UTF-8, as a German scanner may write them.
 UTF8 = {"SpecificCharacterSet": "ISO_IR 192"}

@@ -18,8 +18,8 @@ from typing import Any
 
 import httpx
 import pytest
-from pg import copy_seed, settings_for
-from realserver import Server, serving
+from support.pg import copy_seed, settings_for
+from support.realserver import Server, serving
 
 from miss.server.storage.db import QUEUED, ModelRow, utcnow
 from miss.server.storage.store import Store, new_id

@@ -21,7 +21,8 @@ import httpx
 import landlockpy
 import numpy as np
 import pytest
-from realserver import ADMIN_PASSWORD, Server, serving
+from support import ADMIN_PASSWORD
+from support.realserver import Server, serving
 
 from miss.errors import UnreadableVolume, UnsupportedFormat
 from miss.io import confined

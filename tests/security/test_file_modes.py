@@ -10,8 +10,8 @@ import subprocess
 import sys
 from pathlib import Path
 
-from pg import database_url
-from realserver import serving
+from support.pg import database_url
+from support.realserver import serving
 
 #: Runs its arguments under the umask most shells have.
 UMASK_022 = ("sh", "-c", 'umask 022; exec "$@"', "sh")

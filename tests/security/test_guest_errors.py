@@ -7,7 +7,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import httpx
-from realserver import serving
+from support.realserver import serving
 from test_access import own_model
 
 

@@ -12,8 +12,8 @@ from typing import Any
 import httpx
 import pytest
 from fastapi.routing import APIRoute
-from realserver import Server, serving
 from starlette.routing import Route
+from support.realserver import Server, serving
 
 from miss.server.app import create_app
 from miss.server.core.settings import Settings

@@ -13,8 +13,7 @@ from urllib.parse import parse_qs, quote, urlsplit
 
 import pytest
 from fastapi.testclient import TestClient
-
-ADMIN_PASSWORD = "admin-password-for-tests"
+from support import ADMIN_PASSWORD
 
 #: Spellings that lead off the server in some browser, or are no path at all: "/".
 OFFSITE = [

@@ -35,7 +35,7 @@ from pacs.dicom_data import write_ct_series
 from pacs.orthanc import Orthanc
 from pacs.test_pacs_api import make_user, wait_import
 from pydicom.uid import generate_uid
-from server.conftest import ADMIN_PASSWORD, TestClient, log_in, make_model
+from support.server_app import ADMIN_PASSWORD, TestClient, log_in, make_model
 
 from miss.pacs.server import PacsServer
 from miss.server.app import create_app

@@ -16,7 +16,8 @@ from pathlib import Path
 
 import httpx
 import pytest
-from realserver import ADMIN_PASSWORD, Server, serving
+from support import ADMIN_PASSWORD
+from support.realserver import Server, serving
 
 WRONG = "not-the-password"
 #: Seconds a login waits for its turn at the password check (``ratelimit.PASSWORD_WAIT``).

@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from pg import database_url, sqlalchemy_url
+from support.pg import database_url, sqlalchemy_url
 
 from miss.cli import main
 from miss.server.storage.backup import MANIFEST, backup

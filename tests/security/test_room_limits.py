@@ -12,7 +12,7 @@ from typing import Any
 from urllib.parse import quote
 
 import pytest
-from realserver import Server, serving
+from support.realserver import Server, serving
 from test_access import add_user, as_user, own_model, pin_at_centre, room, token_of
 from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import ClientConnection, connect

@@ -17,8 +17,8 @@ import pytest
 import trimesh
 from fastapi.testclient import TestClient
 from lxml import etree
-from pg import settings_for
 from PIL import Image
+from support.pg import settings_for
 
 from miss.server.app import create_app
 from miss.server.core.assets import MODULES, WEB
@@ -390,6 +390,7 @@ def test_unknown_ids(client: TestClient) -> None:
         assert client.delete(path).status_code == 404
 
 
+@pytest.mark.slow
 def test_worker_crash_fails_only_that_job(client: TestClient, demo_id: str, wait_done) -> None:
     r = client.post("/api/models", json={"volume": demo_id, **FAST, "level": 310})
     model_id = r.json()["id"]

@@ -11,16 +11,16 @@ from typing import Any
 
 import pytest
 from fastapi.testclient import TestClient
-from pg import database_url, sqlalchemy_url
-from server.conftest import started as start_logged_in
 from sqlalchemy import create_engine, text
+from support import ADMIN_PASSWORD
+from support.pg import database_url, sqlalchemy_url
+from support.server_app import started as start_logged_in
 
 from miss.cli import main
 from miss.errors import BadParameter
 from miss.server.storage.backup import MANIFEST, backup, restore
 from miss.server.storage.db import Base
 
-PASSWORD = "admin-password-for-backups"
 #: Tables whose every row the restored database holds unchanged; ``models`` too but for
 #: the job that ran during the backup, ``audit`` up to the backup.
 SAME = ("users", "sessions", "volumes", "identities", "shares", "room_events", "secrets")
@@ -48,9 +48,10 @@ def rows(url: str) -> dict[str, dict[Any, tuple[Any, ...]]]:
 
 
 def started(data: Path) -> TestClient:
-    return start_logged_in(data, PASSWORD)
+    return start_logged_in(data, ADMIN_PASSWORD)
 
 
+@pytest.mark.slow
 def test_backup_while_a_job_runs_and_restore_into_a_fresh_folder(
     data_dir: Path, tmp_path: Path, small_nifti: bytes, upload_for, model_for
 ) -> None:

@@ -11,12 +11,9 @@ from __future__ import annotations
 import gzip
 import hashlib
 import json
-import os
 import select
 import signal
 import socket
-import subprocess
-import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -28,13 +25,14 @@ import pytest
 from corpus.cases import generate
 from corpus.upload import as_upload
 from fastapi.testclient import TestClient
-from pg import copy_seed, settings_for
+from support import ADMIN_PASSWORD
+from support.pg import copy_seed, settings_for
+from support.realserver import Server
 
 from miss.server.app import create_app
 from miss.server.core.schemas import MAX_JSON_BYTES
 from miss.spec import MAX_LEVELS
 
-PASSWORD = "admin-password-for-bad-input"
 #: High enough that the rate limiter never answers in place of the code under test.
 UNLIMITED = {"api_rate": 1e6, "api_burst": 1e6}
 FAST = {"level": 300, "sample_rate": 4, "decimate": "none"}
@@ -44,7 +42,7 @@ GARBAGE: list[Any] = [None, [1, "two", None], {"deep": {"er": [{"x": None}, []]}
 
 
 def log_in(client: TestClient) -> None:
-    r = client.post("/api/auth/login", json={"username": "admin", "password": PASSWORD})
+    r = client.post("/api/auth/login", json={"username": "admin", "password": ADMIN_PASSWORD})
     assert r.status_code == 200, r.text
     client.cookies.clear()
     client.headers["Authorization"] = f"Bearer {r.json()['token']}"
@@ -123,7 +121,7 @@ class Site:
 @pytest.fixture(scope="module")
 def site(seeded_dir: Path, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Site]:
     data = copy_seed(seeded_dir, tmp_path_factory.mktemp("bad-input") / "data")
-    settings = settings_for(data, admin_password=PASSWORD, **UNLIMITED)
+    settings = settings_for(data, admin_password=ADMIN_PASSWORD, **UNLIMITED)
     with TestClient(create_app(settings)) as c:
         log_in(c)
         yield Site(c)
@@ -137,7 +135,7 @@ def valid_bodies(site: Site) -> dict[str, dict[str, Any]]:
     return {
         "/api/models": {"volume": site.demo["id"], **FAST},
         "/api/shares": {"model": site.model["id"], "expires_in": 3600, "label": "x"},
-        "/api/auth/login": {"username": "admin", "password": PASSWORD},
+        "/api/auth/login": {"username": "admin", "password": ADMIN_PASSWORD},
         "/api/users": {"name": "carol", "password": "carol-password"},
     }
 
@@ -524,53 +522,14 @@ def test_upload_over_the_limit_streams_and_stops(make_client, small_nifti: bytes
 # -- a 2 GB+ stream against a real server --------------------------------------------------
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-class RealServer:
-    """``miss serve`` in a subprocess (no demo), logged in as admin."""
-
-    def __init__(self, data: Path, log: Path, **env: str) -> None:
-        self.data, self.log, self.port = data, log, _free_port()
-        cmd = [sys.executable, "-m", "miss.cli", "serve", "--port", str(self.port),
-               "--data-dir", str(data)]  # fmt: skip
-        extra = {"MISS_ADMIN_PASSWORD": PASSWORD, "MISS_DEMO": "0", **env}
-        with open(log, "ab") as out:
-            self.proc = subprocess.Popen(
-                cmd, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                env={**os.environ, **extra},
-            )  # fmt: skip
-        self.http = httpx.Client(base_url=f"http://127.0.0.1:{self.port}", timeout=30)
-        deadline = time.monotonic() + 90
-        while True:
-            assert self.proc.poll() is None, log.read_text()
-            try:
-                if self.http.get("/api/health").status_code == 200:
-                    break
-            except httpx.TransportError:
-                pass
-            assert time.monotonic() < deadline, log.read_text()
-            time.sleep(0.2)
-        r = self.http.post("/api/auth/login", json={"username": "admin", "password": PASSWORD})
-        self.token = r.json()["token"]
-
-    def memory(self) -> dict[str, int]:
-        """VmRSS and VmHWM of the server process, bytes."""
-        out = {}
-        for line in Path(f"/proc/{self.proc.pid}/status").read_text().splitlines():
-            key = line.split(":")[0]
-            if key in ("VmRSS", "VmHWM"):
-                out[key] = int(line.split()[1]) * 1024
-        return out
-
-    def stop(self) -> None:
-        self.http.close()
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGTERM)
-            self.proc.wait(timeout=30)
+def memory(pid: int) -> dict[str, int]:
+    """VmRSS and VmHWM of a process, bytes."""
+    out = {}
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        key = line.split(":")[0]
+        if key in ("VmRSS", "VmHWM"):
+            out[key] = int(line.split()[1]) * 1024
+    return out
 
 
 def stream_upload(port: int, token: str, total: int, declare: bool) -> tuple[int, int, str]:
@@ -611,22 +570,28 @@ def stream_upload(port: int, token: str, total: int, declare: bool) -> tuple[int
 
 @pytest.fixture
 def real_server(tmp_path: Path) -> Iterator[Any]:
-    servers: list[RealServer] = []
+    """``real_server(**env)``: ``miss serve`` (no demo, the server's own workers and limits
+    but ``env``), logged in as admin; stopped after the test."""
+    servers: list[Server] = []
 
-    def start(**env: str) -> RealServer:
+    def start(**env: str) -> Server:
         n = len(servers)
-        server = RealServer(tmp_path / f"data{n}", tmp_path / f"serve{n}.log", **env)
+        data, log = tmp_path / f"data{n}", tmp_path / f"serve{n}.log"
+        server = Server(data, log, workers=None, env={"MISS_DEMO": "0", **env})
         servers.append(server)
         return server
 
     yield start
     for server in servers:
-        server.stop()
+        if server.proc.poll() is None:
+            server.stop(signal.SIGTERM)
 
 
 TWO_GB = 2_200_000_000
 
 
+@pytest.mark.processes  # a real ``miss serve``, 2.2 GB through the loopback
+@pytest.mark.slow
 @pytest.mark.parametrize(
     ("limit_mb", "declare"),
     [(None, True), ("16", False)],
@@ -641,16 +606,16 @@ def test_two_gigabyte_stream_is_refused_early(
     server = real_server(**({"MISS_MAX_UPLOAD_MB": limit_mb} if limit_mb else {}))
     limit = int(float(limit_mb or 2048) * 2**20)
     Path(f"/proc/{server.proc.pid}/clear_refs").write_text("5")  # restart the peak (VmHWM)
-    before = server.memory()["VmRSS"]
+    before = memory(server.proc.pid)["VmRSS"]
     sent, status, body = stream_upload(server.port, server.token, TWO_GB, declare)
     assert status == 413, body
     detail = json.loads(body)["detail"]
     assert "MISS_MAX_UPLOAD_MB" in detail and "larger than the limit" in detail
     early = 64 << 20 if declare else limit + (64 << 20)  # declared: refused on the header
     assert sent <= early < TWO_GB, f"the 413 came after {sent} bytes"
-    grown = server.memory()["VmHWM"] - before
+    grown = memory(server.proc.pid)["VmHWM"] - before
     assert grown < 256 << 20, f"server peak memory grew by {grown / 2**20:.0f} MB"
-    assert list((server.data / "tmp").iterdir()) == []
+    assert list((server.data_dir / "tmp").iterdir()) == []
     auth = {"Authorization": f"Bearer {server.token}"}
     assert server.http.get("/api/volumes", headers=auth).json() == []
 
@@ -662,6 +627,7 @@ def test_two_gigabyte_stream_is_refused_early(
 CONSTANT = "there is no surface to draw in it"
 
 
+@pytest.mark.slow
 def test_corpus_through_the_upload_api(
     site: Site, tmp_path_factory: pytest.TempPathFactory
 ) -> None:

@@ -20,9 +20,9 @@ import httpx
 import nibabel as nib
 import numpy as np
 import pytest
-from pg import ENGINE, sqlalchemy_url, sqlite_only
-from realserver import Server, serving, wait_dead
 from sqlalchemy import create_engine, text
+from support.pg import ENGINE, sqlalchemy_url, sqlite_only
+from support.realserver import Server, serving, wait_dead
 
 from miss.export import FORMATS
 from miss.server.core.settings import Settings

@@ -18,8 +18,6 @@ from typing import Any
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
-from realserver import serving
-from server.conftest import wait_for_model
 from server.test_faults import (
     ball_nifti,
     can_mount_tmpfs,  # noqa: F401 - a fixture, used below
@@ -27,6 +25,8 @@ from server.test_faults import (
     tmpfs_wrap,
     upload,
 )
+from support.models import wait_for_model
+from support.realserver import serving
 from test_x3d_schema import validate as x3d_errors
 
 from miss.export import FORMATS, export

@@ -24,11 +24,11 @@ import pytest
 from fastapi.testclient import TestClient
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from support import ADMIN_PASSWORD
 
 from miss.server.app import create_app
 from miss.server.core.settings import Settings
 
-PASSWORD = "admin-password-for-fuzzing"
 FUZZ = settings(
     max_examples=300,
     derandomize=True,
@@ -106,7 +106,7 @@ class Target:
             "/api/models": self.job(),
             "/api/models#labels": {"volume": self.labels, "labels": [1, 2], "decimate": "none"},
             "/api/shares": {"model": self.model, "expires_in": 3600, "can_download": False},
-            "/api/auth/login": {"username": "admin", "password": PASSWORD},
+            "/api/auth/login": {"username": "admin", "password": ADMIN_PASSWORD},
             "/api/users": {"name": "fuzzed", "password": "fuzzed-password", "admin": False},
         }
 
@@ -117,9 +117,9 @@ def target(
 ) -> Iterator[Target]:
     data = tmp_path_factory.mktemp("fuzz") / "data"
     shutil.copytree(seeded_dir, data)
-    config = Settings(data_dir=data, admin_password=PASSWORD, api_rate=1e6, api_burst=1e6)
+    config = Settings(data_dir=data, admin_password=ADMIN_PASSWORD, api_rate=1e6, api_burst=1e6)
     with TestClient(create_app(config)) as c:
-        r = c.post("/api/auth/login", json={"username": "admin", "password": PASSWORD})
+        r = c.post("/api/auth/login", json={"username": "admin", "password": ADMIN_PASSWORD})
         c.cookies.clear()
         c.headers["Authorization"] = f"Bearer {r.json()['token']}"
         yield Target(c, small_nifti)

@@ -55,6 +55,7 @@ def test_deep_health_names_what_fails(make_client, tmp_path: Path) -> None:
     assert body["data_folder"]["ok"] and body["job_runners"]["ok"]
 
 
+@pytest.mark.slow
 def test_metrics_for_administrators_and_the_scrape_token(
     make_client, monkeypatch: pytest.MonkeyPatch, small_nifti: bytes, upload_for, model_for
 ) -> None:

@@ -12,13 +12,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
-from pg import settings_for
+from support import ADMIN_PASSWORD
+from support.pg import settings_for
 
 from miss.server.app import create_app
 from miss.server.storage import chunked
 
 SHAPE = (512, 512, 1600)  # int16: 839 MB of voxels
-PASSWORD = "admin-password-for-ingest"
 #: Runs ``miss ingest`` and prints its exit code and peak RSS (kB): this process's only
 #: child, so RUSAGE_CHILDREN is that command alone.
 PEAK = """
@@ -64,6 +64,7 @@ def ingest(*args: str) -> dict:
     return json.loads(proc.stdout)
 
 
+@pytest.mark.slow
 def test_ingest_of_a_big_gzipped_nifti_stays_far_under_its_size(
     big_nifti: Path, tmp_path: Path
 ) -> None:
@@ -79,9 +80,9 @@ def test_ingest_of_a_big_gzipped_nifti_stays_far_under_its_size(
     stored = chunked.open_array(data / "volumes" / volume_id / "data.zarr")[0]
     for k in (0, 799, 1599):
         assert np.array_equal(stored[:, :, k], plane(k)), k
-    client = TestClient(create_app(settings_for(data, admin_password=PASSWORD, demo=False)))
+    client = TestClient(create_app(settings_for(data, admin_password=ADMIN_PASSWORD, demo=False)))
     with client:
-        r = client.post("/api/auth/login", json={"username": "admin", "password": PASSWORD})
+        r = client.post("/api/auth/login", json={"username": "admin", "password": ADMIN_PASSWORD})
         client.headers["Authorization"] = f"Bearer {r.json()['token']}"
         client.cookies.clear()
         (listed,) = client.get("/api/volumes").json()
@@ -138,6 +139,7 @@ def write_series(folder: Path, slices: int) -> None:
         ds.save_as(folder / f"{k:05d}.dcm", enforce_file_format=True)
 
 
+@pytest.mark.slow
 def test_ingest_of_a_long_dicom_series_stays_far_under_its_size(tmp_path: Path) -> None:
     """A folder of slices is decoded one slice at a time (twice: the value range picks the
     dtype first), never stacked whole; the patient goes to the owner-only record."""
@@ -162,13 +164,11 @@ def test_ingest_of_a_long_dicom_series_stays_far_under_its_size(tmp_path: Path) 
 
 
 @pytest.mark.parametrize("name", ["mr_head_dicom_vsseg001_t1", "ct_abdomen_totalseg/dicom"])
-def test_a_streamed_series_is_the_series_read_whole(name: str) -> None:
+def test_a_streamed_series_is_the_series_read_whole(name: str, datasets: Path) -> None:
     """Plane by plane or whole: the same voxels, dtype, affine, metadata and patient."""
     from miss.io import dicom
 
-    folder = Path(__file__).resolve().parents[2].parent / "shared" / "datasets" / name
-    if not folder.is_dir():
-        pytest.skip(f"{folder} is absent: the real scans live in ../shared/datasets")
+    folder = datasets / name
     whole = dicom.read(folder, None)
     streamed = dicom.stream(folder)
     assert streamed is not None
@@ -178,12 +178,9 @@ def test_a_streamed_series_is_the_series_read_whole(name: str) -> None:
     assert streamed.meta(0.0, 0.0) == whole.meta and streamed.patient == whole.patient
 
 
-def test_a_series_with_uneven_gaps_is_read_whole() -> None:
+def test_a_series_with_uneven_gaps_is_read_whole(datasets: Path) -> None:
     """Resampling onto a regular grid needs neighbouring slices: no stream, a whole read."""
     from miss.io import dicom
 
-    folder = Path(__file__).resolve().parents[2].parent / "shared" / "datasets"
-    folder /= "ct_head_dicom_ge_gantrytilt"
-    if not folder.is_dir():
-        pytest.skip(f"{folder} is absent: the real scans live in ../shared/datasets")
+    folder = datasets / "ct_head_dicom_ge_gantrytilt"
     assert dicom.stream(folder) is None

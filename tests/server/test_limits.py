@@ -136,6 +136,7 @@ def test_spending_of_many_keys_is_split_into_messages_that_fit() -> None:
     assert split({"api": {}}, 7000) == []
 
 
+@pytest.mark.slow
 def test_jobs_per_account(
     make_client: Callable[..., TestClient],
     small_nifti: bytes,
@@ -188,6 +189,7 @@ def test_upload_over_the_size_limit(make_client: Callable[..., TestClient]) -> N
     assert not tmp.exists() or list(tmp.iterdir()) == []  # nothing of it left behind
 
 
+@pytest.mark.slow
 def test_people_per_room_and_rooms_apart_from_the_api_limit(
     make_client: Callable[..., TestClient],
     small_nifti: bytes,

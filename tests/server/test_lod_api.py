@@ -10,8 +10,8 @@ from typing import Any
 
 import pytest
 from fastapi.testclient import TestClient
-from pg import copy_seed, settings_for
-from server.conftest import ADMIN_PASSWORD, log_in, wait_for_model
+from support.pg import copy_seed, settings_for
+from support.server_app import ADMIN_PASSWORD, log_in, wait_for_model
 
 from miss.server.app import create_app
 
@@ -37,6 +37,7 @@ def model(client: TestClient, volume: str, **form: Any) -> dict[str, Any]:
     return done
 
 
+@pytest.mark.slow
 def test_a_model_over_the_budget_has_levels_of_detail(
     client: TestClient, demo_id: str, people: dict[str, dict[str, str]]
 ) -> None:

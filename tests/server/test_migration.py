@@ -10,20 +10,20 @@ from pathlib import Path
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
-from pg import copy_seed
-from server.conftest import started as start_logged_in
+from support import ADMIN_PASSWORD
+from support.pg import copy_seed
+from support.server_app import started as start_logged_in
 
 from miss.server.storage import chunked
 from miss.server.volumes import labelmaps
 from miss.structures.labelmap import label_counts
 from miss.types import Volume
 
-PASSWORD = "admin-password-for-migration"
 BIG = 1 << 40
 
 
 def started(data: Path) -> TestClient:
-    return start_logged_in(data, PASSWORD)
+    return start_logged_in(data, ADMIN_PASSWORD)
 
 
 def make_old(folder: Path) -> tuple[np.ndarray, np.ndarray]:

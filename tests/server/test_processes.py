@@ -2,7 +2,7 @@
 a load balancer: what one changes the other sees at once (a revoked link closes a room
 connection on the other within a second, a deleted model is 404 there at the next
 request), a room's people on both see each other, and jobs submitted through both run
-once each. Needs PostgreSQL (``tests/pg.py``) whatever ``MISS_TEST_DATABASE`` says."""
+once each. Needs PostgreSQL (``tests/support/pg.py``) whatever ``MISS_TEST_DATABASE`` says."""
 
 from __future__ import annotations
 
@@ -15,10 +15,10 @@ from pathlib import Path
 from typing import Any
 
 import httpx
-import pg
 import pytest
 from prometheus_client.parser import text_string_to_metric_families
-from realserver import Server
+from support import pg
+from support.realserver import Server
 from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import ClientConnection, connect
 

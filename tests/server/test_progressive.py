@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
-from server.conftest import running_row
+from support.server_app import running_row
 
 from miss.demo import phantom
 from miss.export import FORMATS
@@ -61,6 +61,7 @@ class Recorder:
         self.delivered = result
 
 
+@pytest.mark.slow
 def test_preview_first_then_glb_then_the_rest_then_the_error() -> None:
     head = phantom(128, spacing=1.5)  # 2.1 M voxels: big enough for a preview
     sink = Recorder(wants_preview=True)
@@ -189,6 +190,7 @@ def _spare(client: TestClient, timeout: float = 30) -> Any:
     raise AssertionError("no spare worker was started")
 
 
+@pytest.mark.slow
 def test_jobs_run_in_spare_workers_started_before_them(make_client: Any, wait_done: Any) -> None:
     client = make_client(demo=True, spare_workers=1)
     demo = client.get("/api/volumes").json()[0]["id"]
@@ -215,6 +217,7 @@ def test_jobs_run_in_spare_workers_started_before_them(make_client: Any, wait_do
     assert not _alive(last.pid)
 
 
+@pytest.mark.slow
 def test_without_spares_each_job_starts_its_own_worker(make_client: Any, wait_done: Any) -> None:
     client = make_client(demo=True, spare_workers=0)
     demo = client.get("/api/volumes").json()[0]["id"]
@@ -227,6 +230,7 @@ def test_without_spares_each_job_starts_its_own_worker(make_client: Any, wait_do
     assert np.isfinite(client.get(f"/api/models/{model_id}").json()["stats"]["max_error_mm"])
 
 
+@pytest.mark.slow
 def test_a_spare_worker_has_loaded_what_reading_a_stored_volume_needs(tmp_path: Path) -> None:
     """Reading the stored volume is the first thing a job does, before its preview: zarr's
     import there (0.4 s) came before every first pixel."""

@@ -8,7 +8,8 @@ import time
 from pathlib import Path
 
 import pytest
-from realserver import Server, alive, free_port, serving
+from support import free_port
+from support.realserver import Server, alive, serving
 
 from miss.server.core.settings import Settings
 from miss.server.jobs.state import JobState

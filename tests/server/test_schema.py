@@ -8,8 +8,8 @@ from pathlib import Path
 
 from alembic.autogenerate import compare_metadata
 from alembic.runtime.migration import MigrationContext
-from pg import sqlalchemy_url, sqlite_only
 from sqlalchemy import create_engine, select, text
+from support.pg import sqlalchemy_url, sqlite_only
 
 from miss.server.storage import schema
 from miss.server.storage.db import Base, ShareRow, UserRow, VolumeRow, utcnow

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import io
 import shutil
-import sys
 import zipfile
 from collections.abc import Callable
 from pathlib import Path
@@ -15,12 +14,10 @@ from typing import Any
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
+from pacs.dicom_data import write_ct_series, write_rtstruct, write_small_seg
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tests/, for tests/pacs
-from pacs.dicom_data import write_ct_series, write_rtstruct, write_small_seg  # noqa: E402
-
-from miss.errors import BadParameter  # noqa: E402
-from miss.server.volumes import labelmaps  # noqa: E402
+from miss.errors import BadParameter
+from miss.server.volumes import labelmaps
 
 
 def _zip(folder: Path) -> bytes:
@@ -38,6 +35,7 @@ def _work(client: TestClient, name: str) -> Path:
     return work
 
 
+@pytest.mark.slow
 def test_segmentations_become_named_coloured_parts(
     client: TestClient,
     people: dict[str, dict[str, str]],

@@ -11,7 +11,7 @@ from typing import Any
 
 import pytest
 from fastapi.testclient import TestClient
-from server.conftest import running_row
+from support.server_app import running_row
 
 from miss.demo import phantom
 from miss.export import FORMATS

@@ -14,7 +14,7 @@ import numpy as np
 import psutil
 import pytest
 from fastapi.testclient import TestClient
-from realserver import serving
+from support.realserver import serving
 
 from miss.deid import deidentify
 from miss.io import load_volume

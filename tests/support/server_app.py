@@ -1,5 +1,5 @@
-"""Fixtures for the server tests: a seeded data folder, apps on copies of it (logged in as
-the administrator), upload files."""
+"""Fixtures for the server, PACS and attack tests: a seeded data folder, apps on copies of it
+(logged in as the administrator), upload files. A plugin of every run (``tests/conftest.py``)."""
 
 from __future__ import annotations
 
@@ -19,17 +19,15 @@ with warnings.catch_warnings():
     warnings.simplefilter("ignore", StarletteDeprecationWarning)
     from fastapi.testclient import TestClient
 
-from pg import copy_seed, database_url, settings_for
-
 from miss.server.app import create_app
 from miss.server.core.settings import Settings
 from miss.server.storage.db import RUNNING, ModelRow
 from miss.server.storage.store import Store, new_id
 from miss.server.volumes.ingest import register_demo
 from miss.spec import JobSpec
-
-JOB_TIMEOUT = 120.0
-ADMIN_PASSWORD = "admin-password-for-tests"
+from support import ADMIN_PASSWORD
+from support.models import JOB_TIMEOUT, wait_for_model
+from support.pg import copy_seed, database_url, settings_for
 
 
 def log_in(client: TestClient, name: str = "admin", password: str = ADMIN_PASSWORD) -> str:
@@ -51,7 +49,7 @@ def started(data: Path, password: str = ADMIN_PASSWORD) -> TestClient:
     return client
 
 
-@pytest.fixture
+@pytest.fixture(scope="session")
 def admin_password() -> str:
     return ADMIN_PASSWORD
 
@@ -128,19 +126,6 @@ def running_row(store: Store, volume_id: str) -> str:
         s.add(ModelRow(id=model_id, volume_id=volume_id, key=model_id, status=RUNNING,
                        spec=JobSpec.of(level=300).to_dict(), stage="surface"))  # fmt: skip
     return model_id
-
-
-def wait_for_model(
-    client: TestClient, model_id: str, timeout: float = JOB_TIMEOUT
-) -> dict[str, Any]:
-    """Poll a model until done or failed; fail the test on timeout."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        body = client.get(f"/api/models/{model_id}").json()
-        if body["status"] in ("done", "failed"):
-            return body
-        time.sleep(0.2)
-    raise AssertionError(f"model {model_id} not finished after {timeout} s: {body}")
 
 
 @pytest.fixture

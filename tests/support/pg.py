@@ -15,7 +15,6 @@ import hashlib
 import os
 import pwd
 import shutil
-import socket
 import subprocess
 import tempfile
 import time
@@ -25,6 +24,7 @@ from typing import Any
 import pytest
 
 from miss.server.core.settings import Settings
+from support import free_port
 
 
 def _bin() -> Path:
@@ -62,12 +62,6 @@ def missing() -> str | None:
     return None
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 class Cluster:
     """One ``postgres`` server in a temporary folder; ``url(db)`` for SQLAlchemy."""
 
@@ -82,7 +76,7 @@ class Cluster:
             os.chown(self.folder, user.pw_uid, user.pw_gid)
             self.as_user = ["runuser", "-u", "postgres", "--"]
         self.data = self.folder / "data"
-        self.port = _free_port()
+        self.port = free_port()
         self.user = "postgres" if self.as_user else pwd.getpwuid(os.geteuid()).pw_name
         self._run(
             BIN / "initdb",
