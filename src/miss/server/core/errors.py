@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import logging
+import reprlib
 from typing import Any
 
 from fastapi import FastAPI, Request
@@ -166,8 +167,8 @@ def _shown(value: Any) -> str:
     """A short JSON rendering of what the client sent."""
     try:
         text = json.dumps(value, allow_nan=True, default=str)
-    except (TypeError, ValueError):
-        text = repr(value)
+    except (TypeError, ValueError, RecursionError):  # deep lists parse but do not encode
+        text = reprlib.repr(value)  # depth-limited, unlike repr
     return text if len(text) <= 60 else text[:57] + "..."
 
 
