@@ -82,7 +82,7 @@ test: $(VENV)/.bench-installed web-deps validators vrml-reader chromium pacs-ser
 # The inner loop of a change: library and API tests, no browser, PACS, PostgreSQL, real
 # server or worker processes, nothing marked slow (a few minutes on 2 cores; `make test` is all).
 test-fast: $(VENV)/.bench-installed web-deps validators
-	$(VENV)/bin/pytest -q -m "not slow"
+	$(VENV)/bin/pytest -q -m "not slow" -n auto  # one process a core (pytest-xdist)
 
 lint:
 	$(VENV)/bin/ruff check src tests benchmarks
