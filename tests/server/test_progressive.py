@@ -293,7 +293,7 @@ def test_the_next_spare_starts_once_the_running_jobs_model_can_be_drawn(
     model_id = running_row(store, demo_id)
     runner, worker, ended = _Runner(), _Worker(), []
     queue = JobQueue(store, runner=runner)
-    waiting = threading.Thread(target=lambda: ended.append(queue._wait(model_id, worker, None)))
+    waiting = threading.Thread(target=lambda: ended.append(queue._wait(model_id, worker)))
     waiting.start()
     folder = DataFolder(store.model_dir(model_id), JobState(store), model_id)
     time.sleep(0.6)
@@ -323,7 +323,7 @@ def test_a_job_is_still_waited_for_when_the_next_spare_cannot_start(
     DataFolder(store.model_dir(model_id), JobState(store), model_id).put("glb", b"glTF")
     worker, ended = _Worker(), []
     waiting = threading.Thread(
-        target=lambda: ended.append(JobQueue(store, runner=Failing())._wait(model_id, worker, None))
+        target=lambda: ended.append(JobQueue(store, runner=Failing())._wait(model_id, worker))
     )
     waiting.start()
     time.sleep(0.5)

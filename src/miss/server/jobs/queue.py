@@ -19,6 +19,7 @@ Which queued job runs next is round robin between accounts (``JobState.claim_nex
 from __future__ import annotations
 
 import logging
+import os
 import threading
 import time
 from collections.abc import Callable
@@ -40,6 +41,15 @@ POLL_SECONDS = 2.0
 DRAWABLE_POLL_SECONDS = 0.25
 #: Seconds between looks for jobs of server processes that are gone (PostgreSQL only).
 REAP_SECONDS = 5.0
+
+
+def yielded(pid: int) -> bool:
+    """Whether worker ``pid`` has dropped to SCHED_IDLE (its own decision, not asked again
+    of the database); False where that cannot be seen."""
+    try:
+        return os.sched_getscheduler(pid) == os.SCHED_IDLE
+    except (OSError, AttributeError):  # ended meanwhile, or not Linux
+        return False
 
 
 class JobQueue:
@@ -139,7 +149,7 @@ class JobQueue:
                     with self._wake:
                         self._wake.wait(POLL_SECONDS)
                     continue
-                self._run(row.id, row.submitted_by)
+                self._run(row.id)
             except Exception:  # keep the thread alive through a database hiccup
                 log.exception("job thread error")
                 self._stopping.wait(POLL_SECONDS)
@@ -161,7 +171,7 @@ class JobQueue:
                 )
                 self.wake()
 
-    def _run(self, model_id: str, account: str | None) -> None:
+    def _run(self, model_id: str) -> None:
         log_path = self.store.model_dir(model_id) / "worker.log"
         offset = log_path.stat().st_size if log_path.exists() else 0
         started = time.monotonic()
@@ -172,7 +182,7 @@ class JobQueue:
         self.state.set_pid(model_id, proc.pid)
         log.info("job %s started in process %d", model_id, proc.pid)
         try:
-            code = self._wait(model_id, proc, account)
+            code = self._wait(model_id, proc)
         finally:
             self._running.pop(model_id, None)
         log.info("job %s: worker ended with code %d", model_id, code)
@@ -192,19 +202,20 @@ class JobQueue:
             remove_outputs(self.store.model_dir(model_id))  # no half model stays
             log.warning("job %s: %s", model_id, reason)
 
-    def _wait(self, model_id: str, proc: Running, account: str | None) -> int:
+    def _wait(self, model_id: str, proc: Running) -> int:
         """The worker's exit code. Meanwhile, once the job's model can be drawn (its GLB, or
         its levels of detail, in place: the rest is the other formats and the error) and a
         viewer that follows the job has drawn it (:mod:`miss.server.jobs.turn`), the
         runner gets its next worker ready, not before: a spare warming up beside the job,
         at the job's own priority, had slowed its first seconds (the read, the preview)
         while the browser loaded the viewer, and the model's first frame in a browser on
-        the same machine. A job whose account has more jobs waiting (it runs at
-        SCHED_IDLE, behind the spare) gets it ready as soon as that is so: another
-        account's job, posted meanwhile, must not pay a worker's cold start (seconds)."""
+        the same machine. A worker that has dropped to SCHED_IDLE (its account has more
+        jobs waiting: :func:`miss.server.jobs.worker.yield_when_busy`), behind the spare,
+        gets it ready at once: another account's job, posted meanwhile, must not pay a
+        worker's cold start (seconds)."""
         while proc.poll() is None and not self._stopping.is_set():
             try:
-                if self._drawable(model_id) or self.state.others_waiting(model_id, account):
+                if self._drawable(model_id) or yielded(proc.pid):
                     self.runner.prepare()
                     break
             except Exception:  # never costs the job its supervision: the loop does it after
