@@ -243,7 +243,7 @@ def test_kill_during_upload_leaves_no_partial_file(
 
 
 def test_workers_yield_the_cores_to_the_server() -> None:
-    """A worker's first lines (run before its imports) lower its priority: nice 19 and
+    """A worker's first lines (run before its imports) lower its priority: nice 15 (WORKER_NICE) and
     SCHED_BATCH, so viewers are answered first while a conversion runs (a job of an
     account with more waiting goes lower still: tests/security/test_fairness.py)."""
     from miss.server.jobs.process import _BOOTSTRAP, WORKER_NICE

@@ -4,6 +4,7 @@ start in spare workers that loaded everything before the job came."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -215,6 +216,37 @@ def test_jobs_run_in_spare_workers_started_before_them(make_client: Any, wait_do
     while _alive(last.pid) and time.monotonic() < deadline:
         time.sleep(0.05)
     assert not _alive(last.pid)
+
+
+def _nice_of_threads(pid: int) -> dict[int, int]:
+    """Each thread's nice value (field 19 of its stat; the name may hold spaces)."""
+    nice = {}
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        with contextlib.suppress(OSError):
+            stat = (task / "stat").read_text()
+            nice[int(task.name)] = int(stat.rsplit(")", 1)[1].split()[16])
+    return nice
+
+
+@pytest.mark.slow
+def test_a_spares_warm_up_runs_below_the_job_it_waits_for(make_client: Any) -> None:
+    """Issue 39: the next job's warm-up starts while a job runs; at the job's own priority
+    it had taken half the cores from a small job. It runs in a thread at WARM_UP_NICE,
+    while the thread that will run the job stays at WORKER_NICE."""
+    from miss.server.jobs.process import WORKER_NICE
+    from miss.server.jobs.worker import WARM_UP_NICE
+
+    client = make_client(demo=False, spare_workers=1)
+    spare = _spare(client)
+    base = os.getpriority(os.PRIO_PROCESS, 0)
+    seen: dict[int, int] = {}
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline and len(set(seen.values())) < 2:
+        seen = _nice_of_threads(spare.pid)
+        time.sleep(0.02)
+    assert seen.get(spare.pid) == min(19, base + WORKER_NICE), seen
+    assert min(19, base + WARM_UP_NICE) in seen.values(), seen
+    client.app.state.queue.stop()
 
 
 @pytest.mark.slow

@@ -75,15 +75,19 @@ def read_log(path: Path, offset: int) -> str:
 
 
 #: Workers run at a lower priority than the server, so that a long conversion never makes
-#: viewers wait: the event loop gets a core whenever it has a request. SCHED_BATCH at nice
-#: 19 (weight 15 against the server's 1024, and a batch thread never preempts on waking):
-#: nice 10 alone had given cached model fetches a p99 of 300 ms or more during jobs.
-#: A job whose account has more jobs queued or running then drops itself to SCHED_IDLE
-#: (weight 3; :func:`miss.server.jobs.worker.yield_to_others`), so one account's flood
-#: of jobs leaves most of the cores to another account's single job (issue 39). The order
-#: matters: a process may lower its own priority but, without privilege, never raise it
-#: back (RLIMIT_NICE), so every worker starts at the higher of the two.
-WORKER_NICE = 19
+#: viewers wait: the event loop gets a core whenever it has a request. SCHED_BATCH (a
+#: batch thread never preempts on waking) at nice 15 (weight 36 against the server's
+#: 1024): nice 10 without SCHED_BATCH had given cached model fetches a p99 of 300 ms or
+#: more during jobs. A spare's warm-up runs in a thread of its own at
+#: :data:`miss.server.jobs.worker.WARM_UP_NICE`
+#: (weight 15), so the next job's warm-up, started beside a running
+#: job, takes what that job leaves (issue 39: a small job overlapped by a warm-up had
+#: taken twice its time). A job whose account has more jobs queued or running then drops
+#: itself to SCHED_IDLE (weight 3; :func:`miss.server.jobs.worker.yield_to_others`), so
+#: one account's flood of jobs leaves most of the cores to another account's single job.
+#: The order matters: a process may lower its own priority but, without privilege, never
+#: raise it back (RLIMIT_NICE), so every worker starts at the highest of the three.
+WORKER_NICE = 15
 
 #: The worker's first lines, run before it imports VTK and numba (seconds): Linux is asked
 #: to kill it when the server dies (PR_SET_PDEATHSIG), so a server killed meanwhile never

@@ -46,7 +46,7 @@ import sys
 import threading
 import time
 import traceback
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
@@ -472,9 +472,10 @@ def main(argv: list[str]) -> int:
     try:
         if model_id == "-":
             start = time.monotonic()
-            warm_up()
-            warm = time.monotonic() - start
+            warming = warm_up_behind(warm_up)
             model_id = sys.stdin.readline().strip()
+            warming.join()  # a job that came early: the imports are under way, not twice
+            warm = warming.seconds
             if not model_id:
                 return 3
             log_to(store.model_dir(model_id) / "worker.log")
@@ -488,6 +489,41 @@ def main(argv: list[str]) -> int:
         return attempt(store, model_id, parent)
     finally:
         store.close()
+
+
+#: The nice value of a spare worker's warm-up thread: below the job's own
+#: (:data:`miss.server.jobs.process.WORKER_NICE`), so the next job's warm-up, started while
+#: a job runs, takes only what that job leaves.
+WARM_UP_NICE = 19
+
+
+class _WarmUp(threading.Thread):
+    """Runs ``work`` at :data:`WARM_UP_NICE` (Linux: a thread's nice value is its own) and
+    keeps how long it took, in seconds, in :attr:`seconds`."""
+
+    def __init__(self, work: Callable[[], None]) -> None:
+        super().__init__(name="miss-warm-up", daemon=True)
+        self.work = work
+        self.seconds = 0.0
+
+    def run(self) -> None:
+        start = time.monotonic()
+        with contextlib.suppress(OSError):  # not allowed (or not Linux): the job's priority
+            os.setpriority(
+                os.PRIO_PROCESS, 0, max(os.getpriority(os.PRIO_PROCESS, 0), WARM_UP_NICE)
+            )
+        try:
+            self.work()
+        finally:
+            self.seconds = time.monotonic() - start
+
+
+def warm_up_behind(work: Callable[[], None]) -> _WarmUp:
+    """Start ``work`` (:func:`warm_up`) in a thread at :data:`WARM_UP_NICE` and return it;
+    the caller waits for its job meanwhile and joins the thread before running it."""
+    thread = _WarmUp(work)
+    thread.start()
+    return thread
 
 
 def warm_up() -> None:
