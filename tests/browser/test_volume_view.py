@@ -87,3 +87,45 @@ def test_volume_rendering_of_a_bright_cube(
     assert np.ptp(grey) < 10 and 100 < grey.mean() < 230, grey  # 700 HU, a 400/1600 window
     assert np.abs(around(mip, edge) - around(before, edge)).max() < 4
     assert np.abs(around(mip, air) - around(before, air)).max() < 12  # air lets through
+
+
+def test_a_guest_sees_the_scan_only_when_the_link_offers_it(
+    page: Any, browser: Any, server: Any, cube_scan: bytes, artifacts: Path
+) -> None:
+    """Issue 43: a link made with "may see the scan itself" shows the Volume section on the
+    guest's page and draws the cube from ``/s/{token}/voxels``; a plain link shows no
+    Volume section at all."""
+    from conftest import LAPTOP
+
+    csrf = next(c["value"] for c in page.context.cookies() if c["name"] == "miss_csrf")
+    file = {"name": "cube.nii.gz", "mimeType": "application/gzip", "buffer": cube_scan}
+    response = page.request.post(
+        "/api/volumes", headers={"X-CSRF-Token": csrf}, multipart={"file": file}
+    )
+    volume_id = response.json()["id"]
+    job = server.post("/api/models", {"volume": volume_id, "level": 1500, "decimate": "none"})
+    assert server.wait_model(job["id"])["status"] == "done"
+    plain = server.post("/api/shares", {"model": job["id"], "expires_in": 3600})
+    scan = server.post(
+        "/api/shares", {"model": job["id"], "expires_in": 3600, "can_view_volume": True}
+    )
+    context = browser.new_context(viewport=LAPTOP, base_url=server.url)
+    try:
+        guest = context.new_page()
+        guest.goto(plain["url"])
+        guest.wait_for_function("() => window.__miss.ready === true")
+        assert not guest.locator("#volume-toggle").is_visible()
+
+        guest.goto(scan["url"])
+        guest.wait_for_function("() => window.__miss.ready === true")
+        assert "the scan in 3-D" in guest.locator("body").inner_text()
+        before = canvas(guest, artifacts / "volume-guest-off.png")
+        guest.click("#volume-toggle")
+        guest.wait_for_function("() => window.__miss.volume && window.__miss.volume.on")
+        after = canvas(guest, artifacts / "volume-guest-on.png")
+        middle = guest.evaluate(
+            f"() => window.__miss.voxelToScreen([{N // 2}, {N // 2}, {N // 2}])"
+        )
+        assert np.abs(around(after, middle) - around(before, middle)).max() > 60
+    finally:
+        context.close()

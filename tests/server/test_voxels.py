@@ -98,6 +98,91 @@ def test_a_stranger_and_a_guest_get_404(
     assert guest.get(f"/api/volumes/{ramp['id']}/voxels").status_code in (401, 404)
 
 
+def test_a_link_offers_the_scan_only_when_its_owner_allowed_it(
+    client: TestClient, people: dict, ramp: dict, model_for
+) -> None:
+    """Issue 43: a link made with ``can_view_volume`` (a model link: its volume; a volume
+    link: that volume) serves the guest the owner's bytes, never kept by a cache."""
+    model = model_for(client, people["alice"], ramp["id"], level=500)
+    mine = fetch(client, ramp["id"], people["alice"])
+    guest = TestClient(client.app)
+    for target in ({"model": model["id"]}, {"volume": ramp["id"]}):
+        body = target | {"expires_in": 3600, "can_view_volume": True}
+        r = client.post("/api/shares", json=body, headers=people["alice"])
+        assert r.status_code == 201, r.text
+        assert r.json()["can_view_volume"] is True
+        got = guest.get(r.json()["url"] + "/voxels")
+        assert got.status_code == 200, got.text
+        assert got.content == mine.content
+        assert got.headers["cache-control"] == "no-store"
+        assert guest.get(r.json()["url"] + "/info").json()["share"]["can_view_volume"] is True
+        client.delete(f"/api/shares/{r.json()['id']}", headers=people["alice"])
+        assert guest.get(r.json()["url"] + "/voxels").status_code == 410  # revoked: gone
+
+
+def test_a_scan_with_burned_in_text_waits_for_its_owner(
+    client: TestClient, people: dict, datasets: Path, tmp_path: Path
+) -> None:
+    """A scan flagged for burned-in annotation (a real CT's slices, flagged as a scanner
+    does) is offered to guests only once its owner confirms (409 with what to do until
+    then); the surfaces may be shared meanwhile."""
+    import io
+    import zipfile
+
+    import pydicom
+
+    archive = io.BytesIO()
+    with zipfile.ZipFile(archive, "w") as zf:
+        for path in sorted((datasets / "ct_head_dicom_ge_gantrytilt").iterdir())[10:16]:
+            ds = pydicom.dcmread(path)
+            ds.BurnedInAnnotation = "YES"
+            out = io.BytesIO()
+            ds.save_as(out)
+            zf.writestr(f"series/{path.name}", out.getvalue())
+    files = {"file": ("flagged.zip", archive.getvalue(), "application/zip")}
+    r = client.post("/api/volumes", files=files, headers=people["alice"])
+    assert r.status_code == 201, r.text
+    volume = r.json()
+    assert volume["burned_in_annotation"]
+    body = {"volume": volume["id"], "expires_in": 3600, "can_view_volume": True}
+    r = client.post("/api/shares", json=body, headers=people["alice"])
+    assert r.status_code == 409, r.text
+    assert "burned into its pixels" in r.json()["detail"]
+    assert "burned_in_confirmed" in r.json()["detail"]
+    plain = {"volume": volume["id"], "expires_in": 3600}
+    assert client.post("/api/shares", json=plain, headers=people["alice"]).status_code == 201
+    r = client.post(
+        "/api/shares", json=body | {"burned_in_confirmed": True}, headers=people["alice"]
+    )
+    assert r.status_code == 201, r.text
+    assert TestClient(client.app).get(r.json()["url"] + "/voxels").status_code == 200
+
+
+def test_links_from_before_the_volume_right_show_surfaces_only(tmp_path: Path) -> None:
+    """Revision 0003 adds the column to a database at 0002, false for every old link."""
+    from sqlalchemy import text
+
+    from miss.server.core.settings import Settings
+    from miss.server.storage.store import Store
+
+    url = Settings(data_dir=tmp_path).database_url
+    store = Store(tmp_path, url)
+    store.init()
+    with store.engine.begin() as con:
+        con.execute(text("ALTER TABLE shares DROP COLUMN can_view_volume"))
+        con.execute(text("UPDATE alembic_version SET version_num = '0002'"))
+    store.close()
+    store = Store(tmp_path, url)
+    store.init()
+    try:
+        with store.engine.connect() as con:
+            columns = {row[1] for row in con.execute(text("PRAGMA table_info(shares)"))}
+            version = con.execute(text("SELECT version_num FROM alembic_version")).scalar()
+        assert "can_view_volume" in columns and version == "0003"
+    finally:
+        store.close()
+
+
 def test_block_means_and_their_grid() -> None:
     """Level 0 shrinks a 600-wide axis by 3 (by the mean of each block) and places the
     block grid's voxel 0 at the centre of the first block."""

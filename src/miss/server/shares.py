@@ -16,8 +16,8 @@ from sqlalchemy import select, update
 
 from miss.errors import BadParameter
 from miss.server.accounts import User, get_user, token_hash
-from miss.server.core.errors import Gone, NotFound
-from miss.server.storage.db import DONE, ModelRow, ShareRow, utcnow
+from miss.server.core.errors import Conflict, Gone, NotFound
+from miss.server.storage.db import DONE, ModelRow, ShareRow, VolumeRow, utcnow
 from miss.server.storage.store import Store, new_id
 
 TOKEN_BYTES = 32
@@ -37,8 +37,11 @@ def create(
     can_annotate: bool,
     label: str,
     message: str = "",
+    can_view_volume: bool = False,
 ) -> tuple[ShareRow, str]:
-    """A new link for exactly one of ``model_id`` / ``volume_id``; returns (row, token)."""
+    """A new link for exactly one of ``model_id`` / ``volume_id``; returns (row, token).
+    ``can_view_volume``: the scan itself in the guest's 3-D view (the caller has checked
+    that its owner confirmed a scan flagged for burned-in text: :func:`volume_offer`)."""
     if (model_id is None) == (volume_id is None):
         raise BadParameter('name exactly one of "model" or "volume" to share.')
     if not MIN_SECONDS <= expires_in <= MAX_SECONDS:
@@ -57,6 +60,7 @@ def create(
         message=message.strip()[:1000],
         can_download=can_download,
         can_annotate=can_annotate,
+        can_view_volume=can_view_volume,
         expires_at=utcnow() + timedelta(seconds=expires_in),
     )
     with store.session.begin() as s:
@@ -152,6 +156,26 @@ def _covers(store: Store, share: ShareRow, model_id: str) -> bool:
         return False
 
 
+def shared_volume(store: Store, share: ShareRow) -> VolumeRow:
+    """The volume whose voxels a link offers: NotFound unless its owner allowed it."""
+    if not share.can_view_volume:
+        raise NotFound("this link shows the surfaces only; ask its owner for a link with the scan.")
+    volume_id = share.volume_id or store.get_model(share.model_id or "").volume_id
+    return store.get_volume(volume_id)
+
+
+def volume_offer(volume: VolumeRow, confirmed: bool) -> None:
+    """Refuse (Conflict) to offer a scan flagged for burned-in text to guests unless its
+    owner has looked and confirmed: such pixels may show a name or a date of birth that
+    de-identifying the header cannot remove."""
+    if (volume.info or {}).get("burned_in_annotation") and not confirmed:
+        raise Conflict(
+            "this scan is flagged for text burned into its pixels (it may show the patient's "
+            "name or dates): look at its slices, then make the link again with "
+            '"burned_in_confirmed": true, or share the surfaces only.'
+        )
+
+
 def shared_by(store: Store, share: ShareRow) -> str:
     owner = get_user(store, share.owner_id)
     return owner.name if owner else "a former user"
@@ -169,6 +193,7 @@ def as_dict(row: ShareRow, store: Store | None = None, guest: bool = False) -> d
         "message": row.message,
         "can_download": row.can_download,
         "can_annotate": row.can_annotate,
+        "can_view_volume": row.can_view_volume,
         "created": row.created_at.replace(tzinfo=UTC).isoformat(),
         "expires": row.expires_at.replace(tzinfo=UTC).isoformat(),
         "revoked": row.revoked_at.replace(tzinfo=UTC).isoformat() if row.revoked_at else None,

@@ -48,6 +48,11 @@ class NotReady(MissError, RuntimeError):
     """A model file asked for before its job is done."""
 
 
+class Conflict(MissError, RuntimeError):
+    """A request the state of what it names refuses until someone acts (409): a scan
+    flagged for burned-in text offered to guests before its owner confirmed it."""
+
+
 class Unauthorized(MissError, PermissionError):
     """No credentials, or ones that name no live session (log in again)."""
 
@@ -80,6 +85,7 @@ STATUS: tuple[tuple[type[MissError], int], ...] = (
     (BodyTooLarge, 413),
     (UnsupportedFormat, 415),
     (NotReady, 409),
+    (Conflict, 409),
     (WrongStudy, 409),
     (DiskFull, 507),
     (PacsTimeout, 504),

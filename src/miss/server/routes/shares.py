@@ -46,6 +46,13 @@ class ShareRequest(BaseModel):
     expires_in: int = Field(shares.DEFAULT_SECONDS, description="seconds until the link expires")
     can_download: bool = Field(False, description="model files may be downloaded")
     can_annotate: bool = Field(False, description="may join the room: pins, chat, measure")
+    can_view_volume: bool = Field(
+        False, description="may show the scan itself (its de-identified voxels) in 3-D"
+    )
+    burned_in_confirmed: bool = Field(
+        False,
+        description="the owner looked at a scan flagged for burned-in text and offers it anyway",
+    )
     label: str = Field(
         "", max_length=200, description="a note for yourself (who it is for); guests never see it"
     )
@@ -61,9 +68,12 @@ def create_share(body: ShareRequest, store: StoreDep, user: UserDep, request: Re
     if (body.model is None) == (body.volume is None):  # before any look-up: say this first
         raise BadParameter('name exactly one of "model" or "volume" to share.')
     if body.model is not None:
-        visible_model(store, user, body.model)
+        model = visible_model(store, user, body.model)
+        volume = store.get_volume(model.volume_id)
     if body.volume is not None:
-        visible_volume(store, user, body.volume)
+        volume = visible_volume(store, user, body.volume)
+    if body.can_view_volume:
+        shares.volume_offer(volume, body.burned_in_confirmed)
     row, token = shares.create(
         store,
         user,
@@ -72,6 +82,7 @@ def create_share(body: ShareRequest, store: StoreDep, user: UserDep, request: Re
         expires_in=body.expires_in,
         can_download=body.can_download,
         can_annotate=body.can_annotate,
+        can_view_volume=body.can_view_volume,
         label=body.label,
         message=body.message,
     )

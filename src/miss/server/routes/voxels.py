@@ -1,9 +1,7 @@
 """``/api/volumes/{id}/voxels``: the stored (de-identified) voxels for the browser's volume
-renderer, one level at a time (``miss.server.volumes.voxels`` has the format); and the share
-link's answer, 404: no link offers the voxels yet.
-
-Share links have no column for a volume right (``ShareRow`` holds booleans only and no
-JSON to carry a new flag without a migration), so a guest gets 404 whatever the link.
+renderer, one level at a time (``miss.server.volumes.voxels`` has the format); and a share
+link's ``/s/{token}/voxels``, the same bytes for a link whose owner offered the scan
+(``can_view_volume``; a scan flagged for burned-in text only once they confirmed it).
 """
 
 from __future__ import annotations
@@ -13,9 +11,12 @@ import hashlib
 from typing import Annotated
 
 from fastapi import APIRouter, Query, Request, Response
+from starlette.concurrency import run_in_threadpool
 
+from miss.server import shares
 from miss.server.core.deps import BytesDep, SettingsDep, StoreDep, VolumeDep, rendering
-from miss.server.core.errors import NotFound
+from miss.server.core.settings import Settings
+from miss.server.storage.caches import ByteCaches
 from miss.server.storage.db import VolumeRow
 from miss.server.storage.store import Store
 from miss.server.volumes import voxels
@@ -40,6 +41,11 @@ def _make(store: Store, volume: VolumeRow, level: int, budget_bytes: int) -> byt
     return voxels.encode(scan.data, scan.affine, volume.info, hist, level, budget_bytes)
 
 
+LevelQuery = Annotated[
+    int, Query(ge=0, le=max(voxels.LEVELS), description="0: at most 256 a side; 1: full")
+]
+
+
 @router.get(
     "/api/volumes/{volume_id}/voxels",
     response_class=Response,
@@ -55,15 +61,44 @@ async def get_voxels(
     store: StoreDep,
     caches: BytesDep,
     settings: SettingsDep,
-    level: Annotated[
-        int, Query(ge=0, le=max(voxels.LEVELS), description="0: at most 256 a side; 1: full")
-    ] = 0,
+    level: LevelQuery = 0,
 ) -> Response:
     """The volume's voxels at ``level``, 8-bit with the value mapping in the header
     (``real = scale * byte + offset``), the voxel-to-LPS affine of the sent grid, gzip."""
+    return await _voxels(request, volume, store, caches, settings, level, KEEP)
+
+
+@router.get("/s/{token}/voxels", include_in_schema=False)
+async def share_voxels(
+    token: str,
+    request: Request,
+    store: StoreDep,
+    caches: BytesDep,
+    settings: SettingsDep,
+    level: LevelQuery = 0,
+) -> Response:
+    """The shared volume's voxels (a model link: its model's volume), as the owner gets
+    them, only when the link's owner allowed the scan itself (else 404, as for a volume
+    that is not there); never kept by a cache, as nothing of a link is."""
+    share = await run_in_threadpool(shares.resolve, store, token)
+    volume = await run_in_threadpool(shares.shared_volume, store, share)
+    return await _voxels(request, volume, store, caches, settings, level, "no-store")
+
+
+async def _voxels(
+    request: Request,
+    volume: VolumeRow,
+    store: Store,
+    caches: ByteCaches,
+    settings: Settings,
+    level: int,
+    keep: str,
+) -> Response:
     budget = settings.voxel_budget_bytes
     tag = etag(volume, level, budget)
-    headers = {"ETag": tag, "Cache-Control": KEEP, "Vary": "Accept-Encoding"}
+    headers = {"ETag": tag, "Cache-Control": keep, "Vary": "Accept-Encoding"}
+    if keep == "no-store":  # a link's page and files: its URL holds the token
+        headers["Referrer-Policy"] = "no-referrer"
     held = request.headers.get("if-none-match", "")
     if tag in (t.strip().removeprefix("W/") for t in held.split(",")):
         return Response(status_code=304, headers=headers)
@@ -78,9 +113,3 @@ async def get_voxels(
     if "gzip" not in request.headers.get("accept-encoding", ""):
         return Response(gzip.decompress(body), media_type=MIME, headers=headers)
     return Response(body, media_type=MIME, headers=headers | {"Content-Encoding": "gzip"})
-
-
-@router.get("/s/{token}/voxels", include_in_schema=False)
-def share_voxels(token: str) -> Response:
-    """A share link never offers the voxels (yet): 404, as for a volume that is not there."""
-    raise NotFound("this link shows the surfaces only; ask its owner for the scan itself.")

@@ -21,6 +21,7 @@ from sqlalchemy import (
     UniqueConstraint,
     create_engine,
     event,
+    false,
 )
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, sessionmaker
 
@@ -147,6 +148,8 @@ class ShareRow(Base):
     message: Mapped[str] = mapped_column(String(1000), default="")  # what guests read
     can_download: Mapped[bool] = mapped_column(default=False)
     can_annotate: Mapped[bool] = mapped_column(default=False)
+    # the scan itself (its de-identified voxels) in the guest's 3-D view (issue 43)
+    can_view_volume: Mapped[bool] = mapped_column(default=False, server_default=false())
     created_at: Mapped[datetime] = mapped_column(default=utcnow)
     expires_at: Mapped[datetime] = mapped_column()
     revoked_at: Mapped[datetime | None] = mapped_column(default=None)

@@ -24,6 +24,8 @@ export class ShareDialog {
 					el( 'select#share-expiry', {}, ...EXPIRIES.map( ( [ s, label ] ) => el( 'option', { value: s, selected: s === 86400 }, label ) ) ) ),
 				el( 'label.check', {}, el( 'input#share-annotate', { type: 'checkbox', checked: true } ), ' may join the consultation (pins, chat, measure)' ),
 				el( 'label.check', {}, el( 'input#share-download', { type: 'checkbox' } ), ' may download the model files' ),
+				el( 'label.check', {}, el( 'input#share-volume', { type: 'checkbox' } ), ' may see the scan itself in 3-D (its de-identified voxels)' ),
+				burnedIn ? el( 'label.check', {}, el( 'input#share-burned-ok', { type: 'checkbox' } ), ' I have looked at the slices: no identity shows in the pixels' ) : null,
 				el( 'div.row', {},
 					el( 'button#share-create.primary', { type: 'submit' }, 'Create link' ),
 					el( 'button', { type: 'button', onclick: () => this.dialog.close() }, 'Close' ) ),
@@ -56,6 +58,8 @@ export class ShareDialog {
 				expires_in: Number( this.$( 'share-expiry' ).value ),
 				can_annotate: this.$( 'share-annotate' ).checked,
 				can_download: this.$( 'share-download' ).checked,
+				can_view_volume: this.$( 'share-volume' ).checked,
+				burned_in_confirmed: Boolean( this.$( 'share-burned-ok' )?.checked ),
 				label: this.$( 'share-label' ).value,
 				message: this.$( 'share-message' ).value,
 			} );
@@ -95,7 +99,7 @@ export class ShareDialog {
 	}
 
 	item( link ) {
-		const rights = [ link.can_annotate ? 'consult' : 'view', link.can_download ? 'download' : null ].filter( Boolean ).join( ' + ' );
+		const rights = [ link.can_annotate ? 'consult' : 'view', link.can_view_volume ? 'scan' : null, link.can_download ? 'download' : null ].filter( Boolean ).join( ' + ' );
 		const revoke = async () => {
 			try {
 				await api.revokeShare( link.id );

@@ -10,6 +10,7 @@ import { fillDownloads, fillStats, overlay, setupDisplay } from '../viewer/viewe
 import { status } from '../test-hooks.js';
 import { StructuresPanel } from '../viewer/structures-panel.js';
 import { ModelViewer } from '../viewer/viewer.js';
+import { VolumePanel } from '../viewer/volume-panel.js';
 
 const $ = ( id ) => document.getElementById( id );
 const token = decodeURIComponent( location.pathname.split( '/' )[ 2 ] || '' );
@@ -29,7 +30,7 @@ function info() {
 
 function showShare( data ) {
 	const s = data.share;
-	const rights = [ 'view', s.can_annotate ? 'consult' : null, s.can_download ? 'download' : null ].filter( Boolean ).join( ', ' );
+	const rights = [ 'view', s.can_view_volume ? 'the scan in 3-D' : null, s.can_annotate ? 'consult' : null, s.can_download ? 'download' : null ].filter( Boolean ).join( ', ' );
 	fill( $( 'share-facts' ),
 		row( 'Shared by', s.shared_by ),
 		s.message ? row( 'Message', s.message ) : null,
@@ -100,10 +101,14 @@ export async function start() {
 		vrml.disabled = ! model.files.wrl;
 		if ( vrml.disabled ) vrml.title = 'This link includes the GLB only (no downloads).';
 		showProvenance( model.provenance );
+		const volumePanel = data.share.can_view_volume ? new VolumePanel( viewer, `${base}/voxels` ) : null;
+		const volumeView = volumePanel && new URLSearchParams( location.search ).get( 'view' ) === 'volume';
+		if ( volumeView ) volumePanel.prefetch(); // arrives while the model loads
 		if ( data.share.can_annotate ) consult = new Consultation( { viewer, modelId: model.id, container: $( 'room' ), share: token, guest: true } );
 		$( 'room' ).hidden = ! data.share.can_annotate;
 		$( 'view-only' ).hidden = data.share.can_annotate;
 		await display( new URLSearchParams( location.search ).get( 'mode' ) );
+		if ( volumeView ) await volumePanel.show( true );
 	} catch ( err ) {
 		overlay( 'This shared model cannot be shown', err.message || String( err ) );
 		status.error = err.message || String( err );

@@ -145,7 +145,7 @@ export async function start() {
 	const display = setupDisplay( viewer, urlOf, { onLoaded } );
 	try {
 		let model = await asked;
-		const volumePanel = new VolumePanel( viewer, model.volume );
+		const volumePanel = new VolumePanel( viewer, `/api/volumes/${encodeURIComponent( model.volume )}/voxels` );
 		const volumeView = new URLSearchParams( location.search ).get( 'view' ) === 'volume';
 		if ( volumeView ) volumePanel.prefetch(); // arrives while the model loads
 		const volume = api.volume( model.volume );

@@ -8,13 +8,16 @@ import { status } from '../test-hooks.js';
 const $ = ( id ) => document.getElementById( id );
 
 export class VolumePanel {
-	constructor( viewer, volumeId ) {
+	// `voxelsUrl`: where the voxels come from (the owner's API, or a share link's
+	// /s/{token}/voxels when its owner offered the scan).
+	constructor( viewer, voxelsUrl ) {
 		this.viewer = viewer;
-		this.volumeId = volumeId;
+		this.voxelsUrl = voxelsUrl;
 		this.layer = null;
 		this.loading = null;
 		this.button = $( 'volume-toggle' );
 		if ( ! this.button ) return; // a page without the section
+		$( 'volume-section' ).hidden = false;
 		this.button.hidden = false;
 		this.button.addEventListener( 'click', () => this.show( this.button.getAttribute( 'aria-pressed' ) !== 'true' ) );
 		$( 'volume-preset' ).addEventListener( 'change', ( e ) => this.setPreset( e.target.value ) );
@@ -25,8 +28,7 @@ export class VolumePanel {
 	// model is drawn, so both arrive while it loads).
 	prefetch() {
 		if ( ! this.loading ) {
-			const url = `/api/volumes/${encodeURIComponent( this.volumeId )}/voxels?level=0`;
-			const body = fetch( url, { credentials: 'same-origin' } ).then( ( r ) => {
+			const body = fetch( `${this.voxelsUrl}?level=0`, { credentials: 'same-origin' } ).then( ( r ) => {
 				if ( ! r.ok ) throw new Error( `the scan's voxels could not be fetched (${r.status})` );
 				return r.arrayBuffer();
 			} );
