@@ -11,11 +11,12 @@ import anyio.to_thread
 from anyio import CapacityLimiter
 from fastapi import Depends, Request
 from starlette.concurrency import run_in_threadpool
+from starlette.requests import HTTPConnection
 
 from miss.server.accounts import User, session_cached
 from miss.server.core.auth import can_see, presented_token, user_for_request
 from miss.server.core.errors import Forbidden, NotFound
-from miss.server.core.ratelimit import ApiLimits, JobLimit, PasswordChecks
+from miss.server.core.ratelimit import ApiLimits, JobLimit, KeyedBuckets, PasswordChecks
 from miss.server.core.settings import Settings
 from miss.server.jobs import JobQueue
 from miss.server.metrics.registry import Metrics
@@ -34,8 +35,9 @@ async def get_settings(request: Request) -> Settings:
     return request.app.state.settings
 
 
-async def get_store(request: Request) -> Store:
-    return request.app.state.store
+# ``HTTPConnection``: the look-ups a WebSocket route needs too.
+async def get_store(conn: HTTPConnection) -> Store:
+    return conn.app.state.store
 
 
 async def get_queue(request: Request) -> JobQueue:
@@ -50,8 +52,12 @@ async def get_byte_caches(request: Request) -> ByteCaches:
     return request.app.state.bytes
 
 
-async def get_rooms(request: Request) -> Hub:
-    return request.app.state.rooms
+async def get_rooms(conn: HTTPConnection) -> Hub:
+    return conn.app.state.rooms
+
+
+async def get_ws_connects(conn: HTTPConnection) -> KeyedBuckets:
+    return conn.app.state.ws_connects
 
 
 async def get_upload_slots(request: Request) -> UploadSlots:
@@ -115,6 +121,8 @@ QueueDep = Annotated[JobQueue, Depends(get_queue)]
 JobLimitDep = Annotated[JobLimit, Depends(get_job_limit)]
 BytesDep = Annotated[ByteCaches, Depends(get_byte_caches)]
 RoomsDep = Annotated[Hub, Depends(get_rooms)]
+#: WebSocket connections per client address (``MISS_WS_CONNECTS_PER_MINUTE``).
+WsConnectsDep = Annotated[KeyedBuckets, Depends(get_ws_connects)]
 UploadSlotsDep = Annotated[UploadSlots, Depends(get_upload_slots)]
 ReadingDep = Annotated[Reading, Depends(get_reading)]
 PacsImportsDep = Annotated[PacsImports, Depends(get_pacs_imports)]

@@ -6,21 +6,36 @@ from __future__ import annotations
 import os
 from typing import Any
 
-from fastapi import APIRouter, FastAPI, Request
+from fastapi import APIRouter, Request
 from fastapi.responses import JSONResponse, Response
 from starlette.concurrency import run_in_threadpool
 
 from miss import __version__
 from miss.server.core import errors
-from miss.server.core.deps import MetricsDep, StoreDep, current_admin, current_user
+from miss.server.core.deps import (
+    MetricsDep,
+    QueueDep,
+    SettingsDep,
+    StoreDep,
+    current_admin,
+    current_user,
+)
 from miss.server.core.settings import Settings
+from miss.server.jobs import JobQueue
 from miss.server.metrics.registry import check_data_folder, check_database, is_scraper, scrape_token
+from miss.server.storage.store import Store
 
 router = APIRouter()
 
 
 @router.get("/api/health", tags=["server"], response_model=None)
-async def health(request: Request, deep: bool = False) -> dict[str, Any] | JSONResponse:
+async def health(
+    request: Request,
+    settings: SettingsDep,
+    store: StoreDep,
+    queue: QueueDep,
+    deep: bool = False,
+) -> dict[str, Any] | JSONResponse:
     """Without ``deep``: answered on the event loop itself (no thread, no database), its
     latency is the loop's, which load tests watch while jobs and uploads run. With
     ``?deep=1``: the database, the data folder and the job runners checked too; 503
@@ -28,10 +43,10 @@ async def health(request: Request, deep: bool = False) -> dict[str, Any] | JSONR
     administrators and the scrape token read the details (free space, the errors)."""
     if not deep:
         return {"status": "ok", "version": __version__}
-    checks = await run_in_threadpool(_deep_checks, request.app)
+    checks = await run_in_threadpool(_deep_checks, settings, store, queue)
     well = all(c["ok"] for c in checks.values())
     body: dict[str, Any] = {"status": "ok" if well else "failing", "version": __version__}
-    if await _is_operator(request):
+    if await _is_operator(request, store):
         body |= checks
         body["process"] = os.getpid()  # which of several server processes answered
     else:
@@ -48,24 +63,23 @@ async def metrics(request: Request, store: StoreDep, registry: MetricsDep) -> Re
     return Response(body, media_type="text/plain; version=0.0.4; charset=utf-8")
 
 
-async def _is_operator(request: Request) -> bool:
+async def _is_operator(request: Request, store: Store) -> bool:
     """An administrator's session or the scrape token (``MISS_METRICS_TOKEN``)."""
     if is_scraper(request.headers.get("authorization", ""), scrape_token()):
         return True
     try:
-        await current_admin(await current_user(request, request.app.state.store))
+        await current_admin(await current_user(request, store))
     except (errors.Unauthorized, errors.Forbidden):
         return False
     return True
 
 
-def _deep_checks(app: FastAPI) -> dict[str, dict[str, Any]]:
+def _deep_checks(settings: Settings, store: Store, queue: JobQueue) -> dict[str, dict[str, Any]]:
     """Each check's answer, or its failure in words (never raised: the answer is the 503)."""
-    settings: Settings = app.state.settings
     checks = {
-        "database": lambda: check_database(app.state.store),
-        "data_folder": lambda: check_data_folder(app.state.store, settings.min_free_bytes),
-        "job_runners": lambda: app.state.queue.health(),
+        "database": lambda: check_database(store),
+        "data_folder": lambda: check_data_folder(store, settings.min_free_bytes),
+        "job_runners": queue.health,
     }
     out: dict[str, dict[str, Any]] = {}
     for name, check in checks.items():

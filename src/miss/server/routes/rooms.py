@@ -11,9 +11,9 @@ from starlette.concurrency import run_in_threadpool
 
 from miss.server import audit, shares
 from miss.server.core.auth import authenticate, same_origin
-from miss.server.core.deps import ModelDep, StoreDep, visible_model
+from miss.server.core.deps import ModelDep, RoomsDep, StoreDep, WsConnectsDep, visible_model
 from miss.server.core.errors import Gone, NotFound, Unauthorized
-from miss.server.core.ratelimit import retry_after
+from miss.server.core.ratelimit import KeyedBuckets, retry_after
 from miss.server.rooms import Close, Refused, Visitor, guest_name
 from miss.server.rooms import record as roomlog
 from miss.server.storage.store import Store
@@ -88,13 +88,13 @@ def admit(store: Store, ws: WebSocket, model_id: str, token: str, name: str) -> 
     return visitor, bounds
 
 
-def too_often(ws: WebSocket) -> None:
+def too_often(ws: WebSocket, connects: KeyedBuckets) -> None:
     """Refuse a connection over its address's allowance (``MISS_WS_CONNECTS_PER_MINUTE``),
     before any database look-up: a loop reconnecting as fast as it can costs little."""
     address = ws.client.host if ws.client else ""
-    wait = ws.app.state.ws_connects.take_or_wait(f"addr:{address}")
+    wait = connects.take_or_wait(f"addr:{address}")
     if wait > 0.0:
-        per_minute = ws.app.state.ws_connects.capacity
+        per_minute = connects.capacity
         raise Refused(
             Close.TOO_MANY,
             f"too many connections from your address (at most {per_minute:g} a minute); "
@@ -106,6 +106,9 @@ def too_often(ws: WebSocket) -> None:
 async def room_socket(
     ws: WebSocket,
     model_id: str,
+    store: StoreDep,
+    rooms: RoomsDep,
+    connects: WsConnectsDep,
     share: Annotated[str, Query(max_length=200)] = "",
     name: Annotated[str, Query(max_length=200)] = "",
 ) -> None:
@@ -116,15 +119,14 @@ async def room_socket(
     or the link's) full, or too many connections from the address."""
     # Accept first, so a refusal reaches the browser as words and a code, not a bare 403.
     await ws.accept()
-    store: Store = ws.app.state.store
     try:
-        too_often(ws)
+        too_often(ws, connects)
         visitor, bounds = await run_in_threadpool(admit, store, ws, model_id, share, name)
     except Refused as refused:
         await ws.send_json({"type": "error", "code": "refused", "error": refused.reason})
         await ws.close(code=refused.code, reason=refused.reason[:120])
         return
-    await ws.app.state.rooms.run(ws, model_id, visitor, bounds)
+    await rooms.run(ws, model_id, visitor, bounds)
 
 
 @router.get("/api/models/{model_id}/room/sessions")
