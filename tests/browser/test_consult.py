@@ -249,3 +249,70 @@ def replayed(owner: Any, model_id: str, artifacts: Any) -> None:
     assert log.index("joined") < log.index("pinned") < log.index("Can you see it?")
     owner.screenshot(path=artifacts / "consult-replay.png")
     owner.click("#replay-stop")
+
+
+SET_RANGE = """([selector, value]) => {
+    const input = document.querySelector(selector);
+    input.value = String(value);
+    input.dispatchEvent(new Event('input', { bubbles: true }));
+}"""
+
+
+def pin_at_centre(page: Any) -> list[float]:
+    """Place a pin at the canvas's centre with the Pin tool; its point (LPS mm)."""
+    before = len(room(page)["pins"])
+    page.click("#room [data-tool=pin]")
+    click_model(page)
+    page.wait_for_selector("#pin-form:not([hidden])")
+    page.fill("#pin-note", "here")
+    page.press("#pin-note", "Enter")
+    page.wait_for_function(f"() => window.__miss.room.pins.length === {before + 1}")
+    return room(page)["pins"][-1]["point"]
+
+
+def test_what_shows_is_shared_kept_and_picked_through(
+    page: Any, guest_context: Any, server: Any
+) -> None:
+    """Issue 42: the owner hides a part and clips; a guest who joins sees the same, and so
+    does the owner after a reload. A pin clicked where the 35 %-opaque skin lies over the
+    bone lands on the bone (as when the skin is hidden) and selects nothing."""
+    demo = server.get("/api/volumes")[0]["id"]
+    job = server.post(
+        "/api/models",
+        {"volume": demo, "levels": [300, -500], "sample_rate": 4, "decimate": "none"},
+    )
+    assert server.wait_model(job["id"])["status"] == "done"
+    open_viewer(page, f"/models/{job['id']}")
+    parts = page.evaluate("() => window.__miss.structures.parts")
+    skin = next(i for i, p in enumerate(parts) if p["opacity"] < 1)
+    rows = page.locator("#structure-list li")
+
+    # the pin's pixel with the skin hidden: a point on the bone
+    rows.nth(skin).locator("[data-role=visible]").uncheck()
+    on_bone = pin_at_centre(page)
+    rows.nth(skin).locator("[data-role=visible]").check()
+    through = pin_at_centre(page)
+    assert math.dist(on_bone, through) < 0.5, (on_bone, through)
+    assert page.evaluate("() => window.__miss.structures.selected") is None
+
+    bone = 1 - skin
+    rows.nth(bone).locator("[data-role=visible]").uncheck()
+    page.select_option("#clip-axis", "axial")
+    page.evaluate(SET_RANGE, ["#clip-position", 0.5])
+    link = server.post("/api/shares", {"model": job["id"], "can_annotate": True})["url"]
+    guest = guest_context.new_page()
+    open_viewer(guest, link)
+    hidden = f"() => window.__miss.structures.parts[{bone}].visible === false"
+    clipped = '() => JSON.stringify(window.__miss.structures.clip) === \'{"axis":"axial","fraction":0.5}\''
+    guest.wait_for_function(hidden)
+    guest.wait_for_function(clipped)  # the owner's last change may come after the welcome
+    assert (
+        not guest.locator("#structure-list li")
+        .nth(bone)
+        .locator("[data-role=visible]")
+        .is_checked()
+    )
+    page.reload()
+    open_viewer(page, page.url)
+    page.wait_for_function(hidden)
+    page.wait_for_function(clipped)

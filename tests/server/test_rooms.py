@@ -325,3 +325,53 @@ def test_times_rise_with_ids_across_a_rooms_sessions(
     events = replay(client, model, alice, leaves=leaves + 3)[len(before) :]
     assert [e["kind"] for e in events] == ["join", "leave"] * 3
     assert [e["at"] for e in events] == sorted(e["at"] for e in events), events
+
+
+def test_what_shows_is_shared_and_kept(client: TestClient, room: dict) -> None:
+    """Issue 42: the owner's (or presenter's) parts shown, opacity and clipping reach the
+    others and are kept: a reload (a new connection) and a late guest get them back; a
+    guest who does not present may not set them; bad states are refused."""
+    model = room["model"]
+    display = {
+        "type": "display",
+        "parts": [{"visible": False, "opacity": 0.35}, {"visible": True, "opacity": 1}],
+        "clip": {"axis": "axial", "fraction": 0.6},
+    }
+    with (
+        joined(client, url(model), room["alice"]) as alice,
+        joined(client, url(model, room["token"], "Guest")) as guest,
+    ):
+        alice.send_json(display)
+        heard = until(guest, "display")
+        assert heard["item"]["parts"] == [
+            {"visible": False, "opacity": 0.35},
+            {"visible": True, "opacity": 1.0},
+        ]
+        assert heard["item"]["clip"] == {"axis": "axial", "fraction": 0.6}
+        assert heard["from"] == alice.welcome["you"]["id"]
+        guest.send_json(display | {"clip": None})
+        assert until(guest, "error")["code"] == "not_presenter"
+        for bad in (
+            {"parts": "all"},
+            {"parts": [{"visible": "yes", "opacity": 1}]},
+            {"parts": [{"visible": True, "opacity": 2}]},
+            {"parts": [], "clip": {"axis": "diagonal", "fraction": 0.5}},
+            {"parts": [{"visible": True, "opacity": 1}] * 513},
+        ):
+            alice.send_json({"type": "display", **bad})
+            assert until(alice, "error")["code"] == "invalid", bad
+    with joined(client, url(model, room["token"], "Late")) as late:
+        kept = late.welcome["display"]
+        assert kept["parts"][0] == {"visible": False, "opacity": 0.35}
+        assert kept["clip"] == {"axis": "axial", "fraction": 0.6}
+    # presenting, a guest sets it for everyone (the owner too)
+    with (
+        joined(client, url(model), room["alice"]) as alice,
+        joined(client, url(model, room["token"], "Guest")) as guest,
+    ):
+        guest.send_json({"type": "presenter", "on": True})
+        until(alice, "presenter")
+        guest.send_json(display | {"clip": None})
+        assert until(alice, "display")["item"]["clip"] is None
+        alice.send_json(display)  # the owner, while someone else presents
+        assert until(alice, "error")["code"] == "not_presenter"

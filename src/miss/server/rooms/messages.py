@@ -15,6 +15,9 @@ if TYPE_CHECKING:
     from miss.server.rooms.hub import Hub
 
 MAX_NOTE, MAX_CHAT = 500, 2000
+#: Parts a display state may describe (a label map's structures are at most 255).
+MAX_PARTS = 512
+CLIP_AXES = ("axial", "coronal", "sagittal")
 #: The presenter's camera goes to the replay at most this often (seconds).
 VIEW_EVERY = 1.0
 
@@ -91,6 +94,55 @@ async def on_camera(hub: Hub, room: Room, person: Participant, message: dict[str
         await hub.store_event(room, person, "view", view)
 
 
+def fraction(value: Any, name: str) -> float:
+    """A finite number in [0, 1]."""
+    ok = isinstance(value, int | float) and not isinstance(value, bool)
+    if ok and math.isfinite(value) and 0.0 <= value <= 1.0:
+        return float(value)
+    raise Invalid("invalid", f"{name} must be a number from 0 to 1.")
+
+
+def display_state(message: dict[str, Any]) -> dict[str, Any]:
+    """``parts`` (each part's ``visible`` and ``opacity``, in the model's order) and
+    ``clip`` (null, or an ``axis`` and the ``fraction`` of the extent kept), checked."""
+    parts = message.get("parts")
+    if not isinstance(parts, list) or len(parts) > MAX_PARTS:
+        raise Invalid("invalid", f"parts must be a list of at most {MAX_PARTS} parts.")
+    shown = []
+    for n, part in enumerate(parts):
+        if not isinstance(part, dict) or not isinstance(part.get("visible"), bool):
+            raise Invalid("invalid", f"parts[{n}] must be {{visible: true|false, opacity: 0..1}}.")
+        shown.append(
+            {"visible": part["visible"], "opacity": fraction(part.get("opacity"), "opacity")}
+        )
+    clip = message.get("clip")
+    if clip is not None:
+        if not isinstance(clip, dict) or clip.get("axis") not in CLIP_AXES:
+            raise Invalid(
+                "invalid", f"clip must be null or {{axis: {'|'.join(CLIP_AXES)}, fraction}}."
+            )
+        clip = {"axis": clip["axis"], "fraction": fraction(clip.get("fraction"), "clip fraction")}
+    return {"parts": shown, "clip": clip}
+
+
+async def on_display(hub: Hub, room: Room, person: Participant, message: dict[str, Any]) -> None:
+    """Which parts show, how opaque, and the clipping: the presenter's for everyone, or
+    the owner's while nobody presents; kept, so a reload (and a late joiner) sees it."""
+    if room.presenter != person.id and not (person.visitor.owner and room.presenter is None):
+        raise Invalid(
+            "not_presenter",
+            "only the presenter (or the model's owner while nobody presents) sets what shows.",
+        )
+    data = display_state(message)
+    stored_id, at = await hub.store_event(room, person, "display", data)
+    room.state.apply(stored_id, at, "display", person.visitor.name, data)
+    item = {"id": stored_id, "author": person.visitor.name, "at": at, **data}
+    event = (stored_id, at, "display", person.visitor.name, data)
+    hub.broadcast(
+        room, {"type": "display", "from": person.id, "item": item}, skip=person, event=event
+    )
+
+
 async def on_laser(hub: Hub, room: Room, person: Participant, message: dict[str, Any]) -> None:
     _check_model(room, message)
     at = message.get("point")
@@ -157,4 +209,5 @@ HANDLERS: dict[str, Handler] = {
     "measure": on_measure,
     "unmeasure": on_remove,
     "chat": on_chat,
+    "display": on_display,
 }

@@ -1,7 +1,7 @@
 """What a consultation room keeps: its events in the database, and the state they fold to.
 
-Every event (join, leave, presenter, view, pin, unpin, measure, unmeasure, chat) is one
-row. Pins, measurements and chat are not stored separately: a room opened again folds
+Every event (join, leave, presenter, view, display, pin, unpin, measure, unmeasure, chat)
+is one row. Pins, measurements and chat are not stored separately: a room opened again folds
 its rows into the current state, and a replay reads the same rows in order, so the two
 can never disagree.
 """
@@ -61,6 +61,8 @@ class RoomState:
     pins: dict[int, dict[str, Any]] = field(default_factory=dict)
     measurements: dict[int, dict[str, Any]] = field(default_factory=dict)
     chat: list[dict[str, Any]] = field(default_factory=list)
+    #: The latest ``display`` (parts shown, their opacity, the clipping), or None.
+    display: dict[str, Any] | None = None
 
     def apply(self, event_id: int, at: str, kind: str, author: str, data: dict[str, Any]) -> None:
         """Fold one event in (the live room calls this too, after storing it)."""
@@ -73,6 +75,8 @@ class RoomState:
             self.measurements[event_id] = item
         elif kind == "unmeasure":
             self.measurements.pop(int(data.get("id", -1)), None)
+        elif kind == "display":
+            self.display = item
         elif kind == "chat":
             self.chat.append(item)
             del self.chat[:-CHAT_BACKLOG]
@@ -85,13 +89,14 @@ class RoomState:
             "pins": [shown(item) for item in self.pins.values()],
             "measurements": [shown(item) for item in self.measurements.values()],
             "chat": list(self.chat),
+            "display": self.display,
         }
 
 
 def load_state(store: Store, model_id: str) -> RoomState:
     """The room's state from all its stored events."""
     state = RoomState()
-    kinds = ("pin", "unpin", "measure", "unmeasure", "chat")
+    kinds = ("pin", "unpin", "measure", "unmeasure", "chat", "display")
     query = (
         select(RoomEventRow)
         .where(RoomEventRow.model_id == model_id, RoomEventRow.kind.in_(kinds))

@@ -104,7 +104,7 @@ export async function start() {
 		const volumePanel = data.share.can_view_volume ? new VolumePanel( viewer, `${base}/voxels` ) : null;
 		const volumeView = volumePanel && new URLSearchParams( location.search ).get( 'view' ) === 'volume';
 		if ( volumeView ) volumePanel.prefetch(); // arrives while the model loads
-		if ( data.share.can_annotate ) consult = new Consultation( { viewer, modelId: model.id, container: $( 'room' ), share: token, guest: true } );
+		if ( data.share.can_annotate ) consult = new Consultation( { viewer, modelId: model.id, container: $( 'room' ), share: token, guest: true, structures } );
 		$( 'room' ).hidden = ! data.share.can_annotate;
 		$( 'view-only' ).hidden = data.share.can_annotate;
 		await display( new URLSearchParams( location.search ).get( 'mode' ) );

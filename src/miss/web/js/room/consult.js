@@ -20,8 +20,10 @@ const CLOSED = {
 };
 
 export class Consultation {
-	constructor( { viewer, modelId, container, share = '', guest = false } ) {
+	// structures: the page's StructuresPanel, whose parts shown and clipping the room shares.
+	constructor( { viewer, modelId, container, share = '', guest = false, structures = null } ) {
 		this.viewer = viewer;
+		this.structures = structures;
 		this.modelId = modelId;
 		this.annotations = new Annotations( viewer );
 		this.follower = new CameraFollower( viewer );
@@ -32,12 +34,29 @@ export class Consultation {
 		this.bindRoom();
 		this.tools = new PointerTools( this );
 		viewer.onCameraChange( () => this.isPresenting() && this.sendCamera() );
+		if ( structures ) structures.onChange = () => this.sendDisplay();
 		this.publish();
 		this.room.connect();
 	}
 
 	isPresenting() {
 		return this.state.you && this.state.presenter === this.state.you.id;
+	}
+
+	// What shows is the presenter's to set, or the owner's while nobody presents.
+	setsDisplay() {
+		const s = this.state;
+		return Boolean( s.you && ( this.isPresenting() || ( s.you.owner && ! s.presenter ) ) );
+	}
+
+	sendDisplay() {
+		if ( ! this.setsDisplay() ) return;
+		this.state.display = this.structures.display();
+		this.room.throttled( 'display', { type: 'display', ...this.state.display }, 150 );
+	}
+
+	showDisplay() {
+		if ( this.state.display && this.viewer.model ) this.structures?.applyDisplay( this.state.display );
 	}
 
 	sendCamera() {
@@ -140,6 +159,7 @@ export class Consultation {
 	// take up the presenter's view again (loading framed the model anew).
 	modelLoaded() {
 		this.annotations.refresh();
+		this.showDisplay();
 		this.catchUp();
 	}
 
@@ -199,6 +219,10 @@ export class Consultation {
 			if ( this.followingNow() ) this.follower.follow( m );
 		} );
 		room.on( 'laser', ( m ) => this.annotations.laser( m.from, m.colour, m.point ) );
+		room.on( 'display', ( m ) => {
+			this.state.display = m.item;
+			this.showDisplay();
+		} );
 	}
 
 	bindItems() {
@@ -235,6 +259,8 @@ export class Consultation {
 		s.measurements = new Map( m.measurements.map( ( x ) => [ x.id, x ] ) );
 		s.chat = m.chat;
 		s.view = m.view;
+		s.display = m.display;
+		this.showDisplay(); // what the owner or presenter left showing, after a reload too
 		this.panel.setStatus( `connected as ${m.you.name}` );
 		this.refreshPeople();
 		this.refreshPins();

@@ -85,6 +85,10 @@ export class RoomClient extends EventTarget {
 		this.timers.set( kind, slot );
 		const wait = slot.last + ms - performance.now();
 		if ( wait <= 0 ) {
+			// A trailing send still waiting (its timer late: the page was busy) holds an
+			// older message; sent after this one it would undo it.
+			clearTimeout( slot.timer );
+			slot.timer = 0;
 			slot.last = performance.now();
 			this.send( message );
 			return;

@@ -16,6 +16,7 @@ export class PointerTools {
 
 	setTool( tool ) {
 		this.tool = tool;
+		this.c.viewer.annotating = tool === 'pin' || tool === 'measure'; // clicks place, not select
 		this.pendingPin = null;
 		this.measureStart = null;
 		this.c.annotations.mark( null );
@@ -50,7 +51,7 @@ export class PointerTools {
 	click( x, y ) {
 		const tool = this.tool;
 		if ( tool !== 'pin' && tool !== 'measure' ) return;
-		const hit = this.c.viewer.pick( x, y );
+		const hit = this.c.viewer.pick( x, y, { prefer: this.c.viewer.selected } );
 		if ( ! hit ) return this.c.panel.showError( 'Nothing there: click on the model itself.' );
 		this.c.panel.showError( '' );
 		const colour = this.c.state.you?.colour || '#ffffff';

@@ -35,9 +35,10 @@ export class StructuresPanel {
 		this.viewer = viewer;
 		this.stats = {};
 		this.canDownload = true;
+		this.onChange = () => {}; // what shows changed by this person's hand (a room shares it)
 		this.bindCanvas();
-		$( 'clip-axis' ).addEventListener( 'change', () => this.clip() );
-		$( 'clip-position' ).addEventListener( 'input', () => this.clip() );
+		$( 'clip-axis' ).addEventListener( 'change', () => this.clip( true ) );
+		$( 'clip-position' ).addEventListener( 'input', () => this.clip( true ) );
 		for ( const b of document.querySelectorAll( '[data-part-format]' ) ) {
 			b.addEventListener( 'click', () => this.download( b.dataset.partFormat ) );
 		}
@@ -71,6 +72,7 @@ export class StructuresPanel {
 		visible.addEventListener( 'change', () => {
 			this.viewer.setPartVisible( i, visible.checked );
 			this.publish();
+			this.onChange();
 		} );
 		const color = el( 'input', { type: 'color', value: hex( part.material.color ), 'aria-label': `Colour of ${part.name}`, dataset: { role: 'color' } } );
 		color.addEventListener( 'input', () => {
@@ -83,6 +85,7 @@ export class StructuresPanel {
 		opacity.addEventListener( 'input', () => {
 			this.viewer.setPartOpacity( i, Number( opacity.value ) );
 			this.publish();
+			this.onChange();
 		} );
 		const name = el( 'button.link.part-name', { type: 'button', title: 'Select this part', onclick: () => this.showSelected( i ) }, part.name );
 		return el( 'li.structure-row', { dataset: { index: i } }, visible, color, name, opacity );
@@ -90,8 +93,37 @@ export class StructuresPanel {
 
 	bindCanvas() {
 		onClick( this.viewer.renderer.domElement, ( e ) => {
-			if ( this.viewer.parts.length ) this.showSelected( this.viewer.pickPart( e.clientX, e.clientY ) );
+			// a click of the room's Pin or Measure tool places a point; it selects nothing
+			if ( this.viewer.parts.length && ! this.viewer.annotating ) this.showSelected( this.viewer.pickPart( e.clientX, e.clientY ) );
 		} );
+	}
+
+	// What shows, as a room shares it: each part's visibility and opacity, the clipping.
+	display() {
+		const axis = $( 'clip-axis' ).value;
+		return {
+			parts: this.viewer.parts.map( ( p ) => ( { visible: p.mesh.visible, opacity: p.material.opacity } ) ),
+			clip: axis ? { axis, fraction: Number( $( 'clip-position' ).value ) } : null,
+		};
+	}
+
+	// Shows what a room says shows (the presenter's or the owner's), without sending it on.
+	applyDisplay( state ) {
+		if ( ! state ) return;
+		for ( const [ i, part ] of ( state.parts || [] ).entries() ) {
+			if ( i >= this.viewer.parts.length ) break;
+			this.viewer.setPartVisible( i, part.visible );
+			this.viewer.setPartOpacity( i, part.opacity );
+			const row = $( 'structure-list' ).querySelector( `[data-index="${i}"]` );
+			if ( row ) {
+				row.querySelector( '[data-role=visible]' ).checked = part.visible;
+				row.querySelector( '[data-role=opacity]' ).value = part.opacity;
+			}
+		}
+		$( 'clip-axis' ).value = state.clip ? state.clip.axis : '';
+		$( 'clip-position' ).value = state.clip ? state.clip.fraction : 1;
+		this.clip();
+		this.publish();
 	}
 
 	showSelected( index ) {
@@ -113,12 +145,13 @@ export class StructuresPanel {
 		this.publish();
 	}
 
-	clip() {
+	clip( byHand = false ) {
 		const axis = $( 'clip-axis' ).value;
 		$( 'clip-position' ).disabled = ! axis;
 		const fraction = Number( $( 'clip-position' ).value );
 		this.viewer.setClipping( axis || null, fraction );
 		status.structures.clip = axis ? { axis, fraction } : null;
+		if ( byHand ) this.onChange();
 	}
 
 	async download( format ) {

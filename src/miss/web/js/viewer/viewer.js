@@ -166,14 +166,25 @@ export class ModelViewer {
 		return new THREE.Vector3( ...lps ).applyMatrix4( this.lpsToWorld );
 	}
 
-	// The surface point under a pixel of the canvas: {world, lps} or null.
-	pick( clientX, clientY ) {
+	// The surface point under a pixel of the canvas: {world, lps} or null. Of the parts
+	// drawn there, the first opaque one: a translucent skin lets the click through to the
+	// bone it shows, as the eye does (only a pixel with nothing opaque behind lands on the
+	// translucent part). `prefer`: a part index the user chose, taken first if hit.
+	pick( clientX, clientY, { prefer = null } = {} ) {
 		if ( ! this.model ) return null;
 		const rect = this.renderer.domElement.getBoundingClientRect();
 		const ndc = new THREE.Vector2( ( ( clientX - rect.left ) / rect.width ) * 2 - 1, - ( ( clientY - rect.top ) / rect.height ) * 2 + 1 );
 		this.raycaster.setFromCamera( ndc, this.camera );
-		const hit = this.raycaster.intersectObject( this.model, true ).find( ( h ) => this.isShown( h ) );
+		const hits = this.raycaster.intersectObject( this.model, true ).filter( ( h ) => this.isShown( h ) );
+		const chosen = prefer == null ? null : this.parts[ prefer ];
+		const hit = ( chosen && hits.find( ( h ) => this.partOf( h ) === chosen ) )
+			|| hits.find( ( h ) => ( h.object.material?.opacity ?? 1 ) >= 0.99 ) || hits[ 0 ];
 		return hit ? { world: hit.point.clone(), lps: this.toLps( hit.point ), object: hit.object } : null;
+	}
+
+	// The part a ray hit belongs to (tiles share their part's material), or undefined.
+	partOf( hit ) {
+		return this.parts.find( ( p ) => p.mesh === hit.object || ( this.tiles && p.material === hit.object.material ) );
 	}
 
 	// A ray hit on a part that is drawn there: visible, not faded out, not cut away.
@@ -499,7 +510,7 @@ export class ModelViewer {
 	pickPart( clientX, clientY ) {
 		const hit = this.pick( clientX, clientY );
 		if ( ! hit ) return null;
-		const i = this.parts.findIndex( ( p ) => p.mesh === hit.object || ( this.tiles && p.material === hit.object.material ) );
+		const i = this.parts.indexOf( this.partOf( { object: hit.object } ) );
 		return i < 0 ? null : i;
 	}
 
