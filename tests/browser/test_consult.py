@@ -233,6 +233,7 @@ def replayed(owner: Any, model_id: str, artifacts: Any) -> None:
         "async (id) => (await fetch(`/api/models/${id}/room/sessions`)).json()", model_id
     )
     consultation = max(sessions, key=lambda s: s["events"])["session"]
+    owner.click("#history-details summary")  # folded away below the model's sections
     owner.click(f"#sessions li[data-session='{consultation}'] button")
     owner.wait_for_function("() => window.__miss.replay.events > 0")
     owner.wait_for_function("() => !window.__miss.replay.playing", timeout=60_000)
@@ -312,7 +313,14 @@ def test_what_shows_is_shared_kept_and_picked_through(
         .locator("[data-role=visible]")
         .is_checked()
     )
+    # Structures and Download come first in the side panel, the past sessions folded
+    top = {s: guest.locator(s).bounding_box()["y"] for s in ("#structures-section", "#room")}
+    assert top["#structures-section"] < top["#room"]
     page.reload()
     open_viewer(page, page.url)
     page.wait_for_function(hidden)
+    sections = ("#structures-section", "#download-section", "#room", "#history")
+    tops = [page.locator(s).bounding_box()["y"] for s in sections]
+    assert tops == sorted(tops), dict(zip(sections, tops, strict=True))
+    assert not page.locator("#sessions").is_visible()  # folded until asked for
     page.wait_for_function(clipped)

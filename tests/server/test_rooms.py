@@ -364,6 +364,10 @@ def test_what_shows_is_shared_and_kept(client: TestClient, room: dict) -> None:
         kept = late.welcome["display"]
         assert kept["parts"][0] == {"visible": False, "opacity": 0.35}
         assert kept["clip"] == {"axis": "axial", "fraction": 0.6}
+        visit = late.welcome["session"]
+    # a visit without a word (join, leave) is no consultation: not listed
+    listed = client.get(f"/api/models/{model}/room/sessions", headers=room["alice"]).json()
+    assert listed and visit not in [entry["session"] for entry in listed]
     # presenting, a guest sets it for everyone (the owner too)
     with (
         joined(client, url(model), room["alice"]) as alice,

@@ -128,10 +128,19 @@ def events(store: Store, model_id: str, session: int | None = None) -> list[dict
     ]
 
 
+#: Events that only say who came and went: a session of nothing else was a page visit.
+PRESENCE = ("join", "leave")
+
+
 def sessions(store: Store, model_id: str) -> list[dict[str, Any]]:
-    """One line per past (or current) session: start, end, how many events, who."""
+    """One line per past (or current) session that had a conversation (anything but
+    people coming and going: every page visit opens a session): start, end, how many
+    events, who."""
     out: dict[int, dict[str, Any]] = {}
+    talked: set[int] = set()
     for event in events(store, model_id):
+        if event["kind"] not in PRESENCE:
+            talked.add(event["session"])
         entry = out.setdefault(
             event["session"],
             {"session": event["session"], "start": event["at"], "events": 0, "people": []},
@@ -140,7 +149,7 @@ def sessions(store: Store, model_id: str) -> list[dict[str, Any]]:
         entry["events"] += 1
         if event["author"] and event["author"] not in entry["people"]:
             entry["people"].append(event["author"])
-    return list(out.values())
+    return [entry for n, entry in out.items() if n in talked]
 
 
 def live_sessions(store: Store, sessions: set[str]) -> set[str]:

@@ -41,13 +41,17 @@ export class Replay {
 
 	async list() {
 		const sessions = await api.roomSessions( this.modelId );
+		// Sessions that had a conversation (the server leaves out page visits), newest
+		// first, folded away: the model's own sections come first.
+		const when = ( s ) => new Date( s.start ).toLocaleString( [], { dateStyle: 'short', timeStyle: 'short' } );
 		fill( this.container,
-			el( 'h2', {}, 'Past sessions' ),
-			sessions.length ? null : el( 'span.muted', {}, 'No consultation yet.' ),
-			el( 'ul#sessions.share-list', {}, ...sessions.map( ( s ) => el( 'li', { dataset: { session: s.session } },
-				el( 'span', {}, `#${s.session} · ${new Date( s.start ).toLocaleString( [], { dateStyle: 'short', timeStyle: 'short' } )}` ),
-				el( 'span.muted.small-print', {}, `${s.people.join( ', ' )} · ${s.events} events` ),
-				el( 'button.small', { type: 'button', onclick: () => this.play( s.session ) }, 'Replay' ) ) ) ),
+			el( 'details#history-details', {},
+				el( 'summary', {}, el( 'h2', {}, `Past consultations (${sessions.length})` ) ),
+				sessions.length ? null : el( 'span.muted', {}, 'No consultation yet.' ),
+				el( 'ul#sessions.share-list', {}, ...[ ...sessions ].reverse().map( ( s ) => el( 'li', { dataset: { session: s.session } },
+					el( 'span', {}, `#${s.session} · ${when( s )}` ),
+					el( 'span.muted.small-print', {}, `${s.people.join( ', ' )} · ${s.events} ${s.events === 1 ? 'event' : 'events'}` ),
+					el( 'button.small', { type: 'button', 'aria-label': `Replay consultation #${s.session} of ${when( s )}`, onclick: () => this.play( s.session ) }, 'Replay' ) ) ) ) ),
 			el( 'div.row', {}, el( 'button#replay-stop.small', { type: 'button', hidden: true, onclick: () => this.stop() }, 'Stop replay' ) ),
 			el( 'div#replay-log.chat-log', { hidden: true } ) );
 	}
