@@ -239,6 +239,10 @@ def test_one_model_page_for_its_owner_and_a_links_guests(
     page.wait_for_function("() => window.__miss.ready", timeout=90_000)
     assert page.is_visible(owner_only) and page.is_visible("#history")
     assert not page.is_visible(guest_only) and not page.is_visible("#provenance")
+    # Issue 42: the Parameters say what the surfaces were made of (empty before)
+    params = page.inner_text("#params")
+    assert "bone at 300" in params and "skin at -500" in params, params
+    assert "Time: total" in page.inner_text("#stats")  # the owner's own job's times
 
     for can_download in (False, True):
         link = server.post("/api/shares", {"model": model["id"], "can_download": can_download})
@@ -254,6 +258,10 @@ def test_one_model_page_for_its_owner_and_a_links_guests(
             )
             assert guest.is_visible(guest_only) and guest.is_visible("#provenance")
             assert not guest.is_visible(owner_only) and not guest.is_visible("#history")
+            provenance = guest.inner_text("#provenance")  # words, not raw fields
+            assert "bone at 300" in provenance and "[object Object]" not in provenance
+            assert "sample_rate" not in provenance and "sample rate 4" in provenance
+            assert "Time:" not in guest.inner_text("#stats")  # the server's timings stay home
             names = guest.locator("#structure-list .part-name").all_inner_texts()
             assert names == ["bone", "skin"]
             guest.locator("#structure-list .part-name").nth(0).click()

@@ -6,7 +6,7 @@
 import { request } from '../api.js';
 import { Consultation } from '../room/consult.js';
 import { el, fill } from '../format.js';
-import { fillDownloads, fillStats, overlay, setupDisplay } from '../viewer/viewer-ui.js';
+import { fillDownloads, fillStats, overlay, setupDisplay, surfacesOf } from '../viewer/viewer-ui.js';
 import { status } from '../test-hooks.js';
 import { StructuresPanel } from '../viewer/structures-panel.js';
 import { ModelViewer } from '../viewer/viewer.js';
@@ -42,14 +42,21 @@ function showShare( data ) {
 	$( 'download-section' ).hidden = ! s.can_download;
 }
 
+// The job's parameters in words, as the owner's Parameters table says them.
+function described( params ) {
+	if ( ! params || typeof params !== 'object' ) return String( params ?? '' );
+	const words = [ `surfaces: ${surfacesOf( params )}` ];
+	if ( params.sample_rate != null ) words.push( `sample rate ${[].concat( params.sample_rate ).join( ', ' )}` );
+	if ( params.decimate ) words.push( `decimation ${params.decimate}${params.error_bound != null ? `, error bound ${params.error_bound} of the diagonal` : ''}` );
+	return words.join( ' · ' );
+}
+
 function showProvenance( p ) {
 	let params = p.parameters;
 	try {
 		params = typeof params === 'string' ? JSON.parse( params ) : params;
 	} catch ( err ) { /* shown as it came */ }
-	const brief = params && typeof params === 'object'
-		? Object.entries( params ).filter( ( [ , v ] ) => v != null ).map( ( [ k, v ] ) => `${k}=${Array.isArray( v ) ? v.join( ',' ) : v}` ).join( ' ' )
-		: String( params ?? '' );
+	const brief = described( params );
 	const hash = p.source_sha256 || '';
 	fill( $( 'provenance' ),
 		row( 'Software', p.software || '–' ),
@@ -93,7 +100,7 @@ export async function start() {
 		model = pickModel( data.models );
 		if ( ! model || model.status !== 'done' ) throw new Error( 'the shared model is not finished yet; reload this page in a minute.' );
 		document.title = `MISS · Shared model · ${data.share.shared_by}`;
-		fillStats( model );
+		fillStats( model, { timings: false } );
 		structures.setStats( model.stats );
 		structures.canDownload = data.share.can_download; // a part on its own is a download too
 		fillDownloads( model.files );

@@ -33,7 +33,20 @@ function row( label, value ) {
 // The stages' seconds under their own names, but those a physician would not guess.
 const TIME_LABELS = { viewer: 'waiting for the viewer to draw' };
 
-export function fillStats( model ) {
+// What a job made its surfaces of, in words: its thresholds (each part's name and level),
+// or the labels of a label map.
+export function surfacesOf( p ) {
+	const labels = ( l ) => ( l === 'all' || l == null ? 'all labels' : `labels ${[].concat( l ).join( ', ' )}` );
+	if ( p.parts?.length ) {
+		return p.parts.map( ( x ) => ( x.level != null ? `${x.name || 'part'} at ${x.level}` : `${x.name ? `${x.name}: ` : ''}${labels( x.labels )}` ) ).join( '; ' );
+	}
+	if ( p.labels != null ) return labels( p.labels );
+	return p.levels?.length ? p.levels.join( ', ' ) : String( p.level ?? '–' );
+}
+
+// The model's figures and parameters; `timings`: the job's own times (the owner's
+// business; a guest reads the model, not how long the server took).
+export function fillStats( model, { timings = true } = {} ) {
 	const s = model.stats || {};
 	const d = s.decimation || {};
 	const seconds = s.seconds || {};
@@ -45,14 +58,14 @@ export function fillStats( model ) {
 		row( 'Max error', formatMm( d.max_error_mm ) ),
 		row( 'Mean error', formatMm( d.mean_error_mm, 4 ) ),
 		d.bound_mm ? row( 'Error bound held', boundHeld( d ) ) : null,
-		...Object.entries( seconds ).filter( ( [ k ] ) => k !== 'total' ).map( ( [ k, v ] ) => row( `Time: ${TIME_LABELS[ k ] || k}`, formatSeconds( v ) ) ),
-		row( 'Time: total', formatSeconds( total ) ),
+		...( timings ? Object.entries( seconds ).filter( ( [ k ] ) => k !== 'total' ).map( ( [ k, v ] ) => row( `Time: ${TIME_LABELS[ k ] || k}`, formatSeconds( v ) ) ) : [] ),
+		timings ? row( 'Time: total', formatSeconds( total ) ) : null,
 		row( 'Drawn now', el( 'span', { id: 'drawn' }, '–' ) ),
 	);
 	const p = model.params || {};
 	const slices = p.start_slice || p.end_slice ? `${p.start_slice ?? 1} – ${p.end_slice ?? 'last'}` : 'all';
 	fill( $( 'params' ),
-		row( p.levels?.length ? 'Thresholds' : 'Threshold', p.levels?.length ? p.levels.join( ', ' ) : p.level ),
+		row( p.parts?.length || p.levels?.length > 1 || p.labels != null ? 'Surfaces' : 'Threshold', surfacesOf( p ) ),
 		p.components && p.components !== 'all' ? row( 'Components', `${p.components}${p.min_size_mm3 ? ` ≥ ${p.min_size_mm3} mm³` : ''}` ) : null,
 		s.parts ? row( 'Parts', s.parts.length ) : null,
 		row( 'Sample rate', Array.isArray( p.sample_rate ) ? p.sample_rate.join( ', ' ) : p.sample_rate ),
