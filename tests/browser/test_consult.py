@@ -323,4 +323,34 @@ def test_what_shows_is_shared_kept_and_picked_through(
     tops = [page.locator(s).bounding_box()["y"] for s in sections]
     assert tops == sorted(tops), dict(zip(sections, tops, strict=True))
     assert not page.locator("#sessions").is_visible()  # folded until asked for
+    # names as people read them: "admin", not "admin (admin)"; "you" a badge of its own
+    assert page.inner_text("#session-user") == "admin"
+    assert "(you)" not in page.inner_text("#participants")
+    assert page.locator("#participants .badge.you").count() == 1
+    # a colleague signed in here who opens the link joins under their own name
+    page.goto(link)
+    page.wait_for_function(CONNECTED)
+    assert page.evaluate("() => window.__miss.room.you.name") == "admin (guest)"
     page.wait_for_function(clipped)
+
+
+def test_revoking_a_link_asks_first_and_forgets_its_url(page: Any, model_id: str) -> None:
+    """Issue 42: Revoke asks before acting; once revoked the link leaves the list and its
+    URL the copy field."""
+    open_viewer(page, f"/models/{model_id}")
+    page.click("#share")
+    page.wait_for_selector("#share-dialog[open]")
+    page.fill("#share-label", "to revoke")
+    page.click("#share-create")
+    page.wait_for_function("() => document.getElementById('share-url').value.includes('/s/')")
+    item = page.locator("#share-list li[data-status=active]", has_text="to revoke")
+    asked: list[str] = []
+    page.once("dialog", lambda d: (asked.append(d.message), d.dismiss()))
+    item.locator("button.danger").click()
+    page.wait_for_timeout(300)  # a refused confirmation changes nothing
+    assert asked and "Revoke" in asked[0] and item.count() == 1
+    page.once("dialog", lambda d: d.accept())
+    item.locator("button.danger").click()
+    item.wait_for(state="detached")
+    assert page.input_value("#share-url") == "" and not page.is_visible("#share-result")
+    assert "revoked link" in page.inner_text("#share-list")

@@ -14,7 +14,8 @@ export async function showSession( topbar = document.querySelector( '.topbar' ) 
 	try {
 		const me = await api.me();
 		topbar.append( el( 'span.session',
-			el( 'span', { id: 'session-user', title: me.admin ? 'administrator' : 'user' }, me.name + ( me.admin ? ' (admin)' : '' ) ),
+			el( 'span', { id: 'session-user', title: me.admin ? 'administrator' : 'user' }, me.name ),
+			me.admin && me.name.toLowerCase() !== 'admin' ? el( 'span.badge', {}, 'administrator' ) : null,
 			el( 'button.small', { type: 'button', id: 'logout', onclick: logout }, 'Log out' ) ) );
 		return me;
 	} catch ( err ) {

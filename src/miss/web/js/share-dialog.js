@@ -63,6 +63,7 @@ export class ShareDialog {
 				label: this.$( 'share-label' ).value,
 				message: this.$( 'share-message' ).value,
 			} );
+			this.shown = link.id; // the link whose URL the copy field holds
 			this.$( 'share-url' ).value = new URL( link.url, location.origin ).href;
 			this.$( 'share-result' ).hidden = false;
 			this.$( 'share-url' ).select();
@@ -90,9 +91,13 @@ export class ShareDialog {
 
 	async refresh() {
 		try {
-			const links = await api.shares( this.modelId );
+			const all = await api.shares( this.modelId );
+			// Links that open nothing any more are kept for the audit, not listed here.
+			const links = all.filter( ( link ) => link.status === 'active' );
 			this.$( 'share-list' ).replaceChildren( ...links.map( ( link ) => this.item( link ) ) );
-			if ( ! links.length ) this.$( 'share-list' ).append( el( 'li.muted', {}, 'none yet' ) );
+			if ( ! links.length ) this.$( 'share-list' ).append( el( 'li.muted', {}, 'no active link' ) );
+			const gone = all.length - links.length;
+			if ( gone ) this.$( 'share-list' ).append( el( 'li.muted.small-print', {}, `${gone} expired or revoked ${gone === 1 ? 'link' : 'links'} not shown` ) );
 		} catch ( err ) {
 			this.showError( err );
 		}
@@ -101,8 +106,13 @@ export class ShareDialog {
 	item( link ) {
 		const rights = [ link.can_annotate ? 'consult' : 'view', link.can_view_volume ? 'scan' : null, link.can_download ? 'download' : null ].filter( Boolean ).join( ' + ' );
 		const revoke = async () => {
+			if ( ! confirm( `Revoke the link “${link.label || 'no label'}”? Whoever has it loses access at once.` ) ) return;
 			try {
 				await api.revokeShare( link.id );
+				if ( this.shown === link.id ) { // its URL is no use to anyone now
+					this.$( 'share-url' ).value = '';
+					this.$( 'share-result' ).hidden = true;
+				}
 				await this.refresh();
 			} catch ( err ) {
 				this.showError( err );

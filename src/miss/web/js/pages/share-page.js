@@ -111,7 +111,13 @@ export async function start() {
 		const volumePanel = data.share.can_view_volume ? new VolumePanel( viewer, `${base}/voxels` ) : null;
 		const volumeView = volumePanel && new URLSearchParams( location.search ).get( 'view' ) === 'volume';
 		if ( volumeView ) volumePanel.prefetch(); // arrives while the model loads
-		if ( data.share.can_annotate ) consult = new Consultation( { viewer, modelId: model.id, container: $( 'room' ), share: token, guest: true, structures } );
+		if ( data.share.can_annotate ) {
+			// a colleague signed in here joins under their own name, not "Guest" (asked only
+			// with a session's cookie: a guest's browser would log a 401)
+			const signedIn = document.cookie.split( '; ' ).some( ( c ) => c.startsWith( 'miss_csrf=' ) );
+			const me = signedIn ? await request( 'GET', '/api/auth/me', undefined, { login: false } ).catch( () => null ) : null;
+			consult = new Consultation( { viewer, modelId: model.id, container: $( 'room' ), share: token, guest: true, structures, signedIn: me?.name } );
+		}
 		$( 'room' ).hidden = ! data.share.can_annotate;
 		$( 'view-only' ).hidden = data.share.can_annotate;
 		await display( new URLSearchParams( location.search ).get( 'mode' ) );

@@ -21,14 +21,15 @@ const CLOSED = {
 
 export class Consultation {
 	// structures: the page's StructuresPanel, whose parts shown and clipping the room shares.
-	constructor( { viewer, modelId, container, share = '', guest = false, structures = null } ) {
+	// signedIn: the name of a colleague signed in on this server who opened a share link.
+	constructor( { viewer, modelId, container, share = '', guest = false, structures = null, signedIn = null } ) {
 		this.viewer = viewer;
 		this.structures = structures;
 		this.modelId = modelId;
 		this.annotations = new Annotations( viewer );
 		this.follower = new CameraFollower( viewer );
 		this.state = { you: null, people: new Map(), presenter: null, following: true, pins: new Map(), measurements: new Map(), chat: [], errors: [], connected: false };
-		const name = guest ? localStorage.getItem( 'miss.guestName' ) || 'Guest' : '';
+		const name = guest ? localStorage.getItem( 'miss.guestName' ) || signedIn || 'Guest' : '';
 		this.room = new RoomClient( modelId, { share, name } );
 		this.panel = new RoomPanel( container, this.handlers(), { guest, guestName: name } );
 		this.bindRoom();

@@ -108,7 +108,8 @@ export class RoomPanel {
 
 	setParticipants( people, presenter, you ) {
 		this.$( 'participants' ).replaceChildren( ...people.map( ( p ) => el( 'li', { dataset: { id: p.id } },
-			dot( p.colour ), el( 'span', {}, p.name + ( p.id === you ? ' (you)' : '' ) ),
+			dot( p.colour ), el( 'span', {}, p.name ),
+			p.id === you ? el( 'span.badge.you', {}, 'you' ) : null,
 			p.id === presenter ? el( 'span.badge', {}, 'presenting' ) : null ) ) );
 		this.$( 'present' ).setAttribute( 'aria-pressed', String( presenter === you ) );
 		this.$( 'present' ).textContent = presenter === you ? 'Stop presenting' : 'Present';
