@@ -153,7 +153,7 @@ def test_two_browsers_consult_on_one_model(
     assert "Can you see it?" in guest.inner_text("#chat-log")
     guest.screenshot(path=artifacts / "consult-guest-after-reload.png")
     assert not guest_errors and not owner.errors, guest_errors + owner.errors
-    revoked(owner, guest, server, artifacts)
+    revoked(owner, guest, server, model_id, artifacts)
     replayed(owner, model_id, artifacts)
 
 
@@ -207,9 +207,10 @@ def pins_and_chat(owner: Any, guest: Any, artifacts: Any) -> None:
     guest.screenshot(path=artifacts / "consult-guest-pin-chat.png")
 
 
-def revoked(owner: Any, guest: Any, server: Any, artifacts: Any) -> None:
+def revoked(owner: Any, guest: Any, server: Any, model_id: str, artifacts: Any) -> None:
     """Revoking closes the guest's room at once, and the link then opens a clear page."""
-    (link,) = [s for s in server.get("/api/shares") if s["status"] == "active"]
+    shares = server.get("/api/shares")  # other tests' links to other models may be live
+    (link,) = [s for s in shares if s["status"] == "active" and s["model"] == model_id]
     server.delete(f"/api/shares/{link['id']}")
     guest.wait_for_function(
         "() => window.__miss.room.closed && window.__miss.room.closed.code === 4410"

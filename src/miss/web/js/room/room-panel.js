@@ -138,7 +138,8 @@ export class RoomPanel {
 	setChat( messages ) {
 		const log = this.$( 'chat-log' );
 		log.replaceChildren( ...messages.map( ( m ) => el( 'div.chat-line', { dataset: { id: m.id } },
-			el( 'span.mono.muted', {}, clock( m.at ) + ' ' ), el( 'strong', { style: `color:${m.colour}` }, m.author ), ': ', m.text ) ) );
+			// the author's colour as a dot: half the room's colours are too light for text
+			el( 'span.mono.muted', {}, clock( m.at ) + ' ' ), dot( m.colour ), el( 'strong', {}, m.author ), ': ', m.text ) ) );
 		log.scrollTop = log.scrollHeight;
 	}
 }

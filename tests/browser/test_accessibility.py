@@ -1,0 +1,120 @@
+"""axe-core (Deque's accessibility engine, from npm in tests/validators) on every page MISS
+serves, as a person meets it: the login page, the library, a volume's page, a model's page
+for its owner and for a share link's guest, at a laptop's size and a phone's. No serious or
+critical violation may be left (issue 42); the full report of each page goes to
+test-artifacts/browser/axe-*.json.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from conftest import LAPTOP
+
+AXE = (
+    Path(__file__).resolve().parents[1] / "validators" / "node_modules" / "axe-core" / "axe.min.js"
+)
+PHONE = {"width": 390, "height": 844}
+SERIOUS = ("serious", "critical")
+#: Rules of lesser impact that MISS's pages keep too (each page names itself in an h1).
+KEPT = ("page-has-heading-one",)
+
+if not AXE.is_file():
+    pytest.skip(
+        f"axe-core is not installed at {AXE} (`make validators` installs it)",
+        allow_module_level=True,
+    )
+
+
+def violations(page: Any, name: str, artifacts: Path) -> list[str]:
+    """axe's serious and critical violations on the page as it is now, one line each."""
+    page.add_script_tag(path=str(AXE))  # the context bypasses the pages' CSP for it alone
+    report = page.evaluate("async () => await axe.run(document, { resultTypes: ['violations'] })")
+    (artifacts / f"axe-{name}.json").write_text(json.dumps(report["violations"], indent=1))
+    return [
+        f"{name}: {v['id']} ({v['impact']}): {v['help']} -- "
+        + "; ".join(n["target"][0] if n["target"] else "?" for n in v["nodes"][:4])
+        for v in report["violations"]
+        if v["impact"] in SERIOUS or v["id"] in KEPT
+    ]
+
+
+@pytest.fixture(scope="module")
+def model_and_link(server: Any) -> tuple[str, str, str]:
+    """(volume id, a finished two-part model of the demo head, a link to it that allows
+    consulting and downloads)."""
+    demo = server.get("/api/volumes")[0]["id"]
+    parts = [{"level": 300, "name": "bone"}, {"level": -500, "name": "skin"}]
+    body = {"volume": demo, "parts": parts, "sample_rate": 4, "decimate": "none"}
+    model = server.wait_model(server.post("/api/models", body)["id"])
+    assert model["status"] == "done", model["error"]
+    link = server.post(
+        "/api/shares", {"model": model["id"], "can_annotate": True, "can_download": True}
+    )
+    return demo, model["id"], link["url"]
+
+
+@pytest.fixture(params=["laptop", "phone"])
+def size(request: Any) -> tuple[str, dict[str, int]]:
+    return request.param, LAPTOP if request.param == "laptop" else PHONE
+
+
+@pytest.fixture
+def owner(browser: Any, server: Any, size: tuple[str, dict[str, int]]) -> Iterator[Any]:
+    from conftest import log_in_context
+
+    context = browser.new_context(viewport=size[1], base_url=server.url, bypass_csp=True)
+    log_in_context(context)
+    yield context.new_page()
+    context.close()
+
+
+@pytest.fixture
+def stranger(browser: Any, server: Any, size: tuple[str, dict[str, int]]) -> Iterator[Any]:
+    context = browser.new_context(viewport=size[1], base_url=server.url, bypass_csp=True)
+    yield context.new_page()
+    context.close()
+
+
+def test_the_pages_of_an_account(
+    owner: Any, model_and_link: tuple[str, str, str], size: Any, artifacts: Path
+) -> None:
+    volume, model, _ = model_and_link
+    found = []
+    owner.goto("/")
+    owner.wait_for_selector(".volume-card")
+    found += violations(owner, f"library-{size[0]}", artifacts)
+    owner.goto(f"/volumes/{volume}")
+    owner.wait_for_selector("body[data-ready='1']")
+    found += violations(owner, f"volume-{size[0]}", artifacts)
+    owner.goto(f"/models/{model}")
+    owner.wait_for_function("() => window.__miss && window.__miss.ready")
+    found += violations(owner, f"model-{size[0]}", artifacts)
+    assert not found, "\n".join(found)
+
+
+def test_the_pages_without_an_account(
+    stranger: Any, model_and_link: tuple[str, str, str], size: Any, artifacts: Path
+) -> None:
+    _, _, link = model_and_link
+    found = []
+    stranger.goto("/login")
+    stranger.wait_for_selector("#username")
+    found += violations(stranger, f"login-{size[0]}", artifacts)
+    connected = "() => window.__miss && window.__miss.room && window.__miss.room.connected"
+    first = stranger.context.new_page()  # in the room first: the second gets the next colour
+    first.goto(link)
+    first.wait_for_function(connected)
+    stranger.goto(link)
+    stranger.wait_for_function("() => window.__miss && window.__miss.ready")
+    stranger.wait_for_function(connected)
+    for page in (first, stranger):  # each name in the chat, in its colour, must be legible
+        page.fill("#chat-input", "Can you see the fracture?")
+        page.press("#chat-input", "Enter")
+    stranger.wait_for_function("() => window.__miss.room.chat.length >= 2")
+    found += violations(stranger, f"share-{size[0]}", artifacts)
+    assert not found, "\n".join(found)
