@@ -242,13 +242,14 @@ def replayed(owner: Any, model_id: str, artifacts: Any) -> None:
     assert state["shown"] == state["events"] and state["pins"] == 1
     log = owner.inner_text("#replay-log")
     for words in (
-        "Dr Lee (guest) joined",
+        "Guest (guest) is now Dr Lee (guest)",  # a rename, not a leave and a join
         "admin presents",
         "pinned “Look here”",
         "Can you see it?",
     ):
         assert words in log, (words, log)
     assert log.index("joined") < log.index("pinned") < log.index("Can you see it?")
+    assert "Guest (guest) left" not in log
     owner.screenshot(path=artifacts / "consult-replay.png")
     owner.click("#replay-stop")
 

@@ -379,3 +379,27 @@ def test_what_shows_is_shared_and_kept(client: TestClient, room: dict) -> None:
         assert until(alice, "display")["item"]["clip"] is None
         alice.send_json(display)  # the owner, while someone else presents
         assert until(alice, "error")["code"] == "not_presenter"
+
+
+def test_a_guest_renames_without_leaving(client: TestClient, room: dict) -> None:
+    """Issue 42: a guest's new name is one ``rename`` event that everyone hears, not a
+    leave and a join; an account's name is not the guest's to change."""
+    model = room["model"]
+    with (
+        joined(client, url(model), room["alice"]) as alice,
+        joined(client, url(model, room["token"], "Guest")) as guest,
+    ):
+        guest.send_json({"type": "rename", "name": "Dr Lee"})
+        renamed = until(alice, "renamed")["participant"]
+        assert renamed["name"] == "Dr Lee (guest)" and renamed["id"] == guest.welcome["you"]["id"]
+        alice.send_json({"type": "rename", "name": "Mallory"})
+        assert until(alice, "error")["code"] == "forbidden"
+        session = guest.welcome["session"]
+    kinds = [
+        (e["kind"], e["author"])
+        for e in client.get(
+            f"/api/models/{model}/room/events", params={"session": session}, headers=room["alice"]
+        ).json()
+    ]
+    assert ("rename", "Dr Lee (guest)") in kinds
+    assert ("leave", "Guest (guest)") not in kinds  # the guest never left under the old name

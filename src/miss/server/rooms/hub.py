@@ -158,6 +158,8 @@ class Hub:
             room.presenter, room.view = message["id"], None
         elif kind == "camera":
             room.view = {k: message[k] for k in ("position", "target", "up")}
+        elif kind == "renamed" and message["participant"]["id"] in room.remote:
+            room.remote[message["participant"]["id"]]["name"] = message["participant"]["name"]
         room.broadcast(message)
 
     async def stop(self) -> None:

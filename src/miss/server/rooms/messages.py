@@ -3,12 +3,13 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from collections.abc import Awaitable, Callable
 from typing import TYPE_CHECKING, Any
 
-from miss.server.rooms.people import Invalid, Participant, public_item
+from miss.server.rooms.people import MAX_NAME, Invalid, Participant, guest_name, public_item
 from miss.server.rooms.room import Room
 
 if TYPE_CHECKING:
@@ -143,6 +144,20 @@ async def on_display(hub: Hub, room: Room, person: Participant, message: dict[st
     )
 
 
+async def on_rename(hub: Hub, room: Room, person: Participant, message: dict[str, Any]) -> None:
+    """A guest's new display name (an account's name is its account's): one ``rename``
+    event, not a leave and a join."""
+    if not person.visitor.guest:
+        raise Invalid("forbidden", "your name is your account's; only guests choose theirs.")
+    old = person.visitor.name
+    new = guest_name(text(message.get("name"), "name", MAX_NAME * 4))
+    if new == old:
+        return
+    person.visitor = dataclasses.replace(person.visitor, name=new)
+    await hub.store_event(room, person, "rename", {"from": old, "to": new})
+    hub.broadcast(room, {"type": "renamed", "participant": person.public()})
+
+
 async def on_laser(hub: Hub, room: Room, person: Participant, message: dict[str, Any]) -> None:
     _check_model(room, message)
     at = message.get("point")
@@ -210,4 +225,5 @@ HANDLERS: dict[str, Handler] = {
     "unmeasure": on_remove,
     "chat": on_chat,
     "display": on_display,
+    "rename": on_rename,
 }

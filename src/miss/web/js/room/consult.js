@@ -102,8 +102,8 @@ export class Consultation {
 			goto: ( item ) => this.lookAt( item.point ),
 			rename: ( name ) => {
 				localStorage.setItem( 'miss.guestName', name || 'Guest' );
-				this.room.name = name || 'Guest';
-				this.room.reconnect();
+				this.room.name = name || 'Guest'; // for a reconnection
+				this.room.send( { type: 'rename', name: name || 'Guest' } ); // one event, not leave + join
 			},
 		};
 	}
@@ -201,6 +201,11 @@ export class Consultation {
 		const room = this.room;
 		room.on( 'joined', ( m ) => {
 			s.people.set( m.participant.id, m.participant );
+			this.refreshPeople();
+		} );
+		room.on( 'renamed', ( m ) => {
+			s.people.set( m.participant.id, m.participant );
+			if ( s.you?.id === m.participant.id ) s.you = { ...s.you, name: m.participant.name };
 			this.refreshPeople();
 		} );
 		room.on( 'left', ( m ) => {

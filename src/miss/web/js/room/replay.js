@@ -19,6 +19,7 @@ function describe( e ) {
 	switch ( e.kind ) {
 		case 'join': return `${e.author} joined`;
 		case 'leave': return `${e.author} left`;
+		case 'rename': return `${d.from} is now ${d.to}`;
 		case 'presenter': return d.on ? `${e.author} presents` : `${e.author} stopped presenting`;
 		case 'pin': return `${e.author} pinned “${d.note || ''}”`;
 		case 'measure': return `${e.author} measured ${d.mm?.toFixed( 1 )} mm`;
