@@ -118,3 +118,36 @@ def test_the_pages_without_an_account(
     stranger.wait_for_function("() => window.__miss.room.chat.length >= 2")
     found += violations(stranger, f"share-{size[0]}", artifacts)
     assert not found, "\n".join(found)
+
+
+def test_the_3d_view_from_the_keyboard(page: Any, model_and_link: tuple[str, str, str]) -> None:
+    """Issue 42: the 3-D view is reached with Tab, names itself, and turns and zooms with
+    the keyboard (it was neither focusable nor named)."""
+    import math
+
+    _, model, _ = model_and_link
+    page.goto(f"/models/{model}")
+    page.wait_for_function("() => window.__miss && window.__miss.ready")
+    canvas = page.locator("#stage canvas")
+    assert "arrow keys" in (canvas.get_attribute("aria-label") or "")
+    for _ in range(60):  # Tab from the top until the view has the focus
+        page.keyboard.press("Tab")
+        if (
+            page.evaluate("() => document.activeElement && document.activeElement.tagName")
+            == "CANVAS"
+        ):
+            break
+    else:
+        raise AssertionError("Tab never reached the 3-D view")
+    pose = "() => window.__miss.cameraLps()"
+    start = page.evaluate(pose)
+    page.keyboard.press("ArrowLeft")
+    turned = page.evaluate(pose)
+    target = start["target"]
+    assert math.dist(start["position"], turned["position"]) > 1.0
+    distance = math.dist(turned["position"], target)
+    assert abs(distance - math.dist(start["position"], target)) < 1e-3 * distance  # a turn
+    page.keyboard.press("+")
+    assert math.dist(page.evaluate(pose)["position"], target) < 0.9 * distance
+    page.keyboard.press("ArrowUp")
+    assert page.evaluate(pose)["position"] != turned["position"]

@@ -93,6 +93,7 @@ export class ModelViewer {
 		this.renderer.autoClear = false;
 		this.renderer.localClippingEnabled = true;
 		container.prepend( this.renderer.domElement );
+		this.bindKeys( this.renderer.domElement );
 
 		this.scene = new THREE.Scene();
 		this.camera = new THREE.PerspectiveCamera( 30, 1, 0.001, 100 );
@@ -149,6 +150,47 @@ export class ModelViewer {
 			this.requestRender();
 			for ( const fn of this.changeListeners ) fn();
 		} );
+	}
+
+	// The 3-D view from the keyboard: it takes focus (Tab) and names itself; arrow keys turn
+	// the model about its target (15° a press), + and − zoom, Home fits it in view.
+	bindKeys( canvas ) {
+		canvas.tabIndex = 0;
+		canvas.setAttribute( 'role', 'application' );
+		canvas.setAttribute( 'aria-roledescription', '3-D view' );
+		canvas.setAttribute( 'aria-label', 'The model in 3-D: drag or use the arrow keys to turn it, + and − to zoom, Home to fit it in view' );
+		const STEP = Math.PI / 12;
+		canvas.addEventListener( 'keydown', ( e ) => {
+			if ( ! this.controls.enabled || e.altKey || e.ctrlKey || e.metaKey ) return;
+			const turns = { ArrowLeft: [ STEP, 0 ], ArrowRight: [ - STEP, 0 ], ArrowUp: [ 0, STEP ], ArrowDown: [ 0, - STEP ] };
+			const zooms = { '+': 0.8, '=': 0.8, '-': 1.25, '_': 1.25 };
+			if ( turns[ e.key ] ) this.turnBy( ...turns[ e.key ] );
+			else if ( zooms[ e.key ] ) this.zoomBy( zooms[ e.key ] );
+			else if ( e.key === 'Home' ) this.fit();
+			else return;
+			e.preventDefault();
+			for ( const fn of this.changeListeners ) fn(); // as a drag: a presenter's view is sent
+		} );
+	}
+
+	// Turns the camera about the controls' target as a drag does: `across` about the up
+	// direction, `over` towards or away from it (stopping short of the poles, as the orbit
+	// controls do, so up stays up).
+	turnBy( across, over ) {
+		const target = this.controls.target;
+		const up = this.camera.up;
+		const offset = this.camera.position.clone().sub( target ).applyAxisAngle( up, across );
+		const right = new THREE.Vector3().crossVectors( up, offset ).normalize();
+		const tilted = offset.clone().applyAxisAngle( right, - over );
+		const pole = tilted.angleTo( up );
+		if ( pole > 0.05 && pole < Math.PI - 0.05 ) offset.copy( tilted );
+		this.setWorldPose( target.clone().add( offset ), target, up );
+	}
+
+	zoomBy( factor ) {
+		const target = this.controls.target;
+		const offset = this.camera.position.clone().sub( target ).multiplyScalar( factor );
+		this.setWorldPose( target.clone().add( offset ), target, this.camera.up );
 	}
 
 	// fn() after every camera change made by the user's orbit controls.
