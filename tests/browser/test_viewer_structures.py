@@ -377,3 +377,40 @@ def test_outward_closed_only_for_a_closed_surface_facing_out(
 ) -> None:  # fmt: skip
     page.goto("/login")
     assert page.evaluate(OUTWARD_CLOSED, [positions, faces, quantised]) is expected, name
+
+
+def test_long_snake_case_names_read_as_words_and_keep_the_row(
+    browser: Any, server: Any, artifacts: Path
+) -> None:
+    """Issue 42: a label table's long snake_case name pushed the opacity slider out of the
+    panel on a phone; it reads as words, cut with an ellipsis, the row's controls in view."""
+    from conftest import log_in_context
+
+    volume = demo_volume(server)
+    long = "left_internal_carotid_artery_cavernous_segment_with_branches"
+    parts = [{"level": 300, "name": long}, {"level": -500, "name": "skin"}]
+    body = {"volume": volume["id"], "parts": parts, "sample_rate": 4, "decimate": "none"}
+    model = server.wait_model(server.post("/api/models", body)["id"])
+    context = browser.new_context(viewport={"width": 390, "height": 844}, base_url=server.url)
+    log_in_context(context)
+    page = context.new_page()
+    try:
+        page.goto(f"/models/{model['id']}")
+        page.wait_for_function(
+            "() => window.__miss.ready && window.__miss.structures.parts.length === 2"
+        )
+        row = page.locator("#structure-list li").nth(0)
+        row.scroll_into_view_if_needed()
+        assert row.locator(".part-name").inner_text() == long.replace("_", " ")
+        page.screenshot(path=artifacts / "structures-long-name-phone.png")
+        panel = page.locator("#structures-section").bounding_box()
+        slider = row.locator("[data-role=opacity]").bounding_box()
+        assert slider["x"] + slider["width"] <= panel["x"] + panel["width"] + 0.5, (slider, panel)
+        # its start shows (left-aligned, cut at the end), not its middle
+        offset = row.locator(".part-name").evaluate(
+            """(b) => { const r = document.createRange(); r.selectNodeContents(b);
+                return r.getBoundingClientRect().left - b.getBoundingClientRect().left; }"""
+        )
+        assert abs(offset) < 2, offset
+    finally:
+        context.close()

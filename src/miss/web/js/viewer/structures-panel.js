@@ -87,7 +87,9 @@ export class StructuresPanel {
 			this.publish();
 			this.onChange();
 		} );
-		const name = el( 'button.link.part-name', { type: 'button', title: 'Select this part', onclick: () => this.showSelected( i ) }, part.name );
+		// label tables name structures in snake_case: read as words, the full name on hover
+		const shown = part.name.replace( /_/g, ' ' );
+		const name = el( 'button.link.part-name', { type: 'button', title: `Select ${shown}`, onclick: () => this.showSelected( i ) }, shown );
 		return el( 'li.structure-row', { dataset: { index: i } }, visible, color, name, opacity );
 	}
 
