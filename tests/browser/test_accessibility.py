@@ -151,3 +151,37 @@ def test_the_3d_view_from_the_keyboard(page: Any, model_and_link: tuple[str, str
     assert math.dist(page.evaluate(pose)["position"], target) < 0.9 * distance
     page.keyboard.press("ArrowUp")
     assert page.evaluate(pose)["position"] != turned["position"]
+
+
+def test_the_view_is_in_the_address(
+    page: Any, browser: Any, server: Any, model_and_link: tuple[str, str, str]
+) -> None:
+    """Issue 43 (deep links): the camera follows into the address (?cam=, LPS mm) as the
+    view turns, and that address -- or a share link with it -- opens on the same view."""
+    import math
+    from urllib.parse import parse_qs, urlsplit
+
+    _, model, link = model_and_link
+    page.goto(f"/models/{model}")
+    page.wait_for_function("() => window.__miss && window.__miss.ready")
+    page.locator("#stage canvas").focus()
+    page.keyboard.press("ArrowLeft")
+    page.keyboard.press("ArrowUp")
+    page.wait_for_function("() => location.search.includes('cam=')")
+    seen = page.evaluate("() => window.__miss.cameraLps()")
+    cam = parse_qs(urlsplit(page.url).query)["cam"][0]
+    guest = browser.new_context(base_url=server.url, viewport=LAPTOP)
+    try:  # the owner's address in a new tab, and the share link with the view
+        for view, address in (
+            (page.context.new_page(), page.url),
+            (guest.new_page(), f"{link}?cam={cam}"),
+        ):
+            view.goto(address)
+            view.wait_for_function(
+                "() => window.__miss && window.__miss.ready && window.__miss.cameraLps"
+            )
+            got = view.evaluate("() => window.__miss.cameraLps()")
+            assert math.dist(got["position"], seen["position"]) < 0.05, (address, got, seen)
+            assert math.dist(got["target"], seen["target"]) < 0.05
+    finally:
+        guest.close()

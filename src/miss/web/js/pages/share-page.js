@@ -11,6 +11,7 @@ import { status } from '../test-hooks.js';
 import { StructuresPanel } from '../viewer/structures-panel.js';
 import { ModelViewer } from '../viewer/viewer.js';
 import { VolumePanel } from '../viewer/volume-panel.js';
+import { linkCamera } from '../viewer/deep-link.js';
 
 const $ = ( id ) => document.getElementById( id );
 const token = decodeURIComponent( location.pathname.split( '/' )[ 2 ] || '' );
@@ -121,6 +122,7 @@ export async function start() {
 		$( 'room' ).hidden = ! data.share.can_annotate;
 		$( 'view-only' ).hidden = data.share.can_annotate;
 		await display( new URLSearchParams( location.search ).get( 'mode' ) );
+		linkCamera( viewer ); // a link with ?cam= opens on the view it was sent with
 		if ( volumeView ) await volumePanel.show( true );
 	} catch ( err ) {
 		overlay( 'This shared model cannot be shown', err.message || String( err ) );

@@ -14,6 +14,7 @@ import { fillDownloads, fillStats, overlay, setupDisplay } from '../viewer/viewe
 import { status } from '../test-hooks.js';
 import { ModelViewer } from '../viewer/viewer.js';
 import { VolumePanel } from '../viewer/volume-panel.js';
+import { linkCamera } from '../viewer/deep-link.js';
 
 const $ = ( id ) => document.getElementById( id );
 // The page's model, from its address when the page starts (the volume page may load this
@@ -161,6 +162,7 @@ export async function start() {
 		const replay = new Replay( viewer, modelId, $( 'history' ), consult );
 		replay.list().catch( () => {} );
 		await display( new URLSearchParams( location.search ).get( 'mode' ), { drawn } );
+		linkCamera( viewer ); // ?cam= in the address: this view, and the address follows it
 		if ( volumeView ) await volumePanel.show( true );
 	} catch ( err ) {
 		overlay( 'This model cannot be shown', err.message || String( err ) );

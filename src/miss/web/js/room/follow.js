@@ -19,7 +19,7 @@ export class CameraFollower {
 		this.goal = {
 			position: v.toWorld( pose.position ),
 			target: v.toWorld( pose.target ),
-			up: new THREE.Vector3( ...pose.up ).transformDirection( v.lpsToWorld ),
+			up: v.lpsDirectionToWorld( pose.up ),
 		};
 		if ( this.running ) return;
 		this.running = true;

@@ -208,6 +208,11 @@ export class ModelViewer {
 		return new THREE.Vector3( ...lps ).applyMatrix4( this.lpsToWorld );
 	}
 
+	// A direction in LPS (the camera's up) as a unit vector in world space.
+	lpsDirectionToWorld( lps ) {
+		return new THREE.Vector3( ...lps ).transformDirection( this.lpsToWorld );
+	}
+
 	// The surface point under a pixel of the canvas: {world, lps} or null. Of the parts
 	// drawn there, the first opaque one: a translucent skin lets the click through to the
 	// bone it shows, as the eye does (only a pixel with nothing opaque behind lands on the

@@ -1,0 +1,37 @@
+// The camera in the address: ?cam=px,py,pz,tx,ty,tz,ux,uy,uz (where the eye is, what it
+// looks at, which way is up; patient LPS mm), so that a physician who copies the address
+// (or a share link with it) sends exactly the view they see. Kept in step as the view
+// turns, without adding history entries.
+
+const DIGITS = 2;
+
+export function cameraFromUrl( search = location.search ) {
+	const raw = new URLSearchParams( search ).get( 'cam' );
+	if ( ! raw ) return null;
+	const v = raw.split( ',' ).map( Number );
+	if ( v.length !== 9 || ! v.every( Number.isFinite ) ) return null; // a mangled link: the default view
+	const up = v.slice( 6 );
+	if ( Math.hypot( ...up ) < 1e-6 || Math.hypot( v[ 0 ] - v[ 3 ], v[ 1 ] - v[ 4 ], v[ 2 ] - v[ 5 ] ) < 1e-6 ) return null;
+	return { position: v.slice( 0, 3 ), target: v.slice( 3, 6 ), up };
+}
+
+function encode( pose ) {
+	return [ ...pose.position, ...pose.target, ...pose.up ].map( ( x ) => Number( x.toFixed( DIGITS ) ) ).join( ',' );
+}
+
+// After the model is drawn: take the view from the address (if any), then keep the
+// address following the view.
+export function linkCamera( viewer ) {
+	const pose = cameraFromUrl();
+	if ( pose ) viewer.setWorldPose( viewer.toWorld( pose.position ), viewer.toWorld( pose.target ),
+		viewer.lpsDirectionToWorld( pose.up ) );
+	let timer = 0;
+	viewer.onCameraChange( () => {
+		clearTimeout( timer );
+		timer = setTimeout( () => {
+			const url = new URL( location.href );
+			url.searchParams.set( 'cam', encode( viewer.pose() ) );
+			history.replaceState( history.state, '', url );
+		}, 250 );
+	} );
+}
