@@ -202,7 +202,7 @@ def choose_series(found: list[dict[str, Any]], key: bytes) -> ChooseSeries:
     """The question to ask of an upload with several series: each by its remapped UID
     (the one the API shows everywhere; :func:`original_series` maps it back), its
     description with anything like a name or a date taken out, modality and size."""
-    listed = [
+    listed: list[dict[str, Any]] = [
         {
             "uid": remap_uid(str(s.get("uid", "")), key),
             "description": scrub_patterns(str(s.get("description") or ""))[:200],
@@ -212,7 +212,7 @@ def choose_series(found: list[dict[str, Any]], key: bytes) -> ChooseSeries:
         }
         for s in found
     ]
-    listed.sort(key=lambda s: -s["slices"])
+    listed.sort(key=lambda s: -int(s["slices"]))  # the largest first, as read by default
     return ChooseSeries(
         f"these files hold {len(listed)} series; choose the one to read and send the "
         "files again with its uid in the form field 'series'.",
