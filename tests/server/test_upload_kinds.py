@@ -106,3 +106,13 @@ def test_zip_of_two_series_asks_which(client: TestClient, datasets: Path, tmp_pa
     r = post(client, [("two.zip", content)], series=mr["uid"])
     assert r.status_code == 201, r.text
     assert r.json()["modality"] == "MR" and r.json()["dims"] == [512, 512, 4]
+
+
+def test_unreadable_upload_is_one_plain_sentence(client: TestClient) -> None:
+    r = post(client, [("notes.nii.gz", b"hello, these are my notes\n" * 40)])
+    assert r.status_code == 422, r.text
+    body = r.json()
+    detail, technical = body["detail"], body["technical"]
+    assert detail.count("notes.nii.gz") == 1 and "not a NIfTI file" in detail
+    assert "byte" not in detail and "magic" not in detail
+    assert "magic at byte 344" in technical  # the reader's finding, kept for "more"

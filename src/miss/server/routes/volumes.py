@@ -15,6 +15,7 @@ from fastapi import APIRouter, Query, Request, Response, status
 from fastapi.responses import FileResponse, JSONResponse
 from starlette.concurrency import run_in_threadpool
 
+from miss.errors import MissError
 from miss.server import audit, quota
 from miss.server.accounts import User, get_user
 from miss.server.core.deps import (
@@ -36,6 +37,7 @@ from miss.server.storage.db import VolumeRow
 from miss.server.storage.store import Store
 from miss.server.volumes import imaging, labelmaps
 from miss.server.volumes.ingest import ingest
+from miss.server.volumes.plain import explained
 from miss.server.volumes.uploads import Pace, Upload, UploadSlots, receive
 
 router = APIRouter(prefix="/api/volumes", tags=["volumes"])
@@ -128,6 +130,10 @@ async def received(
         408: {"description": "the body arrived too slowly, or stalled"},
         409: {"description": "the files hold several DICOM series: pick one of `series`"},
         415: {"description": "not a scan"},
+        422: {
+            "description": "a file that cannot be read: `detail` says it plainly, "
+            "`technical` (when there is more) what the reader found"
+        },
         507: {"description": "the server's disk, or the account's quota, is full"},
     },
 )
@@ -142,7 +148,10 @@ async def upload_volume(
     """Upload a scan; it is read once (in a confined process), de-identified and stored
     for slicing and jobs."""
     async with received(request, store, settings, user, slots, many=True) as (upload, work):
-        row = await run_in_threadpool(ingest, store, upload, work, reading, user.id, None, True)
+        try:
+            row = await run_in_threadpool(ingest, store, upload, work, reading, user.id, None, True)
+        except MissError as exc:  # a reader's diagnosis, said plainly; its detail behind
+            raise explained(exc, upload.filename or "the upload") from None
     await run_in_threadpool(_within_quota, store, user, settings.quota_bytes, row)
     await run_in_threadpool(
         audit.record, store, "upload", user.name, row.id, audit.address(request), name=row.name
