@@ -704,7 +704,7 @@ def _read(config: dict[str, Any]) -> dict[str, Any]:
         _refuse_pointers(source)
     series = config.get("series") or None
     if config.get("ask_series") and series is None:
-        choices = several_series(source)
+        choices = _several_series(source)
         if choices:
             return {"choices": _jsonable(choices), "source_name": _relative(source)}
     described = _stream_volume(source, series)
@@ -713,18 +713,23 @@ def _read(config: dict[str, Any]) -> dict[str, Any]:
     return {"volume": described, "source_name": _relative(source)}
 
 
-def several_series(source: Path) -> list[dict[str, Any]]:
+def _several_series(source: Path) -> list[dict[str, Any]]:
     """The DICOM series in the folder ``source`` when it holds more than one (as
-    :func:`miss.io.list_series` gives them), else none: one series, or no DICOM, or files
+    :func:`miss.io.list_series` gives them, every patient's identity cut out of their
+    descriptions: a zip may mix patients), else none: one series, or no DICOM, or files
     whose headers do not list, which reading them then diagnoses."""
+    from miss.deid import identity_values, scrub
     from miss.io import dicom
 
     if not source.is_dir():
         return []
     try:
-        listed = dicom.list_series(source)
+        listed, patient = dicom.list_series_identity(source)
     except Exception:  # noqa: BLE001 - the read that follows says what is wrong
         return []
+    values = identity_values(patient)
+    for entry in listed:
+        entry["description"] = scrub(str(entry.get("description") or ""), values)
     return listed if len(listed) > 1 else []
 
 
