@@ -34,7 +34,7 @@ from miss.server.app import create_app
 #: Header values in UTF-8, as a German scanner may write them.
 UTF8 = {"SpecificCharacterSet": "ISO_IR 192"}
 #: The ``upload`` fixture: (file name, content) -> the new volume's JSON.
-Upload = Callable[[str, bytes], dict[str, Any]]
+Upload = Callable[..., dict[str, Any]]
 #: Every spelling of MÜLLER^JÖRG that must not come back, and the fragments a cut leaves.
 MUELLER = ["müller", "mueller", "muller", "jörg", "jørg", "joerg", "jorg", "mü", "örg"]
 
@@ -73,8 +73,8 @@ def upload(server: Server) -> Iterator[Upload]:
     volume list of the next one shows only its own."""
     made: list[str] = []
 
-    def send(filename: str, content: bytes) -> dict[str, Any]:
-        r = server.http.post("/api/volumes", files={"file": (filename, content)})
+    def send(filename: str, content: bytes, **fields: str) -> dict[str, Any]:
+        r = server.http.post("/api/volumes", files={"file": (filename, content)}, data=fields)
         assert r.status_code == 201, r.text
         made.append(r.json()["id"])
         return dict(r.json())
@@ -159,7 +159,12 @@ def two_patients() -> bytes:
 def test_every_series_of_an_upload_is_scrubbed(server: Server, upload: Upload) -> None:
     """The finding: a second series of another patient in the same zip kept "Roe^Jane
     scout 1980-01-01" in the volume's series list: only the series read was matched."""
-    volume = upload("study.zip", two_patients())
+    # Asked which series to read, the list of them carries no identity either.
+    asked = server.http.post("/api/volumes", files={"file": ("study.zip", two_patients())})
+    assert asked.status_code == 409, asked.text
+    assert_gone(asked.text.lower(), ["roe", "jane", "rj5501", "rj-5501", "1980", "smith", "anna"])
+    assert sorted(s["slices"] for s in asked.json()["series"]) == [3, 6]
+    volume = upload("study.zip", two_patients(), series=asked.json()["series"][0]["uid"])
     assert len(volume["series"]) == 2
     shown = served(server, volume["id"])
     assert_gone(shown, ["roe", "jane", "rj5501", "rj-5501", "1980", "smith", "anna"])

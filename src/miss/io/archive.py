@@ -158,7 +158,8 @@ def volume_suffix(path: Path) -> str:
 
 
 def pick_source(folder: Path) -> Path:
-    """What to read from an unpacked zip: its single volume file, else the folder (DICOM)."""
+    """What to read from an unpacked zip (or the files of one upload, gathered): its single
+    volume file, else the folder (DICOM)."""
     files = [p for p in folder.rglob("*") if p.is_file()]
     if not files:
         raise UnreadableVolume(
@@ -167,5 +168,5 @@ def pick_source(folder: Path) -> Path:
     singles = sorted(p for p in files if volume_suffix(p))
     if len(singles) > 1:
         names = ", ".join(str(p.relative_to(folder)) for p in singles[:5])
-        raise BadParameter(f"the zip holds several volumes ({names}); upload one at a time.")
+        raise BadParameter(f"the upload holds several volumes ({names}); upload one at a time.")
     return singles[0] if singles else folder

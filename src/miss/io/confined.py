@@ -136,11 +136,13 @@ class Confinement:
 class Parsed:
     """What the child read: the volume (identity still in ``patient``), or, asked for
     planes (``whole=False``), the same as ``streamed``; the DICOM series it found (mode
-    ``series``), a label table (mode ``labels``). ``close()`` once the planes are read."""
+    ``series``), or, asked to (``ask_series``), the series to choose among instead of a
+    volume (``choices``: the files hold several and none was named), a label table (mode ``labels``). ``close()`` once the planes are read."""
 
     volume: Volume | None = None
     streamed: Streamed | None = None
     series: list[dict[str, Any]] = field(default_factory=list)
+    choices: list[dict[str, Any]] = field(default_factory=list)
     table: list[dict[str, Any]] = field(default_factory=list)
     table_source: str = ""
     source_name: str = ""
@@ -242,6 +244,7 @@ def parse_upload(
     series: str | None = None,
     grid: dict[str, Any] | None = None,
     whole: bool = True,
+    ask_series: bool = False,
 ) -> Parsed:
     """Read ``work/upload`` (a zip is unpacked into ``work/unzipped`` first) in a child.
 
@@ -252,7 +255,9 @@ def parse_upload(
     ``{"affine": 4x4 voxel-to-LPS-mm rows, "dims": [X, Y, Z]}`` of its image series).
     ``whole=False``: the volume as ``Parsed.streamed``, its (X, Y) planes read from the
     child's file one at a time (this process never holds it whole); the caller closes
-    the ``Parsed``. Raises the reader's ``MissError`` as the child reported it.
+    the ``Parsed``. ``ask_series``: files that hold several DICOM series and no ``series``
+    give ``Parsed.choices``, not the largest. Raises the reader's ``MissError`` as the
+    child reported it.
     """
     out = work / OUT
     _remove(out)
@@ -266,6 +271,7 @@ def parse_upload(
         "confined": confinement.confined,
         "unzipped_bytes": limits.unzipped_bytes,
         "min_free_bytes": limits.min_free_bytes,
+        "ask_series": ask_series,
     }
     proc = _spawn(work, config, limits)
     answer = _result(work, proc, limits)
@@ -406,6 +412,7 @@ def _read_json(path: Path) -> Any:
 def _parsed(out: Path, answer: dict[str, Any], whole: bool = True) -> Parsed:
     parsed = Parsed(
         series=_list_of_dicts(answer.get("series")),
+        choices=_list_of_dicts(answer.get("choices")),
         table=_list_of_dicts(answer.get("table")),
         table_source=str(answer.get("table_source") or "")[:MAX_MESSAGE],
         source_name=str(answer.get("source_name") or "")[:MAX_MESSAGE],
@@ -661,13 +668,14 @@ def _source(config: dict[str, Any]) -> Path:
 
 
 def _unpack(config: dict[str, Any]) -> Path:
-    """The upload file, or the folder ``unzipped`` (a zip upload is unpacked there)."""
+    """The upload file, or the folder ``unzipped`` (a zip upload is unpacked there; the
+    files of an upload of several are gathered there)."""
     from miss.io.archive import extract_zip, is_zip
 
     work = Path.cwd()
     unpacked = work / "unzipped"
     upload = work / config["upload"]
-    if upload.exists() and is_zip(upload):
+    if upload.is_file() and is_zip(upload):
         unpacked.mkdir(exist_ok=True)
         extract_zip(upload, unpacked, int(config["unzipped_bytes"]), _free_space_check(config))
         upload.unlink()  # halve the disk the upload takes meanwhile
@@ -695,10 +703,34 @@ def _read(config: dict[str, Any]) -> dict[str, Any]:
     if not config.get("confined", True):
         _refuse_pointers(source)
     series = config.get("series") or None
+    if config.get("ask_series") and series is None:
+        choices = _several_series(source)
+        if choices:
+            return {"choices": _jsonable(choices), "source_name": _relative(source)}
     described = _stream_volume(source, series)
     if described is None:
         described = _write_volume(load_volume(source, series=series))
     return {"volume": described, "source_name": _relative(source)}
+
+
+def _several_series(source: Path) -> list[dict[str, Any]]:
+    """The DICOM series in the folder ``source`` when it holds more than one (as
+    :func:`miss.io.list_series` gives them, every patient's identity cut out of their
+    descriptions: a zip may mix patients), else none: one series, or no DICOM, or files
+    whose headers do not list, which reading them then diagnoses."""
+    from miss.deid import identity_values, scrub
+    from miss.io import dicom
+
+    if not source.is_dir():
+        return []
+    try:
+        listed, patient = dicom.list_series_identity(source)
+    except Exception:  # noqa: BLE001 - the read that follows says what is wrong
+        return []
+    values = identity_values(patient)
+    for entry in listed:
+        entry["description"] = scrub(str(entry.get("description") or ""), values)
+    return listed if len(listed) > 1 else []
 
 
 def _stream_volume(source: Path, series: str | None) -> dict[str, Any] | None:

@@ -61,6 +61,17 @@ def list_series(path: Path) -> list[dict[str, Any]]:
     return [_describe(uid, headers) for uid, headers in groups.items()]
 
 
+def list_series_identity(path: Path) -> tuple[list[dict[str, Any]], dict[str, str]]:
+    """:func:`list_series`, and the identifying attributes any file of any series holds
+    (as ``Volume.patient`` gives them): what to cut out of the descriptions listed."""
+    from miss.io.dicom_files import open_source
+
+    with open_source(path) as entries:
+        groups, _ = _grouped_headers(path, entries)
+    listed = [_describe(uid, headers) for uid, headers in groups.items()]
+    return listed, (_patient(groups, next(iter(groups))) if groups else {})
+
+
 def read(path: Path, series: str | None) -> Volume:
     """Read one series as a ``Volume`` (the one with most slices unless ``series`` names a UID)."""
     from miss.io import dicom_stack

@@ -73,6 +73,29 @@ class TooManyRequests(MissError, RuntimeError):
     """A client over its rate limit (failed logins)."""
 
 
+class ChooseSeries(MissError, ValueError):
+    """An upload that holds several DICOM series and names none (409): ``series`` lists
+    them (uid, description, modality, slices, dims) for the client to pick one and send
+    the upload again with its ``uid`` in the form field ``series``."""
+
+    def __init__(self, message: str, series: list[dict[str, Any]]) -> None:
+        super().__init__(message)
+        self.series = series
+
+
+def answer_fields(exc: MissError) -> dict[str, Any]:
+    """What an error's JSON answer holds beside ``detail``: the series to choose among
+    (:class:`ChooseSeries`), the technical detail behind a plain sentence (``technical``,
+    set by the upload route)."""
+    fields: dict[str, Any] = {}
+    if isinstance(exc, ChooseSeries):
+        fields["series"] = exc.series
+    technical = getattr(exc, "technical", "")
+    if isinstance(technical, str) and technical:
+        fields["technical"] = technical
+    return fields
+
+
 #: Most specific first; anything else from the engine is a bad request body (422).
 STATUS: tuple[tuple[type[MissError], int], ...] = (
     (NotFound, 404),
@@ -86,6 +109,7 @@ STATUS: tuple[tuple[type[MissError], int], ...] = (
     (UnsupportedFormat, 415),
     (NotReady, 409),
     (Conflict, 409),
+    (ChooseSeries, 409),
     (WrongStudy, 409),
     (DiskFull, 507),
     (PacsTimeout, 504),
@@ -110,7 +134,8 @@ async def miss_error_handler(request: Request, exc: Exception) -> JSONResponse:
         said = type(exc).__name__ if upload else str(exc)
         log.info("%s %s -> %d: %s", request.method, mask(request.url.path), code, said)
     headers = {"WWW-Authenticate": 'Bearer realm="miss"'} if code == 401 else None
-    return JSONResponse({"detail": str(exc)}, status_code=code, headers=headers)
+    body = {"detail": str(exc), **answer_fields(exc)}
+    return JSONResponse(body, status_code=code, headers=headers)
 
 
 async def validation_handler(request: Request, exc: Exception) -> JSONResponse:

@@ -15,6 +15,7 @@ from fastapi import APIRouter, Query, Request, Response, status
 from fastapi.responses import FileResponse, JSONResponse
 from starlette.concurrency import run_in_threadpool
 
+from miss.errors import MissError
 from miss.server import audit, quota
 from miss.server.accounts import User, get_user
 from miss.server.core.deps import (
@@ -36,6 +37,7 @@ from miss.server.storage.db import VolumeRow
 from miss.server.storage.store import Store
 from miss.server.volumes import imaging, labelmaps
 from miss.server.volumes.ingest import ingest
+from miss.server.volumes.plain import explained
 from miss.server.volumes.uploads import Pace, Upload, UploadSlots, receive
 
 router = APIRouter(prefix="/api/volumes", tags=["volumes"])
@@ -55,7 +57,9 @@ def _multipart_body(file_description: str, **fields: str) -> dict[str, Any]:
 
 
 _UPLOAD_BODY = _multipart_body(
-    "a .zip of a DICOM series (or folder tree), or one .nii/.nii.gz/.nrrd/.mha file",
+    "a .zip of a DICOM series (or folder tree); one .dcm or .nii/.nii.gz/.nrrd/.mha file; "
+    "or several files in this field, read as one folder (the slices of a series, an "
+    ".mhd with its .raw/.zraw)",
     name="name to list (default: modality, body part and series description; never the file name)",
     series="DICOM SeriesInstanceUID to read",
 )
@@ -92,11 +96,17 @@ def upload_pace(settings: Settings) -> Pace:
 
 @asynccontextmanager
 async def received(
-    request: Request, store: Store, settings: Settings, user: User, slots: UploadSlots
+    request: Request,
+    store: Store,
+    settings: Settings,
+    user: User,
+    slots: UploadSlots,
+    many: bool = False,
 ) -> AsyncIterator[tuple[Upload, Path]]:
     """An upload received into a fresh folder under ``tmp/`` (as one of the account's
     uploads at once, else 429; with free space, else 507), and that folder removed
-    afterwards whatever happened: a stored volume was moved out of it before."""
+    afterwards whatever happened: a stored volume was moved out of it before. ``many``:
+    several files in the field ``file`` are one upload (the slices of a series)."""
     await run_in_threadpool(store.check_free_space, settings.min_free_bytes)
     await run_in_threadpool(quota.check, store, user, settings.quota_bytes, _declared(request))
     with slots.slot(user.id):
@@ -104,7 +114,8 @@ async def received(
         try:
             with store.disk_full_as_507():
                 limit, free = settings.max_upload_bytes, settings.min_free_bytes
-                yield await receive(request, work, limit, free, upload_pace(settings)), work
+                pace = upload_pace(settings)
+                yield await receive(request, work, limit, free, pace, many), work
         finally:
             await run_in_threadpool(shutil.rmtree, work, True)
 
@@ -117,7 +128,12 @@ async def received(
     responses={
         413: {"description": "over the size limit, or larger than the account's quota"},
         408: {"description": "the body arrived too slowly, or stalled"},
+        409: {"description": "the files hold several DICOM series: pick one of `series`"},
         415: {"description": "not a scan"},
+        422: {
+            "description": "a file that cannot be read: `detail` says it plainly, "
+            "`technical` (when there is more) what the reader found"
+        },
         507: {"description": "the server's disk, or the account's quota, is full"},
     },
 )
@@ -131,8 +147,11 @@ async def upload_volume(
 ) -> JSONResponse:
     """Upload a scan; it is read once (in a confined process), de-identified and stored
     for slicing and jobs."""
-    async with received(request, store, settings, user, slots) as (upload, work):
-        row = await run_in_threadpool(ingest, store, upload, work, reading, user.id)
+    async with received(request, store, settings, user, slots, many=True) as (upload, work):
+        try:
+            row = await run_in_threadpool(ingest, store, upload, work, reading, user.id, None, True)
+        except MissError as exc:  # a reader's diagnosis, said plainly; its detail behind
+            raise explained(exc, upload.filename or "the upload") from None
     await run_in_threadpool(_within_quota, store, user, settings.quota_bytes, row)
     await run_in_threadpool(
         audit.record, store, "upload", user.name, row.id, audit.address(request), name=row.name

@@ -28,7 +28,7 @@ from miss.deid import REMOVED, deidentify, identity_values, remap_uid, scrub, sc
 from miss.errors import BadParameter, EmptySurface, MissError, UnreadableVolume
 from miss.io.common import Streamed
 from miss.io.confined import Confinement, Limits, parse_upload
-from miss.server.core.errors import UploadTooLarge
+from miss.server.core.errors import ChooseSeries, UploadTooLarge
 from miss.server.storage import chunked
 from miss.server.storage.db import VolumeRow
 from miss.server.storage.store import DATA, Store, write_atomic
@@ -149,6 +149,7 @@ def ingest(
     reading: Reading,
     owner_id: str | None = None,
     origin: dict[str, Any] | None = None,
+    ask_series: bool = False,
 ) -> VolumeRow:
     """Read an uploaded file once (confined: :mod:`miss.io.confined`), de-identify it and
     store it for ``owner_id``. ``origin`` (where a PACS series came from: the PACS, the
@@ -156,13 +157,19 @@ def ingest(
 
     The child writes the voxels plane by plane where the format allows (a plain NIfTI-1,
     a folder of DICOM slices) and this process stores them plane by plane from its file
-    (:func:`store_streamed`, as ``miss ingest`` does): neither holds the whole volume."""
+    (:func:`store_streamed`, as ``miss ingest`` does): neither holds the whole volume.
+    ``ask_series``: files with several DICOM series and no ``series`` field raise
+    :class:`ChooseSeries` (409) listing them, instead of reading the largest."""
     assert upload.path is not None
     key = store.secret(UID_KEY)
     try:
         series = original_series(store, work, upload, reading)
-        parsed = parse_upload(work, upload.path.name, *reading, series=series, whole=False)
+        parsed = parse_upload(
+            work, upload.path.name, *reading, series=series, whole=False, ask_series=ask_series
+        )
         try:
+            if parsed.choices:
+                raise choose_series(parsed.choices, key)
             shutil.rmtree(work / "unzipped", ignore_errors=True)  # room for the stored copy
             if parsed.streamed is None:  # only a reader that lies answers so
                 raise UnreadableVolume("the file reader gave no volume; the file is damaged.")
@@ -172,6 +179,8 @@ def ingest(
             )
         finally:
             parsed.close()
+    except ChooseSeries:
+        raise
     except MissError as exc:  # the server's folders are none of the client's business
         raise type(exc)(public_message(str(exc), work)) from None
     except MemoryError:
@@ -186,6 +195,28 @@ def ingest(
     name = display_name(upload.fields.get("name", ""), volume, patient)
     return store.add_volume(
         staged, name=name, slug=slugify(name), info=info, owner_id=owner_id, identity=identity
+    )
+
+
+def choose_series(found: list[dict[str, Any]], key: bytes) -> ChooseSeries:
+    """The question to ask of an upload with several series: each by its remapped UID
+    (the one the API shows everywhere; :func:`original_series` maps it back), its
+    description with anything like a name or a date taken out, modality and size."""
+    listed: list[dict[str, Any]] = [
+        {
+            "uid": remap_uid(str(s.get("uid", "")), key),
+            "description": scrub_patterns(str(s.get("description") or ""))[:200],
+            "modality": str(s.get("modality") or "")[:16],
+            "slices": int(s.get("slices") or 0),
+            "dims": [int(d) for d in s.get("dims") or []][:3],
+        }
+        for s in found
+    ]
+    listed.sort(key=lambda s: -int(s["slices"]))  # the largest first, as read by default
+    return ChooseSeries(
+        f"these files hold {len(listed)} series; choose the one to read and send the "
+        "files again with its uid in the form field 'series'.",
+        listed,
     )
 
 

@@ -15,6 +15,7 @@ import contextlib
 import errno
 import os
 import re
+import shutil
 import time
 from collections import deque
 from collections.abc import AsyncGenerator
@@ -38,6 +39,11 @@ CHUNK = 1 << 20
 MARK_EVERY = 0.25
 FIELD_LIMIT = 64 * 1024
 MAX_FIELDS = 16
+#: Files one upload may hold (a folder of slices sent as several ``file`` parts).
+MAX_FILES = 100_000
+#: The folder several files of one upload are gathered in: where a zip is unpacked, so
+#: the confined reader takes them as it takes an unpacked zip.
+GATHERED = "unzipped"
 _UNSAFE_CHARS = re.compile(r"[^A-Za-z0-9._-]+")
 
 
@@ -62,11 +68,14 @@ def safe_filename(name: str) -> str:
 
 
 class _MultipartSink:
-    """Callbacks for python-multipart: the ``file`` part to disk, other fields to memory."""
+    """Callbacks for python-multipart: the ``file`` part to disk, other fields to memory.
+    With ``many``, several ``file`` parts (the slices of a series, a header and its data
+    file) are gathered into one folder, :data:`GATHERED`, counted against one ``limit``."""
 
-    def __init__(self, boundary: bytes, folder: Path, limit: int) -> None:
+    def __init__(self, boundary: bytes, folder: Path, limit: int, many: bool = False) -> None:
         self.upload = Upload()
-        self.folder, self.limit = folder, limit
+        self.folder, self.limit, self.many = folder, limit, many
+        self.files = 0
         self._headers: dict[bytes, bytes] = {}
         self._header = [b"", b""]
         self._out: IO[bytes] | None = None
@@ -106,11 +115,35 @@ class _MultipartSink:
                 )
             self._field = (name, bytearray())
             return
-        if filename is None or self.upload.path is not None:
+        if filename is None or (self.upload.path is not None and not self.many):
             raise BadParameter("send exactly one file, in the multipart field 'file'.")
-        self.upload.filename = filename.decode("utf-8", "replace")
-        self.upload.path = self.folder / safe_filename(self.upload.filename)
-        self._out = open(self.upload.path, "wb")  # noqa: SIM115 - closed in _part_end/close
+        name = filename.decode("utf-8", "replace")
+        self.files += 1
+        if self.files == 1:
+            self.upload.filename = name
+            self.upload.path = target = self.folder / safe_filename(name)
+        else:
+            target = self._gathered(name)
+        self._out = open(target, "wb")  # noqa: SIM115 - closed in _part_end/close
+
+    def _gathered(self, name: str) -> Path:
+        """Where the next file of several goes: the folder :data:`GATHERED` (the first
+        file moved into it at the second), under a name no earlier file took."""
+        if self.files > MAX_FILES:
+            raise BadParameter(
+                f"the upload holds more than {MAX_FILES} files; send one series at a time."
+            )
+        gathered = self.folder / GATHERED
+        assert self.upload.path is not None
+        if self.upload.path != gathered:
+            gathered.mkdir()
+            self.upload.path.rename(gathered / self.upload.path.name)
+            self.upload.path = gathered
+        self.upload.filename = f"{self.files} files"
+        target = gathered / safe_filename(name)
+        if target.exists():  # the same name from two folders of a drop
+            target = gathered / f"{self.files}-{target.name}"
+        return target
 
     def _part_data(self, data: bytes, start: int, end: int) -> None:
         if self._out is not None:
@@ -152,7 +185,9 @@ class _MultipartSink:
         """Close and delete the file part (a full disk: give the space back now)."""
         with contextlib.suppress(OSError):  # closing flushes, which fails on a full disk
             self.close()
-        if self.upload.path is not None:
+        if self.upload.path is not None and self.upload.path.is_dir():
+            shutil.rmtree(self.upload.path, ignore_errors=True)
+        elif self.upload.path is not None:
             self.upload.path.unlink(missing_ok=True)
 
 
@@ -276,9 +311,15 @@ def _mark(marks: deque[tuple[float, int]], now: float, size: int) -> None:
 
 
 async def receive(
-    request: Request, folder: Path, limit: int, min_free: int = 0, pace: Pace | None = None
+    request: Request,
+    folder: Path,
+    limit: int,
+    min_free: int = 0,
+    pace: Pace | None = None,
+    many: bool = False,
 ) -> Upload:
-    """Stream a multipart/form-data body into ``folder``; the file part in field ``file``.
+    """Stream a multipart/form-data body into ``folder``; the file part in field ``file``
+    (with ``many``, several parts of that name gathered in one folder: ``Upload.path``).
 
     The disk's free space is checked as the body arrives, not only before: a client that
     fills the disk mid-upload gets 507 and its partial file is removed at once. A body
@@ -292,7 +333,7 @@ async def receive(
     length = request.headers.get("content-length", "")
     if length.isdigit() and int(length) > limit + FIELD_LIMIT:
         raise UploadTooLarge(too_large("upload", limit))
-    sink = _MultipartSink(params[b"boundary"], folder, limit)
+    sink = _MultipartSink(params[b"boundary"], folder, limit, many)
     pending = bytearray()
     full: OSError | None = None
     try:

@@ -4,10 +4,11 @@
 // cookie in X-CSRF-Token, and a 401 sends the browser to the login page.
 
 export class ApiError extends Error {
-	constructor( status, detail ) {
+	constructor( status, detail, body = null ) {
 		super( detail );
 		this.name = 'ApiError';
 		this.status = status;
+		this.body = body; // the whole answer: `technical`, the `series` to choose among
 	}
 }
 
@@ -65,7 +66,7 @@ export function request( method, path, body, { onProgress = null, login = true }
 			}
 			if ( xhr.status === 401 && login ) location.assign( loginUrl() );
 			if ( xhr.status >= 200 && xhr.status < 300 ) resolve( data );
-			else reject( new ApiError( xhr.status, detailText( data, xhr.status ) ) );
+			else reject( new ApiError( xhr.status, detailText( data, xhr.status ), data ) );
 		};
 		xhr.onerror = () => reject( new ApiError( 0, 'the MISS server cannot be reached; check the connection (is `miss serve` running?) and try again' ) );
 		xhr.onabort = () => reject( new ApiError( 0, 'cancelled' ) );

@@ -4,7 +4,7 @@
 import { showSession } from '../session.js';
 import { api, urls } from '../api.js';
 import { describeVolume, el } from '../format.js';
-import { looksLikeVolume, uploadVolume } from '../upload.js';
+import { droppedFiles, groupUploads, uploadLabel, uploadVolume } from '../upload.js';
 import { setupPacs } from '../pacs-panel.js';
 
 const $ = ( id ) => document.getElementById( id );
@@ -58,35 +58,100 @@ async function refresh() {
 	document.body.dataset.ready = '1'; // the list is drawn (tests wait for this)
 }
 
-// Files go one after another: parallel uploads would only compete for the
-// same link and the same two server cores.
-async function uploadAll( files ) {
-	const state = $( 'upload-state' );
+// An upload's failure: the server's plain sentence, and what the reader found
+// behind "More" for whoever wants it (or is asked for it by support).
+function showUploadError( err ) {
+	const node = $( 'upload-error' );
+	const technical = err?.body?.technical;
+	node.replaceChildren( el( 'span.plain', err.message || String( err ) ) );
+	if ( technical ) {
+		node.append( el( 'details.more', el( 'summary', 'More' ), el( 'p.mono.technical', technical ) ) );
+	}
+	node.hidden = false;
+}
+
+// Several series in one upload: the server lists them (largest first); the
+// person picks one and the same files go again with its UID.
+function chooseSeries( series, label ) {
+	const box = $( 'upload-choice' );
+	return new Promise( ( resolve ) => {
+		const options = series.map( ( s, i ) => el( 'label.series-option',
+			el( 'input', { type: 'radio', name: 'series', value: s.uid, checked: i === 0 } ),
+			el( 'span', [ s.modality || 'Scan', s.description || '(no description)',
+				`${s.slices} slice${s.slices === 1 ? '' : 's'}`,
+				s.dims?.length >= 2 ? `${s.dims[ 0 ]} × ${s.dims[ 1 ]}` : '' ].filter( Boolean ).join( ' · ' ) ) ) );
+		const finish = ( uid ) => {
+			box.hidden = true;
+			box.replaceChildren();
+			resolve( uid );
+		};
+		const read = el( 'button.primary', { type: 'submit' }, 'Read this series' );
+		const cancel = el( 'button', { type: 'button', onclick: () => finish( null ) }, 'Cancel' );
+		const form = el( 'form.series-choice',
+			el( 'fieldset',
+				el( 'legend', `${label} holds ${series.length} series: which one should MISS read?` ),
+				...options ),
+			el( 'div.row', read, cancel ) );
+		form.addEventListener( 'submit', ( e ) => {
+			e.preventDefault();
+			finish( form.querySelector( 'input[name=series]:checked' )?.value || null );
+		} );
+		box.replaceChildren( form );
+		box.hidden = false;
+		read.focus();
+	} );
+}
+
+// One upload (one file, or the several that make one scan), with its bar; a
+// zip or folder of several series asks which one and sends it again.
+async function uploadOne( files, label ) {
 	const bar = $( 'upload-progress' );
-	showError( $( 'upload-error' ), null );
-	for ( const file of files ) {
-		if ( ! looksLikeVolume( file.name ) ) {
-			showError( $( 'upload-error' ), new Error( `${file.name}: not a scan MISS reads; use a .zip of DICOM files, .nii, .nii.gz, .nrrd or .mha` ) );
-			continue;
-		}
-		state.hidden = false;
-		$( 'upload-name' ).textContent = file.name;
+	$( 'upload-state' ).hidden = false;
+	$( 'upload-name' ).textContent = label;
+	let fields = {};
+	for ( ;; ) {
 		bar.value = 0;
 		bar.removeAttribute( 'data-done' );
 		try {
-			const volume = await uploadVolume( file, ( fraction, phase ) => {
+			const volume = await uploadVolume( files, ( fraction, phase ) => {
 				bar.value = fraction;
 				$( 'upload-text' ).textContent = phase === 'reading' ? 'reading the scan…' : `${Math.round( fraction * 100 )} %`;
-			} );
+			}, fields );
 			$( 'upload-text' ).textContent = 'done';
 			bar.dataset.done = '1';
 			$( 'volumes' ).prepend( volumeCard( volume ) );
 			$( 'empty' ).hidden = true;
+			return;
 		} catch ( err ) {
+			const series = err?.status === 409 && err.body?.series;
+			if ( Array.isArray( series ) && series.length > 1 && ! fields.series ) {
+				$( 'upload-text' ).textContent = 'choose a series';
+				const uid = await chooseSeries( series, label );
+				if ( uid ) {
+					fields = { series: uid };
+					continue;
+				}
+				$( 'upload-text' ).textContent = 'cancelled';
+				return;
+			}
 			$( 'upload-text' ).textContent = 'failed';
-			showError( $( 'upload-error' ), new Error( `${file.name}: ${err.message}` ) );
+			showUploadError( err );
+			return;
 		}
 	}
+}
+
+// Uploads go one after another: parallel ones would only compete for the
+// same link and the same two server cores.
+async function uploadAll( files, folder = '' ) {
+	showError( $( 'upload-error' ), null );
+	const { groups, refused } = groupUploads( files );
+	if ( refused.length && ! groups.length ) {
+		const names = refused.slice( 0, 3 ).join( ', ' ) + ( refused.length > 3 ? ', …' : '' );
+		showError( $( 'upload-error' ), new Error( `${names}: not a scan MISS reads; choose DICOM files (or their folder or a .zip of them), NIfTI, NRRD or MetaImage` ) );
+		return;
+	}
+	for ( const group of groups ) await uploadOne( group, uploadLabel( group, folder ) );
 }
 
 function setupUpload() {
@@ -112,8 +177,9 @@ function setupUpload() {
 		e.preventDefault();
 		depth = 0;
 		zone.classList.remove( 'over' );
-		const files = [ ...( e.dataTransfer?.files || [] ) ];
-		if ( files.length ) uploadAll( files );
+		droppedFiles( e.dataTransfer ).then( ( { files, folder } ) => {
+			if ( files.length ) uploadAll( files, folder );
+		} ).catch( ( err ) => showError( $( 'upload-error' ), err ) );
 	} );
 }
 

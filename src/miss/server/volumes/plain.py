@@ -1,0 +1,72 @@
+"""A reader's diagnosis said plainly for the person who uploaded the file.
+
+Readers write for whoever debugs a file ("notes.nii.gz: not a NIfTI file: no 'n+1'
+magic at byte 344 (found b'ohel'); check it was not renamed ..."). The upload's answer
+keeps that as ``technical`` and gives as ``detail`` one sentence without byte offsets,
+magic numbers or header fields, naming the file once: "notes.nii.gz: not a NIfTI file;
+check it was not renamed from another format or damaged."
+"""
+
+from __future__ import annotations
+
+import re
+
+from miss.errors import MissError, UnreadableVolume, UnsafeArchive, UnsupportedFormat
+
+#: What marks a phrase as the technical detail: byte positions, magic numbers, raw
+#: bytes, hexadecimal values, DICOM tags.
+TECHNICAL = re.compile(
+    r"\bbytes? \d|\bat byte\b|\bmagic\b|\boffset\b|\b0x[0-9a-fA-F]|\bb'|\bb\"|"
+    r"\([0-9A-Fa-f]{4},[0-9A-Fa-f]{4}\)"
+)
+#: A file name a reader put before its diagnosis ("IM0005: ", "ct/01.dcm: ").
+_NAME = re.compile(r"^[^\s:]+: ")
+
+
+def _parentheticals(text: str) -> list[tuple[int, int]]:
+    """(start, end) of each outermost parenthesised phrase, nesting respected."""
+    spans, depth, start = [], 0, 0
+    for i, char in enumerate(text):
+        if char == "(":
+            start = i if depth == 0 else start
+            depth += 1
+        elif char == ")" and depth:
+            depth -= 1
+            if depth == 0:
+                spans.append((start, i + 1))
+    return spans
+
+
+def _without_technical_asides(text: str) -> str:
+    """``text`` without the parenthesised phrases that hold technical detail."""
+    for start, end in reversed(_parentheticals(text)):
+        if TECHNICAL.search(text[start:end]):
+            text = text[:start].rstrip() + text[end:]
+    return text
+
+
+def plain_message(message: str, label: str) -> str:
+    """One sentence for a person: ``label`` (the file's name) once, the diagnosis without
+    its technical clauses, and the fix the reader named."""
+    text = _without_technical_asides(message.strip())
+    while _NAME.match(text):
+        text = _NAME.sub("", text, count=1)
+    diagnosis, _, fix = text.partition("; ")
+    clauses = diagnosis.split(": ")
+    kept = [clauses[0], *(c for c in clauses[1:] if not TECHNICAL.search(c))]
+    said = ": ".join(kept).rstrip(". ")
+    return f"{label}: {said}; {fix}" if fix else f"{label}: {said}."
+
+
+def explained(exc: MissError, label: str) -> MissError:
+    """``exc`` as the upload answers it: a reader's diagnosis (a file it could not read)
+    as :func:`plain_message` with the original as ``technical``; anything else (limits,
+    unsafe archives, a series to choose) as it is, being plain already."""
+    if isinstance(exc, UnsafeArchive) or not isinstance(exc, UnreadableVolume | UnsupportedFormat):
+        return exc
+    plain = plain_message(str(exc), label)
+    if plain == str(exc):
+        return exc
+    said = type(exc)(plain)
+    said.technical = str(exc)  # type: ignore[union-attr]  # read by the error handler
+    return said

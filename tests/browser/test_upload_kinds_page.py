@@ -1,0 +1,135 @@
+"""The library page takes scans as they arrive: several DICOM slices picked at once, a
+MetaImage header with its data file, a zip of two series (asks which), and an unreadable
+file (one plain sentence, the reader's finding behind "More")."""
+
+from __future__ import annotations
+
+import os
+import zipfile
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import SimpleITK as sitk
+
+REPO = Path(__file__).resolve().parents[2]
+DATASETS = Path(os.environ.get("MISS_DATASETS", REPO.parent / "shared" / "datasets"))
+GE = DATASETS / "ct_head_dicom_ge_gantrytilt"
+MR = DATASETS / "mr_head_dicom_vsseg001_t1"
+
+
+@pytest.fixture
+def page(browser: Any, server: Any, logged_in: Any) -> Iterator[Any]:
+    """A laptop-sized page, logged in, whose script errors fail the test. Unlike the
+    shared ``page``, the console's "failed to load resource" for the 409 and 422 these
+    tests expect is no failure: it is how the page hears the question or the refusal."""
+    context = browser.new_context(viewport={"width": 1366, "height": 768}, base_url=server.url)
+    logged_in(context)
+    opened = context.new_page()
+    errors: list[str] = []
+    opened.on("pageerror", lambda exc: errors.append(f"page error: {exc}"))
+    opened.set_default_timeout(30_000)
+    try:
+        yield opened
+    finally:
+        context.close()
+    assert not errors, "the page logged errors:\n" + "\n".join(errors)
+
+
+def card_ids(page: Any) -> set[str]:
+    return set(page.eval_on_selector_all(".volume-card", "cards => cards.map(c => c.dataset.id)"))
+
+
+def pick(page: Any, files: list[Path]) -> None:
+    """Choose ``files`` in the library's file picker, as a person selecting several does."""
+    page.goto("/")
+    page.wait_for_selector("body[data-ready='1']")
+    page.set_input_files("#file-input", [str(p) for p in files])
+
+
+def new_card(page: Any, known: set[str]) -> str:
+    """The id of the volume the upload added (waits for the bar to say done)."""
+    page.wait_for_selector("#upload-progress[data-done]", timeout=90_000)
+    (volume_id,) = card_ids(page) - known
+    return volume_id
+
+
+@pytest.mark.skipif(not GE.is_dir(), reason="needs ../shared/datasets")
+def test_several_dicom_files_picked_make_one_volume(page: Any, artifacts: Path) -> None:
+    page.goto("/")
+    page.wait_for_selector("body[data-ready='1']")
+    known = card_ids(page)
+    pick(page, sorted(GE.glob("*.dcm"))[:6])
+    assert page.inner_text("#upload-name") == "01.dcm and others (6 files)"
+    volume_id = new_card(page, known)
+    assert page.is_hidden("#upload-error")
+    page.screenshot(path=artifacts / "library-after-several-dcm.png")
+    page.click(f".volume-card[data-id='{volume_id}'] a.name")
+    page.wait_for_url(f"**/volumes/{volume_id}")
+    page.wait_for_function(
+        "() => document.getElementById('volume-meta').textContent.includes('CT')"
+    )
+    assert page.inner_text("#volume-meta").startswith("CT · 512 × 512 × ")
+
+
+def test_metaimage_header_and_data_picked_together(page: Any, server: Any, tmp_path: Path) -> None:
+    voxels = np.arange(6 * 5 * 4, dtype=np.int16).reshape(4, 5, 6)
+    sitk.WriteImage(sitk.GetImageFromArray(voxels), str(tmp_path / "block.mhd"))
+    page.goto("/")
+    page.wait_for_selector("body[data-ready='1']")
+    known = card_ids(page)
+    pick(page, [tmp_path / "block.mhd", tmp_path / "block.raw"])
+    volume_id = new_card(page, known)
+    assert server.get(f"/api/volumes/{volume_id}")["dims"] == [6, 5, 4]
+
+
+@pytest.mark.skipif(not (GE.is_dir() and MR.is_dir()), reason="needs ../shared/datasets")
+def test_zip_of_two_series_asks_which_and_reads_it(
+    page: Any, server: Any, tmp_path: Path, artifacts: Path
+) -> None:
+    archive = tmp_path / "two-series.zip"
+    with zipfile.ZipFile(archive, "w") as zf:
+        for p in sorted(GE.glob("*.dcm"))[:3]:
+            zf.write(p, f"ct/{p.name}")
+        for p in sorted(MR.glob("*.dcm"))[:4]:
+            zf.write(p, f"mr/{p.name}")
+    page.goto("/")
+    page.wait_for_selector("body[data-ready='1']")
+    known = card_ids(page)
+    pick(page, [archive])
+    legend = page.wait_for_selector("#upload-choice legend", timeout=90_000)
+    assert legend.inner_text() == "two-series.zip holds 2 series: which one should MISS read?"
+    options = page.locator("#upload-choice .series-option")
+    texts = [options.nth(i).inner_text() for i in range(options.count())]
+    assert texts == [
+        "MR · t1_mpr_tra_gk_v4 · 4 slices · 512 × 512",
+        "CT · (no description) · 3 slices · 512 × 512",
+    ]
+    page.screenshot(path=artifacts / "library-choose-series.png")
+    options.nth(1).click()  # the CT, not the largest
+    page.click("text=Read this series")
+    volume_id = new_card(page, known)
+    assert page.is_hidden("#upload-choice")
+    volume = server.get(f"/api/volumes/{volume_id}")
+    assert volume["modality"] == "CT" and volume["units"] == "HU"
+
+
+def test_unreadable_file_says_one_plain_sentence(
+    page: Any, tmp_path: Path, artifacts: Path
+) -> None:
+    notes = tmp_path / "notes.nii.gz"
+    notes.write_bytes(b"hello, these are my notes\n" * 40)
+    pick(page, [notes])
+    error = page.wait_for_selector("#upload-error:not([hidden])", timeout=90_000)
+    plain = page.inner_text("#upload-error .plain")
+    assert plain == (
+        "notes.nii.gz: not a NIfTI file; check it was not renamed from another format or damaged."
+    )
+    technical = page.locator("#upload-error .technical")
+    assert not technical.is_visible()  # behind "More"
+    page.click("#upload-error summary")
+    assert "magic at byte 344" in technical.inner_text()
+    assert error.inner_text().count("notes.nii.gz") == 2  # once plainly, once in the finding
+    page.screenshot(path=artifacts / "library-unreadable-more.png")
