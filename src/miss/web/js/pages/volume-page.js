@@ -3,7 +3,8 @@
 // decimation, error bound, reduce rate) and Generate, which opens the model's page.
 
 import { showSession } from '../session.js';
-import { api, urls } from '../api.js';
+import { api, urls, watchModel } from '../api.js';
+import { describeModel, modelTitle } from '../job.js';
 import { describeVolume, el, formatCount } from '../format.js';
 import { Histogram, binEdges } from '../histogram.js';
 import { LabelMapPanel } from '../labelmap.js';
@@ -330,22 +331,34 @@ async function generate( volume ) {
 	}
 }
 
+// One model of the list: its name (else its parameters), when it was made, and its
+// state or size; a named model keeps its parameters as the link's tooltip.
 function modelItem( m ) {
-	const p = m.params || {};
-	const sr = Array.isArray( p.sample_rate ) ? p.sample_rate.join( ',' ) : p.sample_rate;
-	const thresholds = p.parts ? p.parts.filter( ( x ) => x.level != null ).map( ( x ) => x.level ) : p.levels || [ p.level ];
-	let levels = thresholds.length > 1 ? `levels ${thresholds.join( ', ' )}` : `level ${thresholds[ 0 ]}`;
-	if ( p.labels != null ) levels = `labels ${p.labels === 'all' ? 'all' : p.labels.join( ', ' )}`;
-	const parts = m.stats?.parts ? ` · ${m.stats.parts.length} parts` : '';
-	const what = `${levels}${p.components && p.components !== 'all' ? ` · ${p.components}` : ''} · rate ${sr} · ${p.decimate}${parts}`;
+	const made = new Date( m.finished || m.created ).toLocaleString( [], { dateStyle: 'medium', timeStyle: 'short' } );
 	const tail = m.status === 'done' ? `${formatCount( m.stats?.triangles )} △` : m.status;
-	return el( 'li', {}, el( 'a', { href: urls.viewerPage( m.id ) }, what ), el( 'span.muted', {}, tail ) );
+	const link = el( 'a', { href: urls.viewerPage( m.id ), title: describeModel( m ) }, modelTitle( m ) );
+	return el( 'li', { dataset: { id: m.id, status: m.status } },
+		el( 'span.model-what', {}, link, el( 'span.muted.small-print', {}, made ) ),
+		el( 'span.muted', {}, tail ) );
+}
+
+// Each model whose job is queued or running is followed (api.watchModel) and its entry
+// redrawn as it changes, so it reads "done" when the job ends, without a reload.
+const followed = new Set();
+
+function followJob( m ) {
+	if ( followed.has( m.id ) || m.status === 'done' || m.status === 'failed' ) return;
+	followed.add( m.id );
+	const redraw = ( now ) => document.querySelector( `#models li[data-id="${now.id}"]` )?.replaceWith( modelItem( now ) );
+	watchModel( m.id, redraw ).catch( () => api.model( m.id ).then( redraw ) ).catch( () => {} )
+		.finally( () => followed.delete( m.id ) );
 }
 
 async function loadModels() {
 	try {
 		const data = await api.models( volumeId );
 		$( 'models' ).replaceChildren( ...( data.length ? data.map( modelItem ) : [ el( 'li.muted', {}, 'none yet' ) ] ) );
+		data.forEach( followJob );
 	} catch ( err ) {
 		$( 'models' ).replaceChildren( el( 'li.muted', {}, err.message ) );
 	}
