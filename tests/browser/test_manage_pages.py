@@ -46,28 +46,19 @@ def new_page(browser: Any, server: Server, logged_in: Any, *who: str) -> Any:
 
 
 def entry(page: Any, model_id: str) -> Any:
-    return page.locator(f"#models li[data-id='{model_id}']")
+    """The volume page's entry of the model: the item that links its page."""
+    return page.locator(f"#models li:has(a[href='/models/{model_id}'])")
 
 
-def test_cancel_on_the_page_and_the_volume_list_follows_its_jobs(
-    browser: Any, server: Server, noise: str, head: str, artifacts: Path, logged_in: Any
+def test_cancel_a_running_job_on_its_page(
+    browser: Any, server: Server, noise: str, artifacts: Path, logged_in: Any
 ) -> None:
     long_job = server.submit(noise, level=0, sample_rate=1)
-    server.wait(long_job, ("running",))
-    # Queued behind it (one worker): it runs once the long one is cancelled.
-    short_job = server.submit(head, level=300, sample_rate=4, decimate="none")
-    assert server.model(short_job)["status"] == "queued"
-
-    volume_page = new_page(browser, server, logged_in)
-    volume_page.goto(f"/volumes/{head}")
-    volume_page.wait_for_selector("body[data-ready='1']")
-    entry(volume_page, short_job).wait_for()
-    assert "queued" in entry(volume_page, short_job).inner_text()
-
     model_page = new_page(browser, server, logged_in)
     model_page.goto(f"/models/{long_job}")
     cancel = model_page.locator("#cancel-job")
     cancel.wait_for()
+    server.wait(long_job, ("running",))
     assert cancel.inner_text() == "Cancel job"
     model_page.screenshot(path=artifacts / "manage-running.png")
     cancel.click()
@@ -78,17 +69,37 @@ def test_cancel_on_the_page_and_the_volume_list_follows_its_jobs(
     assert not cancel.is_visible()
     model_page.screenshot(path=artifacts / "manage-cancelled.png")
     assert server.model(long_job)["status"] == "failed"
+    model_page.context.close()
+
+
+def test_the_volume_list_follows_its_jobs_to_the_end(
+    browser: Any, server: Server, noise: str, head: str, artifacts: Path, logged_in: Any
+) -> None:
+    long_job = server.submit(noise, level=1, sample_rate=1)
+    server.wait(long_job, ("running",))
+    # Queued behind it (one worker): it runs once the long one is gone.
+    short_job = server.submit(head, level=300, sample_rate=4, decimate="none")
+    assert server.model(short_job)["status"] == "queued"
+    page = new_page(browser, server, logged_in)
+    page.goto(f"/volumes/{head}")
+    page.wait_for_selector("body[data-ready='1']")
+    entry(page, short_job).wait_for()
+    assert "queued" in entry(page, short_job).inner_text()
+    assert server.http.delete(f"/api/models/{long_job}").status_code == 204
 
     # The volume's page, not reloaded, reads the short job done once it is.
-    volume_page.wait_for_selector(f"#models li[data-id='{short_job}'][data-status='done']")
-    text = entry(volume_page, short_job).inner_text()
+    page.wait_for_function(
+        "id => document.querySelector(`#models a[href='/models/${id}']`)"
+        "?.closest('li').textContent.includes('△')",
+        arg=short_job,
+    )
+    text = entry(page, short_job).inner_text()
     assert "△" in text and "queued" not in text, text
     parts = len(server.model(short_job)["stats"].get("parts") or [])
     assert "1 parts" not in text and (parts != 1 or "1 part" in text), text
     assert re.search(r"\b20\d\d\b", text), text  # the date it was made
-    volume_page.screenshot(path=artifacts / "manage-volume-list.png")
-    volume_page.context.close()
-    model_page.context.close()
+    page.screenshot(path=artifacts / "manage-volume-list.png")
+    page.context.close()
 
 
 def test_rename_and_delete_a_model_on_its_page(
@@ -135,12 +146,22 @@ def test_rename_and_delete_a_model_on_its_page(
     page.context.close()
 
 
-def test_colleague_reads_the_model_is_not_shared_and_no_pacs_without_one(
-    browser: Any, server: Server, head: str, phantom: Path, artifacts: Path, logged_in: Any
-) -> None:
-    # A colleague with the PACS permission, on a server with no PACS configured.
+@pytest.fixture(scope="module")
+def colleague(server: Server) -> dict[str, str]:
+    """Another account, with the PACS permission (the server has no PACS configured)."""
     body = {"name": "colleague", "password": "colleague-password", "pacs": True}
     assert server.http.post("/api/users", json=body).status_code == 201
+    return body
+
+
+def test_a_colleague_reads_the_model_is_not_shared_with_them(
+    browser: Any,
+    server: Server,
+    head: str,
+    colleague: dict[str, str],
+    artifacts: Path,
+    logged_in: Any,
+) -> None:
     model_id = server.submit(head, level=260, sample_rate=4, decimate="none")
     assert server.wait_model(model_id)["status"] == "done"
     page = new_page(browser, server, logged_in, "colleague", "colleague-password")
@@ -149,18 +170,27 @@ def test_colleague_reads_the_model_is_not_shared_and_no_pacs_without_one(
     text = page.inner_text("#overlay")
     assert "not shared with you" in text and "ask its owner for a share link" in text, text
     page.screenshot(path=artifacts / "manage-not-shared.png")
+    page.context.close()
 
-    # Their own model: everything but "Send to PACS", which has nowhere to go.
-    r = server.http.post(
-        "/api/auth/login",
-        json={"username": "colleague", "password": body["password"]},
-    )
+
+def test_no_send_to_pacs_without_a_pacs(
+    browser: Any,
+    server: Server,
+    phantom: Path,
+    colleague: dict[str, str],
+    artifacts: Path,
+    logged_in: Any,
+) -> None:
+    """The colleague's own model: everything but "Send to PACS", which has nowhere to go."""
+    body = {"username": "colleague", "password": colleague["password"]}
+    r = server.http.post("/api/auth/login", json=body)
     server.http.cookies.clear()  # the client stays the administrator's
     theirs = {"Authorization": f"Bearer {r.json()['token']}"}
     volume = upload(server, phantom.read_bytes(), "phantom-head.nii.gz", theirs)
     job = {"volume": volume, "level": 300, "sample_rate": 4, "decimate": "none"}
     own = server.http.post("/api/models", json=job, headers=theirs).json()["id"]
     assert server.wait_model(own)["status"] == "done"
+    page = new_page(browser, server, logged_in, "colleague", colleague["password"])
     page.goto(f"/models/{own}")
     page.wait_for_function("() => window.__miss && window.__miss.ready")
     page.locator("#share").wait_for()
