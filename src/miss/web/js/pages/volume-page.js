@@ -9,6 +9,7 @@ import { describeVolume, el, formatCount } from '../format.js';
 import { Histogram, binEdges } from '../histogram.js';
 import { LabelMapPanel } from '../labelmap.js';
 import { SliceRange } from '../range.js';
+import { checkLevel, checkSampleRate, checkSlices, parseSampleRate, showCheck } from '../form-checks.js';
 import { showPrivacy } from '../privacy.js';
 import { SliceView } from '../slices.js';
 
@@ -20,6 +21,8 @@ let views = [];
 let histogram = null;
 let range = null;
 let labelMap = null;
+// The volume's values (lo, hi) and their units: a level must lie between lo and hi.
+const limits = { range: null, units: '' };
 
 function showError( err ) {
 	$( 'form-error' ).textContent = err ? err.message || String( err ) : '';
@@ -99,6 +102,7 @@ function setupThreshold( hist, volume ) {
 	const names = Object.keys( presets );
 	const units = hist.units ?? volume.units ?? '';
 	$( 'units' ).textContent = units;
+	Object.assign( limits, { range: volume.range || [ hist.bins[ 0 ], hist.bins[ hist.bins.length - 1 ] ], units } );
 	const buttons = [ ...names, 'custom' ].map( ( name ) => el( 'button.small', {
 		type: 'button', dataset: { preset: name }, 'aria-pressed': 'false',
 		onclick: () => ( name === 'custom' ? $( 'threshold' ).focus() : setThreshold( presets[ name ], 0 ) ),
@@ -123,9 +127,11 @@ function setupThreshold( hist, volume ) {
 		onInput: ( v ) => setThreshold( v, 150 ), // live tint while dragging, debounced reloads
 		onChange: ( v ) => setThreshold( v, 0 ),
 	} );
+	// Checked as typed against the volume's values: a level outside them has no surface.
 	$( 'threshold' ).addEventListener( 'input', () => {
-		const v = Number( $( 'threshold' ).value );
-		if ( $( 'threshold' ).value !== '' && Number.isFinite( v ) ) setThreshold( v, 250 );
+		const problem = checkLevel( $( 'threshold' ).value, limits.range, units );
+		showCheck( $( 'threshold' ), problem );
+		if ( ! problem ) setThreshold( Number( $( 'threshold' ).value ), 250 );
 	} );
 	setThreshold( start, 0 );
 }
@@ -148,19 +154,30 @@ function setupViews( volume ) {
 		onChange: ( s, e ) => {
 			$( 'start-slice' ).value = s;
 			$( 'end-slice' ).value = e;
+			checkRegion( nz );
 		},
 	} );
 	for ( const id of [ 'start-slice', 'end-slice' ] ) {
 		$( id ).max = String( nz );
-		$( id ).addEventListener( 'change', () => {
-			range.setRange( Number( $( 'start-slice' ).value ) || 1, Number( $( 'end-slice' ).value ) || nz );
-			// Show what was taken: out-of-range or swapped numbers come back clamped and ordered.
-			$( 'start-slice' ).value = range.start;
-			$( 'end-slice' ).value = range.end;
-		} );
+		$( id ).addEventListener( 'input', () => checkRegion( nz ) );
 	}
+	$( 'sample-rate' ).addEventListener( 'input', () => {
+		showCheck( $( 'sample-rate' ), checkSampleRate( $( 'sample-rate' ).value ) );
+		checkRegion( nz );
+	} );
 	$( 'start-slice' ).value = 1;
 	$( 'end-slice' ).value = nz;
+}
+
+// The slice fields as typed, refused as the server would (never swapped nor clamped);
+// the lines on the sagittal view follow only numbers that make a region.
+function checkRegion( nz ) {
+	const rate = parseSampleRate( $( 'sample-rate' ).value );
+	const step = rate ? rate[ rate.length - 1 ] : 1;
+	const bad = checkSlices( $( 'start-slice' ).value, $( 'end-slice' ).value, nz, step );
+	showCheck( $( 'start-slice' ), bad?.field === 'start' ? bad.message : '' );
+	showCheck( $( 'end-slice' ), bad?.field === 'end' ? bad.message : '' );
+	if ( ! bad ) range.setRange( Number( $( 'start-slice' ).value ), Number( $( 'end-slice' ).value ) );
 }
 
 // Default colours of added structures: skin, bone, then a palette.
@@ -173,6 +190,7 @@ function structureRow( { level = '', name = '', color = '#e9dfc8', first = false
 	}, '×' );
 	const levelInput = el( 'input.structure-level', {
 		type: 'number', step: 'any', value: level, required: true, 'aria-label': 'Structure level', disabled: first,
+		oninput: ( e ) => showCheck( e.target, checkLevel( e.target.value, limits.range, limits.units, 'Structure level' ) ),
 	} );
 	return el( 'li.structure-row.row', { dataset: first ? { first: '1' } : {} },
 		el( 'input.structure-name', { type: 'text', value: name, placeholder: first ? 'name (optional)' : 'name', 'aria-label': 'Structure name' } ),
@@ -232,7 +250,7 @@ function setupForm( schema ) {
 }
 
 function sampleRate() {
-	const parts = $( 'sample-rate' ).value.split( ',' ).map( ( s ) => Number( s.trim() ) );
+	const parts = parseSampleRate( $( 'sample-rate' ).value ); // checked as typed
 	return parts.length === 1 ? parts[ 0 ] : parts;
 }
 
