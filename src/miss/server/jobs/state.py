@@ -186,7 +186,7 @@ class JobState:
         ends failed with a reason saying so, and can be submitted again. False when it
         had ended already. A worker that runs it stops at its next report (``Stop``)."""
         reason = f"cancelled by {by}; submit the same parameters again to run it."
-        values = dict(status=FAILED, error=reason, pid=None, finished_at=utcnow())
+        values: dict[str, Any] = dict(status=FAILED, error=reason, pid=None, finished_at=utcnow())
         query = ModelRow.status.in_((QUEUED, RUNNING))
         ended = self.store.update_model(model_id, query, files=None, stats=None, **values)
         if ended:
