@@ -252,6 +252,14 @@ class Region:
         if slices is not None:
             box[2] = (max(box[2][0], slices[0] - 1), min(box[2][1], slices[1] - 1))
         for axis, ((lo, hi), step) in enumerate(zip(box, self.steps, strict=True)):
+            if (not 0 <= lo < hi < dims[axis] or (hi - lo) // step < 1) and axis == 2 and slices:
+                # Said in the slices' own numbering (1-based), as they were given.
+                first, last, n = lo + 1, hi + 1, int(dims[2])
+                raise BadParameter(
+                    f"slices {first}..{last} at sample rate {step} leave fewer than 2 of the "
+                    f"volume's slices 1..{n}; a surface needs at least 2: choose an end_slice "
+                    f"of at least {first + step}{' or a lower sample rate' if step > 1 else ''}."
+                )
             if not 0 <= lo < hi < dims[axis] or (hi - lo) // step < 1:
                 raise BadParameter(
                     f"region {lo}..{hi} along {'xyz'[axis]} at sample rate {step} leaves fewer "

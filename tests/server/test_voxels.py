@@ -163,6 +163,7 @@ def test_links_from_before_the_volume_right_show_surfaces_only(tmp_path: Path) -
     from sqlalchemy import text
 
     from miss.server.core.settings import Settings
+    from miss.server.storage.schema import head
     from miss.server.storage.store import Store
 
     url = Settings(data_dir=tmp_path).database_url
@@ -178,7 +179,7 @@ def test_links_from_before_the_volume_right_show_surfaces_only(tmp_path: Path) -
         with store.engine.connect() as con:
             columns = {row[1] for row in con.execute(text("PRAGMA table_info(shares)"))}
             version = con.execute(text("SELECT version_num FROM alembic_version")).scalar()
-        assert "can_view_volume" in columns and version == "0003"
+        assert "can_view_volume" in columns and version == head()
     finally:
         store.close()
 

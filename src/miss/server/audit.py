@@ -22,6 +22,7 @@ ACTIONS = (
     "upload",
     "delete",
     "generate",
+    "cancel",
     "view",
     "download",
     "identity",

@@ -180,7 +180,12 @@ def visible_model(store: Store, user: User, model_id: str) -> ModelRow:
     row = store.get_model(model_id)
     owner = store.get_volume(row.volume_id).owner_id
     if not can_see(user, owner):
-        raise NotFound(f"no model {model_id!r}; GET /api/models lists the models.")
+        # Only a signed-in account of this server gets here (401 before, else): a
+        # colleague who was sent the owner's address, and needs to know what to ask for.
+        raise NotFound(
+            f"model {model_id!r} is not shared with you; ask its owner for a share link "
+            "(the Share… button on the model's page)."
+        )
     return row
 
 

@@ -475,7 +475,7 @@ class JobLimit:
         return (
             f"you already have {n} model{'s' if n != 1 else ''} being generated "
             f"({', '.join(active)}); wait for one to finish or cancel it "
-            "(DELETE /api/models/{id}), then submit again."
+            "(the Cancel button on its page, or POST /api/models/{id}/cancel), then submit again."
         )
 
 

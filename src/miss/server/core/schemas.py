@@ -186,6 +186,7 @@ class IdentityOut(BaseModel):
 class ModelOut(BaseModel):
     id: str
     volume: str
+    name: str | None = Field(None, description="the display name its owner gave it, if any")
     status: str = Field(description="queued | running | done | failed")
     progress: float = Field(description="0..1")
     stage: str
@@ -268,6 +269,7 @@ def model_out(row: ModelRow, volume: VolumeRow | None = None) -> ModelOut:
     return ModelOut(
         id=row.id,
         volume=row.volume_id,
+        name=row.name,
         status=row.status,
         progress=row.progress,
         stage=row.stage,

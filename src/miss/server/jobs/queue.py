@@ -27,7 +27,7 @@ from collections.abc import Callable
 from miss.server.jobs import turn
 from miss.server.jobs.process import Runner, Running, WorkerProcess, crash_reason, read_log
 from miss.server.jobs.state import JobState
-from miss.server.storage.db import RUNNING, ModelRow
+from miss.server.storage.db import FAILED, RUNNING, ModelRow
 from miss.server.storage.store import LOD_DIR, Store, remove_outputs
 
 log = logging.getLogger("miss.server.jobs")
@@ -121,10 +121,12 @@ class JobQueue:
             self._wake.notify()
 
     def cancel(self, model_id: str) -> None:
-        """Kill the worker of a job (its row was deleted)."""
+        """Kill the worker of a job here (its row was deleted or cancelled) and wait for
+        it, so that it writes nothing after the caller removes its files."""
         proc = self._running.get(model_id)
         if proc is not None and proc.poll() is None:
             proc.kill()
+            proc.wait()
 
     def stop(self) -> None:
         """Kill running workers and queue their jobs again: a clean stop costs no attempt."""
@@ -201,6 +203,8 @@ class JobQueue:
         if self.state.fail(model_id, reason):
             remove_outputs(self.store.model_dir(model_id))  # no half model stays
             log.warning("job %s: %s", model_id, reason)
+        elif self.state.status(model_id) == FAILED:  # cancelled: what it wrote since goes too
+            remove_outputs(self.store.model_dir(model_id))
 
     def _wait(self, model_id: str, proc: Running) -> int:
         """The worker's exit code. Meanwhile, once the job's model can be drawn (its GLB, or

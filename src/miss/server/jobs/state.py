@@ -119,6 +119,11 @@ class JobState:
         with self.store.session() as s:
             return s.scalar(query) or 0
 
+    def status(self, model_id: str) -> str | None:
+        """The job's status now, read from the database (None once its row is deleted)."""
+        with self.store.session() as s:
+            return s.scalar(select(ModelRow.status).where(ModelRow.id == model_id))
+
     def set_pid(self, model_id: str, pid: int | None) -> None:
         self.store.update_model(model_id, pid=pid)
 
@@ -175,6 +180,18 @@ class JobState:
             files=None,
             stats=None,
         )
+
+    def cancel(self, model_id: str, by: str) -> bool:
+        """Stop a queued or running job at its owner's word (``by``, an account name): it
+        ends failed with a reason saying so, and can be submitted again. False when it
+        had ended already. A worker that runs it stops at its next report (``Stop``)."""
+        reason = f"cancelled by {by}; submit the same parameters again to run it."
+        values: dict[str, Any] = dict(status=FAILED, error=reason, pid=None, finished_at=utcnow())
+        query = ModelRow.status.in_((QUEUED, RUNNING))
+        ended = self.store.update_model(model_id, query, files=None, stats=None, **values)
+        if ended:
+            turn.done(self.store.model_dir(model_id))
+        return ended
 
     def _ended(self, model_id: str, **values: Any) -> bool:
         """A running job's row set to ``values``; its folder keeps no viewer's word."""

@@ -12,6 +12,7 @@ import anyio
 from fastapi import APIRouter, Query, Request, Response
 from fastapi.responses import FileResponse, JSONResponse
 from fastapi.sse import EventSourceResponse, ServerSentEvent
+from pydantic import BaseModel, ConfigDict, Field
 from starlette.concurrency import run_in_threadpool
 
 from miss.errors import BadParameter, EmptySurface
@@ -45,7 +46,7 @@ from miss.server.jobs import turn
 from miss.server.storage import formats
 from miss.server.storage.caches import ByteCaches
 from miss.server.storage.db import DONE, FAILED, RUNNING, ModelRow, VolumeRow
-from miss.server.storage.store import LOD_DIR, PREVIEW_FILE, Store
+from miss.server.storage.store import LOD_DIR, PREVIEW_FILE, Store, remove_outputs
 from miss.server.volumes import labelmaps
 from miss.spec import JobSpec
 from miss.structures.labelmap import label_counts
@@ -190,6 +191,47 @@ def delete_model(model: ModelDep, store: StoreDep, queue: QueueDep, rooms: Rooms
     store.delete_model(model.id)
     rooms.end("model", model.id)
     return Response(status_code=204)
+
+
+class ModelChange(BaseModel):
+    """What its owner may change of a model: its display name."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    name: str = Field(
+        max_length=200,
+        description="the display name (blank: named after its parameters again)",
+    )
+
+
+@router.patch("/{model_id}", response_model=ModelOut)
+def rename_model(model: ModelDep, body: ModelChange, store: StoreDep) -> ModelOut:
+    """Give the model a display name (shown in the volume's list and on its page)."""
+    name = " ".join(body.name.split()) or None  # no line breaks nor runs of spaces
+    store.update_model(model.id, name=name)
+    return model_out(store.get_model(model.id), store.get_volume(model.volume_id))
+
+
+@router.post(
+    "/{model_id}/cancel",
+    response_model=ModelOut,
+    responses={409: {"description": "the job has ended already"}},
+)
+def cancel_model(
+    model: ModelDep, store: StoreDep, queue: QueueDep, user: UserDep, request: Request
+) -> ModelOut:
+    """Stop a queued or running job: its worker is killed, the files it wrote so far are
+    removed (the account's quota and job slot are free again) and the model stays,
+    failed as cancelled, to be submitted again."""
+    if not queue.state.cancel(model.id, user.name):
+        raise NotReady(
+            f"model {model.id} is {store.get_model(model.id).status}: only a queued or running "
+            "job can be cancelled; delete the model (DELETE /api/models/{id}) instead."
+        )
+    queue.cancel(model.id)  # here; a worker of another server process stops at its next report
+    remove_outputs(store.model_dir(model.id))
+    audit.record(store, "cancel", user.name, model.id, audit.address(request))
+    return model_out(store.get_model(model.id), store.get_volume(model.volume_id))
 
 
 @router.get("/{model_id}/events", response_class=EventSourceResponse)

@@ -106,6 +106,8 @@ class ModelRow(Base):
     #: The server process running the job (its ``Bus.origin``): when that process is gone
     #: (PostgreSQL: its liveness lock is free) another one queues the job again.
     runner: Mapped[str | None] = mapped_column(String(32), default=None)
+    #: The display name its owner gave it (None: named after its parameters).
+    name: Mapped[str | None] = mapped_column(String(200), default=None)
     created_at: Mapped[datetime] = mapped_column(default=utcnow)
     started_at: Mapped[datetime | None] = mapped_column(default=None)
     finished_at: Mapped[datetime | None] = mapped_column(default=None)

@@ -84,6 +84,9 @@ export const api = {
 	models: ( volumeId ) => request( 'GET', `/api/models?volume=${enc( volumeId )}` ),
 	model: ( id ) => request( 'GET', `/api/models/${enc( id )}` ),
 	createModel: ( params ) => request( 'POST', '/api/models', params ),
+	cancelModel: ( id ) => request( 'POST', `/api/models/${enc( id )}/cancel` ),
+	renameModel: ( id, name ) => request( 'PATCH', `/api/models/${enc( id )}`, { name } ),
+	deleteModel: ( id ) => request( 'DELETE', `/api/models/${enc( id )}` ),
 	// The job form's fields (miss.spec) as the API's schema declares them: defaults, and
 	// the range the page offers (`x-form`).
 	modelForm: () => request( 'GET', '/openapi.json' ).then( ( doc ) => doc.components.schemas.ModelRequest ),

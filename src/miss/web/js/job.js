@@ -1,6 +1,6 @@
 // How a model job's progress is shown, shared by the volume page and the viewer.
 
-import { el } from './format.js';
+import { el, formatCount } from './format.js';
 
 // The pipeline's stages in order, with words a physician reads.
 export const STAGES = [
@@ -31,4 +31,21 @@ export function renderStages( list, model ) {
 
 export function percent( model ) {
 	return `${Math.round( ( model.progress || 0 ) * 100 )} %`;
+}
+
+// A model's parameters in a line: "level 300 · rate 2 · quadric · 2 parts".
+export function describeModel( m ) {
+	const p = m.params || {};
+	const sr = Array.isArray( p.sample_rate ) ? p.sample_rate.join( ',' ) : p.sample_rate;
+	const thresholds = p.parts ? p.parts.filter( ( x ) => x.level != null ).map( ( x ) => x.level ) : p.levels || [ p.level ];
+	let levels = thresholds.length > 1 ? `levels ${thresholds.join( ', ' )}` : `level ${thresholds[ 0 ]}`;
+	if ( p.labels != null ) levels = `labels ${p.labels === 'all' ? 'all' : p.labels.join( ', ' )}`;
+	const n = m.stats?.parts?.length;
+	const parts = n ? ` · ${formatCount( n )} part${n === 1 ? '' : 's'}` : '';
+	return `${levels}${p.components && p.components !== 'all' ? ` · ${p.components}` : ''} · rate ${sr} · ${p.decimate}${parts}`;
+}
+
+// The name its owner gave the model, else its parameters.
+export function modelTitle( m ) {
+	return m.name || describeModel( m );
 }

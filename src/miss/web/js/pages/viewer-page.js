@@ -5,7 +5,7 @@
 
 import { api, urls, watchModel } from '../api.js';
 import { Consultation } from '../room/consult.js';
-import { percent, stageLabel } from '../job.js';
+import { modelTitle, percent, stageLabel } from '../job.js';
 import { Replay } from '../room/replay.js';
 import { showSession } from '../session.js';
 import { ShareDialog } from '../share-dialog.js';
@@ -20,6 +20,8 @@ const $ = ( id ) => document.getElementById( id );
 // The page's model, from its address when the page starts (the volume page may load this
 // module before it shows the page: pages/volume-page.js).
 let modelId = null;
+// Whether its owner cancelled the job here (the job's stream then ends it as failed).
+let cancelled = false;
 
 // The job's events (api.watchModel), asked for as the page starts, with its row: a
 // preview written while the page starts up is heard of as soon as the viewer can draw it.
@@ -93,6 +95,63 @@ async function follow( viewer, model, heard ) {
 	return { model, drawn: status.drawn === 'full' };
 }
 
+// The owner's hand on the model: its name (in the crumb), Rename, Delete (once confirmed;
+// then the volume's page), and Cancel while its job is queued or running.
+function showName( model ) {
+	$( 'model-name' ).textContent = modelTitle( model );
+	$( 'name-input' ).value = model.name || '';
+}
+
+function manageError( err ) {
+	$( 'manage-error' ).hidden = ! err;
+	$( 'manage-error' ).textContent = err ? err.message || String( err ) : '';
+}
+
+function setupManage( model ) {
+	showName( model );
+	const form = $( 'rename-form' );
+	$( 'rename' ).addEventListener( 'click', () => {
+		form.hidden = ! form.hidden;
+		if ( ! form.hidden ) $( 'name-input' ).focus();
+	} );
+	form.addEventListener( 'submit', async ( event ) => {
+		event.preventDefault();
+		try {
+			showName( await api.renameModel( modelId, $( 'name-input' ).value ) );
+			form.hidden = true;
+			manageError( null );
+		} catch ( err ) {
+			manageError( err );
+		}
+	} );
+	$( 'delete-model' ).addEventListener( 'click', async () => {
+		if ( ! confirm( `Delete the model “${modelTitle( model )}”, its files and its share links? This cannot be undone.` ) ) return;
+		try {
+			await api.deleteModel( modelId );
+			location.assign( urls.volumePage( model.volume ) );
+		} catch ( err ) {
+			manageError( err );
+		}
+	} );
+}
+
+// Shown while the job is queued or running; the job's stream then ends it as failed.
+function offerCancel( model ) {
+	const button = $( 'cancel-job' );
+	button.hidden = model.status !== 'queued' && model.status !== 'running';
+	button.onclick = async () => {
+		button.disabled = true;
+		cancelled = true; // the job's stream may tell its end before this answer comes
+		try {
+			await api.cancelModel( modelId );
+		} catch ( err ) {
+			cancelled = false;
+			manageError( err );
+			button.disabled = false;
+		}
+	};
+}
+
 function showVolume( volume ) {
 	$( 'volume-link' ).textContent = volume.name;
 	$( 'volume-link' ).href = urls.volumePage( volume.id );
@@ -102,10 +161,13 @@ function showVolume( volume ) {
 	$( 'share' ).addEventListener( 'click', () => dialog.open() );
 }
 
-// "Send to PACS", for the volume's owner when the account may use a PACS (the server
-// answers 404 to anybody else, 422 for a volume that did not come from DICOM).
-function offerPacs( me, volume ) {
+// "Send to PACS", for the volume's owner when the account may use a PACS and the server
+// has one (the server answers 404 to anybody else, 422 for a volume that did not come
+// from DICOM).
+async function offerPacs( me, volume ) {
 	if ( ! me?.pacs || volume.owner !== me.name ) return;
+	const servers = await api.pacsServers().catch( () => [] );
+	if ( ! servers.length ) return;
 	const button = $( 'send-pacs' );
 	const result = $( 'pacs-result' );
 	button.hidden = false;
@@ -146,13 +208,21 @@ export async function start() {
 	const display = setupDisplay( viewer, urlOf, { onLoaded } );
 	try {
 		let model = await asked;
+		setupManage( model );
+		offerCancel( model );
 		const volumePanel = new VolumePanel( viewer, `/api/volumes/${encodeURIComponent( model.volume )}/voxels` );
 		const volumeView = new URLSearchParams( location.search ).get( 'view' ) === 'volume';
 		if ( volumeView ) volumePanel.prefetch(); // arrives while the model loads
 		const volume = api.volume( model.volume );
 		volume.then( showVolume ).catch( () => {} );
 		let drawn = false;
-		if ( model.status !== 'done' ) ( { model, drawn } = await follow( viewer, model, heard ) );
+		if ( model.status !== 'done' ) {
+			try {
+				( { model, drawn } = await follow( viewer, model, heard ) );
+			} finally {
+				$( 'cancel-job' ).hidden = true;
+			}
+		}
 		lod = model.lod;
 		fillStats( model );
 		structures.setStats( model.stats );
@@ -165,7 +235,7 @@ export async function start() {
 		linkCamera( viewer ); // ?cam= in the address: this view, and the address follows it
 		if ( volumeView ) await volumePanel.show( true );
 	} catch ( err ) {
-		overlay( 'This model cannot be shown', err.message || String( err ) );
+		overlay( cancelled ? 'Job cancelled' : 'This model cannot be shown', err.message || String( err ) );
 		status.error = err.message || String( err );
 	}
 }

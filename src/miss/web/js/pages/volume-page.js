@@ -3,11 +3,13 @@
 // decimation, error bound, reduce rate) and Generate, which opens the model's page.
 
 import { showSession } from '../session.js';
-import { api, urls } from '../api.js';
+import { api, urls, watchModel } from '../api.js';
+import { describeModel, modelTitle } from '../job.js';
 import { describeVolume, el, formatCount } from '../format.js';
 import { Histogram, binEdges } from '../histogram.js';
 import { LabelMapPanel } from '../labelmap.js';
 import { SliceRange } from '../range.js';
+import { checkLevel, checkSampleRate, checkSlices, parseSampleRate, showCheck } from '../form-checks.js';
 import { showPrivacy } from '../privacy.js';
 import { SliceView } from '../slices.js';
 
@@ -19,6 +21,8 @@ let views = [];
 let histogram = null;
 let range = null;
 let labelMap = null;
+// The volume's values (lo, hi) and their units: a level must lie between lo and hi.
+const limits = { range: null, units: '' };
 
 function showError( err ) {
 	$( 'form-error' ).textContent = err ? err.message || String( err ) : '';
@@ -98,6 +102,7 @@ function setupThreshold( hist, volume ) {
 	const names = Object.keys( presets );
 	const units = hist.units ?? volume.units ?? '';
 	$( 'units' ).textContent = units;
+	Object.assign( limits, { range: volume.range || [ hist.bins[ 0 ], hist.bins[ hist.bins.length - 1 ] ], units } );
 	const buttons = [ ...names, 'custom' ].map( ( name ) => el( 'button.small', {
 		type: 'button', dataset: { preset: name }, 'aria-pressed': 'false',
 		onclick: () => ( name === 'custom' ? $( 'threshold' ).focus() : setThreshold( presets[ name ], 0 ) ),
@@ -122,9 +127,11 @@ function setupThreshold( hist, volume ) {
 		onInput: ( v ) => setThreshold( v, 150 ), // live tint while dragging, debounced reloads
 		onChange: ( v ) => setThreshold( v, 0 ),
 	} );
+	// Checked as typed against the volume's values: a level outside them has no surface.
 	$( 'threshold' ).addEventListener( 'input', () => {
-		const v = Number( $( 'threshold' ).value );
-		if ( $( 'threshold' ).value !== '' && Number.isFinite( v ) ) setThreshold( v, 250 );
+		const problem = checkLevel( $( 'threshold' ).value, limits.range, units );
+		showCheck( $( 'threshold' ), problem );
+		if ( ! problem ) setThreshold( Number( $( 'threshold' ).value ), 250 );
 	} );
 	setThreshold( start, 0 );
 }
@@ -147,19 +154,30 @@ function setupViews( volume ) {
 		onChange: ( s, e ) => {
 			$( 'start-slice' ).value = s;
 			$( 'end-slice' ).value = e;
+			checkRegion( nz );
 		},
 	} );
 	for ( const id of [ 'start-slice', 'end-slice' ] ) {
 		$( id ).max = String( nz );
-		$( id ).addEventListener( 'change', () => {
-			range.setRange( Number( $( 'start-slice' ).value ) || 1, Number( $( 'end-slice' ).value ) || nz );
-			// Show what was taken: out-of-range or swapped numbers come back clamped and ordered.
-			$( 'start-slice' ).value = range.start;
-			$( 'end-slice' ).value = range.end;
-		} );
+		$( id ).addEventListener( 'input', () => checkRegion( nz ) );
 	}
+	$( 'sample-rate' ).addEventListener( 'input', () => {
+		showCheck( $( 'sample-rate' ), checkSampleRate( $( 'sample-rate' ).value ) );
+		checkRegion( nz );
+	} );
 	$( 'start-slice' ).value = 1;
 	$( 'end-slice' ).value = nz;
+}
+
+// The slice fields as typed, refused as the server would (never swapped nor clamped);
+// the lines on the sagittal view follow only numbers that make a region.
+function checkRegion( nz ) {
+	const rate = parseSampleRate( $( 'sample-rate' ).value );
+	const step = rate ? rate[ rate.length - 1 ] : 1;
+	const bad = checkSlices( $( 'start-slice' ).value, $( 'end-slice' ).value, nz, step );
+	showCheck( $( 'start-slice' ), bad?.field === 'start' ? bad.message : '' );
+	showCheck( $( 'end-slice' ), bad?.field === 'end' ? bad.message : '' );
+	if ( ! bad ) range.setRange( Number( $( 'start-slice' ).value ), Number( $( 'end-slice' ).value ) );
 }
 
 // Default colours of added structures: skin, bone, then a palette.
@@ -172,6 +190,7 @@ function structureRow( { level = '', name = '', color = '#e9dfc8', first = false
 	}, '×' );
 	const levelInput = el( 'input.structure-level', {
 		type: 'number', step: 'any', value: level, required: true, 'aria-label': 'Structure level', disabled: first,
+		oninput: ( e ) => showCheck( e.target, checkLevel( e.target.value, limits.range, limits.units, 'Structure level' ) ),
 	} );
 	return el( 'li.structure-row.row', { dataset: first ? { first: '1' } : {} },
 		el( 'input.structure-name', { type: 'text', value: name, placeholder: first ? 'name (optional)' : 'name', 'aria-label': 'Structure name' } ),
@@ -231,7 +250,7 @@ function setupForm( schema ) {
 }
 
 function sampleRate() {
-	const parts = $( 'sample-rate' ).value.split( ',' ).map( ( s ) => Number( s.trim() ) );
+	const parts = parseSampleRate( $( 'sample-rate' ).value ); // checked as typed
 	return parts.length === 1 ? parts[ 0 ] : parts;
 }
 
@@ -330,22 +349,34 @@ async function generate( volume ) {
 	}
 }
 
+// One model of the list: its name (else its parameters), when it was made, and its
+// state or size; a named model keeps its parameters as the link's tooltip.
 function modelItem( m ) {
-	const p = m.params || {};
-	const sr = Array.isArray( p.sample_rate ) ? p.sample_rate.join( ',' ) : p.sample_rate;
-	const thresholds = p.parts ? p.parts.filter( ( x ) => x.level != null ).map( ( x ) => x.level ) : p.levels || [ p.level ];
-	let levels = thresholds.length > 1 ? `levels ${thresholds.join( ', ' )}` : `level ${thresholds[ 0 ]}`;
-	if ( p.labels != null ) levels = `labels ${p.labels === 'all' ? 'all' : p.labels.join( ', ' )}`;
-	const parts = m.stats?.parts ? ` · ${m.stats.parts.length} parts` : '';
-	const what = `${levels}${p.components && p.components !== 'all' ? ` · ${p.components}` : ''} · rate ${sr} · ${p.decimate}${parts}`;
+	const made = new Date( m.finished || m.created ).toLocaleString( [], { dateStyle: 'medium', timeStyle: 'short' } );
 	const tail = m.status === 'done' ? `${formatCount( m.stats?.triangles )} △` : m.status;
-	return el( 'li', {}, el( 'a', { href: urls.viewerPage( m.id ) }, what ), el( 'span.muted', {}, tail ) );
+	const link = el( 'a', { href: urls.viewerPage( m.id ), title: describeModel( m ) }, modelTitle( m ) );
+	return el( 'li', { dataset: { id: m.id, status: m.status } },
+		el( 'span.model-what', {}, link, el( 'span.muted.small-print', {}, made ) ),
+		el( 'span.muted', {}, tail ) );
+}
+
+// Each model whose job is queued or running is followed (api.watchModel) and its entry
+// redrawn as it changes, so it reads "done" when the job ends, without a reload.
+const followed = new Set();
+
+function followJob( m ) {
+	if ( followed.has( m.id ) || m.status === 'done' || m.status === 'failed' ) return;
+	followed.add( m.id );
+	const redraw = ( now ) => document.querySelector( `#models li[data-id="${now.id}"]` )?.replaceWith( modelItem( now ) );
+	watchModel( m.id, redraw ).catch( () => api.model( m.id ).then( redraw ) ).catch( () => {} )
+		.finally( () => followed.delete( m.id ) );
 }
 
 async function loadModels() {
 	try {
 		const data = await api.models( volumeId );
 		$( 'models' ).replaceChildren( ...( data.length ? data.map( modelItem ) : [ el( 'li.muted', {}, 'none yet' ) ] ) );
+		data.forEach( followJob );
 	} catch ( err ) {
 		$( 'models' ).replaceChildren( el( 'li.muted', {}, err.message ) );
 	}
