@@ -47,6 +47,42 @@ def _no_progress(stage: str, fraction: float) -> None:
     return None
 
 
+#: Each stage's share of a job's progress, in the order a job meets them: what the
+#: callbacks inside report as a fraction of their stage becomes a fraction of the job.
+#: ("check" is the decimation's own check of a guaranteed bound; "measure" the error
+#: measured at the end, beside the files.)
+STAGE_SPANS: dict[str, tuple[float, float]] = {
+    "read": (0.0, 0.0),
+    "preview": (0.0, 0.05),
+    "surface": (0.05, 0.30),
+    "decimate": (0.30, 0.60),
+    "check": (0.60, 0.65),
+    "lod": (0.65, 0.75),
+    "write": (0.75, 0.90),
+    "measure": (0.90, 1.0),
+    "done": (1.0, 1.0),
+}
+
+
+def staged(progress: Progress) -> Progress:
+    """``progress`` hearing (stage, fraction of the job) from callbacks that report
+    (stage, fraction of that stage), never going back (a second part's surface, a second
+    round of decimation, hold the bar where it is); a stage not in :data:`STAGE_SPANS`
+    passes as it is."""
+    furthest = [0.0]
+
+    def heard(stage: str, fraction: float) -> None:
+        span = STAGE_SPANS.get(stage)
+        if span is None:
+            progress(stage, fraction)
+            return
+        lo, hi = span
+        furthest[0] = max(furthest[0], lo + (hi - lo) * min(max(fraction, 0.0), 1.0))
+        progress(stage, furthest[0])
+
+    return heard
+
+
 @dataclass
 class JobResult:
     """The scene, its decimation report (all parts together), the encoded files and the
@@ -105,7 +141,7 @@ def run(
     the threshold surfaces block by block (on Dask when it names a scheduler); volumes
     on disk (Zarr) always are, and their progress counts blocks.
     """
-    report = progress or _no_progress
+    report = staged(progress or _no_progress)
     seconds: dict[str, float] = {}
     if sink is not None and sink.wants_preview:
         start = time.perf_counter()
@@ -119,11 +155,11 @@ def run(
         blocks = replace(blocks or BlockRun(), progress=report)
     built = build_scene(
         volume, spec, label_map=label_map, table=table, title=title, measure=False,
-        blocks=blocks, measure_later=measure,
+        blocks=blocks, measure_later=measure, progress=report,
     )  # fmt: skip
     seconds |= built.seconds
     if sink is not None:  # a viewer draws these rather than a GLB too large to draw
-        seconds |= _levels_of_detail(built.scene, sink, title, metadata)
+        seconds |= _levels_of_detail(built.scene, sink, title, metadata, report)
         if "lod" in seconds:
             seconds |= _viewer_turn(sink)
     start = time.perf_counter()
@@ -134,7 +170,7 @@ def run(
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="miss-measure") as pool:
         measuring: Future[SceneBuild] | None = None
         for i, fmt in enumerate(formats):
-            report("write", 0.7 + 0.25 * i / len(formats))
+            report("write", i / len(formats))
             options = (export_options or {}).get(fmt, {})
             artifacts[fmt] = export(built.scene, fmt, title=title, metadata=metadata, **options)
             if sink is not None:
@@ -146,7 +182,7 @@ def run(
                 measuring = measuring or pool.submit(built.measured)
         seconds["write"] = time.perf_counter() - start
         if measuring is not None:
-            report("measure", 0.95)
+            report("measure", 0.0)
             built = measuring.result()
             seconds["measure"] = built.seconds.get("measure", 0.0)
     report("done", 1.0)
@@ -205,7 +241,11 @@ def preview(
 
 
 def _levels_of_detail(
-    scene: Scene, sink: Sink, title: str | None, metadata: dict[str, str] | None
+    scene: Scene,
+    sink: Sink,
+    title: str | None,
+    metadata: dict[str, str] | None,
+    report: Progress = _no_progress,
 ) -> dict[str, float]:
     """A scene over the sink's ``lod_triangles`` goes to ``sink.put_lod`` as a 3D Tiles
     tileset too, before any file (a viewer draws its coarse root at once, never the whole
@@ -215,6 +255,7 @@ def _levels_of_detail(
         return {}
     from miss.export.tiles import write_tiles
 
+    report("lod", 0.0)
     start = time.perf_counter()
     tile_triangles = min(LOD_TILE_MAX, max(LOD_TILE_MIN, budget // 8))
     sink.put_lod(write_tiles(scene, title=title, metadata=metadata, tile_triangles=tile_triangles))

@@ -191,6 +191,7 @@ def decimate(
     samples: int = SAMPLES,
     paper_passes: int = 0,
     schedule: Schedule | str = SCHEDULE,
+    progress: Heard | None = None,
 ) -> tuple[Mesh, DecimationReport]:
     """Decimate ``mesh``; returns the new mesh and a report with the measured error.
 
@@ -217,6 +218,9 @@ def decimate(
         target looked at between passes only.
     schedule : "guaranteed" or "paper"
         See the module's docstring.
+    progress : callable, optional
+        ``progress(stage, fraction)``: ``("decimate", 0..1)`` as the removal goes (after
+        each of schroeder's passes), ``("check", 0 or 1)`` around each check of the bound.
     """
     check_decimation(method, error_bound, reduce, max_error, schedule)
     if paper_passes and (method != "schroeder" or schedule != "paper"):
@@ -233,11 +237,14 @@ def decimate(
     if method == "none" or mesh.n_triangles == 0:
         faces, bound_mm, check, rounds, by = mesh.faces, 0.0, None, 0, "none"
     else:
+        heard = progress or _unheard
         run = _runner(
-            mesh, method, reduce, error_bound, max_error, paper_passes, schedule, checked=measure
-        )
+            mesh, method, reduce, error_bound, max_error, paper_passes, schedule, checked=measure,
+            heard=heard,
+        )  # fmt: skip
+        heard("decimate", 0.0)
         if measure:
-            faces, bound_mm, check, rounds, by = _held(mesh, run)
+            faces, bound_mm, check, rounds, by = _held(mesh, run, heard=heard)
         else:
             (faces, bound_mm, by), check, rounds = run(None, 1), None, 1
     if method != "none":
@@ -273,6 +280,14 @@ def decimate(
     return out, report
 
 
+#: A progress callback: ``(stage, fraction 0..1 of that stage)``.
+Heard = Callable[[str, float], None]
+
+
+def _unheard(stage: str, fraction: float) -> None:
+    return None
+
+
 #: One run given the vertices locked and the round (1, 2, ...): (faces, bound mm, the
 #: method that made them).
 Run = Callable[["np.ndarray | None", int], tuple["np.ndarray", float, str]]
@@ -288,18 +303,24 @@ def _runner(
     schedule: str,
     fixed: np.ndarray | None = None,
     checked: bool = True,
+    heard: Heard = _unheard,
 ) -> Run:
     """One run of ``method`` given the vertices locked: (faces kept, the bound it is held
     to, mm, the method that ran). Quadric runs after its first ``_QUADRIC_ROUNDS`` under
     the paper's schedule are schroeder's, held to the same bound; under the guaranteed
     schedule every run is schroeder's, but for ``checked`` False (a quick preview, held to
-    nothing: one quadric run, as asked)."""
+    nothing: one quadric run, as asked). ``heard`` hears ("decimate", fraction) after each
+    of schroeder's passes and once a quadric run is done."""
     from miss.decimate.quadric import quadric
     from miss.decimate.schroeder import schroeder
     from miss.types import column_bounds
 
     diag = mesh.diagonal()
     bound_mm = (error_bound if schedule == "guaranteed" else max_error) * diag
+
+    def tick(fraction: float) -> None:
+        heard("decimate", fraction)
+
     if method == "quadric" and (schedule != "guaranteed" or not checked):
         # meshoptimizer's error is relative to the mesh's extent (its largest side)
         lo, hi = column_bounds(mesh.vertices)
@@ -311,10 +332,12 @@ def _runner(
             if round_ > runs:
                 # quadric's locks are not schroeder's: its first run starts free (bar ``fixed``)
                 free = fixed if round_ == runs + 1 else locked
-                faces, ended = schroeder(mesh, reduce, bound_mm / 8, bound_mm, 0, free)
+                faces, ended = schroeder(mesh, reduce, bound_mm / 8, bound_mm, 0, free, tick)
                 return faces, ended, "schroeder"
             target = bound_mm / extent * _QUADRIC_TIGHTER ** (round_ - 1)
-            return quadric(mesh, reduce, target, locked)[0], bound_mm, "quadric"
+            faces = quadric(mesh, reduce, target, locked)[0]
+            tick(1.0)  # meshoptimizer's one call says nothing on its way
+            return faces, bound_mm, "quadric"
 
         run_quadric.hands_over_after = runs  # type: ignore[attr-defined]
         return run_quadric
@@ -325,12 +348,12 @@ def _runner(
         # A rising bound spends the budget on the cheapest deletions first: b/8, b/4, b/2,
         # b; the run is held to b, the bound asked for, wherever the target stopped it.
         return lambda locked, _: (
-            schroeder(mesh, reduce, bound_mm / 8, bound_mm, 0, locked)[0],
+            schroeder(mesh, reduce, bound_mm / 8, bound_mm, 0, locked, tick)[0],
             bound_mm,
             "schroeder",
         )
     return lambda locked, _: (
-        *schroeder(mesh, reduce, error_bound * diag, max_error * diag, paper_passes, locked),
+        *schroeder(mesh, reduce, error_bound * diag, max_error * diag, paper_passes, locked, tick),
         "schroeder",
     )
 
@@ -353,7 +376,11 @@ def decimate_held(
 
 
 def _held(
-    mesh: Mesh, run: Run, rounds: int = ROUNDS, fixed: np.ndarray | None = None
+    mesh: Mesh,
+    run: Run,
+    rounds: int = ROUNDS,
+    fixed: np.ndarray | None = None,
+    heard: Heard = _unheard,
 ) -> tuple[np.ndarray, float, tuple[BoundCheck, float], int, str]:
     """Run until the output is measured within its bound: each time it is not, the input
     vertices around the points out of bound are locked and the run repeated (the locks
@@ -388,7 +415,7 @@ def _held(
         return made[0]
 
     try:
-        return _rounds(mesh, run, rounds, fixed, inputs)
+        return _rounds(mesh, run, rounds, fixed, inputs, heard)
     finally:
         pool.shutdown(wait=False, cancel_futures=True)
 
@@ -430,8 +457,10 @@ def _rounds(
     rounds: int,
     fixed: np.ndarray | None,
     inputs: Callable[[], tuple[tuple, tuple[np.ndarray, np.ndarray]]],
+    heard: Heard = _unheard,
 ) -> tuple[np.ndarray, float, tuple[BoundCheck, float], int, str]:
-    """:func:`_held`'s rounds; ``inputs()``: the input's grid and adjacency."""
+    """:func:`_held`'s rounds; ``inputs()``: the input's grid and adjacency; ``heard``
+    hears ("check", 0) as each round's check of the bound begins, ("check", 1) at its end."""
     import numpy as np
 
     from miss.measure import bound_check
@@ -451,6 +480,7 @@ def _rounds(
             spent += time.perf_counter() - begin
             last = by
             continue
+        heard("check", 0.0)
         grid, around = inputs()
         # past twice the bound only "out of bound" matters, not by how much; a model
         # schroeder made is within its bound by construction: measured at the contract's
@@ -458,6 +488,7 @@ def _rounds(
         cap, centroids = 2.0 * bound_mm + slack, by != "schroeder"
         check = bound_check(mesh, faces, cap, grid, around, centroids)
         spent += time.perf_counter() - begin
+        heard("check", 1.0)
         if check.max_mm <= bound_mm + slack or round_ == rounds:
             return faces, bound_mm, (check, spent), round_, by
         begin = time.perf_counter()

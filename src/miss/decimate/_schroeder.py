@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import math
 import os
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -916,8 +917,9 @@ def _slab_count(n_faces: int, whole_passes: int) -> int:
 
 
 def _run_passes(
-    pts, faces, target, error_bound, max_error, feature_cos, whole_passes, accumulate, locked
-):
+    pts, faces, target, error_bound, max_error, feature_cos, whole_passes, accumulate, locked,
+    done=None,
+):  # fmt: skip
     """Passes with a rising bound until n_alive <= target or a pass at max_error removes
     nothing. Edits faces in place; returns (alive mask, passes, last bound, vertices removed).
 
@@ -929,8 +931,11 @@ def _run_passes(
     ``whole_passes`` > 0: the paper's schedule instead (vtkDecimate's iterations): at most that
     many passes at k x error_bound (k = 1, 2, ...), each run to its end; the target is
     looked at only between passes. ``accumulate``: triangles carry the error spent on them
-    (see _try_delete); ``locked`` (N,) bool: vertices that stay."""
+    (see _try_delete); ``locked`` (N,) bool: vertices that stay. ``done(fraction)``, when
+    given, hears after each pass the share of the triangles to remove that are gone."""
     alive = np.ones(len(faces), dtype=bool)
+    heard = done or (lambda fraction: None)
+    to_remove = max(len(faces) - target, 1)
     vf, vdeg = _vertex_faces(faces, len(pts), _VALENCE_CAP)
     vmin = np.zeros(len(pts), dtype=np.float64)
     terr = np.zeros(len(faces) if accumulate else 0, dtype=np.float64)
@@ -953,6 +958,7 @@ def _run_passes(
             bound = k * error_bound
             n_alive, removed = one_pass(bound + slack, n_alive, -1, everything)
             passes, removed_total = passes + 1, removed_total + removed
+            heard(min(1.0, (len(faces) - n_alive) / to_remove))
             if n_alive <= target:
                 break
         return alive, passes, bound, removed_total
@@ -985,6 +991,7 @@ def _run_passes(
             passes += 1
             removed += more
             removed_total += removed
+            heard(min(1.0, (len(faces) - n_alive) / to_remove))
             if n_alive <= target or (bound >= max_error and removed == 0):
                 return alive, passes, bound, removed_total
             # Doubling never leaves 0, so a zero bound steps to an eighth of max_error instead.
@@ -1005,6 +1012,7 @@ def schroeder_decimate(
     paper_passes: int = 0,
     accumulate: bool = True,
     locked: np.ndarray | None = None,
+    done: Callable[[float], None] | None = None,
 ) -> tuple[np.ndarray, dict]:
     """Decimate a triangle mesh by vertex removal (Schroeder, Zarge & Lorensen 1992).
 
@@ -1039,6 +1047,9 @@ def schroeder_decimate(
         approximates). False: the paper's local criterion alone; deviations stack up.
     locked : (N,) bool array, optional
         Vertices that must stay (the caller's repair of a region measured out of bound).
+    done : callable, optional
+        ``done(fraction)`` after each pass: the share (0..1) of the triangles to remove that
+        are gone, for a job's progress.
 
     Returns
     -------
@@ -1064,7 +1075,7 @@ def schroeder_decimate(
         raise ValueError(f"locked must be an (N,) bool array, one per vertex; got {locked.shape}")
     alive, passes, bound, removed = _run_passes(
         pts, work, target, error_bound, max(max_error, error_bound), feature_cos, paper_passes,
-        accumulate, np.ascontiguousarray(locked, dtype=np.bool_),
+        accumulate, np.ascontiguousarray(locked, dtype=np.bool_), done,
     )  # fmt: skip
     new_faces = work[alive]
     info = {

@@ -3,6 +3,8 @@ live in :mod:`miss.decimate._schroeder`; this is how :func:`miss.decimate.decima
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 
 from miss.types import Mesh
@@ -15,9 +17,11 @@ def schroeder(
     max_mm: float,
     paper_passes: int = 0,
     locked: np.ndarray | None = None,
+    done: Callable[[float], None] | None = None,
 ) -> tuple[np.ndarray, float]:
     """Face indices kept, and the last bound used (mm). Triangles carry the error spent
-    on them (accumulated error); ``locked`` (N,) bool: vertices that stay."""
+    on them (accumulated error); ``locked`` (N,) bool: vertices that stay; ``done(fraction)``
+    hears after each pass how much of the removal is done (0..1)."""
     from miss.decimate._schroeder import schroeder_decimate  # numba: compiled on first use
 
     faces, info = schroeder_decimate(
@@ -29,6 +33,7 @@ def schroeder(
         paper_passes=paper_passes,
         accumulate=True,
         locked=locked,
+        done=done,
     )
     return faces, float(info["final_bound_mm"])
 

@@ -25,7 +25,14 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from miss.decimate import SAMPLES, DecimationReport, decimate, measured, measuring_later
+from miss.decimate import (
+    SAMPLES,
+    DecimationReport,
+    Heard,
+    decimate,
+    measured,
+    measuring_later,
+)
 from miss.errors import BadParameter, EmptySurface
 from miss.measure import measurer, native
 from miss.scene import DEFAULT_SCENE_TITLE, Part, Scene
@@ -225,13 +232,15 @@ def build_scene(
     measure: bool = True,
     blocks: BlockRun | None = None,
     measure_later: bool = False,
+    progress: Heard | None = None,
 ) -> SceneBuild:
     """The scene ``spec`` asks for, with the per-part reports and timings: every
     threshold part of the region, then the label parts (built together). ``blocks``
     runs the threshold surfaces block by block (:mod:`miss.surface.blockwise`).
     ``measure_later`` (with ``measure`` False): the caller measures the build after
     (:meth:`SceneBuild.measured`), so the half of a measurement that needs only a part's
-    surface before decimation is started as soon as that surface exists."""
+    surface before decimation is started as soon as that surface exists. ``progress(stage,
+    fraction)`` hears the decimation's ("decimate", "check") of the threshold parts."""
     start = time.perf_counter()
     items = spec.structures.items
     label_items = [p for p in items if p.labels is not None]
@@ -250,7 +259,7 @@ def build_scene(
                     item.level, ranked.index(item.level), len(ranked), volume.meta.get("units", "")
                 )
                 built += _level_parts(
-                    region, item, style, spec.decimation, measure, notes, blocks, ahead
+                    region, item, style, spec.decimation, measure, notes, blocks, ahead, progress
                 )
     finally:
         if ahead is not None:
@@ -300,6 +309,7 @@ def _level_parts(
     notes: list[str],
     blocks: BlockRun | None = None,
     ahead: _Ahead | None = None,
+    progress: Heard | None = None,
 ) -> list[Built]:
     """One iso-level: the whole surface, its largest piece, or one part per piece.
     The part's own name, colour and opacity win over the level's style. ``ahead``: the
@@ -312,7 +322,7 @@ def _level_parts(
     if item.components == "all" and item.min_size_mm3 == 0:
         if in_blocks(volume, blocks) and _blocks_decimate(item, decimation):
             made, report, welded = _decimated_in_blocks(
-                volume, item.level, decimation, blocks, name, notes
+                volume, item.level, decimation, blocks, name, notes, progress
             )
             return [(Part(name, made, color, opacity), report, Source(welded, SAMPLES))]
         # A decimated mesh gets new normals from its faces: gradients only for "none".
@@ -333,7 +343,7 @@ def _level_parts(
         decimated, report = decimate(
             smoothed, decimation.method, decimation.reduce, decimation.error_bound,
             max_error=decimation.max_error, schedule=decimation.schedule,
-            measure=checked,
+            measure=checked, progress=progress,
         )  # fmt: skip
         part = Part(part_name, decimated, part_color, opacity)
         out.append((part, report, Source(smoothed, SAMPLES, side)))
@@ -354,6 +364,7 @@ def _decimated_in_blocks(
     blocks: BlockRun | None,
     name: str,
     notes: list[str],
+    progress: Heard | None = None,
 ) -> tuple[Mesh, DecimationReport, Mesh]:
     """A level's surface decimated in two stages: each block where it was made, its border
     held, to half the bound (:func:`miss.surface.blockwise.blockwise_decimated`); then the welded
@@ -371,7 +382,7 @@ def _decimated_in_blocks(
     again = min(max(0.0, 1.0 - target / max(welded.n_triangles, 1)), 0.999)
     out, across = decimate(
         welded, decimation.method, again, max(left_mm, 0.0) / max(welded.diagonal(), 1e-12),
-        schedule="guaranteed", measure=True,
+        schedule="guaranteed", measure=True, progress=progress,
     )  # fmt: skip
     report = replace(
         across,

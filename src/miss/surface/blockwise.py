@@ -233,7 +233,7 @@ def _blockwise(
         surface_task, level=contour, normals=normals, affine=volume.affine, steps=steps,
         offset=offset,
     )  # fmt: skip
-    done = partial(counted, report, progress_from, 1.0 - progress_from)
+    done = partial(_waves, report, progress_from, decimation is not None)
     second: list[float] = []  # when the blocks' decimation (the second wave) began
     then = None if decimation is None else (_extent, partial(_decide, decimation, second))
     stages: list[Decimated] | None = None if decimation is None else []
@@ -338,6 +338,17 @@ def _decimate_block(part: BlockMesh, method: str, reduce: float, bound_mm: float
         shared=new[part.shared],
         decimated=Decimated(check.max_mm, check.mean_mm, count, lo, hi),
     )
+
+
+def _waves(report: Progress, start: float, decimating: bool, done: int, total: int) -> None:
+    """Report ``done`` of ``total`` tasks: the surfaces' wave as "surface" from ``start``;
+    with ``decimating``, the second wave (the blocks decimated) as the first half of
+    "decimate" (what is left of it is done across the blocks)."""
+    first = total // 2 if decimating else total
+    if done <= first:
+        counted(report, start, 1.0 - start, done, first)
+    else:
+        report("decimate", 0.5 * (done - first) / max(total - first, 1))
 
 
 def counted(report: Progress, start: float, width: float, done: int, total: int) -> None:

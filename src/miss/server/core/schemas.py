@@ -152,7 +152,15 @@ class VolumeOut(BaseModel):
     source_format: str
     notes: list[str]
     window: dict[str, float] = Field(description="default window/level for slice images")
-    presets: list[dict[str, Any]] = Field(description="suggested levels: bone, skin")
+    presets: list[dict[str, Any]] = Field(
+        description="suggested levels, the default first: bone and skin for CT, skin and "
+        "tissue for MR (never bone)"
+    )
+    scale: dict[str, str] = Field(
+        default_factory=dict,
+        description='what a level measures: {"label": "Density (HU)" or "Intensity" ..., '
+        '"kind": "CT" or "MR", "reason": how that was decided}',
+    )
     views: dict[str, Any] = Field(description="per view: voxel axes across/down, flips, mm size")
     thumbnail: str
     owner: str = Field("", description="user name of the owner")
@@ -246,8 +254,16 @@ def volume_out(row: VolumeRow, owner: str = "") -> VolumeOut:
         owner=owner,
         burned_in_annotation=bool(info.get("burned_in_annotation", False)),
         deidentification=info.get("deidentification", {}),
+        scale=info.get("scale") or _scale_of_old(info),
         **{k: info[k] for k in keys},
     )
+
+
+def _scale_of_old(info: dict[str, Any]) -> dict[str, str]:
+    """A volume stored before volumes had a ``scale``: its units and modality say it."""
+    ct = info.get("units") == "HU" or str(info.get("modality", "")).upper() == "CT"
+    label = "Density (HU)" if info.get("units") == "HU" else "Density" if ct else "Intensity"
+    return {"label": label, "kind": "CT" if ct else "MR", "reason": "units and modality"}
 
 
 def params_of(row: ModelRow) -> dict[str, Any]:

@@ -195,20 +195,79 @@ def otsu(hist: dict[str, Any]) -> float:
     return float(edges[int(np.argmax(between[:-1])) + 1])
 
 
-def presets(hist: dict[str, Any], units: str) -> list[dict[str, Any]]:
-    """Suggested levels: CT in HU gets bone 300 / skin -500; anything else gets the
-    background/body split (Otsu) as skin and the 95th percentile of the body as bone."""
+#: CT stored without its rescale (value = HU + 1024, e.g. CThead, VTK's headsq) shows soft
+#: tissue (0..80 HU) as a narrow peak in this range; MR's tissue classes make a broad hump.
+CT_OFFSET_PEAK = (1000.0, 1110.0)
+#: The body's interquartile range over its median below this: a CT's soft-tissue peak
+#: (0.09 on CThead and headsq; 0.21-0.46 on the MR scans in ../shared/datasets).
+CT_PEAK_SPREAD = 0.15
+#: What a level means, as the page labels its field.
+DENSITY_HU, DENSITY, INTENSITY = "Density (HU)", "Density (CT value)", "Intensity"
+
+
+def scale(hist: dict[str, Any], modality: str, units: str) -> dict[str, str]:
+    """What a level of this volume measures: {"label": the form field's name, "kind": "CT"
+    or "MR", "reason": how that was decided}. The header's modality and units decide; a
+    file without them (NIfTI, NRRD, MetaImage) is CT when its body's values form the narrow
+    soft-tissue peak of CT stored as HU + 1024, else taken as MR-like intensities."""
+    if units == "HU":
+        return {"label": DENSITY_HU, "kind": "CT", "reason": "values in Hounsfield units"}
+    if modality.upper() == "CT":
+        return {"label": DENSITY, "kind": "CT", "reason": "the header says CT"}
+    if modality:
+        return {"label": INTENSITY, "kind": "MR", "reason": f"the header says {modality}"}
+    peak, spread = _body_peak(hist)
+    lo, hi = CT_OFFSET_PEAK
+    if hist["range"][0] > -1.0 and lo <= peak <= hi and spread < CT_PEAK_SPREAD:
+        why = f"no modality in the file; soft tissue peaks at {peak:g}, as CT stored as HU + 1024"
+        return {"label": DENSITY, "kind": "CT", "reason": why}
+    why = "no modality in the file and no CT soft-tissue peak: taken as MR-like intensities"
+    return {"label": INTENSITY, "kind": "MR", "reason": why}
+
+
+def _body_peak(hist: dict[str, Any]) -> tuple[float, float]:
+    """The most common value above the background (Otsu's split) and the body's spread:
+    interquartile range over median."""
+    edges = np.asarray(hist["edges"])
+    counts = np.asarray(hist["counts"], dtype=np.float64)
+    centres = (edges[:-1] + edges[1:]) / 2.0
+    body = np.where(edges[:-1] >= otsu(hist), counts, 0.0)
+    if body.sum() == 0:
+        return float(centres[-1]), float("inf")
+    q1, median, q3 = (percentile(hist, q, above=otsu(hist)) for q in (25.0, 50.0, 75.0))
+    spread = (q3 - q1) / median if median > 0 else float("inf")
+    return float(centres[int(np.argmax(body))]), spread
+
+
+def presets(hist: dict[str, Any], units: str, modality: str = "") -> list[dict[str, Any]]:
+    """Suggested levels, the default first. CT in HU: bone 300 / skin -500. Other CT (its
+    values HU + 1024, or unscaled): the background/body split (Otsu) as skin and the 95th
+    percentile of the body as bone. MR and intensities of unknown meaning: never "bone"
+    (bone is dark on MR): skin, the background/body split, first (the outer surface, whole
+    on a head), and tissue, the split of the body's own values into two classes."""
     lo, hi = hist["range"]
     if units == "HU":
         found = [{"name": n, "level": v, "basis": "HU"} for n, v in HU_PRESETS if lo < v < hi]
         if len(found) == len(HU_PRESETS):
             return found
     skin = otsu(hist)
-    bone = percentile(hist, 95.0, above=skin)
-    return [
-        {"name": "bone", "level": _round(bone), "basis": "95th percentile above the skin level"},
-        {"name": "skin", "level": _round(skin), "basis": "Otsu split of background and body"},
-    ]
+    outer = {"name": "skin", "level": _round(skin), "basis": "Otsu split of background and body"}
+    if scale(hist, modality, units)["kind"] == "CT":
+        bone = percentile(hist, 95.0, above=skin)
+        basis = "95th percentile above the skin level"
+        return [{"name": "bone", "level": _round(bone), "basis": basis}, outer]
+    tissue = otsu(_above(hist, skin))
+    basis = "Otsu split of the body's values (above the skin level)"
+    return [outer, {"name": "tissue", "level": _round(tissue), "basis": basis}]
+
+
+def _above(hist: dict[str, Any], level: float) -> dict[str, Any]:
+    """The histogram's bins from ``level`` up: the body's values without the background."""
+    edges = np.asarray(hist["edges"])
+    first = min(int(np.searchsorted(edges, level, side="right")) - 1, len(edges) - 3)
+    first = max(first, 0)
+    counts = np.asarray(hist["counts"])[first:]
+    return {"edges": edges[first:].tolist(), "counts": counts.tolist(), "range": hist["range"]}
 
 
 def _round(value: float) -> float:

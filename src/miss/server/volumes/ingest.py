@@ -69,6 +69,7 @@ def source_hash(data: np.ndarray, affine: np.ndarray) -> str:
 def describe(volume: Volume, hist: dict[str, Any], summary: Summary) -> dict[str, Any]:
     """What the API and the workers need to know about a volume, without patient fields;
     ``summary`` holds the figures of its voxels (gathered as they were stored)."""
+    units, modality = str(volume.meta.get("units", "")), str(volume.meta.get("modality", ""))
     info: dict[str, Any] = {
         "dims": list(volume.dims),
         "spacing": list(volume.spacing),
@@ -78,7 +79,8 @@ def describe(volume: Volume, hist: dict[str, Any], summary: Summary) -> dict[str
         "nbytes": int(np.prod(summary.dims)) * summary.dtype.itemsize,
         **{key: volume.meta.get(key, "") for key in _META_KEYS},
         "window": imaging.default_window(hist),
-        "presets": imaging.presets(hist, str(volume.meta.get("units", ""))),
+        "presets": imaging.presets(hist, units, modality),
+        "scale": imaging.scale(hist, modality, units),
         "views": imaging.views(volume.affine, volume.dims),
         "burned_in_annotation": bool(volume.meta.get("burned_in_annotation", False)),
         "source_sha256": summary.source_sha256,

@@ -8,14 +8,19 @@ export const STAGES = [
 	[ 'preview', 'Preview' ],
 	[ 'surface', 'Marching cubes' ],
 	[ 'decimate', 'Decimation' ],
+	[ 'check', 'Checking the error bound' ],
+	[ 'lod', 'Levels of detail' ],
 	[ 'write', 'Writing files' ],
 	[ 'measure', 'Measuring the error' ],
 	[ 'done', 'Done' ],
 ];
 
+// Moments of a job that are not steps of the list above.
+const OTHER_STAGES = { starting: 'Starting', read: 'Reading the scan', store: 'Saving the model' };
+
 export function stageLabel( stage ) {
 	const known = STAGES.find( ( [ key ] ) => key === stage );
-	return known ? known[ 1 ] : stage || 'Starting';
+	return known ? known[ 1 ] : OTHER_STAGES[ stage ] || stage || 'Starting';
 }
 
 // Fills a list with the stages, marking the ones passed and the current one.

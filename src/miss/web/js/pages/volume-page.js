@@ -97,10 +97,23 @@ function setupWindowLevel( volume, hist ) {
 	}
 }
 
+// What a level measures, in the form's words: "Density (HU)" on CT, "Intensity" on MR, as
+// the server decided from the header or, without a modality, from the histogram.
+function showScale( volume, presets ) {
+	const scale = volume.scale || {};
+	$( 'level-label' ).textContent = scale.label || 'Level';
+	if ( scale.reason ) $( 'level-label' ).title = `${scale.kind || ''}: ${scale.reason}`;
+	const [ low, high ] = Object.entries( presets ).sort( ( a, b ) => a[ 1 ] - b[ 1 ] );
+	if ( low && high ) {
+		$( 'structures-hint' ).textContent = `The level above is the first; add levels (e.g. ${low[ 0 ]} ${low[ 1 ]}, translucent, and ${high[ 0 ]} ${high[ 1 ]}) for one scene of named parts.`;
+	}
+}
+
 function setupThreshold( hist, volume ) {
 	const presets = presetLevels( hist, volume );
 	const names = Object.keys( presets );
 	const units = hist.units ?? volume.units ?? '';
+	showScale( volume, presets );
 	$( 'units' ).textContent = units;
 	Object.assign( limits, { range: volume.range || [ hist.bins[ 0 ], hist.bins[ hist.bins.length - 1 ] ], units } );
 	const buttons = [ ...names, 'custom' ].map( ( name ) => el( 'button.small', {
@@ -121,7 +134,8 @@ function setupThreshold( hist, volume ) {
 		refreshSlices( delay );
 	};
 
-	const start = presets.bone ?? presets[ names[ 0 ] ] ?? quantile( hist, 0.9 );
+	// The server lists the default first: bone on CT, the outer surface (skin) on MR.
+	const start = presets[ names[ 0 ] ] ?? quantile( hist, 0.9 );
 	histogram = new Histogram( $( 'histogram' ), hist, {
 		value: start,
 		onInput: ( v ) => setThreshold( v, 150 ), // live tint while dragging, debounced reloads
