@@ -5,8 +5,8 @@ A server job writes the compressed GLB (with its preview and levels of detail) a
 scene it encoded, in one compact internal form: ``model.mesh.npz`` (each part's arrays in
 the dtypes the pipeline gave them, deflated fast, and a JSON header with the title,
 provenance, names, colours and opacities the writers take). STL, PLY, OBJ, VRML, WRZ,
-X3D, 3MF (every writer of :data:`miss.export.WRITERS` but the GLB) are made from it by
-the same writers, so their bytes are those a job would have written; the first download
+X3D, 3MF and the plain GLB (every writer of :data:`miss.export.WRITERS` but the GLB) are
+made from it by the same writers, so their bytes are those a job would have written; the first download
 writes ``model.<fmt>`` atomically beside it, later ones read that file.
 
 One writer at a time per (model, format), across server processes too: an exclusive
@@ -137,9 +137,9 @@ def _mesh(stored: Any, i: int, normals: str | None) -> Mesh:
 def entries(scene: Scene) -> dict[str, dict[str, Any]]:
     """The model's ``files`` entries of the formats made on request, before they are:
     their type, no bytes nor ETag yet (:func:`record` fills them in once made)."""
-    parts = len(scene.parts)
+    del scene  # every format holds any scene in one file of its own type
     return {
-        fmt: {"bytes": None, "etag": None, "mime": WRITERS[fmt].mime_of(parts), "on_request": True}
+        fmt: {"bytes": None, "etag": None, "mime": WRITERS[fmt].mime, "on_request": True}
         for fmt in ON_REQUEST
     }
 
@@ -281,5 +281,6 @@ def record(store: Store, model_id: str, fmt: str, made: dict[str, Any]) -> dict[
 
 
 def _lock_of(path: Path) -> Path:
-    """The lock file of a made file ``model.<fmt>``: ``.<fmt>.lock`` beside it."""
-    return path.with_name(f".{path.suffix.lstrip('.')}.lock")
+    """The lock file of a made file ``model.<fmt>``: ``.<fmt>.lock`` beside it (the whole
+    format: ``model.plain.glb``'s is ``.plain.glb.lock``, not the GLB's)."""
+    return path.with_name(f".{path.name.removeprefix('model.')}.lock")
