@@ -1,0 +1,87 @@
+"""Files other tools open (issue 42): a multi-part model's STL, PLY and OBJ downloads are
+each one file of their format (they were zips served as ``model/stl`` etc., which trimesh
+opened as empty scenes), and a plain GLB, with no required glTF extension, is offered
+beside the meshopt-compressed one the viewer draws."""
+
+from __future__ import annotations
+
+import io
+import json
+from typing import Any
+
+import pytest
+import trimesh
+from fastapi.testclient import TestClient
+from support.models import wait_for_model
+from test_gltf_validator import Validate, assert_valid
+from test_gltf_validator import validate as validate  # noqa: F401 - a fixture, used below
+
+#: Two levels of the demo phantom: translucent skin and bone, two parts.
+JOB = {"levels": [-500, 300], "sample_rate": 2}
+
+
+@pytest.fixture(scope="module")
+def two_parts(client: TestClient) -> dict[str, Any]:
+    volumes = client.get("/api/volumes").json()
+    demo = next(v["id"] for v in volumes if v["name"] == "Demo head phantom (synthetic CT)")
+    r = client.post("/api/models", json={"volume": demo, **JOB})
+    assert r.status_code in (200, 202), r.text
+    body = wait_for_model(client, r.json()["id"])
+    assert body["status"] == "done", body
+    return body
+
+
+def _glb_json(data: bytes) -> dict[str, Any]:
+    """The JSON chunk of a GLB (12-byte header, then the chunk's length and type)."""
+    return json.loads(data[20 : 20 + int.from_bytes(data[12:16], "little")])
+
+
+def _download(client: TestClient, body: dict[str, Any], fmt: str) -> bytes:
+    r = client.get(body["files"][fmt]["url"])
+    assert r.status_code == 200, r.text
+    return r.content
+
+
+@pytest.mark.parametrize("fmt", ["stl", "ply", "obj"])
+def test_a_two_part_download_is_one_file_trimesh_reads_whole(
+    client: TestClient, two_parts: dict[str, Any], fmt: str
+) -> None:
+    url = two_parts["files"][fmt]["url"]
+    r = client.get(url)
+    assert r.status_code == 200, r.text
+    assert r.headers["content-type"] == f"model/{fmt}"
+    assert r.headers["content-disposition"].endswith(f'.{fmt}"')
+    assert r.content[:2] != b"PK"  # not a zip under another name
+    loaded = trimesh.load(io.BytesIO(r.content), file_type=fmt, process=False, split_objects=True)
+    meshes = loaded.geometry if isinstance(loaded, trimesh.Scene) else {"": loaded}
+    triangles = {p["name"]: p["triangles"] for p in two_parts["stats"]["parts"]}
+    assert sum(len(m.faces) for m in meshes.values()) == sum(triangles.values())
+    if fmt == "obj":  # a group per part, named after it
+        names = {"skin_500_HU": "skin (-500 HU)", "bone_300_HU": "bone (300 HU)"}
+        got = {names[k]: len(m.faces) for k, m in meshes.items()}
+        assert got == triangles
+    listed = client.get(f"/api/models/{two_parts['id']}").json()["files"][fmt]
+    assert listed["mime"] == f"model/{fmt}" and listed["bytes"] == len(r.content)
+
+
+def test_the_plain_glb_opens_anywhere_beside_the_compressed_one(
+    client: TestClient, two_parts: dict[str, Any], validate: Validate
+) -> None:
+    entry = two_parts["files"]["plain.glb"]
+    assert entry["label"] == "GLB (plain, opens anywhere)"
+    assert two_parts["files"]["glb"]["label"] == ".glb"
+    r = client.get(entry["url"])
+    assert r.status_code == 200, r.text
+    assert r.headers["content-type"] == "model/gltf-binary"
+    assert r.headers["content-disposition"].endswith('.plain.glb"')
+    plain, compressed = r.content, _download(client, two_parts, "glb")
+    document = _glb_json(plain)
+    assert "extensionsRequired" not in document and "extensionsUsed" not in document
+    assert {a["componentType"] for a in document["accessors"] if a["type"] == "VEC3"} == {5126}
+    assert "EXT_meshopt_compression" in _glb_json(compressed)["extensionsRequired"]  # viewer's
+    loaded = trimesh.load(io.BytesIO(plain), file_type="glb", process=False)
+    triangles = {p["name"]: p["triangles"] for p in two_parts["stats"]["parts"]}
+    assert {k: len(m.faces) for k, m in loaded.geometry.items()} == triangles
+    colours = [m["pbrMetallicRoughness"]["baseColorFactor"] for m in document["materials"]]
+    assert colours[0][3] == pytest.approx(0.35) and colours[1][3] == 1.0  # translucent skin
+    assert_valid(validate({"plain": plain}))
