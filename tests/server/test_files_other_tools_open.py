@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import io
 import json
+import zipfile
 from typing import Any
 
 import pytest
@@ -85,3 +86,27 @@ def test_the_plain_glb_opens_anywhere_beside_the_compressed_one(
     colours = [m["pbrMetallicRoughness"]["baseColorFactor"] for m in document["materials"]]
     assert colours[0][3] == pytest.approx(0.35) and colours[1][3] == 1.0  # translucent skin
     assert_valid(validate({"plain": plain}))
+
+
+def test_a_zip_made_before_is_made_again_as_one_file(
+    client: TestClient, two_parts: dict[str, Any]
+) -> None:
+    """A data folder from before: its made ``model.stl`` a zip of one STL per part, listed
+    as ``application/zip``. The next download makes the one-solid STL in its place."""
+    store = client.app.state.store
+    model_id = two_parts["id"]
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w") as archive:
+        archive.writestr("1_skin.stl", b"old")
+        archive.writestr("scene.json", b"{}")
+    old = buffer.getvalue()
+    (store.model_dir(model_id) / "model.stl").write_bytes(old)
+    files = dict(store.get_model(model_id).files)
+    files["stl"] = {**files["stl"], "bytes": len(old), "etag": "0" * 32, "mime": "application/zip"}
+    store.update_model(model_id, files=files)
+    data = _download(client, client.get(f"/api/models/{model_id}").json(), "stl")
+    assert data[:2] != b"PK"
+    solid = trimesh.load(io.BytesIO(data), file_type="stl", process=False)
+    assert len(solid.faces) == two_parts["stats"]["triangles"]
+    listed = client.get(f"/api/models/{model_id}").json()["files"]["stl"]
+    assert listed["mime"] == "model/stl" and listed["bytes"] == len(data)

@@ -199,7 +199,7 @@ def ensure(folder: Path, fmt: str, cap: int) -> tuple[Path, dict[str, Any] | Non
     Raises ``DiskFull`` (507, nothing left behind) when the disk is full."""
     path = folder / f"model.{fmt}"
     with locked(_lock_of(path)):
-        if path.is_file():
+        if path.is_file() and not _zipped_scene(path, fmt):
             os.utime(path)
             return path, None
         start = time.perf_counter()
@@ -221,6 +221,15 @@ def ensure(folder: Path, fmt: str, cap: int) -> tuple[Path, dict[str, Any] | Non
     if cap > 0:
         evict(folder.parent, cap, keep=path)
     return path, describe(data)
+
+
+def _zipped_scene(path: Path, fmt: str) -> bool:
+    """True for an STL, PLY or OBJ made before they held a scene in one file (a zip of
+    one file per part, which other tools cannot open): it is made again."""
+    if not WRITERS[fmt].one_mesh:
+        return False
+    with open(path, "rb") as made:
+        return made.read(4) == b"PK\x03\x04"
 
 
 def _log(folder: Path, fmt: str, size: int, seconds: float) -> None:
@@ -275,7 +284,8 @@ def record(store: Store, model_id: str, fmt: str, made: dict[str, Any]) -> dict[
             raise NotFound(f"no model {model_id!r}; it was deleted meanwhile.")
         files = dict(row.files or {})
         if files.get(fmt, {}).get("etag") != made["etag"]:
-            files[fmt] = {**files.get(fmt, {}), **made}
+            # the type too: a scene's STL, PLY and OBJ were listed as zips before
+            files[fmt] = {**files.get(fmt, {}), **made, "mime": WRITERS[fmt].mime}
             store.update_model(model_id, files=files)
     return files
 
