@@ -110,3 +110,18 @@ def test_a_zip_made_before_is_made_again_as_one_file(
     assert len(solid.faces) == two_parts["stats"]["triangles"]
     listed = client.get(f"/api/models/{model_id}").json()["files"]["stl"]
     assert listed["mime"] == "model/stl" and listed["bytes"] == len(data)
+
+
+def test_a_pacs_send_still_has_one_stl_a_part(
+    client: TestClient, two_parts: dict[str, Any]
+) -> None:
+    """The download's STL is one solid now; what goes to the PACS is still one
+    Encapsulated STL a part, named, from the model's stored scene."""
+    from miss.server.pacs_exchange import stl_parts
+
+    parts = stl_parts(client.app.state.store.model_dir(two_parts["id"]))
+    want = [(p["name"], p["triangles"]) for p in two_parts["stats"]["parts"]]
+    got = [(name, int.from_bytes(stl[80:84], "little")) for name, stl in parts]
+    assert got == want and all(
+        len(stl) == 84 + 50 * n for (_, stl), (_, n) in zip(parts, got, strict=True)
+    )
