@@ -421,7 +421,11 @@ def stl_parts(folder: Path, data: bytes | None = None) -> list[tuple[str, bytes]
     if data is None and (folder / formats.MESH_FILE).is_file():
         from miss.export import export
 
-        parts = formats.read_scene(folder / formats.MESH_FILE).scene.parts
+        stored = formats.read_scene(folder / formats.MESH_FILE)
+        parts = stored.scene.parts
+        if len(parts) == 1:  # the download's bytes, byte for byte
+            whole = export(stored.scene, "stl", title=stored.title, metadata=stored.metadata)
+            return [(parts[0].name, whole)]
         return [(part.name, export(part.mesh, "stl", title=part.name)) for part in parts]
     data = (folder / "model.stl").read_bytes() if data is None else data
     if not data.startswith(b"PK\x03\x04"):
