@@ -2,11 +2,9 @@
 
 from __future__ import annotations
 
-import io
 import json
 import math
 import shutil
-import zipfile
 from pathlib import Path
 
 import pytest
@@ -32,6 +30,32 @@ def test_two_levels_give_translucent_skin_and_opaque_bone(demo_file: Path, tmp_p
     }
     assert stats["triangles"] == sum(p["triangles"] for p in stats["parts"])
     assert out.read_text().count(" Shape {") == 2
+
+
+def test_two_levels_in_files_other_tools_open(demo_file: Path, tmp_path: Path) -> None:
+    """STL, PLY, OBJ and the plain GLB of two parts: each one file of its format with both
+    parts' triangles (the first three were zips); OBJ and GLB name the parts; the plain
+    GLB needs no glTF extension."""
+    names = ["head.stl", "head.ply", "head.obj", "head.plain.glb"]
+    outs = [str(tmp_path / name) for name in names]
+    args = ["convert", str(demo_file), "--level", "-500", "--level", "300", "--json"]
+    stats = json.loads(miss(*args, *(x for out in outs for x in ("-o", out))).stdout)
+    assert sorted(Path(o["path"]).name for o in stats["outputs"]) == sorted(names)
+    parts = {p["name"]: p["triangles"] for p in stats["parts"]}
+    for name in names:
+        kind = name.rsplit(".", 1)[1]
+        loaded = trimesh.load(tmp_path / name, file_type=kind, process=False, split_objects=True)
+        meshes = loaded.geometry if isinstance(loaded, trimesh.Scene) else {"": loaded}
+        assert sum(len(m.faces) for m in meshes.values()) == stats["triangles"], name
+    obj = trimesh.load(tmp_path / "head.obj", file_type="obj", split_objects=True)
+    assert {k: len(m.faces) for k, m in obj.geometry.items()} == {
+        "skin_500_HU": parts["skin (-500 HU)"], "bone_300_HU": parts["bone (300 HU)"]
+    }  # fmt: skip
+    glb = trimesh.load(tmp_path / "head.plain.glb", file_type="glb", process=False)
+    assert {k: len(m.faces) for k, m in glb.geometry.items()} == parts
+    data = (tmp_path / "head.plain.glb").read_bytes()
+    document = json.loads(data[20 : 20 + int.from_bytes(data[12:16], "little")])
+    assert "extensionsRequired" not in document and "extensionsUsed" not in document
 
 
 @pytest.mark.slow
@@ -67,8 +91,8 @@ def test_labels_of_the_frog_with_a_colour_table(datasets: Path, tmp_path: Path) 
         (1, "blood"), (4, "eye_retina"), (7, "label 7")
     ]  # fmt: skip
     assert stats["parts"][0]["color"] == pytest.approx([200 / 255, 30 / 255, 30 / 255], abs=1e-4)
-    archive = zipfile.ZipFile(io.BytesIO(out.read_bytes()))
-    assert archive.namelist() == ["1_blood.stl", "2_eye_retina.stl", "3_label_7.stl", "scene.json"]
+    solid = trimesh.load(out, file_type="stl", process=False)  # one solid, no longer a zip
+    assert len(solid.faces) == sum(p["triangles"] for p in stats["parts"])
 
 
 def test_info_lists_the_labels_of_a_label_map_with_names(datasets: Path) -> None:

@@ -86,12 +86,13 @@ def _triangles(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
 
 
 def test_registry_lists_every_format_with_its_mime_type() -> None:
-    assert FORMATS == ["wrl", "wrz", "x3d", "glb", "stl", "ply", "obj", "3mf"]
+    assert FORMATS == ["wrl", "wrz", "x3d", "glb", "plain.glb", "stl", "ply", "obj", "3mf"]
     expected = {
         "wrl": "model/vrml",
         "wrz": "model/vrml",
         "x3d": "model/x3d+xml",
         "glb": "model/gltf-binary",
+        "plain.glb": "model/gltf-binary",
         "stl": "model/stl",
         "ply": "model/ply",
         "obj": "model/obj",
@@ -99,7 +100,8 @@ def test_registry_lists_every_format_with_its_mime_type() -> None:
     }
     assert {fmt: mime_type(fmt) for fmt in FORMATS} == expected
     assert WRITERS["wrl"].legacy_mime == "x-world/x-vrml"
-    assert [fmt for fmt in FORMATS if WRITERS[fmt].binary] == ["wrz", "glb", "stl", "ply", "3mf"]
+    binary = ["wrz", "glb", "plain.glb", "stl", "ply", "3mf"]
+    assert [fmt for fmt in FORMATS if WRITERS[fmt].binary] == binary
 
 
 @pytest.mark.parametrize("spelling", ["wrl", ".wrl", "WRL", ".Wrl", " wrl "])

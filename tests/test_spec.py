@@ -161,7 +161,8 @@ def test_a_part_s_name_colour_and_opacity_reach_the_file() -> None:
     assert parts[0]["opacity"] == 0.4 and parts[1]["opacity"] == 1.0
     loaded = trimesh.load(io.BytesIO(result.artifacts["glb"]), file_type="glb")
     assert set(loaded.geometry) == {"Haut", "Knochen"}
-    assert result.artifacts["stl"][:2] == b"PK"  # two parts: a zip
+    stl = result.artifacts["stl"]  # two parts: one solid of both (it was a zip)
+    assert stl[:2] != b"PK" and len(stl) == 84 + 50 * result.scene.n_triangles
 
 
 def test_one_part_in_a_one_mesh_format_is_the_plain_file() -> None:

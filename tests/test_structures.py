@@ -11,7 +11,6 @@ import io
 import json
 import math
 import shutil
-import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -435,30 +434,32 @@ def test_x3d_scene_has_a_named_shape_per_part(head: Scene) -> None:
     assert transparency == pytest.approx([0.65, 0.0])
 
 
-@pytest.mark.parametrize("fmt", ["stl", "ply"])
-def test_stl_and_ply_scenes_are_zips_of_one_file_per_part(head: Scene, fmt: str) -> None:
+@pytest.mark.parametrize("fmt", ["stl", "ply", "obj"])
+def test_a_scene_in_a_one_mesh_format_is_one_file_of_that_format(head: Scene, fmt: str) -> None:
+    """Not a zip (trimesh took those for empty scenes): one file with every part's
+    triangles, served under the format's own type; OBJ keeps a named group per part."""
     data = miss.export(head, fmt)
-    assert WRITERS[fmt].mime_of(len(head.parts)) == "application/zip"
-    archive = zipfile.ZipFile(io.BytesIO(data))
-    names = archive.namelist()
-    assert names == [f"1_skin_-500_HU.{fmt}", f"2_bone_300_HU.{fmt}", "scene.json"]
-    listing = json.loads(archive.read("scene.json"))
-    assert [p["name"] for p in listing["parts"]] == [p.name for p in head.parts]
-    for name, part in zip(names, head.parts, strict=False):
-        mesh = trimesh.load(io.BytesIO(archive.read(name)), file_type=fmt, process=False)
-        assert len(mesh.faces) == part.mesh.n_triangles
+    assert data[:2] != b"PK" and WRITERS[fmt].mime == f"model/{fmt}"
+    loaded = trimesh.load(io.BytesIO(data), file_type=fmt, process=False, split_objects=True)
+    meshes = loaded.geometry if isinstance(loaded, trimesh.Scene) else {"": loaded}
+    assert sum(len(m.faces) for m in meshes.values()) == head.n_triangles
+    if fmt == "obj":
+        counts = {name: len(m.faces) for name, m in meshes.items()}
+        names = ["skin_500_HU", "bone_300_HU"]
+        assert counts == {k: p.mesh.n_triangles for k, p in zip(names, head.parts, strict=True)}
     assert data == miss.export(head, fmt)  # reproducible bytes
 
 
-def test_obj_scene_zip_carries_its_mtl(head: Scene) -> None:
-    archive = zipfile.ZipFile(io.BytesIO(miss.export(head, "obj")))
-    files = {name: archive.read(name) for name in archive.namelist()}
-    loaded = trimesh.load(
-        io.BytesIO(files["scene.obj"]), file_type="obj", group_material=False,
-        resolver=trimesh.resolvers.ZipResolver(archive=io.BytesIO(miss.export(head, "obj"))),
-    )  # fmt: skip
-    assert sum(len(g.faces) for g in loaded.geometry.values()) == head.n_triangles
-    assert b"newmtl skin_500_HU" in files["scene.mtl"] and b"d 0.3500" in files["scene.mtl"]
+def test_a_ply_scene_colours_each_part_s_faces_and_names_them(head: Scene) -> None:
+    data = miss.export(head, "ply")
+    loaded = trimesh.load(io.BytesIO(data), file_type="ply", process=False)
+    first = head.parts[0].mesh.n_triangles
+    rgba = [[round(255 * c) for c in (*p.color, p.opacity)] for p in head.parts]
+    colours = loaded.visual.face_colors
+    assert (colours[:first] == rgba[0]).all() and (colours[first:] == rgba[1]).all()
+    header = data[: data.index(b"end_header")].decode("ascii")
+    assert f"comment part 1: skin (-500 HU), faces 0..{first - 1}" in header
+    assert f"comment part 2: bone (300 HU), faces {first}..{head.n_triangles - 1}" in header
 
 
 def test_a_plain_mesh_exports_exactly_as_before(head: Scene) -> None:

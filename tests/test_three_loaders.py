@@ -33,12 +33,14 @@ def three_counts(fmt: str, paths: list[Path]) -> list[int]:
     return [json.loads(line)["triangles"] for line in out.stdout.splitlines()]
 
 
-def meshes(datasets: Path | None, degenerate: miss.Mesh) -> dict[str, miss.Mesh]:
+def meshes(datasets: Path | None, degenerate: miss.Mesh) -> dict[str, miss.Mesh | miss.Scene]:
     bone = miss.extract_surface(phantom(), 300.0, sample_rate=2)
-    out = {
+    out: dict[str, miss.Mesh | miss.Scene] = {
         "phantom-bone": bone,
         "decimated": miss.decimate(bone, reduce=0.9, measure=False)[0],
         "degenerate": degenerate,
+        # two parts in one file (a PLY's faces coloured by part, an OBJ's groups)
+        "two-parts": miss.extract_scene(phantom(64, 3.0), levels=[-500, 300], measure=False),
     }
     if datasets is not None:
         cthead = miss.load_volume(datasets / "ct_head_stanford_cthead" / "CThead.nhdr")

@@ -49,7 +49,9 @@ RGB = tuple[float, float, float]
 #: What ``components`` may be: every piece, the largest, or one part per piece.
 COMPONENT_MODES: tuple[str, ...] = ("all", "largest", "split")
 #: Output formats (``miss.export.WRITERS`` holds one writer each).
-FORMATS: tuple[str, ...] = ("wrl", "wrz", "x3d", "glb", "stl", "ply", "obj", "3mf")
+FORMATS: tuple[str, ...] = (
+    "wrl", "wrz", "x3d", "glb", "plain.glb", "stl", "ply", "obj", "3mf"
+)  # fmt: skip
 #: Most thresholds one job may have (each is a whole surface).
 MAX_LEVELS = 16
 #: The smoothing passband's default: mild (smaller smooths more).

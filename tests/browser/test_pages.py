@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import base64
 import io
+import json
 import os
 import struct
 import zipfile
@@ -16,6 +17,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+import trimesh
 from PIL import Image
 
 LAPTOP = {"width": 1366, "height": 768}
@@ -265,6 +267,18 @@ def test_generate_view_and_download(
         page.click("#downloads a[data-format=wrl]")
     assert Path(info.value.path()).read_bytes().startswith(b"#VRML V2.0 utf8")
 
+    # Beside the viewer's compressed .glb, a plain one that tools without meshopt open.
+    plain = page.locator("#downloads a[data-format='plain.glb']")
+    assert plain.inner_text().startswith("GLB (plain, opens anywhere)")
+    with page.expect_download() as info:
+        plain.click()
+    assert info.value.suggested_filename.endswith(".plain.glb")
+    data = Path(info.value.path()).read_bytes()
+    document = json.loads(data[20 : 20 + struct.unpack_from("<I", data, 12)[0]])
+    assert "extensionsRequired" not in document
+    loaded = trimesh.load(io.BytesIO(data), file_type="glb", process=False)
+    assert sum(len(m.faces) for m in loaded.geometry.values()) == triangles
+
 
 def test_generate_shows_the_model_page_in_the_same_document(
     page: Any, server: Any, uploaded: dict[str, Any], artifacts: Path
@@ -291,7 +305,7 @@ def test_generate_shows_the_model_page_in_the_same_document(
     assert glb["triangles"] > 0
     assert page.evaluate("() => document.body.className") == "owner"
     assert page.title() == f"MISS · {uploaded['name']}"
-    assert page.locator("#downloads a").count() == 8
+    assert page.locator("#downloads a").count() == 9  # every format, the plain GLB too
     assert page.is_visible("#volume-link") and not page.is_visible("#generate")
     page.screenshot(path=artifacts / "viewer-same-document.png")
     views = server.get("/api/audit?action=view")
@@ -349,7 +363,7 @@ def test_viewer_on_a_tablet_turns_by_touch(
         after = canvas.screenshot()
         page.screenshot(path=artifacts / "viewer-tablet-turned.png")
         assert after != before
-        assert page.locator("#downloads a").count() == 8
+        assert page.locator("#downloads a").count() == 9  # every format, the plain GLB too
     finally:
         context.close()
 

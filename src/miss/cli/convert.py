@@ -17,7 +17,8 @@ def add_arguments(conv: argparse.ArgumentParser) -> None:
     add_source_options(conv)
     conv.add_argument(
         "-o", "--output", action="append", required=True, metavar="OUT",
-        help="output file; format from its extension; repeat for several",
+        help="output file; format from its extension (.plain.glb: a GLB without "
+        "compression or extensions); repeat for several",
     )  # fmt: skip
     conv.add_argument("--json", action="store_true", help="print the run's statistics as JSON")
     conv.add_argument(
@@ -89,7 +90,9 @@ def _outputs(names: list[str]) -> dict[str, tuple[Path, ...]]:
     paths: dict[str, list[Path]] = {}
     for name in names:
         out = Path(name)
-        fmt = "".join(out.suffixes[-1:]).lower().lstrip(".")
+        # "head.plain.glb" is the plain GLB; "head.v2.stl" is still an STL.
+        two = "".join(out.suffixes[-2:]).lower().lstrip(".")
+        fmt = two if two in WRITERS else "".join(out.suffixes[-1:]).lower().lstrip(".")
         if fmt not in WRITERS:
             raise UnsupportedFormat(
                 f"{out}: unknown output extension {out.suffix or '(none)'}; use one of "

@@ -2,7 +2,9 @@
 
 Every format is one :class:`Writer` in ``WRITERS``: ``write(mesh, ...)`` for a plain
 mesh and ``write_scene(scene, ...)`` for named, coloured parts (every MISS job is a
-scene; a scene of one part in a one-mesh format is that format's plain file). Writers
+scene; a scene of one part in a one-mesh format is that format's plain file, a scene of
+several one file that holds them all: STL one solid, PLY one mesh with faces coloured
+by part, OBJ a group per part). Writers
 take ``(…, *, title=None, metadata=None, **options)``, return bytes and never touch
 the file system; adding a format is one module and one entry below. A mesh is in LPS
 mm, its faces counter-clockwise seen from outside; normals are computed where the
@@ -49,11 +51,13 @@ class Writer:
         Keyword options the writers take beyond title and metadata.
     legacy_mime : str or None
         An older Content-Type some clients still send in ``Accept``.
-    zips_scenes : bool
-        The format holds one uncoloured mesh (stl, ply) or needs a side file (obj + mtl):
-        a scene of several parts is a zip with a ``scene.json``.
+    one_mesh : bool
+        The format's file is one mesh (stl, ply, obj): a scene of one part is written
+        as that mesh; ``write_scene`` puts several parts in the one file.
     gzip : bool
         The writers' output gzipped (``.wrz``).
+    label : str or None
+        The Download button's text where ``.<format>`` would not say enough.
     """
 
     module: str
@@ -62,8 +66,9 @@ class Writer:
     description: str
     options: frozenset[str] = frozenset()
     legacy_mime: str | None = None
-    zips_scenes: bool = False
+    one_mesh: bool = False
     gzip: bool = False
+    label: str | None = None
 
     @property
     def write(self) -> Callable[..., bytes]:
@@ -79,10 +84,6 @@ class Writer:
         module = importlib.import_module(f"miss.export.{self.module}")
         return getattr(module, f"{name}_gzip" if self.gzip else name)
 
-    def mime_of(self, parts: int) -> str:
-        """The Content-Type of a model of ``parts`` parts in this format."""
-        return "application/zip" if self.zips_scenes and parts > 1 else self.mime
-
 
 _VRML = "x-world/x-vrml"
 WRITERS: dict[str, Writer] = {
@@ -93,9 +94,18 @@ WRITERS: dict[str, Writer] = {
     "x3d": Writer("x3d", "model/x3d+xml", False, "X3D 3.3 XML, VRML's successor"),
     "glb": Writer("gltf", "model/gltf-binary", True, "glTF 2.0 binary, for web viewers",
                   frozenset({"compress"})),
-    "stl": Writer("stl", "model/stl", True, "binary STL, for 3-D printing", zips_scenes=True),
-    "ply": Writer("ply", "model/ply", True, "binary PLY with normals", zips_scenes=True),
-    "obj": Writer("obj", "model/obj", False, "Wavefront OBJ with normals", zips_scenes=True),
+    # No extension required: float32 positions and normals, plain indices (the writers'
+    # default); the server's .glb is meshopt-compressed, which many tools cannot read.
+    "plain.glb": Writer("gltf", "model/gltf-binary", True,
+                        "glTF 2.0 binary without extensions, parts named and coloured, "
+                        "for tools that cannot read the compressed .glb",
+                        label="GLB (plain, opens anywhere)"),
+    "stl": Writer("stl", "model/stl", True, "binary STL, one solid, for 3-D printing",
+                  one_mesh=True),
+    "ply": Writer("ply", "model/ply", True, "binary PLY with normals, faces coloured by part",
+                  one_mesh=True),
+    "obj": Writer("obj", "model/obj", False, "Wavefront OBJ with normals, a group per part",
+                  one_mesh=True),
     "3mf": Writer("threemf", "model/3mf", True, "3MF, each part in its colour, for 3-D printing"),
 }  # fmt: skip
 
@@ -133,7 +143,8 @@ def export(
         Vertices (N, 3) in patient LPS mm, faces (F, 3) counter-clockwise from
         outside; normals are computed (area-weighted) when ``mesh.normals`` is None.
         A :class:`~miss.scene.Scene` goes to the format's scene writer: named,
-        coloured parts; for stl, ply and obj a zip (one part: the plain file).
+        coloured parts; stl, ply and obj hold them in one file (one part: the plain
+        file).
     fmt : str
         One of ``FORMATS``, with or without a dot, any case.
     title : str, optional
@@ -141,7 +152,8 @@ def export(
     metadata : dict of str to str, optional
         Provenance to embed (parameters, software version, source hash).
     **options
-        Format-specific, e.g. ``compress=True`` for "glb".
+        Format-specific, e.g. ``compress=True`` for "glb" ("plain.glb" takes none:
+        it is never compressed).
 
     Returns
     -------
@@ -197,7 +209,7 @@ def _export_scene(
         except ValueError as exc:
             raise type(exc)(f"part {part.name!r}: {exc}") from exc
     chosen = writer(fmt)
-    if chosen.zips_scenes and len(scene.parts) == 1:
+    if chosen.one_mesh and len(scene.parts) == 1:
         return chosen.write(
             scene.parts[0].mesh, title=title or scene.parts[0].name, metadata=metadata
         )

@@ -2,6 +2,11 @@
 
 Every 3-D tool imports it; it is the simplest format to inspect by eye. Vertex
 and normal share an index because MISS stores one normal per vertex.
+
+A scene is one OBJ: an ``o``/``g`` group per part. Colours would need a ``.mtl`` file
+beside it, which one downloaded file cannot carry; each part's name, colour and
+opacity are in a comment above its group instead (the PLY, glTF and 3MF files carry
+colours that readers apply).
 """
 
 from __future__ import annotations
@@ -9,9 +14,8 @@ from __future__ import annotations
 import numpy as np
 
 from miss.export._text import format_rows, utf8
-from miss.export._zip import manifest, zip_files
 from miss.geometry import mesh_normals
-from miss.scene import Scene, safe_names
+from miss.scene import Part, Scene, safe_names
 from miss.types import Mesh
 
 
@@ -53,43 +57,33 @@ def write(mesh: Mesh, *, title: str | None = None, metadata: dict[str, str] | No
 def write_scene(
     scene: Scene, *, title: str | None = None, metadata: dict[str, str] | None = None
 ) -> bytes:
-    """A zip of ``scene.obj``, its ``scene.mtl`` and ``scene.json``.
-
-    One ``o``/``usemtl`` group per part (the part's name made one safe word),
-    vertex indices running on across parts. The MTL gives each part ``Kd`` (its
-    sRGB colour) and ``d`` (its opacity).
-    """
+    """One OBJ with an ``o``/``g`` group per part (the part's name made one safe word),
+    vertex indices running on across parts; above each group a comment with the part's
+    full name, sRGB colour and opacity."""
     names = safe_names(scene.parts)
     comments = [
         "MISS scene; units mm; axes patient LPS (+x left, +y posterior, +z superior)",
         f"title: {title or scene.title}",
         *(f"{key}: {value}" for key, value in (metadata or {}).items()),
     ]
-    head = "".join(f"# {' '.join(str(text).splitlines())}\n" for text in comments)
-    body = [utf8(head + "mtllib scene.mtl\n")]
+    body = [utf8("".join(f"# {' '.join(str(text).splitlines())}\n" for text in comments))]
     offset = 1  # OBJ indices are 1-based and global
     for part, key in zip(scene.parts, names, strict=True):
         mesh = part.mesh
-        normals = mesh_normals(mesh)
         indices = mesh.faces[:, [0, 0, 1, 1, 2, 2]].astype(np.int64) + offset
         body += [
-            f"o {key}\nusemtl {key}\n".encode(),
+            utf8(_part_comment(part) + f"o {key}\ng {key}\n"),
             format_rows(mesh.vertices, b"v {} {} {}\n", 3),
-            format_rows(normals, b"vn {} {} {}\n", 4),
+            format_rows(mesh_normals(mesh), b"vn {} {} {}\n", 4),
             format_rows(indices, b"f {}//{} {}//{} {}//{}\n"),
         ]
         offset += mesh.n_vertices
-    listing = manifest(scene, ["scene.obj"] * len(names), title, metadata)
-    return zip_files(
-        [("scene.obj", b"".join(body)), ("scene.mtl", _mtl(scene, names)), ("scene.json", listing)]
-    )
+    return b"".join(body)
 
 
-def _mtl(scene: Scene, names: list[str]) -> bytes:
-    """One ``newmtl`` per part: diffuse colour ``Kd`` and dissolve ``d`` (opacity)."""
-    blocks = [
-        f"newmtl {key}\nKa 0 0 0\nKd {part.color[0]:.4f} {part.color[1]:.4f} {part.color[2]:.4f}\n"
-        f"Ks 0.2 0.2 0.2\nNs 20\nd {part.opacity:.4f}\nillum 2\n"
-        for part, key in zip(scene.parts, names, strict=True)
-    ]
-    return utf8("# MISS scene materials\n" + "\n".join(blocks))
+def _part_comment(part: Part) -> str:
+    """``# part: <name>; colour r g b (sRGB); opacity o[; label L]`` and a newline."""
+    r, g, b = part.color
+    label = "" if part.label is None else f"; label {part.label}"
+    name = " ".join(part.name.split())
+    return f"# part: {name}; colour {r:.4f} {g:.4f} {b:.4f} (sRGB); opacity {part.opacity:.4f}{label}\n"

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from miss.export._zip import zip_parts
 from miss.geometry import face_normals
 from miss.scene import Scene
 from miss.types import Mesh
@@ -56,8 +55,10 @@ def _header(title: str | None) -> bytes:
 def write_scene(
     scene: Scene, *, title: str | None = None, metadata: dict[str, str] | None = None
 ) -> bytes:
-    """A zip of one binary STL per part (``01_<name>.stl`` ...) and ``scene.json``.
+    """One binary STL solid holding every part's triangles, in part order.
 
-    STL has no colour; the manifest carries each part's name, colour and opacity.
+    STL has no parts nor colour (the attribute word's colour conventions contradict
+    each other, so it stays 0): slicers and CAD tools read it as one solid; a scene's
+    names and colours travel in the PLY, OBJ, glTF and 3MF files.
     """
-    return zip_parts(scene, write, "stl", title, metadata)
+    return write(scene.merged(), title=title or scene.title, metadata=metadata)

@@ -414,8 +414,19 @@ def new_study(patient: dict[str, Any]) -> Origin:
 
 
 def stl_parts(folder: Path, data: bytes | None = None) -> list[tuple[str, bytes]]:
-    """(part name, STL bytes) of a finished model: ``model.stl`` (or ``data``, its bytes) is
-    one STL, or a zip with one STL a part and ``scene.json``."""
+    """(part name, STL bytes) a part of a finished model: from its stored scene (the
+    download's ``model.stl`` is one solid of every part); a model from before that has
+    ``model.stl`` (or ``data``, its bytes): one STL, or a zip with one STL a part and
+    ``scene.json``."""
+    if data is None and (folder / formats.MESH_FILE).is_file():
+        from miss.export import export
+
+        stored = formats.read_scene(folder / formats.MESH_FILE)
+        parts = stored.scene.parts
+        if len(parts) == 1:  # the download's bytes, byte for byte
+            whole = export(stored.scene, "stl", title=stored.title, metadata=stored.metadata)
+            return [(parts[0].name, whole)]
+        return [(part.name, export(part.mesh, "stl", title=part.name)) for part in parts]
     data = (folder / "model.stl").read_bytes() if data is None else data
     if not data.startswith(b"PK\x03\x04"):
         return [("", data)]
@@ -458,10 +469,7 @@ def send_model(
     if model.status != DONE:
         raise NotReady(f"model {model.id!r} is {model.status}; send it once it is done.")
     origin = destination(store, settings, server, volume)
-    folder, data = store.model_dir(model.id), None
-    if ((model.files or {}).get("stl") or {}).get("on_request"):  # the download's STL
-        data = formats.read(folder, "stl", settings.format_cache_bytes)
-    parts = stl_parts(folder, data)
+    parts = stl_parts(store.model_dir(model.id))  # one instance a part
     description = describe(model, volume)
     titles = [p.get("name", "") for p in (model.stats or {}).get("parts") or []]
     named = [(title or name or description, stl) for (name, stl), title in _pad(parts, titles)]

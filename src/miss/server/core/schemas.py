@@ -278,6 +278,7 @@ def model_out(row: ModelRow, volume: VolumeRow | None = None) -> ModelOut:
                 **meta,
                 "url": f"/api/models/{row.id}/model.{fmt}",
                 "description": WRITERS[fmt].description,
+                "label": WRITERS[fmt].label or f".{fmt}",
                 "filename": download_name(volume, row, fmt) if volume else f"model.{fmt}",
             }
             for fmt, meta in row.files.items()

@@ -85,7 +85,6 @@ WRITE_ENV = "MISS_JOB_WRITE_MB"
 #: Seconds of CPU past the limit before the kernel's SIGKILL, should SIGXCPU be caught.
 CPU_GRACE = 5
 OUT_OF_MEMORY = "out of memory; choose a larger sample rate or fewer slices."
-ZIP = b"PK\x03\x04"
 
 
 class WriteLimit(MissError):
@@ -355,8 +354,7 @@ class DataFolder:
                 raise Stop
             return
         write_atomic(self.folder / f"model.{fmt}", data)
-        # A scene goes into a zip in the formats of one mesh a file (STL, PLY, OBJ).
-        self.files[fmt] = meta | {"mime": WRITERS[fmt].mime_of(2 if data[:4] == ZIP else 1)}
+        self.files[fmt] = meta | {"mime": WRITERS[fmt].mime}
         if fmt == "glb" and self.ready_seconds is None:
             self.ready_seconds = time.perf_counter() - self.started
         if not self.state.set_files(self.model_id, self.files):

@@ -170,7 +170,8 @@ def model_entry(model: ModelRow, volume: VolumeRow, share: ShareRow, token: str)
             if fmt == "glb" or share.can_download:
                 url = f"/s/{token}/models/{model.id}/model.{fmt}"
                 files[fmt] = {"url": url, "bytes": meta["bytes"], "mime": meta["mime"],
-                              "description": WRITERS[fmt].description}  # fmt: skip
+                              "description": WRITERS[fmt].description,
+                              "label": WRITERS[fmt].label or f".{fmt}"}  # fmt: skip
     stats = {k: v for k, v in (model.stats or {}).items() if k != "provenance"}
     return {
         "id": model.id,

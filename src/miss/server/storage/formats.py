@@ -5,8 +5,8 @@ A server job writes the compressed GLB (with its preview and levels of detail) a
 scene it encoded, in one compact internal form: ``model.mesh.npz`` (each part's arrays in
 the dtypes the pipeline gave them, deflated fast, and a JSON header with the title,
 provenance, names, colours and opacities the writers take). STL, PLY, OBJ, VRML, WRZ,
-X3D, 3MF (every writer of :data:`miss.export.WRITERS` but the GLB) are made from it by
-the same writers, so their bytes are those a job would have written; the first download
+X3D, 3MF and the plain GLB (every writer of :data:`miss.export.WRITERS` but the GLB) are
+made from it by the same writers, so their bytes are those a job would have written; the first download
 writes ``model.<fmt>`` atomically beside it, later ones read that file.
 
 One writer at a time per (model, format), across server processes too: an exclusive
@@ -137,9 +137,9 @@ def _mesh(stored: Any, i: int, normals: str | None) -> Mesh:
 def entries(scene: Scene) -> dict[str, dict[str, Any]]:
     """The model's ``files`` entries of the formats made on request, before they are:
     their type, no bytes nor ETag yet (:func:`record` fills them in once made)."""
-    parts = len(scene.parts)
+    del scene  # every format holds any scene in one file of its own type
     return {
-        fmt: {"bytes": None, "etag": None, "mime": WRITERS[fmt].mime_of(parts), "on_request": True}
+        fmt: {"bytes": None, "etag": None, "mime": WRITERS[fmt].mime, "on_request": True}
         for fmt in ON_REQUEST
     }
 
@@ -199,7 +199,7 @@ def ensure(folder: Path, fmt: str, cap: int) -> tuple[Path, dict[str, Any] | Non
     Raises ``DiskFull`` (507, nothing left behind) when the disk is full."""
     path = folder / f"model.{fmt}"
     with locked(_lock_of(path)):
-        if path.is_file():
+        if path.is_file() and not _zipped_scene(path, fmt):
             os.utime(path)
             return path, None
         start = time.perf_counter()
@@ -221,6 +221,15 @@ def ensure(folder: Path, fmt: str, cap: int) -> tuple[Path, dict[str, Any] | Non
     if cap > 0:
         evict(folder.parent, cap, keep=path)
     return path, describe(data)
+
+
+def _zipped_scene(path: Path, fmt: str) -> bool:
+    """True for an STL, PLY or OBJ made before they held a scene in one file (a zip of
+    one file per part, which other tools cannot open): it is made again."""
+    if not WRITERS[fmt].one_mesh:
+        return False
+    with open(path, "rb") as made:
+        return made.read(4) == b"PK\x03\x04"
 
 
 def _log(folder: Path, fmt: str, size: int, seconds: float) -> None:
@@ -275,11 +284,13 @@ def record(store: Store, model_id: str, fmt: str, made: dict[str, Any]) -> dict[
             raise NotFound(f"no model {model_id!r}; it was deleted meanwhile.")
         files = dict(row.files or {})
         if files.get(fmt, {}).get("etag") != made["etag"]:
-            files[fmt] = {**files.get(fmt, {}), **made}
+            # the type too: a scene's STL, PLY and OBJ were listed as zips before
+            files[fmt] = {**files.get(fmt, {}), **made, "mime": WRITERS[fmt].mime}
             store.update_model(model_id, files=files)
     return files
 
 
 def _lock_of(path: Path) -> Path:
-    """The lock file of a made file ``model.<fmt>``: ``.<fmt>.lock`` beside it."""
-    return path.with_name(f".{path.suffix.lstrip('.')}.lock")
+    """The lock file of a made file ``model.<fmt>``: ``.<fmt>.lock`` beside it (the whole
+    format: ``model.plain.glb``'s is ``.plain.glb.lock``, not the GLB's)."""
+    return path.with_name(f".{path.name.removeprefix('model.')}.lock")

@@ -96,11 +96,16 @@ function madeBy( asked, made ) {
 
 // files: {fmt: {url, bytes}} -- every format for the owner, what a link allows for a guest.
 // files: the model's files as the server lists them (its formats, in its order, each
-// with url, bytes and a one-line description).
+// with url, bytes, a one-line description and its button's label: ".stl", or words
+// where the extension alone would not tell, as for the plain GLB).
 export function fillDownloads( files ) {
-	$( 'downloads' ).replaceChildren( ...Object.entries( files || {} ).map( ( [ fmt, file ] ) => el( 'a.button.small', {
-		href: file.url, download: '', dataset: { format: fmt }, title: file.description,
-	}, el( 'span', {}, `.${fmt}` ), el( 'span.size', {}, formatBytes( file.bytes ) ) ) ) );
+	$( 'downloads' ).replaceChildren( ...Object.entries( files || {} ).map( ( [ fmt, file ] ) => {
+		const label = file.label || `.${fmt}`;
+		// words take the whole row, so that they read on one line beside the size
+		return el( label === `.${fmt}` ? 'a.button.small' : 'a.button.small.wide', {
+			href: file.url, download: '', dataset: { format: fmt }, title: file.description,
+		}, el( 'span', {}, label ), el( 'span.size', {}, formatBytes( file.bytes ) ) );
+	} ) );
 }
 
 // Loads the GLB or the VRML file (urlOf(fmt)) into the viewer; resolves once
