@@ -10,6 +10,7 @@ import { MeshoptDecoder } from 'three/addons/libs/meshopt_decoder.module.js';
 import { OrientationGizmo } from './gizmo.js';
 import { TiledModel } from './tiles.js';
 import { outwardClosed } from './closed.js';
+import { VolumePass } from './volume-pass.js';
 import { status } from '../test-hooks.js';
 
 // Patient LPS millimetres to glTF's Y-up metres: Left -> +X, Superior -> +Y,
@@ -66,21 +67,6 @@ function softwareWebGL() {
 	} catch {
 		return false;
 	}
-}
-
-// A quad that copies a linear colour texture to the canvas (in the canvas's colour space).
-function fullScreenCopy( texture ) {
-	const material = new THREE.ShaderMaterial( {
-		uniforms: { map: { value: texture } },
-		vertexShader: 'varying vec2 vUv; void main() { vUv = uv; gl_Position = vec4( position.xy, 0.0, 1.0 ); }',
-		fragmentShader: 'uniform sampler2D map; varying vec2 vUv; void main() { gl_FragColor = texture2D( map, vUv ); \n#include <colorspace_fragment>\n }',
-		depthTest: false, depthWrite: false,
-	} );
-	const scene = new THREE.Scene();
-	const quad = new THREE.Mesh( new THREE.PlaneGeometry( 2, 2 ), material );
-	quad.frustumCulled = false;
-	scene.add( quad );
-	return { scene, camera: new THREE.OrthographicCamera( - 1, 1, 1, - 1, 0, 1 ) };
 }
 
 export class ModelViewer {
@@ -262,28 +248,13 @@ export class ModelViewer {
 		this.requestRender();
 	}
 
-	// The surfaces first, into a target whose depth then ends the volume's rays where a
-	// surface is (the surfaces hide what lies behind them), its colour copied to the
-	// canvas; then the volume alone, blended over it.
+	// The surfaces and the volume: fast while the camera moves, in full once it stops
+	// (volume-pass.js).
 	renderWithVolume() {
-		const r = this.renderer;
-		const size = r.getDrawingBufferSize( new THREE.Vector2() );
-		if ( ! this.surfaceTarget ) {
-			this.surfaceTarget = new THREE.WebGLRenderTarget( 1, 1, { type: THREE.HalfFloatType, depthTexture: new THREE.DepthTexture( 1, 1 ) } );
-			this.copyQuad = fullScreenCopy( this.surfaceTarget.texture );
-		}
-		this.surfaceTarget.setSize( size.x, size.y );
-		this.volume.mesh.visible = false;
-		r.setRenderTarget( this.surfaceTarget );
-		r.setClearColor( BACKGROUNDS[ this.background ] );
-		r.clear();
-		r.render( this.scene, this.camera );
-		r.setRenderTarget( null );
-		this.volume.mesh.visible = true;
-		r.render( this.copyQuad.scene, this.copyQuad.camera );
-		this.volume.setDepth( this.surfaceTarget.depthTexture, this.camera );
-		r.render( this.volume.mesh, this.camera );
+		this.volumePass ??= new VolumePass( () => this.requestRender() );
+		const quality = this.volumePass.render( this.renderer, this.scene, this.camera, this.volume, BACKGROUNDS[ this.background ] );
 		status.volumeFrames = ( status.volumeFrames || 0 ) + 1;
+		status.volumeQuality = quality;
 	}
 
 	// Resolves once the GPU has finished the next frame: a fence put after it, looked at
@@ -291,21 +262,37 @@ export class ModelViewer {
 	// asked for; a browser without fences resolves once the frame is asked for).
 	whenDrawn() {
 		return new Promise( ( resolve ) => {
-			this.afterRender.push( () => {
-				const gl = this.renderer.getContext();
-				const sync = gl.fenceSync ? gl.fenceSync( gl.SYNC_GPU_COMMANDS_COMPLETE, 0 ) : null;
-				if ( ! sync ) return resolve();
-				gl.flush();
-				const look = () => {
-					if ( gl.isContextLost() || gl.getSyncParameter( sync, gl.SYNC_STATUS ) === gl.SIGNALED ) {
-						if ( ! gl.isContextLost() ) gl.deleteSync( sync );
-						resolve();
-					} else setTimeout( look, 4 );
-				};
-				look();
-			} );
+			this.afterRender.push( () => this.fence( resolve ) );
 			this.requestRender();
 		} );
+	}
+
+	// Resolves once the GPU has finished the next frame in full: with the volume shown, the
+	// one drawn when the camera has stopped (a fast frame while it moves does not count).
+	whenSettled() {
+		return new Promise( ( resolve ) => {
+			const then = () => {
+				if ( this.volume?.mesh.visible && this.volumePass?.quality === 'fast' ) this.afterRender.push( then );
+				else this.fence( resolve );
+			};
+			this.afterRender.push( then );
+			this.requestRender();
+		} );
+	}
+
+	// resolve() once the GPU has finished what has been asked of it so far.
+	fence( resolve ) {
+		const gl = this.renderer.getContext();
+		const sync = gl.fenceSync ? gl.fenceSync( gl.SYNC_GPU_COMMANDS_COMPLETE, 0 ) : null;
+		if ( ! sync ) return resolve();
+		gl.flush();
+		const look = () => {
+			if ( gl.isContextLost() || gl.getSyncParameter( sync, gl.SYNC_STATUS ) === gl.SIGNALED ) {
+				if ( ! gl.isContextLost() ) gl.deleteSync( sync );
+				resolve();
+			} else setTimeout( look, 4 );
+		};
+		look();
 	}
 
 	// A coarse look (a running job's preview) is drawn at half the pixels a side: a
