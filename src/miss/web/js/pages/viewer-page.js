@@ -147,7 +147,10 @@ export async function start() {
 		let model = await asked;
 		const volumePanel = new VolumePanel( viewer, model.volume );
 		const volumeView = new URLSearchParams( location.search ).get( 'view' ) === 'volume';
-		if ( volumeView ) volumePanel.prefetch(); // arrives while the model loads
+		let onStage = null;
+		const staged = new Promise( ( resolve ) => ( onStage = resolve ) );
+		// Voxels, module and layer while the model loads: its first frame has the volume.
+		const shown = volumeView ? volumePanel.show( true, staged ) : null;
 		const volume = api.volume( model.volume );
 		volume.then( showVolume ).catch( () => {} );
 		let drawn = false;
@@ -161,7 +164,8 @@ export async function start() {
 		const replay = new Replay( viewer, modelId, $( 'history' ), consult );
 		replay.list().catch( () => {} );
 		await display( new URLSearchParams( location.search ).get( 'mode' ), { drawn } );
-		if ( volumeView ) await volumePanel.show( true );
+		onStage();
+		await shown;
 	} catch ( err ) {
 		overlay( 'This model cannot be shown', err.message || String( err ) );
 		status.error = err.message || String( err );

@@ -10,7 +10,7 @@ import { MeshoptDecoder } from 'three/addons/libs/meshopt_decoder.module.js';
 import { OrientationGizmo } from './gizmo.js';
 import { TiledModel } from './tiles.js';
 import { outwardClosed } from './closed.js';
-import { VolumePass } from './volume-pass.js';
+import { VolumePass, whenFinished } from './volume-pass.js';
 import { status } from '../test-hooks.js';
 
 // Patient LPS millimetres to glTF's Y-up metres: Left -> +X, Superior -> +Y,
@@ -212,7 +212,9 @@ export class ModelViewer {
 		r.setClearColor( BACKGROUNDS[ this.background ] );
 		r.clear();
 		this.tiles?.update( this.camera, height );
-		if ( this.volume?.mesh.visible ) this.renderWithVolume();
+		// The volume with a model only: a deep link's voxels may come first, and the model
+		// places (lpsToWorld) and frames them.
+		if ( this.volume?.mesh.visible && this.model ) this.renderWithVolume();
 		else r.render( this.scene, this.camera );
 		// Read before the gizmo's own render resets the counts.
 		status.drawnTriangles = r.info.render.triangles;
@@ -234,17 +236,12 @@ export class ModelViewer {
 		for ( const then of this.afterRender.splice( 0 ) ) then();
 	}
 
-	// The scan's volume (a VolumeLayer of volume.js) drawn in this scene, or none (null).
+	// The scan's volume (a VolumeLayer of volume.js) drawn with this scene, or none (null).
+	// Its mesh stays out of the scene: it is drawn on its own, after the surfaces.
 	setVolume( layer ) {
-		if ( this.volume ) {
-			this.scene.remove( this.volume.mesh );
-			this.volume.dispose();
-		}
+		this.volume?.dispose();
 		this.volume = layer;
-		if ( layer ) {
-			layer.place( this.lpsToWorld );
-			this.scene.add( layer.mesh );
-		}
+		layer?.place( this.lpsToWorld );
 		this.requestRender();
 	}
 
@@ -254,7 +251,7 @@ export class ModelViewer {
 		this.volumePass ??= new VolumePass( () => this.requestRender() );
 		const quality = this.volumePass.render( this.renderer, this.scene, this.camera, this.volume, BACKGROUNDS[ this.background ] );
 		status.volumeFrames = ( status.volumeFrames || 0 ) + 1;
-		status.volumeQuality = quality;
+		Object.assign( status, { volumeQuality: quality, volumeFastScale: this.volumePass.scale } );
 	}
 
 	// Resolves once the GPU has finished the next frame: a fence put after it, looked at
@@ -282,17 +279,7 @@ export class ModelViewer {
 
 	// resolve() once the GPU has finished what has been asked of it so far.
 	fence( resolve ) {
-		const gl = this.renderer.getContext();
-		const sync = gl.fenceSync ? gl.fenceSync( gl.SYNC_GPU_COMMANDS_COMPLETE, 0 ) : null;
-		if ( ! sync ) return resolve();
-		gl.flush();
-		const look = () => {
-			if ( gl.isContextLost() || gl.getSyncParameter( sync, gl.SYNC_STATUS ) === gl.SIGNALED ) {
-				if ( ! gl.isContextLost() ) gl.deleteSync( sync );
-				resolve();
-			} else setTimeout( look, 4 );
-		};
-		look();
+		whenFinished( this.renderer, resolve );
 	}
 
 	// A coarse look (a running job's preview) is drawn at half the pixels a side: a
@@ -352,6 +339,7 @@ export class ModelViewer {
 		tiles?.setFrame( this.lpsToWorld );
 		this.scene.add( object );
 		this.gizmo.setFrame( this.lpsToWorld );
+		this.volume?.place( this.lpsToWorld ); // its voxels may have come before this file
 		if ( keepView ) this.requestRender();
 		else this.fit();
 		return countTriangles( object );

@@ -36,7 +36,10 @@ export class VolumePanel {
 		return this.loading;
 	}
 
-	async show( on ) {
+	// on: shown or not. staged: a promise of the model on the stage (a deep link shows the
+	// volume while the model loads, so that the model's first frame has it; its picture
+	// counts from then).
+	async show( on, staged = null ) {
 		if ( ! this.button ) return;
 		this.button.setAttribute( 'aria-pressed', String( on ) );
 		$( 'volume-controls' ).hidden = ! on;
@@ -57,10 +60,12 @@ export class VolumePanel {
 			status.volume = { on: false, error: String( err.message || err ) };
 			return;
 		}
+		const frames = status.volumeFrames || 0;
 		this.layer.mesh.visible = true;
 		// Software WebGL pays for every ray: half the pixels a side while the volume shows.
 		if ( status.softwareWebGL ) this.viewer.setCoarse( true );
-		await this.drawn();
+		await staged;
+		await this.drawn( ( status.volumeFrames || 0 ) > frames );
 	}
 
 	async load() {
@@ -90,6 +95,15 @@ export class VolumePanel {
 			await this.viewer.whenSettled();
 			return performance.now() - this.viewer.volumePass.fullStartedAt;
 		};
+		// For the tests: the next frame as a PNG data URL (read in the task that drew it) and
+		// its quality ('fast' or 'full'), after turning the camera by an angle (radians).
+		status.grabVolumeFrame = ( turn = 0 ) => new Promise( ( resolve ) => {
+			if ( turn ) this.turn( turn );
+			this.viewer.afterRender.push( () => resolve( {
+				quality: this.viewer.volumePass.quality, png: this.viewer.renderer.domElement.toDataURL(),
+			} ) );
+			this.viewer.requestRender();
+		} );
 		// For the tests: where a voxel of the sent grid lands on the canvas (CSS pixels).
 		status.voxelToScreen = ( ijk ) => {
 			const p = new this.viewer.camera.position.constructor( ...ijk ).applyMatrix4( this.layer.mesh.matrixWorld ).project( this.viewer.camera );
@@ -103,9 +117,10 @@ export class VolumePanel {
 		$( 'volume-note' ).textContent = `${nx} × ${ny} × ${nz} voxels${header.factors.some( ( f ) => f > 1 ) ? ' (a coarse level)' : ''}`;
 	}
 
-	// status.volume once the change is drawn in full (firstAt: its first, fast picture).
-	async drawn() {
-		await this.viewer.whenDrawn();
+	// status.volume once the change is drawn in full (firstAt: its first, fast picture;
+	// asked for already, or not yet).
+	async drawn( asked = false ) {
+		await ( asked ? new Promise( ( resolve ) => this.viewer.fence( resolve ) ) : this.viewer.whenDrawn() );
 		const firstAt = performance.now();
 		await this.viewer.whenSettled();
 		status.volume = {

@@ -14,8 +14,12 @@
 
 import * as THREE from 'three';
 
-// Of the canvas's CSS pixels a side, in a fast frame.
-export const FAST_SCALE = 0.25;
+// Of the canvas's CSS pixels a side, in a fast frame: at most MAX_SCALE, down to
+// MIN_SCALE, as fast frames take longer than FAST_MS from asked for to finished on the
+// GPU (the device and its load decide, as VTK's desired update rate does).
+export const MAX_SCALE = 0.25;
+export const MIN_SCALE = 0.1;
+const FAST_MS = 50;
 // Voxels a ray step in a fast frame (the opacity is corrected for the step).
 export const FAST_STEP = 2;
 // Quiet this long (ms) and the full frame is drawn.
@@ -41,6 +45,22 @@ function fullScreenQuad( texture, { blend = false } = {} ) {
 	return { scene, camera: new THREE.OrthographicCamera( - 1, 1, 1, - 1, 0, 1 ) };
 }
 
+// then() once the GPU has finished what has been asked of it so far (a fence, looked at
+// every few ms); at once where there are no fences.
+export function whenFinished( renderer, then ) {
+	const gl = renderer.getContext();
+	const sync = gl.fenceSync ? gl.fenceSync( gl.SYNC_GPU_COMMANDS_COMPLETE, 0 ) : null;
+	if ( ! sync ) return then();
+	gl.flush();
+	const look = () => {
+		if ( gl.isContextLost() || gl.getSyncParameter( sync, gl.SYNC_STATUS ) === gl.SIGNALED ) {
+			if ( ! gl.isContextLost() ) gl.deleteSync( sync );
+			then();
+		} else setTimeout( look, 4 );
+	};
+	look();
+}
+
 function surfaceTarget() {
 	return new THREE.WebGLRenderTarget( 1, 1, { type: THREE.HalfFloatType, depthTexture: new THREE.DepthTexture( 1, 1 ) } );
 }
@@ -53,6 +73,9 @@ export class VolumePass {
 		this.fast = { surfaces: surfaceTarget(), volume: new THREE.WebGLRenderTarget( 1, 1 ) };
 		for ( const t of [ this.full, this.fast ] ) t.copy = fullScreenQuad( t.surfaces.texture );
 		this.fast.blend = fullScreenQuad( this.fast.volume.texture, { blend: true } );
+		this.scale = MAX_SCALE;
+		this.fastFrames = 0;
+		this.step = FAST_STEP;
 		this.seen = null; // what the last frame showed: camera, canvas size, volume version
 		this.timer = 0;
 		this.quality = null; // of the last frame: 'fast' or 'full'
@@ -69,7 +92,10 @@ export class VolumePass {
 		clearTimeout( this.timer );
 		if ( moved ) {
 			this.timer = setTimeout( () => this.requestRender(), SETTLE_MS );
+			const start = performance.now();
 			this.drawFast( renderer, scene, camera, volume, background );
+			// The first frame also uploads the voxels and compiles the shader: not a measure.
+			if ( this.fastFrames ++ > 0 ) whenFinished( renderer, () => this.adapt( performance.now() - start ) );
 		} else {
 			this.fullStartedAt = performance.now();
 			this.drawFull( renderer, scene, camera, volume, background );
@@ -78,9 +104,16 @@ export class VolumePass {
 		return this.quality;
 	}
 
+	// The next fast frame's scale after one took ms: a step towards FAST_MS, in 1/40ths.
+	adapt( ms ) {
+		const step = Math.min( 1.25, Math.max( 0.8, Math.sqrt( FAST_MS / Math.max( ms, 1 ) ) ) );
+		const scale = Math.round( this.scale * step * 40 ) / 40;
+		this.scale = Math.min( MAX_SCALE, Math.max( MIN_SCALE, scale ) );
+	}
+
 	drawFull( r, scene, camera, volume, background ) {
 		const size = r.getDrawingBufferSize( new THREE.Vector2() );
-		this.drawSurfaces( r, scene, camera, volume, background, this.full, size );
+		this.drawSurfaces( r, scene, camera, background, this.full, size );
 		volume.setDepth( this.full.surfaces.depthTexture, camera );
 		volume.setStep( 1 );
 		r.render( volume.mesh, camera );
@@ -89,30 +122,28 @@ export class VolumePass {
 	drawFast( r, scene, camera, volume, background ) {
 		const css = r.getSize( new THREE.Vector2() );
 		const buffer = r.getDrawingBufferSize( new THREE.Vector2() );
-		const size = css.multiplyScalar( FAST_SCALE ).round().max( new THREE.Vector2( 1, 1 ) ).min( buffer );
-		this.drawSurfaces( r, scene, camera, volume, background, this.fast, size );
+		const size = css.multiplyScalar( this.scale ).round().max( new THREE.Vector2( 1, 1 ) ).min( buffer );
+		this.drawSurfaces( r, scene, camera, background, this.fast, size );
 		this.fast.volume.setSize( size.x, size.y );
 		r.setRenderTarget( this.fast.volume );
 		r.setClearColor( 0x000000, 0 );
 		r.clear();
 		volume.setDepth( this.fast.surfaces.depthTexture, camera );
-		volume.setStep( FAST_STEP );
+		volume.setStep( this.step );
 		r.render( volume.mesh, camera );
 		r.setRenderTarget( null );
 		r.setClearColor( background );
 		r.render( this.fast.blend.scene, this.fast.blend.camera );
 	}
 
-	// The surfaces (the volume hidden) into the target of a size, then copied to the canvas.
-	drawSurfaces( r, scene, camera, volume, background, targets, size ) {
+	// The surfaces into the target of a size, then copied to the canvas.
+	drawSurfaces( r, scene, camera, background, targets, size ) {
 		targets.surfaces.setSize( size.x, size.y );
-		volume.mesh.visible = false;
 		r.setRenderTarget( targets.surfaces );
 		r.setClearColor( background );
 		r.clear();
 		r.render( scene, camera );
 		r.setRenderTarget( null );
-		volume.mesh.visible = true;
 		r.render( targets.copy.scene, targets.copy.camera );
 	}
 
