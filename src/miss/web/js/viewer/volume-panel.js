@@ -29,7 +29,7 @@ export class VolumePanel {
 			const body = fetch( url, { credentials: 'same-origin' } ).then( ( r ) => {
 				if ( ! r.ok ) throw new Error( `the scan's voxels could not be fetched (${r.status})` );
 				return r.arrayBuffer();
-			} ).then( ( b ) => ( performance.mark( 'volume:fetched' ), b ) );
+			} ).then( ( b ) => ( performance.mark( 'volume:voxels' ), b ) ); // the benchmark's split
 			this.loading = Promise.all( [ import( './volume.js' ), body ] );
 			this.loading.catch( () => {} );
 		}
@@ -72,7 +72,6 @@ export class VolumePanel {
 		if ( this.layer ) return;
 		$( 'volume-note' ).textContent = 'Loading the scan…';
 		const [ module, body ] = await this.prefetch();
-		performance.mark( 'volume:both' );
 		const { header, data } = module.decode( body );
 		this.layer = new module.VolumeLayer( header, data, this.viewer.lpsToWorld );
 		this.viewer.setVolume( this.layer );

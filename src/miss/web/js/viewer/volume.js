@@ -223,14 +223,18 @@ const fragmentShader = /* glsl */`
 		}
 		vec4 sum = vec4( 0.0 );
 		int i = 0;
+		int brickEnd = 0; // the first step past the brick the ray is in, once looked at
 		for ( int n = 0; n < MAX_STEPS; n ++ ) {
 			if ( i >= nsteps || sum.a >= 0.95 ) break; // what lies behind hardly shows
-			if ( texture( u_bricks, loc * u_brickScale ).r == 0.0 ) {
-				// A brick this window leaves transparent: on to the first step past it.
-				int skip = stepsOutOfBrick( loc, step );
-				i += skip;
-				loc += step * float( skip );
-				continue;
+			if ( i >= brickEnd ) {
+				// A brick this window leaves transparent is stepped over; any other is
+				// marched through without looking at it again.
+				brickEnd = i + stepsOutOfBrick( loc, step );
+				if ( texture( u_bricks, loc * u_brickScale ).r == 0.0 ) {
+					loc += step * float( brickEnd - i );
+					i = brickEnd;
+					continue;
+				}
 			}
 			vec4 c = lut( texture( u_data, loc ).r );
 			float a = 1.0 - pow( 1.0 - c.a, u_step ); // the table's opacity is per voxel
