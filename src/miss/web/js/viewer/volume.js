@@ -8,7 +8,10 @@
 // its MIP; to it are added front-to-back compositing through a 256-entry colour and
 // opacity table (the transfer function, made here from a preset and the window), a ray
 // that starts at the camera when the camera is inside the box, and a ray that stops at
-// the opaque surfaces drawn before it (their depth, when the viewer hands it over).
+// the opaque surfaces drawn before it (their depth, when the viewer hands it over); a ray
+// that stops once 95 % opaque, and steps over bricks of 8³ voxels the window leaves
+// transparent (each brick's byte range, found once; which are empty, once a window). The
+// step (one voxel, two while the camera moves) is volume-pass.js's to choose.
 //
 // The voxels come from GET /api/volumes/{id}/voxels (miss.server.voxels): a uint32
 // header length, a JSON header, uint8 voxels i fastest; real = scale * byte + offset.
