@@ -9,6 +9,7 @@ Screenshots go to test-artifacts/browser/volume-*.png.
 
 from __future__ import annotations
 
+import base64
 import io
 from pathlib import Path
 from typing import Any
@@ -87,6 +88,55 @@ def test_volume_rendering_of_a_bright_cube(
     assert np.ptp(grey) < 10 and 100 < grey.mean() < 230, grey  # 700 HU, a 400/1600 window
     assert np.abs(around(mip, edge) - around(before, edge)).max() < 4
     assert np.abs(around(mip, air) - around(before, air)).max() < 12  # air lets through
+
+
+def frame(page: Any, turn: float, path: Path) -> tuple[str, np.ndarray]:
+    """The next frame after turning the camera by ``turn`` radians: its quality and RGB at
+    the canvas's CSS size (the drawing buffer may be smaller: software WebGL)."""
+    grabbed = page.evaluate(f"() => window.__miss.grabVolumeFrame({turn})")
+    png = base64.b64decode(grabbed["png"].split(",", 1)[1])
+    path.write_bytes(png)
+    box = page.locator("#stage canvas").bounding_box()
+    size = (round(box["width"]), round(box["height"]))
+    image = Image.open(io.BytesIO(png)).convert("RGB").resize(size, Image.Resampling.NEAREST)
+    return grabbed["quality"], np.asarray(image, np.int16)
+
+
+def test_turning_draws_fast_frames_then_the_full_one(
+    page: Any, server: Any, cube_scan: bytes, artifacts: Path
+) -> None:
+    csrf = next(c["value"] for c in page.context.cookies() if c["name"] == "miss_csrf")
+    file = {"name": "cube.nii.gz", "mimeType": "application/gzip", "buffer": cube_scan}
+    response = page.request.post(
+        "/api/volumes", headers={"X-CSRF-Token": csrf}, multipart={"file": file}
+    )
+    assert response.status == 201, response.text()
+    job = server.post("/api/models", {"volume": response.json()["id"], "level": 1500})
+    assert server.wait_model(job["id"])["status"] == "done"
+    page.goto(f"/models/{job['id']}?view=volume")  # a deep link
+    page.wait_for_function("() => window.__miss.volume && window.__miss.volume.on")
+
+    quality, still = frame(page, 0, artifacts / "volume-still.png")
+    assert quality == "full"
+    quality, moving = frame(page, 0.4, artifacts / "volume-turning.png")
+    assert quality == "fast"
+    middle = page.evaluate(f"() => window.__miss.voxelToScreen([{N // 2}, {N // 2}, {N // 2}])")
+    edge = [5.0, 5.0]
+    # The fast frame draws the volume where it now is, and the air around it as before.
+    assert np.abs(around(moving, middle) - around(still, middle)).max() < 40
+    assert np.abs(around(moving, middle) - around(moving, edge)).max() > 60
+    assert np.abs(around(moving, edge) - around(still, edge)).max() < 4
+    assert np.abs(moving - still).max(axis=2).mean() > 1  # the picture turned
+
+    page.evaluate("() => window.__miss.timeSettledFrame(0)")  # the camera stops
+    quality, settled = frame(page, 0, artifacts / "volume-settled.png")
+    assert quality == "full"
+    assert np.abs(around(settled, middle) - around(moving, middle)).max() < 40
+    # Full quality: not the fast frame of the same view (drawn from fewer pixels and
+    # samples, it differs along every edge), and what a fresh full frame draws.
+    assert (np.abs(settled - moving).max(axis=2) > 20).mean() > 0.002
+    quality, again = frame(page, 0, artifacts / "volume-again.png")
+    assert quality == "full" and np.abs(again - settled).max() <= 2
 
 
 def test_a_guest_sees_the_scan_only_when_the_link_offers_it(

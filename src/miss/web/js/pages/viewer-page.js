@@ -212,7 +212,10 @@ export async function start() {
 		offerCancel( model );
 		const volumePanel = new VolumePanel( viewer, `/api/volumes/${encodeURIComponent( model.volume )}/voxels` );
 		const volumeView = new URLSearchParams( location.search ).get( 'view' ) === 'volume';
-		if ( volumeView ) volumePanel.prefetch(); // arrives while the model loads
+		let onStage = null;
+		const staged = new Promise( ( resolve ) => ( onStage = resolve ) );
+		// Voxels, module and layer while the model loads: its first frame has the volume.
+		const shown = volumeView ? volumePanel.show( true, staged ) : null;
 		const volume = api.volume( model.volume );
 		volume.then( showVolume ).catch( () => {} );
 		let drawn = false;
@@ -233,7 +236,8 @@ export async function start() {
 		replay.list().catch( () => {} );
 		await display( new URLSearchParams( location.search ).get( 'mode' ), { drawn } );
 		linkCamera( viewer ); // ?cam= in the address: this view, and the address follows it
-		if ( volumeView ) await volumePanel.show( true );
+		onStage();
+		await shown;
 	} catch ( err ) {
 		overlay( cancelled ? 'Job cancelled' : 'This model cannot be shown', err.message || String( err ) );
 		status.error = err.message || String( err );

@@ -10,6 +10,7 @@ import { MeshoptDecoder } from 'three/addons/libs/meshopt_decoder.module.js';
 import { OrientationGizmo } from './gizmo.js';
 import { TiledModel } from './tiles.js';
 import { outwardClosed } from './closed.js';
+import { VolumePass, whenFinished } from './volume-pass.js';
 import { status } from '../test-hooks.js';
 
 // Patient LPS millimetres to glTF's Y-up metres: Left -> +X, Superior -> +Y,
@@ -66,21 +67,6 @@ function softwareWebGL() {
 	} catch {
 		return false;
 	}
-}
-
-// A quad that copies a linear colour texture to the canvas (in the canvas's colour space).
-function fullScreenCopy( texture ) {
-	const material = new THREE.ShaderMaterial( {
-		uniforms: { map: { value: texture } },
-		vertexShader: 'varying vec2 vUv; void main() { vUv = uv; gl_Position = vec4( position.xy, 0.0, 1.0 ); }',
-		fragmentShader: 'uniform sampler2D map; varying vec2 vUv; void main() { gl_FragColor = texture2D( map, vUv ); \n#include <colorspace_fragment>\n }',
-		depthTest: false, depthWrite: false,
-	} );
-	const scene = new THREE.Scene();
-	const quad = new THREE.Mesh( new THREE.PlaneGeometry( 2, 2 ), material );
-	quad.frustumCulled = false;
-	scene.add( quad );
-	return { scene, camera: new THREE.OrthographicCamera( - 1, 1, 1, - 1, 0, 1 ) };
 }
 
 export class ModelViewer {
@@ -284,7 +270,9 @@ export class ModelViewer {
 		r.setClearColor( BACKGROUNDS[ this.background ] );
 		r.clear();
 		this.tiles?.update( this.camera, height );
-		if ( this.volume?.mesh.visible ) this.renderWithVolume();
+		// The volume with a model only: a deep link's voxels may come first, and the model
+		// places (lpsToWorld) and frames them.
+		if ( this.volume?.mesh.visible && this.model ) this.renderWithVolume();
 		else r.render( this.scene, this.camera );
 		// Read before the gizmo's own render resets the counts.
 		status.drawnTriangles = r.info.render.triangles;
@@ -306,42 +294,22 @@ export class ModelViewer {
 		for ( const then of this.afterRender.splice( 0 ) ) then();
 	}
 
-	// The scan's volume (a VolumeLayer of volume.js) drawn in this scene, or none (null).
+	// The scan's volume (a VolumeLayer of volume.js) drawn with this scene, or none (null).
+	// Its mesh stays out of the scene: it is drawn on its own, after the surfaces.
 	setVolume( layer ) {
-		if ( this.volume ) {
-			this.scene.remove( this.volume.mesh );
-			this.volume.dispose();
-		}
+		this.volume?.dispose();
 		this.volume = layer;
-		if ( layer ) {
-			layer.place( this.lpsToWorld );
-			this.scene.add( layer.mesh );
-		}
+		layer?.place( this.lpsToWorld );
 		this.requestRender();
 	}
 
-	// The surfaces first, into a target whose depth then ends the volume's rays where a
-	// surface is (the surfaces hide what lies behind them), its colour copied to the
-	// canvas; then the volume alone, blended over it.
+	// The surfaces and the volume: fast while the camera moves, in full once it stops
+	// (volume-pass.js).
 	renderWithVolume() {
-		const r = this.renderer;
-		const size = r.getDrawingBufferSize( new THREE.Vector2() );
-		if ( ! this.surfaceTarget ) {
-			this.surfaceTarget = new THREE.WebGLRenderTarget( 1, 1, { type: THREE.HalfFloatType, depthTexture: new THREE.DepthTexture( 1, 1 ) } );
-			this.copyQuad = fullScreenCopy( this.surfaceTarget.texture );
-		}
-		this.surfaceTarget.setSize( size.x, size.y );
-		this.volume.mesh.visible = false;
-		r.setRenderTarget( this.surfaceTarget );
-		r.setClearColor( BACKGROUNDS[ this.background ] );
-		r.clear();
-		r.render( this.scene, this.camera );
-		r.setRenderTarget( null );
-		this.volume.mesh.visible = true;
-		r.render( this.copyQuad.scene, this.copyQuad.camera );
-		this.volume.setDepth( this.surfaceTarget.depthTexture, this.camera );
-		r.render( this.volume.mesh, this.camera );
+		this.volumePass ??= new VolumePass( () => this.requestRender() );
+		const quality = this.volumePass.render( this.renderer, this.scene, this.camera, this.volume, BACKGROUNDS[ this.background ] );
 		status.volumeFrames = ( status.volumeFrames || 0 ) + 1;
+		Object.assign( status, { volumeQuality: quality, volumeFastScale: this.volumePass.scale } );
 	}
 
 	// Resolves once the GPU has finished the next frame: a fence put after it, looked at
@@ -349,21 +317,27 @@ export class ModelViewer {
 	// asked for; a browser without fences resolves once the frame is asked for).
 	whenDrawn() {
 		return new Promise( ( resolve ) => {
-			this.afterRender.push( () => {
-				const gl = this.renderer.getContext();
-				const sync = gl.fenceSync ? gl.fenceSync( gl.SYNC_GPU_COMMANDS_COMPLETE, 0 ) : null;
-				if ( ! sync ) return resolve();
-				gl.flush();
-				const look = () => {
-					if ( gl.isContextLost() || gl.getSyncParameter( sync, gl.SYNC_STATUS ) === gl.SIGNALED ) {
-						if ( ! gl.isContextLost() ) gl.deleteSync( sync );
-						resolve();
-					} else setTimeout( look, 4 );
-				};
-				look();
-			} );
+			this.afterRender.push( () => this.fence( resolve ) );
 			this.requestRender();
 		} );
+	}
+
+	// Resolves once the GPU has finished the next frame in full: with the volume shown, the
+	// one drawn when the camera has stopped (a fast frame while it moves does not count).
+	whenSettled() {
+		return new Promise( ( resolve ) => {
+			const then = () => {
+				if ( this.volume?.mesh.visible && this.volumePass?.quality === 'fast' ) this.afterRender.push( then );
+				else this.fence( resolve );
+			};
+			this.afterRender.push( then );
+			this.requestRender();
+		} );
+	}
+
+	// resolve() once the GPU has finished what has been asked of it so far.
+	fence( resolve ) {
+		whenFinished( this.renderer, resolve );
 	}
 
 	// A coarse look (a running job's preview) is drawn at half the pixels a side: a
@@ -423,6 +397,7 @@ export class ModelViewer {
 		tiles?.setFrame( this.lpsToWorld );
 		this.scene.add( object );
 		this.gizmo.setFrame( this.lpsToWorld );
+		this.volume?.place( this.lpsToWorld ); // its voxels may have come before this file
 		if ( keepView ) this.requestRender();
 		else this.fit();
 		return countTriangles( object );

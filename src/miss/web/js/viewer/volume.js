@@ -8,7 +8,10 @@
 // its MIP; to it are added front-to-back compositing through a 256-entry colour and
 // opacity table (the transfer function, made here from a preset and the window), a ray
 // that starts at the camera when the camera is inside the box, and a ray that stops at
-// the opaque surfaces drawn before it (their depth, when the viewer hands it over).
+// the opaque surfaces drawn before it (their depth, when the viewer hands it over); a ray
+// that stops once 95 % opaque, and steps over bricks of 8³ voxels the window leaves
+// transparent (each brick's byte range, found once; which are empty, once a window). The
+// step (one voxel, two while the camera moves) is volume-pass.js's to choose.
 //
 // The voxels come from GET /api/volumes/{id}/voxels (miss.server.voxels): a uint32
 // header length, a JSON header, uint8 voxels i fastest; real = scale * byte + offset.
@@ -63,6 +66,65 @@ export function decode( buffer ) {
 	return { header, data: new Uint8Array( buffer, 4 + n ) };
 }
 
+// Voxels a side of a brick: the unit of empty-space skipping. A ray crossing a brick whose
+// voxels all map to zero opacity (air and soft tissue under a bone window) steps over it.
+const BRICK = 8;
+
+// The lowest and highest byte of each brick and the voxels around it (the 27 bricks
+// about it, a superset of the one voxel a trilinear sample also reads): {lo, hi} of
+// ceil(n / BRICK) bricks a side, i fastest. Once a volume (~50 ms for 256 x 256 x 113).
+export function brickRanges( data, dims ) {
+	const [ nx, ny, nz ] = dims;
+	const [ bx, by, bz ] = dims.map( ( n ) => Math.ceil( n / BRICK ) );
+	const lo = new Uint8Array( bx * by * bz ).fill( 255 );
+	const hi = new Uint8Array( bx * by * bz );
+	for ( let k = 0; k < nz; k ++ ) {
+		for ( let j = 0; j < ny; j ++ ) {
+			const row = ( j + ny * k ) * nx;
+			const brow = ( ( ( j / BRICK ) | 0 ) + by * ( ( k / BRICK ) | 0 ) ) * bx;
+			for ( let b = 0; b < bx; b ++ ) {
+				let l = lo[ brow + b ], h = hi[ brow + b ];
+				for ( let i = b * BRICK, end = Math.min( i + BRICK, nx ); i < end; i ++ ) {
+					const v = data[ row + i ];
+					if ( v < l ) l = v;
+					if ( v > h ) h = v;
+				}
+				lo[ brow + b ] = l;
+				hi[ brow + b ] = h;
+			}
+		}
+	}
+	return { lo: dilate( lo, [ bx, by, bz ], Math.min ), hi: dilate( hi, [ bx, by, bz ], Math.max ), dims: [ bx, by, bz ] };
+}
+
+// Each brick's value combined (op) with its 26 neighbours', one axis at a time.
+function dilate( values, dims, op ) {
+	let src = values;
+	for ( let axis = 0; axis < 3; axis ++ ) {
+		const stride = [ 1, dims[ 0 ], dims[ 0 ] * dims[ 1 ] ][ axis ];
+		const out = src.slice();
+		for ( let n = 0; n < src.length; n ++ ) {
+			const c = ( ( n / stride ) | 0 ) % dims[ axis ];
+			if ( c > 0 ) out[ n ] = op( out[ n ], src[ n - stride ] );
+			if ( c < dims[ axis ] - 1 ) out[ n ] = op( out[ n ], src[ n + stride ] );
+		}
+		src = out;
+	}
+	return src;
+}
+
+// 255 where a brick holds a byte the table gives any opacity, else 0 (all 255 for MIP,
+// whose rays look at every voxel).
+export function occupancy( ranges, table, mip ) {
+	const seen = new Uint32Array( 257 ); // seen[b + 1]: bytes <= b with opacity
+	for ( let b = 0; b < 256; b ++ ) seen[ b + 1 ] = seen[ b ] + ( table[ b * 4 + 3 ] > 0 ? 1 : 0 );
+	const out = new Uint8Array( ranges.lo.length );
+	for ( let n = 0; n < out.length; n ++ ) {
+		out[ n ] = mip || seen[ ranges.hi[ n ] + 1 ] > seen[ ranges.lo[ n ] ] ? 255 : 0;
+	}
+	return out;
+}
+
 const vertexShader = /* glsl */`
 	varying vec3 v_position;
 	varying vec3 v_cameraInObj;
@@ -84,6 +146,8 @@ const fragmentShader = /* glsl */`
 	uniform float u_step;
 	uniform sampler3D u_data;
 	uniform sampler2D u_lut;
+	uniform sampler3D u_bricks;
+	uniform vec3 u_brickScale;
 	uniform sampler2D u_depth;
 	uniform bool u_useDepth;
 	uniform mat4 u_objToClip;
@@ -92,6 +156,7 @@ const fragmentShader = /* glsl */`
 	varying vec3 v_viewDirInObj;
 	varying vec4 v_clip;
 	const int MAX_STEPS = 1024;
+	const float BRICK = ${BRICK}.0;
 
 	vec4 lut( float v ) { return texture2D( u_lut, vec2( ( v * 255.0 + 0.5 ) / 256.0, 0.5 ) ); }
 
@@ -106,6 +171,15 @@ const fragmentShader = /* glsl */`
 		float m = length( g );
 		if ( m < 1e-3 ) return 1.0;
 		return 0.45 + 0.55 * abs( dot( g / m, ray ) );
+	}
+
+	// Steps (at least one) from loc to past the edge of its brick of BRICK voxels a side.
+	int stepsOutOfBrick( vec3 loc, vec3 step ) {
+		vec3 b = floor( loc * u_size / BRICK );
+		vec3 edge = ( b + vec3( greaterThan( step, vec3( 0.0 ) ) ) ) * BRICK / u_size;
+		vec3 t = ( edge - loc ) / mix( step, vec3( 1e-9 ), vec3( lessThan( abs( step ), vec3( 1e-9 ) ) ) );
+		t = mix( t, vec3( 1e9 ), vec3( lessThan( abs( step ), vec3( 1e-9 ) ) ) );
+		return max( 1, int( ceil( min( min( t.x, t.y ), t.z ) ) ) );
 	}
 
 	// Window depth (0..1) of a point in voxel coordinates.
@@ -151,14 +225,27 @@ const fragmentShader = /* glsl */`
 			return;
 		}
 		vec4 sum = vec4( 0.0 );
-		for ( int i = 0; i < MAX_STEPS; i ++ ) {
-			if ( i >= nsteps || sum.a > 0.97 ) break;
+		int i = 0;
+		int brickEnd = 0; // the first step past the brick the ray is in, once looked at
+		for ( int n = 0; n < MAX_STEPS; n ++ ) {
+			if ( i >= nsteps || sum.a >= 0.95 ) break; // what lies behind hardly shows
+			if ( i >= brickEnd ) {
+				// A brick this window leaves transparent is stepped over; any other is
+				// marched through without looking at it again.
+				brickEnd = i + stepsOutOfBrick( loc, step );
+				if ( texture( u_bricks, loc * u_brickScale ).r == 0.0 ) {
+					loc += step * float( brickEnd - i );
+					i = brickEnd;
+					continue;
+				}
+			}
 			vec4 c = lut( texture( u_data, loc ).r );
 			float a = 1.0 - pow( 1.0 - c.a, u_step ); // the table's opacity is per voxel
 			if ( a > 0.004 ) c.rgb *= shade( loc, ray );
 			sum.rgb += ( 1.0 - sum.a ) * a * c.rgb;
 			sum.a += ( 1.0 - sum.a ) * a;
 			loc += step;
+			i ++;
 		}
 		if ( sum.a < 0.01 ) discard;
 		gl_FragColor = vec4( sum.rgb / sum.a, sum.a );
@@ -178,6 +265,14 @@ export class VolumeLayer {
 		texture.needsUpdate = true;
 		this.lut = new THREE.DataTexture( new Uint8Array( 256 * 4 ), 256, 1 );
 		this.lut.minFilter = this.lut.magFilter = THREE.LinearFilter;
+		this.ranges = brickRanges( data, header.dims );
+		const [ bx, by, bz ] = this.ranges.dims;
+		this.bricks = new THREE.Data3DTexture( new Uint8Array( bx * by * bz ), bx, by, bz );
+		this.bricks.format = THREE.RedFormat;
+		this.bricks.unpackAlignment = 1;
+		// A version of what is drawn other than the camera (the window, the preset): a
+		// change is drawn fast first, as a turn is.
+		this.version = 0;
 		const geometry = new THREE.BoxGeometry( nx, ny, nz ).translate( ( nx - 1 ) / 2, ( ny - 1 ) / 2, ( nz - 1 ) / 2 );
 		this.material = new THREE.ShaderMaterial( {
 			uniforms: {
@@ -189,6 +284,9 @@ export class VolumeLayer {
 				u_step: { value: 1.0 },
 				u_data: { value: texture },
 				u_lut: { value: this.lut },
+				u_bricks: { value: this.bricks },
+				// Texture coordinates -> the brick texture's (the last brick may be partial).
+				u_brickScale: { value: new THREE.Vector3( nx / ( BRICK * bx ), ny / ( BRICK * by ), nz / ( BRICK * bz ) ) },
 				u_depth: { value: null },
 				u_useDepth: { value: false },
 				u_objToClip: { value: new THREE.Matrix4() },
@@ -223,9 +321,18 @@ export class VolumeLayer {
 	setWindow( level, width ) {
 		const p = this.presets[ this.preset ];
 		Object.assign( this, { level, width } );
-		this.lut.image.data.set( lookupTable( this.header, p, level, width ) );
+		const table = lookupTable( this.header, p, level, width );
+		this.lut.image.data.set( table );
 		this.lut.needsUpdate = true;
+		this.bricks.image.data.set( occupancy( this.ranges, table, p.mip ) );
+		this.bricks.needsUpdate = true;
 		this.material.uniforms.u_mip.value = p.mip ? 1 : 0;
+		this.version ++;
+	}
+
+	// Voxels a ray step (1: every voxel; more while the camera moves).
+	setStep( voxels ) {
+		this.material.uniforms.u_step.value = voxels;
 	}
 
 	// The opaque surfaces' depth (a DepthTexture of the frame's size), or null.
@@ -242,5 +349,6 @@ export class VolumeLayer {
 		this.material.dispose();
 		this.material.uniforms.u_data.value.dispose();
 		this.lut.dispose();
+		this.bricks.dispose();
 	}
 }
