@@ -6,11 +6,14 @@ patient's Left, +y Posterior, +z Superior).
 
 from __future__ import annotations
 
+import os
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
+
+from miss.errors import BadParameter
 
 
 def column_bounds(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -117,6 +120,34 @@ class Mesh:
         """Length of the bounding-box diagonal in mm."""
         lo, hi = self.bounds()
         return float(np.linalg.norm(hi - lo))
+
+
+#: The environment variable that sets :func:`memory_budget`, MB (the server's setting of
+#: the same name: volumes up to it are read whole for a job).
+IN_MEMORY_ENV = "MISS_IN_MEMORY_MAX_MB"
+#: :func:`memory_budget` when the variable is unset, MB: a job whose voxels fit needs about
+#: 3 times them at its peak (the volume, VTK's working arrays, the mesh); larger volumes
+#: are streamed to disk and meshed block by block.
+IN_MEMORY_MAX_MB = 1024.0
+
+
+def memory_budget() -> int:
+    """Bytes of voxels a job reads whole into memory and meshes in one pass
+    (``MISS_IN_MEMORY_MAX_MB``, default :data:`IN_MEMORY_MAX_MB`); a volume over it is
+    read to a chunked array on disk and meshed block by block."""
+    text = os.environ.get(IN_MEMORY_ENV, "").strip()
+    if not text:
+        return int(IN_MEMORY_MAX_MB * 2**20)
+    try:
+        megabytes = float(text)
+    except ValueError:
+        megabytes = -1.0
+    if not megabytes >= 0:  # NaN too
+        raise BadParameter(
+            f"{IN_MEMORY_ENV} must be a number of MB (0 or more), got {text!r}; e.g. "
+            f"{IN_MEMORY_ENV}=1024."
+        )
+    return int(megabytes * 2**20)
 
 
 def in_memory(volume: Volume) -> Volume:
