@@ -36,7 +36,7 @@ def cthead_gz(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 def test_the_budget_is_a_setting_in_megabytes(monkeypatch) -> None:
     monkeypatch.delenv(IN_MEMORY_ENV, raising=False)
-    assert memory_budget() == 1024 * MB
+    assert memory_budget() == 256 * MB
     monkeypatch.setenv(IN_MEMORY_ENV, "2.5")
     assert memory_budget() == int(2.5 * MB)
     monkeypatch.setenv(IN_MEMORY_ENV, "lots")

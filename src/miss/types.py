@@ -122,13 +122,16 @@ class Mesh:
         return float(np.linalg.norm(hi - lo))
 
 
-#: The environment variable that sets :func:`memory_budget`, MB (the server's setting of
-#: the same name: volumes up to it are read whole for a job).
+#: The environment variable that sets :func:`memory_budget`, MB. The server's setting of
+#: the same name (default 1024) says which stored volumes it reads whole; a job still
+#: meshes one over this budget block by block, whatever read it.
 IN_MEMORY_ENV = "MISS_IN_MEMORY_MAX_MB"
-#: :func:`memory_budget` when the variable is unset, MB: a job whose voxels fit needs about
-#: 3 times them at its peak (the volume, VTK's working arrays, the mesh); larger volumes
-#: are streamed to disk and meshed block by block.
-IN_MEMORY_MAX_MB = 1024.0
+#: :func:`memory_budget` when the variable is unset, MB. A job whose voxels fit meshes them
+#: in one pass and needs about 4 times them at its peak (the volume, VTK's working arrays,
+#: the mesh: 296 MB of voxels took 1.18 GB over ``miss convert``'s baseline); larger
+#: volumes are read to disk and meshed block by block, in 0.6-0.85 GB up to 1.18 GB of
+#: voxels (``benchmarks/big_volume.py``). 256 MB keeps either way near 1 GB.
+IN_MEMORY_MAX_MB = 256.0
 
 
 def memory_budget() -> int:
