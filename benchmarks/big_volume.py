@@ -1,8 +1,8 @@
 """A big volume in bounded memory: peak resident memory of ``miss convert`` of a
 1024 x 1024 x 565 int16 gzipped NIfTI (1.13 GB of voxels), over the CLI's baseline.
 
-    .venv/bin/python benchmarks/big_volume.py [--size 1024,1024,565] [--level 600]
-                                              [--before /work/main/.venv/bin/miss]
+    .venv/bin/python benchmarks/big_volume.py [--size 1024,1024,565] [--mid 512,512,565]
+                                  [--level 600] [--before /work/main/.venv/bin/miss]
 
 The volume is the CThead (``$MISS_CTHEAD``, else ../shared/datasets beside the repo)
 resampled linearly to ``--size`` and written gzipped, plane by plane (nibabel's header,
@@ -13,6 +13,8 @@ resident memory of its process tree. The baseline is ``miss convert`` of a tiny 
 (CThead resampled to 32 x 32 x 15) at the same level, its second run (the first
 compiles and caches kernels). ``--before`` names the ``miss`` of a
 checkout without this change (main): its rows are its default and ``--chunks auto``.
+The mid-sized volume (296 MB of voxels, over the default budget of 256 MB) shows what
+blocks cost against one pass (the budget raised) where one pass still fits.
 
 Writes ``results/big_volume.md``.
 """
@@ -37,6 +39,8 @@ from scale import _axis, _cthead
 #: CThead's skin.
 LEVEL = 600.0
 SIZE = (1024, 1024, 565)
+#: A volume over the default budget that one pass can still hold (296 MB of voxels).
+MID = (512, 512, 565)
 #: Seconds between two looks at the process tree's memory.
 POLL = 0.02
 
@@ -107,47 +111,82 @@ def _convert(miss: str, source: Path, out: Path, level: float, *extra: str) -> l
     return [miss, "convert", str(source), "-o", str(out), "--level", f"{level:g}", *extra]
 
 
+#: (row, which ``miss``, which volume, extra options, ``MISS_IN_MEMORY_MAX_MB`` or None)
+Variant = tuple[str, str, str, tuple[str, ...], str | None]
+
+
+def variants(args: argparse.Namespace) -> list[Variant]:
+    """main's default and ``--chunks auto`` on the big volume, this checkout's default on
+    it, and on the mid-sized one this checkout's default (over the budget: blocks) and
+    one pass (the budget raised to 1024 MB)."""
+    rows: list[Variant] = []
+    if not args.skip_before and Path(args.before).is_file():
+        rows += [("before (main)", args.before, "big", (), None),
+                 ("before (main), --chunks auto", args.before, "big", ("--chunks", "auto"), None)]  # fmt: skip
+    rows += [("after", args.after, "big", (), None)]
+    if args.mid:
+        rows += [("after", args.after, "mid", (), None),
+                 ("after, one pass (MISS_IN_MEMORY_MAX_MB=1024)", args.after, "mid", (), "1024")]  # fmt: skip
+    return rows
+
+
+def measure(variant: Variant, files: dict[str, Path], folder: Path, level: float) -> dict[str, Any]:
+    """One variant: its baseline (the tiny volume's second run) and its run, MB and s."""
+    _, miss, volume, extra, budget = variant
+    env = dict(os.environ)
+    env.pop("MISS_IN_MEMORY_MAX_MB", None)
+    if budget is not None:
+        env["MISS_IN_MEMORY_MAX_MB"] = budget
+    out = folder / "out.glb"
+    tree_peak(_convert(miss, files["tiny"], out, level), env)  # kernels compiled, caches warm
+    base = tree_peak(_convert(miss, files["tiny"], out, level), env)
+    run = tree_peak(_convert(miss, files[volume], out, level, *extra), env)
+    return {"baseline": base, "run": run, "over_mb": run["peak_mb"] - base["peak_mb"]}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--size", default=",".join(map(str, SIZE)))
+    parser.add_argument("--mid", default=",".join(map(str, MID)), help="'' for none")
     parser.add_argument("--level", type=float, default=LEVEL)
     parser.add_argument("--before", default="/work/main/.venv/bin/miss")
     parser.add_argument("--after", default=str(Path(sys.executable).parent / "miss"))
-    parser.add_argument("--skip-before", action="store_true", help="only this checkout's row")
+    parser.add_argument("--skip-before", action="store_true", help="only this checkout's rows")
     args = parser.parse_args()
-    size = tuple(int(n) for n in args.size.split(","))
-    assert len(size) == 3
+    sizes = {"tiny": (32, 32, 15), "big": _size(args.size)}
+    if args.mid:
+        sizes["mid"] = _size(args.mid)
     with tempfile.TemporaryDirectory(prefix="miss-big-") as tmp:
         folder = Path(tmp)
-        tiny = write_gz_nifti(folder / "tiny.nii.gz", (32, 32, 15), cthead_planes((32, 32, 15)))
-        big = write_gz_nifti(folder / "big.nii.gz", size, cthead_planes(size))  # type: ignore[arg-type]
-        out = folder / "out.glb"
-        variants: list[tuple[str, str, tuple[str, ...]]] = []
-        if not args.skip_before and Path(args.before).is_file():
-            variants += [("before (main)", args.before, ()),
-                         ("before (main), --chunks auto", args.before, ("--chunks", "auto"))]  # fmt: skip
-        variants += [("after", args.after, ())]
-        rows, data = [], {}
-        for name, miss, extra in variants:
-            tree_peak(_convert(miss, tiny, out, args.level))  # kernels compiled, caches warm
-            base = tree_peak(_convert(miss, tiny, out, args.level))
-            run = tree_peak(_convert(miss, big, out, args.level, *extra))
-            over = run["peak_mb"] - base["peak_mb"]
-            data[name] = {"baseline": base, "big": run, "over_mb": over}
-            rows.append([name, f"{base['peak_mb']:.0f}", f"{run['peak_mb']:.0f}", f"{over:.0f}",
-                         f"{run['seconds']:.1f}"])  # fmt: skip
+        files = {
+            name: write_gz_nifti(folder / f"{name}.nii.gz", size, cthead_planes(size))
+            for name, size in sizes.items()
+        }
+        rows, data = [], []
+        for variant in variants(args):
+            got = measure(variant, files, folder, args.level)
+            size, mb = sizes[variant[2]], files[variant[2]].stat().st_size / 1e6
+            volume = (
+                f"{'x'.join(map(str, size))} ({np.prod(size) * 2 / 1e9:.2f} GB, {mb:.0f} MB gz)"
+            )
+            data.append({"variant": variant[0], "volume": volume, **got})
+            rows.append([variant[0], volume, f"{got['baseline']['peak_mb']:.0f}",
+                         f"{got['run']['peak_mb']:.0f}", f"{got['over_mb']:.0f}",
+                         f"{got['run']['seconds']:.1f}"])  # fmt: skip
             print(rows[-1], flush=True)
-        voxels = int(np.prod(size)) * 2
-        title = (
-            f"`miss convert` of a {'x'.join(map(str, size))} int16 .nii.gz "
-            f"({voxels / 1e9:.2f} GB of voxels, {big.stat().st_size / 1e6:.0f} MB gzipped), "
-            f"level {args.level:g}, default job; peak RSS of the process tree, MB\n\n"
-        )
-        table = title + markdown_table(
-            ["variant", "baseline (tiny volume)", "big volume", "over baseline", "seconds"], rows
-        )
-        print(table)
-        save("big_volume", {"size": size, "level": args.level, "runs": data}, table)
+    title = (
+        f"`miss convert` of int16 .nii.gz volumes (CThead resampled), level {args.level:g}, "
+        "default job; peak RSS of the process tree, MB\n\n"
+    )
+    header = ["variant", "volume (voxels)", "baseline", "peak", "over baseline", "seconds"]
+    table = title + markdown_table(header, rows)
+    print(table)
+    save("big_volume", {"level": args.level, "runs": data}, table)
+
+
+def _size(text: str) -> tuple[int, int, int]:
+    x, y, z = (int(n) for n in text.split(","))
+    return x, y, z
 
 
 if __name__ == "__main__":
