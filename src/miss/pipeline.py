@@ -25,8 +25,6 @@ from functools import cached_property
 from pathlib import Path
 from typing import Any, Protocol
 
-import numpy as np
-
 from miss.decimate import DecimationReport
 from miss.errors import BadParameter, EmptySurface
 from miss.export import export
@@ -35,7 +33,7 @@ from miss.scene import Scene
 from miss.spec import JobSpec
 from miss.structures.build import SceneBuild, build_scene, combined_report
 from miss.structures.labels import TableSpec
-from miss.surface.blockwise import BlockRun
+from miss.surface.blockwise import BlockRun, in_blocks
 from miss.types import Mesh, Volume
 
 Progress = Callable[[str, float], None]
@@ -139,7 +137,8 @@ def run(
     ``{"glb": {"compress": True}}`` (the server sends meshopt-compressed glTF).
     ``measure=False`` leaves the error unmeasured (None in the report). ``blocks`` runs
     the threshold surfaces block by block (on Dask when it names a scheduler); volumes
-    on disk (Zarr) always are, and their progress counts blocks.
+    on disk (Zarr) and in memory over the budget (``MISS_IN_MEMORY_MAX_MB``) always are,
+    and their progress counts blocks.
     """
     report = staged(progress or _no_progress)
     seconds: dict[str, float] = {}
@@ -151,7 +150,7 @@ def run(
             sink.put(PREVIEW, data)
             seconds["preview"] = time.perf_counter() - start
     report("surface", 0.0)
-    if blocks is not None or not isinstance(volume.data, np.ndarray):
+    if in_blocks(volume, blocks):
         blocks = replace(blocks or BlockRun(), progress=report)
     built = build_scene(
         volume, spec, label_map=label_map, table=table, title=title, measure=False,

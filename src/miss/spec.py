@@ -607,11 +607,14 @@ class FileSource:
     )  # fmt: skip
 
     def load(self, labels: bool) -> Loaded:
-        """Read the volume file; with ``labels``, its label map and label table too."""
+        """Read the volume file (to a chunked array on disk, read lazily, when its voxels
+        exceed the memory budget: :func:`miss.io.bounded.load_within`); with ``labels``,
+        its label map and label table too."""
         from miss.io import load_volume
+        from miss.io.bounded import load_within
         from miss.structures.labels import resolve_table
 
-        volume = load_volume(self.path, series=self.series)
+        volume = load_within(self.path, series=self.series)
         if not labels:
             return Loaded(volume, title=Path(self.path).name)
         label_map = load_volume(self.label_map) if self.label_map else None

@@ -6,11 +6,14 @@ patient's Left, +y Posterior, +z Superior).
 
 from __future__ import annotations
 
+import os
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
+
+from miss.errors import BadParameter
 
 
 def column_bounds(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -117,6 +120,37 @@ class Mesh:
         """Length of the bounding-box diagonal in mm."""
         lo, hi = self.bounds()
         return float(np.linalg.norm(hi - lo))
+
+
+#: The environment variable that sets :func:`memory_budget`, MB. The server's setting of
+#: the same name (default 1024) says which stored volumes it reads whole; a job still
+#: meshes one over this budget block by block, whatever read it.
+IN_MEMORY_ENV = "MISS_IN_MEMORY_MAX_MB"
+#: :func:`memory_budget` when the variable is unset, MB. A job whose voxels fit meshes them
+#: in one pass and needs about 4 times them at its peak (the volume, VTK's working arrays,
+#: the mesh: 296 MB of voxels took 1.18 GB over ``miss convert``'s baseline); larger
+#: volumes are read to disk and meshed block by block, in 0.6-0.85 GB up to 1.18 GB of
+#: voxels (``benchmarks/big_volume.py``). 256 MB keeps either way near 1 GB.
+IN_MEMORY_MAX_MB = 256.0
+
+
+def memory_budget() -> int:
+    """Bytes of voxels a job reads whole into memory and meshes in one pass
+    (``MISS_IN_MEMORY_MAX_MB``, default :data:`IN_MEMORY_MAX_MB`); a volume over it is
+    read to a chunked array on disk and meshed block by block."""
+    text = os.environ.get(IN_MEMORY_ENV, "").strip()
+    if not text:
+        return int(IN_MEMORY_MAX_MB * 2**20)
+    try:
+        megabytes = float(text)
+    except ValueError:
+        megabytes = -1.0
+    if not megabytes >= 0:  # NaN too
+        raise BadParameter(
+            f"{IN_MEMORY_ENV} must be a number of MB (0 or more), got {text!r}; e.g. "
+            f"{IN_MEMORY_ENV}=1024."
+        )
+    return int(megabytes * 2**20)
 
 
 def in_memory(volume: Volume) -> Volume:

@@ -32,7 +32,9 @@ def add_arguments(conv: argparse.ArgumentParser) -> None:
     run.add_argument(
         "--chunks", type=_chunks, default=None, metavar="N|X,Y,Z|auto",
         help="compute the surfaces block by block, N voxels a block edge (auto: 128); "
-        "volumes on disk (Zarr) always are",
+        "volumes on disk (Zarr) always are, and so are volumes of more voxels than "
+        "$MISS_IN_MEMORY_MAX_MB (default 256 MB), read to a temporary chunked array on disk "
+        "(in $TMPDIR) as they are read, never whole",
     )  # fmt: skip
     run.add_argument(
         "--scheduler", default=None, metavar="ADDRESS",

@@ -37,11 +37,12 @@ from miss.surface.blocks import (
     Welder,
     block_range,
     cell_blocks,
+    done_with,
     surface_block,
     voxel_boxes,
 )
 from miss.surface.runner import CLUSTER_VOXELS, run_blocks, scheduler_address
-from miss.types import Mesh, StridedView, Volume
+from miss.types import Mesh, StridedView, Volume, memory_budget
 
 #: Block edge in cells when none is asked for: 128³ cells, ~2 M voxels (4 MB of int16)
 #: plus VTK's working arrays per task, well under a worker's memory.
@@ -251,6 +252,8 @@ def _blockwise(
     if np.linalg.det(volume.affine[:3, :3]) < 0:
         faces = np.ascontiguousarray(faces[:, ::-1])  # a mirroring affine flips the winding
     mesh = Mesh(vertices=verts, faces=faces, normals=index_normals if normals else None)
+    del welder, verts, faces, index_normals
+    done_with(grid.data)
     return mesh, stages, second[0] if second else time.perf_counter()
 
 
@@ -378,9 +381,11 @@ class BlockRun:
 
 
 def in_blocks(volume: Volume, blocks: BlockRun | None) -> bool:
-    """Whether a job's surfaces go block by block: ``blocks`` given, or the volume's data
-    not in memory (a ``zarr.Array``)."""
-    return blocks is not None or not isinstance(volume.data, np.ndarray)
+    """Whether a job's surfaces go block by block: ``blocks`` given, the volume's data
+    not in memory (a ``zarr.Array``), or more bytes of it than the memory budget
+    (:func:`miss.types.memory_budget`: one pass would need about three times them)."""
+    data = volume.data
+    return blocks is not None or not isinstance(data, np.ndarray) or data.nbytes > memory_budget()
 
 
 def decimated_surface_of(
