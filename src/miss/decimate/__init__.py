@@ -24,7 +24,7 @@ Schedules
     (``finished_with`` says so): its triangles carry the error already spent on them
     (accumulated error), and each deletion's share is a bound on the distance between the
     triangles it removes and those that replace it, everywhere on them
-    (:func:`miss.decimate._schroeder._overlay_gap`), so the output is within the bound everywhere,
+    (:func:`miss.decimate._fan.overlay_gap`), so the output is within the bound everywhere,
     not only where it is measured. quadric's target error is an estimate no check at
     points can turn into a bound. Every run is also checked
     (:func:`miss.measure.bound_check`: every dropped input vertex to the output, every
@@ -320,7 +320,7 @@ def _runner(
         return run_quadric
     if schedule == "guaranteed":
         # Whatever the method asked for: schroeder's accumulated error is a bound (see
-        # miss.decimate._schroeder._overlay_gap), quadric's error an estimate that a check at points
+        # miss.decimate._fan.overlay_gap), quadric's error an estimate that a check at points
         # cannot make one (it held none of benchmarks/bounds.py's 15 bounds even there).
         # A rising bound spends the budget on the cheapest deletions first: b/8, b/4, b/2,
         # b; the run is held to b, the bound asked for, wherever the target stopped it.
