@@ -24,7 +24,6 @@ vertex array.
 
 from __future__ import annotations
 
-import heapq
 import math
 
 import numpy as np
@@ -40,6 +39,7 @@ from miss.decimate._fan import (
     overlay_gap,
     vertex_faces,
 )
+from miss.measure.distance import NO_REFCOUNT
 
 # Largest number of triangles a vertex may carry (as vertex removal's _VALENCE_CAP).
 _VALENCE_CAP = 32
@@ -100,16 +100,16 @@ def _collapse_cost(pts, q, u, v):
     return _quadric_at(q, u, x, y, z) + _quadric_at(q, v, x, y, z)
 
 
-@njit(cache=True)
+@njit(cache=True, **NO_REFCOUNT)
 def _vertex_cost(pts, faces, vf, vdeg, q, u):
-    """The least cost of collapsing u into one of its neighbours (inf: no neighbour)."""
+    """The heap's key for u: the least cost of collapsing u into a neighbour, each taken
+    once as the corner after u in one of its triangles (in a boundary fan one end is
+    left out: a key only orders, the collapse itself weighs them all). inf: none."""
     best = np.inf
     for k in range(vdeg[u]):
         f = vf[u, k]
-        for c in range(3):
-            w = faces[f, c]
-            if w != u:
-                best = min(best, _collapse_cost(pts, q, u, w))
+        w = faces[f, 1] if faces[f, 0] == u else (faces[f, 2] if faces[f, 1] == u else faces[f, 0])
+        best = min(best, _collapse_cost(pts, q, u, w))
     return best
 
 
@@ -184,23 +184,26 @@ def _candidates(pts, q, u, loop, n_loop, closed, costs, order):
 @njit(cache=True, inline="always")
 def _try_collapse(u, pts, faces, alive, vf, vdeg, q, terr, bound, scratch_i, scratch_f):
     """Collapse u into the cheapest neighbour whose collapse is valid and within ``bound``
-    (mm, the new triangles' accumulated error); returns (triangles freed, loop length) or
-    (-1, 0). The loop (scratch_i[1]) is u's old loop, whose vertices' fans changed."""
+    (mm, the new triangles' accumulated error). Returns (triangles freed, loop length,
+    0.0), the loop (scratch_i[1]) being u's old one, whose vertices' fans changed; or
+    (-1, 0, the least bound under which some collapse of u could go while its fan stays
+    as it is: inf where none could)."""
     fan, loop, a_s, b_s, tris, order = scratch_i
     fn, nrm, xyh, costs = scratch_f
     n = vdeg[u]
     n_loop, closed = order_fan(u, faces, vf, vdeg, fan, loop, a_s, b_s)
     if n_loop < 0 or (closed and n < 3) or (not closed and n < 2):
-        return -1, 0
+        return -1, 0, np.inf
     if closed and n == 3 and face_exists(faces, vf, vdeg, loop[0], loop[1], loop[2]):
-        return -1, 0  # u tops a tetrahedron: its base would be there twice
+        return -1, 0, np.inf  # u tops a tetrahedron: its base would be there twice
     carried = 0.0
     for k in range(n):
         carried = max(carried, terr[fan[k]])
     if carried >= bound:
-        return -1, 0
+        return -1, 0, carried
     fan_normals(pts, faces, fan, n, fn)
     m = _candidates(pts, q, u, loop, n_loop, closed, costs, order)
+    need = np.inf
     for i in range(m):
         j = order[i]
         if not _links(faces, vf, vdeg, loop, n_loop, closed, j):
@@ -208,45 +211,128 @@ def _try_collapse(u, pts, faces, alive, vf, vdeg, q, terr, bound, scratch_i, scr
         ntri = _fan_from(j, n, n_loop, tris)
         if not _upright(pts, loop, fn, tris, ntri):
             continue
+        # at most the least need so far: past it, this one is no better
         spent = carried + overlay_gap(
             pts, u, fn, n, loop, n_loop, tris, ntri, nrm, xyh, bound - carried
         )
         if spent > bound:
+            need = min(need, spent)
             continue
         if not commit(u, faces, alive, vf, vdeg, fan, n, loop, n_loop, tris, ntri, a_s):
-            continue
+            continue  # a row of the vertex -> face table is full: not cached, it may empty
         for t in range(ntri):
             terr[fan[t]] = spent
         v = loop[j]
         for k in range(10):
             q[v, k] += q[u, k]
-        return n - ntri, n_loop
-    return -1, 0
+        return n - ntri, n_loop, 0.0
+    return -1, 0, need
 
 
-@njit(cache=True)
-def _seed(pts, faces, vf, vdeg, q, locked, stamp):
-    """A heap of (cost, vertex, stamp) for every vertex in use and not locked."""
-    heap = [(np.inf, -1, -1)]
-    heap.pop()
-    for u in range(len(pts)):
-        if vdeg[u] > 0 and not locked[u]:
-            heap.append((_vertex_cost(pts, faces, vf, vdeg, q, u), u, stamp[u]))
-    heapq.heapify(heap)
-    return heap
+# --------------------------------------------------------------------------- the heap
+# One entry per vertex (key: its least collapse cost), so that an update moves it rather
+# than leaving a stale copy: arrays, no allocation (see _collapse_loop).
+
+
+@njit(cache=True, inline="always")
+def _swap(key, item, pos, i, j):
+    key[i], key[j] = key[j], key[i]
+    item[i], item[j] = item[j], item[i]
+    pos[item[i]] = i
+    pos[item[j]] = j
+
+
+@njit(cache=True, **NO_REFCOUNT)
+def _sift(key, item, pos, i, size):
+    """Move entry i up or down to its place in the heap of ``size`` entries."""
+    while i > 0 and key[(i - 1) >> 1] > key[i]:
+        _swap(key, item, pos, i, (i - 1) >> 1)
+        i = (i - 1) >> 1
+    while True:
+        c = 2 * i + 1
+        if c >= size:
+            return
+        if c + 1 < size and key[c + 1] < key[c]:
+            c += 1
+        if key[i] <= key[c]:
+            return
+        _swap(key, item, pos, i, c)
+        i = c
+
+
+@njit(cache=True, **NO_REFCOUNT)
+def _put(key, item, pos, size, v, cost):
+    """Vertex v into the heap at ``cost``, or moved there; returns the heap's size."""
+    i = pos[v]
+    if i < 0:
+        i = size
+        size += 1
+        item[i] = v
+        pos[v] = i
+    key[i] = cost
+    _sift(key, item, pos, i, size)
+    return size
+
+
+@njit(cache=True, **NO_REFCOUNT)
+def _pop(key, item, pos, size):
+    """The cheapest vertex, out of the heap; returns (it, the heap's size)."""
+    v = item[0]
+    size -= 1
+    if size > 0:
+        _swap(key, item, pos, 0, size)
+        _sift(key, item, pos, 0, size)
+    pos[v] = -1
+    return v, size
+
+
+# --------------------------------------------------------------------------- the run
+
+
+@njit(cache=True, nogil=True, **NO_REFCOUNT)
+def _collapse_loop(pts, faces, alive, vf, vdeg, q, terr, locked, bounds, target, state):
+    """Collapse cheapest first, stage by stage; allocates nothing (``state``: the heap's
+    arrays, each vertex's least bound ``need`` and the scratch), so numba's reference
+    counting is left out. Returns (live triangles, the last stage's bound mm)."""
+    key, item, pos, need, scratch_i, scratch_f = state
+    loop = scratch_i[1]
+    n_alive, size, bound = len(faces), 0, 0.0
+    for s in range(len(bounds)):
+        bound = bounds[s]
+        # each vertex whose collapse could now go (its need is a bound's, cached until its
+        # fan changes: 0, unknown, at first)
+        for u in range(len(pts)):
+            if vdeg[u] > 0 and not locked[u] and pos[u] < 0 and need[u] <= bound:
+                size = _put(key, item, pos, size, u, _vertex_cost(pts, faces, vf, vdeg, q, u))
+        while size > 0 and n_alive > target:
+            u, size = _pop(key, item, pos, size)
+            freed, n_loop, needed = _try_collapse(
+                u, pts, faces, alive, vf, vdeg, q, terr, bound, scratch_i, scratch_f
+            )
+            if freed < 0:
+                need[u] = needed  # out of the heap until its fan changes or the bound rises
+                continue
+            n_alive -= freed
+            for t in range(n_loop):
+                w = loop[t]
+                need[w] = 0.0
+                if not locked[w]:
+                    size = _put(key, item, pos, size, w, _vertex_cost(pts, faces, vf, vdeg, q, w))
+        if n_alive <= target:
+            break
+    return n_alive, bound
 
 
 @njit(cache=True, nogil=True)
 def collapse_run(pts, faces, locked, bounds, target, min_cap):
     """Collapse ``faces`` (edited in place) cheapest first until at most ``target`` live
-    triangles remain or no collapse is within the bound; each stage's bound (mm, rising)
+    triangles remain or no collapse is within the bound, each stage's bound (mm, rising)
     in turn. Returns (alive (F,) bool, live triangles, the last stage's bound mm)."""
     vf, vdeg = vertex_faces(faces, len(pts), min_cap)
     cap = vf.shape[1]
     q = plane_quadrics(pts, faces)
     alive = np.ones(len(faces), np.bool_)
     terr = np.zeros(len(faces))
-    stamp = np.zeros(len(pts), np.int64)
     scratch_i = (
         np.zeros(cap, np.int32),
         np.zeros(cap + 1, np.int32),
@@ -256,28 +342,16 @@ def collapse_run(pts, faces, locked, bounds, target, min_cap):
         np.zeros(cap + 1, np.int32),
     )
     scratch_f = (np.zeros((cap, 3)), np.zeros(3), np.zeros((cap + 1, 3)), np.zeros(cap + 1))
-    loop = scratch_i[1]
-    n_alive = len(faces)
-    bound = 0.0
-    for s in range(len(bounds)):
-        bound = bounds[s]
-        heap = _seed(pts, faces, vf, vdeg, q, locked, stamp)
-        while len(heap) > 0 and n_alive > target:
-            _, u, st = heapq.heappop(heap)
-            if st != stamp[u] or vdeg[u] == 0:
-                continue  # stale: its fan changed since
-            freed, n_loop = _try_collapse(
-                u, pts, faces, alive, vf, vdeg, q, terr, bound, scratch_i, scratch_f
-            )
-            if freed < 0:
-                continue  # back on the heap when its fan changes
-            n_alive -= freed
-            for t in range(n_loop):
-                w = loop[t]
-                stamp[w] += 1
-                if not locked[w]:
-                    cost = _vertex_cost(pts, faces, vf, vdeg, q, w)
-                    heapq.heappush(heap, (cost, np.int64(w), stamp[w]))
-        if n_alive <= target:
-            break
+    n = len(pts)
+    state = (
+        np.zeros(n),
+        np.zeros(n, np.int32),
+        np.full(n, -1, np.int32),
+        np.zeros(n),
+        scratch_i,
+        scratch_f,
+    )
+    n_alive, bound = _collapse_loop(
+        pts, faces, alive, vf, vdeg, q, terr, locked, bounds, target, state
+    )
     return alive, n_alive, bound

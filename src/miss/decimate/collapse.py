@@ -12,7 +12,7 @@ from miss.types import Mesh
 
 #: The stages of a run, as fractions of its bound: the cheapest collapses spend the
 #: budget first everywhere before any spends all of it (as schroeder's rising bound).
-STAGES: tuple[float, ...] = (1.0,)
+STAGES: tuple[float, ...] = (0.5, 1.0)
 
 
 def collapse(
