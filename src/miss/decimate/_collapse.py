@@ -37,7 +37,6 @@ from miss.decimate._fan import (
     fan_normals,
     order_fan,
     overlay_gap,
-    vertex_faces,
 )
 from miss.measure.distance import NO_REFCOUNT
 
@@ -290,49 +289,47 @@ def _pop(key, item, pos, size):
 
 
 @njit(cache=True, nogil=True, **NO_REFCOUNT)
-def _collapse_loop(pts, faces, alive, vf, vdeg, q, terr, locked, bounds, target, state):
-    """Collapse cheapest first, stage by stage; allocates nothing (``state``: the heap's
-    arrays, each vertex's least bound ``need`` and the scratch), so numba's reference
-    counting is left out. Returns (live triangles, the last stage's bound mm)."""
-    key, item, pos, need, scratch_i, scratch_f = state
+def collapse_stage(
+    pts, faces, alive, vf, vdeg, q, terr, locked, bound, n_alive, target, visit, owner, me,
+    heap, need, scratch,
+):  # fmt: skip
+    """One stage: the vertices of ``visit`` that may go at ``bound`` (mm) collapsed cheapest
+    first, and the vertices their collapses change, while ``owner`` of them is ``me``,
+    until ``target`` live triangles remain or nothing more goes. Returns the live
+    triangles. ``heap`` (key, item, pos) starts and ends empty; ``need`` (N,): each
+    vertex's least bound, cached until its fan changes (0: unknown). Allocates nothing,
+    so numba's reference counting is left out, and holds no lock: slabs whose vertices
+    share no neighbour (see :func:`miss.decimate._fan.domains`) run side by side."""
+    key, item, pos = heap
+    scratch_i, scratch_f = scratch
     loop = scratch_i[1]
-    n_alive, size, bound = len(faces), 0, 0.0
-    for s in range(len(bounds)):
-        bound = bounds[s]
-        # each vertex whose collapse could now go (its need is a bound's, cached until its
-        # fan changes: 0, unknown, at first)
-        for u in range(len(pts)):
-            if vdeg[u] > 0 and not locked[u] and pos[u] < 0 and need[u] <= bound:
-                size = _put(key, item, pos, size, u, _vertex_cost(pts, faces, vf, vdeg, q, u))
-        while size > 0 and n_alive > target:
-            u, size = _pop(key, item, pos, size)
-            freed, n_loop, needed = _try_collapse(
-                u, pts, faces, alive, vf, vdeg, q, terr, bound, scratch_i, scratch_f
-            )
-            if freed < 0:
-                need[u] = needed  # out of the heap until its fan changes or the bound rises
-                continue
-            n_alive -= freed
-            for t in range(n_loop):
-                w = loop[t]
-                need[w] = 0.0
-                if not locked[w]:
-                    size = _put(key, item, pos, size, w, _vertex_cost(pts, faces, vf, vdeg, q, w))
-        if n_alive <= target:
-            break
-    return n_alive, bound
+    size = 0
+    for i in range(len(visit)):
+        u = visit[i]
+        if vdeg[u] > 0 and not locked[u] and pos[u] < 0 and need[u] <= bound:
+            size = _put(key, item, pos, size, u, _vertex_cost(pts, faces, vf, vdeg, q, u))
+    while size > 0 and n_alive > target:
+        u, size = _pop(key, item, pos, size)
+        freed, n_loop, needed = _try_collapse(
+            u, pts, faces, alive, vf, vdeg, q, terr, bound, scratch_i, scratch_f
+        )
+        if freed < 0:
+            need[u] = needed  # out of the heap until its fan changes or the bound rises
+            continue
+        n_alive -= freed
+        for t in range(n_loop):
+            w = loop[t]
+            need[w] = 0.0
+            if not locked[w] and owner[w] == me:
+                size = _put(key, item, pos, size, w, _vertex_cost(pts, faces, vf, vdeg, q, w))
+    for i in range(size):
+        pos[item[i]] = -1
+    return n_alive
 
 
-@njit(cache=True, nogil=True)
-def collapse_run(pts, faces, locked, bounds, target, min_cap):
-    """Collapse ``faces`` (edited in place) cheapest first until at most ``target`` live
-    triangles remain or no collapse is within the bound, each stage's bound (mm, rising)
-    in turn. Returns (alive (F,) bool, live triangles, the last stage's bound mm)."""
-    vf, vdeg = vertex_faces(faces, len(pts), min_cap)
-    cap = vf.shape[1]
-    q = plane_quadrics(pts, faces)
-    alive = np.ones(len(faces), np.bool_)
-    terr = np.zeros(len(faces))
+@njit(cache=True)
+def scratch(cap):
+    """One thread's scratch for :func:`collapse_stage`, for fans of up to ``cap`` triangles."""
     scratch_i = (
         np.zeros(cap, np.int32),
         np.zeros(cap + 1, np.int32),
@@ -341,17 +338,4 @@ def collapse_run(pts, faces, locked, bounds, target, min_cap):
         np.zeros((cap, 3), np.int32),
         np.zeros(cap + 1, np.int32),
     )
-    scratch_f = (np.zeros((cap, 3)), np.zeros(3), np.zeros((cap + 1, 3)), np.zeros(cap + 1))
-    n = len(pts)
-    state = (
-        np.zeros(n),
-        np.zeros(n, np.int32),
-        np.full(n, -1, np.int32),
-        np.zeros(n),
-        scratch_i,
-        scratch_f,
-    )
-    n_alive, bound = _collapse_loop(
-        pts, faces, alive, vf, vdeg, q, terr, locked, bounds, target, state
-    )
-    return alive, n_alive, bound
+    return scratch_i, (np.zeros((cap, 3)), np.zeros(3), np.zeros((cap + 1, 3)), np.zeros(cap + 1))

@@ -46,12 +46,14 @@ from miss._numba import njit
 from miss.decimate._fan import (
     commit,
     cross,
+    domains,
     edge_exists,
     face_exists,
     fan_normals,
     frame,
     order_fan,
     overlay_gap,
+    slabs,
     unit_normal_sum,
     vertex_faces,
 )
@@ -72,7 +74,7 @@ _ROUND_OFF = 1e-12
 # Bound schedule: multiply by this factor each pass; default max_error is this many initial bounds.
 _BOUND_STEP = 2.0
 _MAX_ERROR_FACTOR = 10.0
-# A run takes one slab (see _domains) per this many triangles, up to _MAX_SLABS slabs.
+# A run takes one slab (see miss.decimate._fan.domains) per this many triangles, up to _MAX_SLABS slabs.
 _SLAB_FACES = 65_536
 _MAX_SLABS = 4
 
@@ -84,7 +86,7 @@ _MAX_SLABS = 4
 # The pass loop and the helpers it calls are compiled without numba's reference counting
 # (:data:`miss.measure.distance.NO_REFCOUNT`): they allocate nothing, and every array they take,
 # unpack or index as a row (``pts[i]``) had its count raised and lowered with an atomic
-# instruction each time; on slabs run side by side (see _domains) both cores wrote those
+# instruction each time; on slabs run side by side (see miss.decimate._fan.domains) both cores wrote those
 # counts' cache lines. perf put a fifth of a serial run in NRT_incref/NRT_decref. Without
 # them: the same triangles, 1.88 -> 1.50 s serial and 1.10 -> 0.92 s in slabs on 2 cores
 # (the paper's volume, bone, 0.002). ``_decimate_pass`` keeps counting: it allocates the
@@ -467,7 +469,7 @@ def _decimate_pass(
 
     Vertices whose cached vmin (see _try_delete) exceeds the bound are skipped, so a pass with
     a raised bound only looks again at the vertices it might now delete. Without the GIL:
-    passes over vertex sets that share no neighbour run side by side (see _domains).
+    passes over vertex sets that share no neighbour run side by side (see miss.decimate._fan.domains).
     Returns (n_alive, vertices removed in this pass).
     """
     cap = vf.shape[1]
@@ -538,54 +540,8 @@ def _check_inputs(
         raise ValueError(f"max_error is a distance in mm and must be >= 0; got {max_error}")
 
 
-def _slabs(pts: np.ndarray, faces: np.ndarray, count: int) -> np.ndarray:
-    """(N,) int32: the slab of each vertex, ``count`` slabs across the mesh's longest axis
-    cut at quantiles of its vertices (see _domains)."""
-    used = np.zeros(len(pts), dtype=bool)
-    used[faces.ravel()] = True
-    lo, hi = column_bounds(pts[used])  # np.ptp(axis=0) walks (N, 3) with a stride: 20x slower
-    axis = int(np.argmax(hi - lo))
-    cuts = np.quantile(pts[used, axis], np.arange(1, count) / count)
-    return np.searchsorted(cuts, pts[:, axis], side="right").astype(np.int32)
-
-
-@njit(cache=True, nogil=True)
-def _domains(faces, alive, vdeg, slab, count):
-    """The vertices a pass may decimate side by side, slab by slab, and the rest (the guard:
-    the corners of every live triangle that spans two slabs), each in index order. Returns
-    (order, starts): slab d's vertices are order[starts[d]:starts[d + 1]], the guard's
-    order[starts[count]:].
-
-    A slab's vertices then have neighbours in their own slab only, and no two slabs share a
-    neighbour. Deleting a vertex joins its neighbours, so that stays true while the guard
-    stays (a slab's deletions join vertices of that slab): each slab's deletions read and
-    write only its own vertices' rows and the triangles that touch them, whatever the other
-    slabs do, and the result is the same however the slabs are run.
-    """
-    guard = np.zeros(len(slab), dtype=np.bool_)
-    for f in range(len(faces)):
-        if alive[f]:
-            a, b, c = slab[faces[f, 0]], slab[faces[f, 1]], slab[faces[f, 2]]
-            if a != b or b != c:
-                guard[faces[f, 0]] = guard[faces[f, 1]] = guard[faces[f, 2]] = True
-    starts = np.zeros(count + 2, dtype=np.int64)
-    for v in range(len(slab)):
-        if vdeg[v] > 0:
-            starts[(count if guard[v] else slab[v]) + 1] += 1
-    for d in range(1, count + 2):
-        starts[d] += starts[d - 1]
-    order = np.empty(starts[count + 1], dtype=np.int32)
-    fill = starts[:-1].copy()
-    for v in range(len(slab)):
-        if vdeg[v] > 0:
-            d = count if guard[v] else slab[v]
-            order[fill[d]] = v
-            fill[d] += 1
-    return order, starts
-
-
 def _slab_count(n_faces: int, whole_passes: int) -> int:
-    """Slabs for a run (see _domains): one per ``_SLAB_FACES`` triangles, a power of two up to
+    """Slabs for a run (see miss.decimate._fan.domains): one per ``_SLAB_FACES`` triangles, a power of two up to
     ``_MAX_SLABS``; one (the plain serial run) under the paper's whole passes, which must
     visit every vertex in index order. Set by the mesh alone, not by the machine, so that the
     output is the same on any machine."""
@@ -603,7 +559,7 @@ def _run_passes(
     """Passes with a rising bound until n_alive <= target or a pass at max_error removes
     nothing. Edits faces in place; returns (alive mask, passes, last bound, vertices removed).
 
-    A large mesh's passes run in slabs (see _domains), side by side on up to as many threads
+    A large mesh's passes run in slabs (see miss.decimate._fan.domains), side by side on up to as many threads
     as there are cores, each slab stopping at its share of the triangles to remove; then
     the same pass, serially, over the guard between the slabs. The slabs are set again
     before each pass, so every vertex meets every bound of the schedule.
@@ -639,7 +595,7 @@ def _run_passes(
                 break
         return alive, passes, bound, removed_total
     count = _slab_count(len(faces), whole_passes)
-    slab = _slabs(pts, faces, count) if count > 1 else None
+    slab = slabs(pts, faces, count) if count > 1 else None
     pool = (
         ThreadPoolExecutor(min(count, os.cpu_count() or 1), thread_name_prefix="miss-slab")
         if count > 1
@@ -649,7 +605,7 @@ def _run_passes(
         while True:
             removed, visit = 0, everything
             if slab is not None and pool is not None:
-                order, starts = _domains(faces, alive, vdeg, slab, count)
+                order, starts = domains(faces, alive, vdeg, slab, count)
                 sizes = np.diff(starts[: count + 1]).astype(np.float64)
                 # each slab stops at its share (by vertices) of the triangles to remove
                 share = (n_alive - target) / max(sizes.sum(), 1.0)
