@@ -11,8 +11,8 @@ stays within the bound: the output is within the bound of the input everywhere.
 
 What differs from vertex removal is the order and the choice: collapses go cheapest first
 by Garland and Heckbert's quadric error (each vertex's plane quadric, summed into the
-vertex that stays), from one heap, instead of index order at a rising bound; and a vertex
-goes to the neighbour whose quadric cost is least among those whose collapse is valid.
+vertex that stays), from a heap, instead of index order; and a vertex goes to the first
+of its cheapest neighbours (``_CANDIDATES``) whose collapse is valid and within the bound.
 
 A collapse is refused when it would change the topology (the link condition: a new edge
 from v that already exists, or a vertex of valence 3 that tops a tetrahedron), turn a
@@ -42,6 +42,9 @@ from miss.measure.distance import NO_REFCOUNT
 
 # Largest number of triangles a vertex may carry (as vertex removal's _VALENCE_CAP).
 _VALENCE_CAP = 32
+# The cheapest neighbours a vertex may collapse into (by quadric cost) that are weighed:
+# on CThead bone at 0.002, two took 11 % less time than all for 0.5 % more triangles.
+_CANDIDATES = 2
 # New triangles with 2 x area below this fraction of the squared longest edge are degenerate.
 _DEGENERATE = 1e-6
 
@@ -203,7 +206,7 @@ def _try_collapse(u, pts, faces, alive, vf, vdeg, q, terr, bound, scratch_i, scr
     fan_normals(pts, faces, fan, n, fn)
     m = _candidates(pts, q, u, loop, n_loop, closed, costs, order)
     need = np.inf
-    for i in range(m):
+    for i in range(min(m, _CANDIDATES)):
         j = order[i]
         if not _links(faces, vf, vdeg, loop, n_loop, closed, j):
             continue
