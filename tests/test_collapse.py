@@ -129,3 +129,14 @@ def test_collapse_is_a_method_of_decimate_and_the_paper_schedule() -> None:
     # the bound was raised (doubled from 0.0001) until reduce was met, and held there
     assert 0.0001 * mesh.diagonal() < report.bound_mm <= 0.01 * mesh.diagonal()
     assert independent_max(mesh, out) <= report.bound_mm + 1e-6 * mesh.diagonal()
+
+
+def test_collapse_is_offered_by_the_api_and_the_command_line() -> None:
+    from miss.cli import build_parser
+    from miss.server.core.schemas import ModelRequest
+
+    args = build_parser().parse_args(
+        ["convert", "in.nii", "-o", "out.glb", "--decimate", "collapse"]
+    )
+    assert args.decimate == "collapse"
+    assert ModelRequest(volume="v", decimate="collapse").decimate == "collapse"

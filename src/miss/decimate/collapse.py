@@ -141,3 +141,18 @@ def _slab_count(n_faces: int) -> int:
     while count < _MAX_SLABS and n_faces >= 2 * count * _SLAB_FACES:
         count *= 2
     return count
+
+
+def warm_up() -> None:
+    """Compile (or load from numba's cache) collapse's kernels now, on a small sphere."""
+    import vtk
+    from vtk.util import numpy_support
+
+    source = vtk.vtkSphereSource()
+    source.SetThetaResolution(24)
+    source.SetPhiResolution(24)
+    source.Update()
+    poly = source.GetOutput()
+    pts = numpy_support.vtk_to_numpy(poly.GetPoints().GetData()).astype(np.float32)
+    faces = numpy_support.vtk_to_numpy(poly.GetPolys().GetConnectivityArray()).reshape(-1, 3)
+    collapse(Mesh(pts, faces.astype(np.int32)), 0.5, 0.01)
