@@ -188,8 +188,8 @@ def _try_collapse(u, pts, faces, alive, vf, vdeg, q, terr, bound, scratch_i, scr
     """Collapse u into the cheapest neighbour whose collapse is valid and within ``bound``
     (mm, the new triangles' accumulated error). Returns (triangles freed, loop length,
     0.0), the loop (scratch_i[1]) being u's old one, whose vertices' fans changed; or
-    (-1, 0, the least bound under which some collapse of u could go while its fan stays
-    as it is: inf where none could)."""
+    (-1, 0, the least bound under which one of the collapses weighed could go while u's
+    fan stays as it is: inf where none could)."""
     fan, loop, a_s, b_s, tris, order = scratch_i
     fn, nrm, xyh, costs = scratch_f
     n = vdeg[u]
@@ -221,7 +221,8 @@ def _try_collapse(u, pts, faces, alive, vf, vdeg, q, terr, bound, scratch_i, scr
             need = min(need, spent)
             continue
         if not commit(u, faces, alive, vf, vdeg, fan, n, loop, n_loop, tris, ntri, a_s):
-            continue  # a row of the vertex -> face table is full: not cached, it may empty
+            need = min(need, spent)  # a row of the table is full: tried again next stage
+            continue
         for t in range(ntri):
             terr[fan[t]] = spent
         v = loop[j]
