@@ -140,3 +140,26 @@ def test_collapse_is_offered_by_the_api_and_the_command_line() -> None:
     )
     assert args.decimate == "collapse"
     assert ModelRequest(volume="v", decimate="collapse").decimate == "collapse"
+
+
+def test_the_benchmark_rows_on_the_phantom(capsys) -> None:
+    """``benchmarks/collapse.py``: both bounded methods per bound, measured densely here."""
+    import sys
+    from pathlib import Path
+
+    from miss import extract_surface
+    from miss.demo import phantom
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    import collapse as bench  # benchmarks/collapse.py, not the package's
+
+    mesh = extract_surface(phantom(48, spacing=4.0), 200.0)
+    case = bench.bench_case(mesh, (0.002,), runs=1, samples=20_000, log=lambda line: None)
+    rows = {r["method"]: r for r in case["bounds"]["0.002"]}
+    assert set(rows) == {"collapse", "schroeder"} and case["quadric_seconds"] > 0
+    for row in rows.values():
+        assert row["holds_densely"] and row["max_mm"] <= row["bound_mm"] * 1.000001
+    table = bench.markdown({"cases": {"phantom": case}})
+    assert "| phantom |" in table and "| collapse |" in table
+    assert bench.main(["--cases", "CThead knee"]) == 2
+    assert "unknown case" in capsys.readouterr().err
