@@ -51,10 +51,12 @@ _DEGENERATE = 1e-6
 
 @njit(cache=True)
 def plane_quadrics(pts, faces):
-    """(N, 10) area-weighted plane quadrics of each vertex's triangles (Garland & Heckbert):
+    """(N, 11) area-weighted plane quadrics of each vertex's triangles (Garland & Heckbert):
     the upper triangle of [n n^T, n d; n d, d^2], per triangle plane n . x + d = 0, times
-    its area (mm^2), summed into its three corners."""
-    q = np.zeros((len(pts), 10))
+    its area (mm^2), summed into its three corners; and in column 10 each vertex's own
+    quadric at itself (0: its planes pass through it), kept so that a collapse's cost
+    reads one number of the vertex it goes to, not its whole quadric."""
+    q = np.zeros((len(pts), 11))
     for f in range(len(faces)):
         a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
         nx, ny, nz = cross(
@@ -98,8 +100,7 @@ def _quadric_at(q, u, x, y, z):
 @njit(cache=True, inline="always")
 def _collapse_cost(pts, q, u, v):
     """The quadric error of u and v together at v: the cost of collapsing u -> v."""
-    x, y, z = pts[v, 0], pts[v, 1], pts[v, 2]
-    return _quadric_at(q, u, x, y, z) + _quadric_at(q, v, x, y, z)
+    return _quadric_at(q, u, pts[v, 0], pts[v, 1], pts[v, 2]) + q[v, 10]
 
 
 @njit(cache=True, **NO_REFCOUNT)
@@ -226,6 +227,7 @@ def _try_collapse(u, pts, faces, alive, vf, vdeg, q, terr, bound, scratch_i, scr
         for t in range(ntri):
             terr[fan[t]] = spent
         v = loop[j]
+        q[v, 10] = _collapse_cost(pts, q, u, v)
         for k in range(10):
             q[v, k] += q[u, k]
         return n - ntri, n_loop, 0.0
