@@ -13,6 +13,7 @@ $(VENV)/.installed: pyproject.toml setup.py src/miss/measure/_nearest.cpp
 	$(PIP) install -q --upgrade pip
 	$(PIP) install -q -e '.[test]'
 	$(PY) -c "from miss.decimate._schroeder import warm_up; warm_up()"  # compile numba kernels once
+	$(PY) -c "from miss.decimate.collapse import warm_up; warm_up()"
 	touch $@
 
 $(VENV)/.bench-installed: $(VENV)/.installed

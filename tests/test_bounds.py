@@ -10,7 +10,7 @@ triangle of the output, with nothing of the check's bookkeeping.
 
 Between those points two surfaces can part further (a new edge along a wavy input surface,
 a valley of the output under an input triangle). Schroeder's accumulated error is a bound
-everywhere (``miss.decimate._schroeder._overlay_gap``), so its models are also measured densely
+everywhere (``miss.decimate._fan.overlay_gap``), so its models are also measured densely
 here (every output edge at each eighth, random points inside both surfaces); a quadric
 model (the paper's schedule only) is held at the checked points alone.
 """

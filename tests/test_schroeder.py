@@ -357,7 +357,8 @@ def bumpy_sphere(seed: int, level: int = 5, roughness: float = 0.05):
 def test_slabs_share_no_neighbour(count):
     # what lets slabs be decimated side by side: a slab's vertices have neighbours in their
     # own slab only (its own vertices or the guard's), so no two slabs share a neighbour
-    from miss.decimate._schroeder import _domains, _slabs
+    from miss.decimate._fan import domains as _domains
+    from miss.decimate._fan import slabs as _slabs
 
     vertices, faces = bumpy_sphere(0)
     slab = _slabs(vertices, faces, count)

@@ -519,7 +519,8 @@ class Decimation:
     ``paper``: the bound is raised up to ``max_error`` until ``reduce`` is met."""
 
     method: str = param(
-        METHOD, '"none", "schroeder" (the paper\'s) or "quadric" (fast)',
+        METHOD, '"none", "schroeder" (the paper\'s), "quadric" (fast) or "collapse" (fewest '
+        "triangles within the bound)",
         name="decimate", choices=METHODS,
     )  # fmt: skip
     error_bound: float = param(

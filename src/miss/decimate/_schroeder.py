@@ -44,7 +44,21 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from miss._numba import njit
-from miss.measure.distance import NO_REFCOUNT, segment_sq
+from miss.decimate._fan import (
+    commit,
+    cross,
+    domains,
+    edge_exists,
+    face_exists,
+    fan_normals,
+    frame,
+    order_fan,
+    overlay_gap,
+    slabs,
+    unit_normal_sum,
+    vertex_faces,
+)
+from miss.measure.distance import NO_REFCOUNT
 from miss.types import column_bounds
 
 SIMPLE, BOUNDARY, INTERIOR_EDGE, CORNER, COMPLEX = 0, 1, 2, 3, 4
@@ -61,7 +75,7 @@ _ROUND_OFF = 1e-12
 # Bound schedule: multiply by this factor each pass; default max_error is this many initial bounds.
 _BOUND_STEP = 2.0
 _MAX_ERROR_FACTOR = 10.0
-# A run takes one slab (see _domains) per this many triangles, up to _MAX_SLABS slabs.
+# A run takes one slab (see miss.decimate._fan.domains) per this many triangles, up to _MAX_SLABS slabs.
 _SLAB_FACES = 65_536
 _MAX_SLABS = 4
 
@@ -73,28 +87,13 @@ _MAX_SLABS = 4
 # The pass loop and the helpers it calls are compiled without numba's reference counting
 # (:data:`miss.measure.distance.NO_REFCOUNT`): they allocate nothing, and every array they take,
 # unpack or index as a row (``pts[i]``) had its count raised and lowered with an atomic
-# instruction each time; on slabs run side by side (see _domains) both cores wrote those
+# instruction each time; on slabs run side by side (see miss.decimate._fan.domains) both cores wrote those
 # counts' cache lines. perf put a fifth of a serial run in NRT_incref/NRT_decref. Without
 # them: the same triangles, 1.88 -> 1.50 s serial and 1.10 -> 0.92 s in slabs on 2 cores
 # (the paper's volume, bone, 0.002). ``_decimate_pass`` keeps counting: it allocates the
 # scratch the loop uses.
 
 # --------------------------------------------------------------------------- small geometry
-
-
-@njit(cache=True, inline="always")
-def _cross(ax, ay, az, bx, by, bz):
-    return ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
-
-
-@njit(cache=True, **NO_REFCOUNT)
-def _edge_exists(faces, vf, vdeg, a, b):
-    """True when some live triangle holds both vertices a and b."""
-    for k in range(vdeg[a]):
-        f = vf[a, k]
-        if faces[f, 0] == b or faces[f, 1] == b or faces[f, 2] == b:
-            return True
-    return False
 
 
 @njit(cache=True, **NO_REFCOUNT)
@@ -109,20 +108,6 @@ def _edge_use(faces, vf, vdeg, a, b):
 
 
 @njit(cache=True, **NO_REFCOUNT)
-def _face_exists(faces, vf, vdeg, a, b, c):
-    """True when a live triangle has the corners a, b and c."""
-    for k in range(vdeg[a]):
-        f = vf[a, k]
-        hits = 0
-        for m in range(3):
-            if faces[f, m] == b or faces[f, m] == c:
-                hits += 1
-        if hits == 2:
-            return True
-    return False
-
-
-@njit(cache=True, **NO_REFCOUNT)
 def _line_distance(pts, p, a, b):
     """Distance (mm) of point p from the line through points a and b; -1 if a == b."""
     ux = pts[b, 0] - pts[a, 0]
@@ -131,99 +116,13 @@ def _line_distance(pts, p, a, b):
     length = math.sqrt(ux * ux + uy * uy + uz * uz)
     if length == 0.0:
         return -1.0
-    cx, cy, cz = _cross(
+    cx, cy, cz = cross(
         pts[p, 0] - pts[a, 0], pts[p, 1] - pts[a, 1], pts[p, 2] - pts[a, 2], ux, uy, uz
     )
     return math.sqrt(cx * cx + cy * cy + cz * cz) / length
 
 
 # --------------------------------------------------------------------------- classification
-
-
-@njit(cache=True, inline="always")
-def _chain_fan(v, vf, n, start, fan, loop, a_s, b_s):
-    """Chain v's n triangles from triangle `start`, each followed by the first whose leading
-    vertex is its trailing one. Returns (n_loop, closed), n_loop = -1 if the chain breaks."""
-    k = start
-    for step in range(n):
-        fan[step] = vf[v, k]
-        loop[step] = a_s[k]
-        if step == n - 1:
-            break
-        nxt = -1
-        for m in range(n):
-            if a_s[m] == b_s[k]:
-                nxt = m
-                break
-        if nxt == -1:
-            return -1, False
-        k = nxt
-    if b_s[k] == loop[0]:
-        return n, True
-    loop[n] = b_s[k]
-    return n + 1, False
-
-
-@njit(cache=True, inline="always")
-def _order_fan(v, faces, vf, vdeg, fan, loop, a_s, b_s):
-    """Order v's triangles into a chain (v, loop[k], loop[k+1]).
-
-    Returns (n_loop, closed). A closed fan of n triangles gives n loop vertices, an open
-    (boundary) fan n + 1; n_loop = -1 means the neighbourhood is not a manifold disc or
-    half-disc (complex vertex).
-    """
-    n = vdeg[v]
-    for k in range(n):
-        f = vf[v, k]
-        i0, i1, i2 = faces[f, 0], faces[f, 1], faces[f, 2]
-        if i0 == v:
-            a_s[k], b_s[k] = i1, i2
-        elif i1 == v:
-            a_s[k], b_s[k] = i2, i0
-        else:
-            a_s[k], b_s[k] = i0, i1
-    # Follow the chain from the first triangle; if it breaks, the fan is open and is followed
-    # again from its one triangle whose leading vertex trails no other.
-    n_loop, closed = _chain_fan(v, vf, n, 0, fan, loop, a_s, b_s)
-    if n_loop < 0:
-        start = -1
-        for k in range(n):
-            trails = False
-            for m in range(n):
-                if b_s[m] == a_s[k]:
-                    trails = True
-                    break
-            if not trails:
-                if start != -1:
-                    return -1, False
-                start = k
-        if start == -1:
-            return -1, False
-        n_loop, closed = _chain_fan(v, vf, n, start, fan, loop, a_s, b_s)
-        if n_loop < 0 or closed:
-            return -1, False
-    # Distinct loop vertices mean one single cycle through all triangles.
-    for i in range(n_loop):
-        for j in range(i + 1, n_loop):
-            if loop[i] == loop[j]:
-                return -1, False
-    return n_loop, closed
-
-
-@njit(cache=True, inline="always")
-def _fan_normals(pts, faces, fan, n, fn):
-    """Unnormalised normals (length = 2 x area, mm^2) of the n fan triangles into fn (n, 3)."""
-    for k in range(n):
-        f = fan[k]
-        a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
-        fn[k, 0], fn[k, 1], fn[k, 2] = _cross(
-            pts[b, 0] - pts[a, 0],
-            pts[b, 1] - pts[a, 1],
-            pts[b, 2] - pts[a, 2],
-            pts[c, 0] - pts[a, 0],
-            pts[c, 1] - pts[a, 1],
-            pts[c, 2] - pts[a, 2],
-        )
 
 
 @njit(cache=True, **NO_REFCOUNT)
@@ -295,22 +194,6 @@ def _plane_distance(pts, faces, fan, n, fn, v):
 # --------------------------------------------------------------------------- loop splitting
 
 
-@njit(cache=True, inline="always")
-def _frame(nx, ny, nz):
-    """Unit vectors e, f with (e, f, n) right-handed, for the unit normal n: e built from the
-    axis n is least aligned with."""
-    if abs(nx) <= abs(ny) and abs(nx) <= abs(nz):
-        ex, ey, ez = 0.0, nz, -ny
-    elif abs(ny) <= abs(nz):
-        ex, ey, ez = -nz, 0.0, nx
-    else:
-        ex, ey, ez = ny, -nx, 0.0
-    el = math.sqrt(ex * ex + ey * ey + ez * ez)
-    ex, ey, ez = ex / el, ey / el, ez / el
-    fx, fy, fz = _cross(nx, ny, nz, ex, ey, ez)
-    return ex, ey, ez, fx, fy, fz
-
-
 @njit(cache=True, **NO_REFCOUNT)
 def _project_loop(pts, loop, n_loop, nrm, xyh):
     """Coordinates of the loop vertices in the frame of the unit normal nrm: (x, y) in the
@@ -318,7 +201,7 @@ def _project_loop(pts, loop, n_loop, nrm, xyh):
     h along nrm, into xyh (n_loop, 3). Split planes are perpendicular to the average plane, so
     every side test becomes a 2-D cross product on (x, y)."""
     nx, ny, nz = nrm[0], nrm[1], nrm[2]
-    ex, ey, ez, fx, fy, fz = _frame(nx, ny, nz)
+    ex, ey, ez, fx, fy, fz = frame(nx, ny, nz)
     for k in range(n_loop):
         u = loop[k]
         xyh[k, 0] = ex * pts[u, 0] + ey * pts[u, 1] + ez * pts[u, 2]
@@ -331,7 +214,7 @@ def _good_triangle(pts, a, b, c, nrm):
     """Non-degenerate and facing the same way as the average plane normal nrm."""
     ux, uy, uz = pts[b, 0] - pts[a, 0], pts[b, 1] - pts[a, 1], pts[b, 2] - pts[a, 2]
     wx, wy, wz = pts[c, 0] - pts[a, 0], pts[c, 1] - pts[a, 1], pts[c, 2] - pts[a, 2]
-    cx, cy, cz = _cross(ux, uy, uz, wx, wy, wz)
+    cx, cy, cz = cross(ux, uy, uz, wx, wy, wz)
     if cx * nrm[0] + cy * nrm[1] + cz * nrm[2] <= 0.0:
         return False
     tx, ty, tz = pts[c, 0] - pts[b, 0], pts[c, 1] - pts[b, 1], pts[c, 2] - pts[b, 2]
@@ -393,7 +276,7 @@ def _best_split(xyh, loop, faces, vf, vdeg, buf, s, m, check_edges):
             if worst > 0.0:
                 worst = _split_side(xyh, buf, s, 0, i, ax, ay, dx, dy, -1.0, limit2, worst)
             if worst > 0.0 and not (
-                check_edges and _edge_exists(faces, vf, vdeg, loop[pa], loop[pb])
+                check_edges and edge_exists(faces, vf, vdeg, loop[pa], loop[pb])
             ):
                 best2 = worst * worst / scale2
                 bi = i
@@ -427,7 +310,7 @@ def _split_loop(pts, faces, vf, vdeg, loop, n_loop, buf, start, size, top, nrm, 
             ntri += 1
             continue
         i, j = _best_split(xyh, loop, faces, vf, vdeg, buf, s, m, False)
-        if i >= 0 and _edge_exists(faces, vf, vdeg, loop[buf[s + i]], loop[buf[s + j]]):
+        if i >= 0 and edge_exists(faces, vf, vdeg, loop[buf[s + i]], loop[buf[s + j]]):
             i, j = _best_split(xyh, loop, faces, vf, vdeg, buf, s, m, True)
         if i < 0:
             return -1, top
@@ -451,24 +334,6 @@ def _split_loop(pts, faces, vf, vdeg, loop, n_loop, buf, start, size, top, nrm, 
     return ntri, top
 
 
-@njit(cache=True, **NO_REFCOUNT)
-def _unit_normal_sum(fn, first, last, n, out):
-    """Unit sum of fan normals first .. last-1 (indices taken modulo n) into out; False if zero."""
-    out[0] = out[1] = out[2] = 0.0
-    for k in range(first, last):
-        kk = k % n
-        out[0] += fn[kk, 0]
-        out[1] += fn[kk, 1]
-        out[2] += fn[kk, 2]
-    length = math.sqrt(out[0] ** 2 + out[1] ** 2 + out[2] ** 2)
-    if length == 0.0:
-        return False
-    out[0] /= length
-    out[1] /= length
-    out[2] /= length
-    return True
-
-
 @njit(cache=True, inline="always")
 def _retriangulate(pts, faces, vf, vdeg, loop, n_loop, fn, n, vtype, p, q, buf, scratch, nrm):
     """Triangles that fill the hole of the deleted vertex into scratch's tris; returns their
@@ -482,18 +347,18 @@ def _retriangulate(pts, faces, vf, vdeg, loop, n_loop, fn, n, vtype, p, q, buf, 
     if vtype == INTERIOR_EDGE:
         na = q - p + 1
         nb = n - na + 2
-        if na < 3 or nb < 3 or _edge_exists(faces, vf, vdeg, loop[p], loop[q]):
+        if na < 3 or nb < 3 or edge_exists(faces, vf, vdeg, loop[p], loop[q]):
             return -1
         for k in range(na):
             buf[k] = p + k
         for k in range(nb):
             buf[na + k] = (q + k) % n
-        if not _unit_normal_sum(fn, p, q, n, nrm):
+        if not unit_normal_sum(fn, p, q, n, nrm):
             return -1
         ntri, top = _split_loop(
             pts, faces, vf, vdeg, loop, n_loop, buf, 0, na, na + nb, nrm, scratch, 0
         )
-        if ntri < 0 or not _unit_normal_sum(fn, q, n + p, n, nrm):
+        if ntri < 0 or not unit_normal_sum(fn, q, n + p, n, nrm):
             return -1
         ntri, top = _split_loop(
             pts, faces, vf, vdeg, loop, n_loop, buf, na, nb, top, nrm, scratch, ntri
@@ -504,15 +369,15 @@ def _retriangulate(pts, faces, vf, vdeg, loop, n_loop, fn, n, vtype, p, q, buf, 
         if n_loop == 2:
             # Removing an ear: its opposite edge must stay shared, or a component vanishes.
             return 0 if _edge_use(faces, vf, vdeg, a, b) >= 2 else -1
-        if _edge_exists(faces, vf, vdeg, a, b):
+        if edge_exists(faces, vf, vdeg, a, b):
             return -1
-    elif n_loop < 3 or (n_loop == 3 and _face_exists(faces, vf, vdeg, loop[0], loop[1], loop[2])):
+    elif n_loop < 3 or (n_loop == 3 and face_exists(faces, vf, vdeg, loop[0], loop[1], loop[2])):
         # A valence-3 vertex whose loop already is a triangle tops a tetrahedron: deleting it
         # would leave that triangle twice.
         return -1
     for k in range(n_loop):
         buf[k] = k
-    if not _unit_normal_sum(fn, 0, n, n, nrm):
+    if not unit_normal_sum(fn, 0, n, n, nrm):
         return -1
     ntri, top = _split_loop(
         pts, faces, vf, vdeg, loop, n_loop, buf, 0, n_loop, n_loop, nrm, scratch, 0
@@ -520,170 +385,7 @@ def _retriangulate(pts, faces, vf, vdeg, loop, n_loop, fn, n, vtype, p, q, buf, 
     return ntri
 
 
-# --------------------------------------------------------------------------- accumulated error
-
-
-@njit(cache=True, inline="always")
-def _cross2(ax, ay, bx, by):
-    return ax * by - ay * bx
-
-
-@njit(cache=True, **NO_REFCOUNT)
-def _overlay_gap(pts, v, fn, n, loop, n_loop, tris, ntri, nrm, xyh, limit):
-    """A bound (mm) on the two-sided distance between v's fan and the ntri triangles that
-    fill its hole (loop positions in tris), or inf where this bound does not apply (the
-    deletion is then refused).
-
-    Both surfaces are seen along the fan's mean normal N. Where every fan triangle and every
-    new triangle faces along N, and each covers the loop's outline once, both are graphs
-    of a height over that outline: a point of one lies straight above (or below) a point of
-    the other, so their distance, either way, is at most the difference of the two heights
-    there (nrm, xyh: scratch for N and the loop's coordinates). That difference is
-    linear where a fan triangle and a new triangle overlap, so it is largest at a corner of
-    such an overlap: v itself, or where a spoke (v to a loop vertex) crosses a new chord;
-    the loop vertices and edges lie on both (0). An open fan
-    (a boundary vertex) reaches past the chord that closes its loop: there the fan's
-    distance to that chord, largest at v or where a spoke crosses it, bounds it.
-
-    A bound, not a sample: with the error each triangle already carries (see _try_delete)
-    the whole surface stays within it however deletions chain, where a share measured at
-    points (v, midpoints, centroids) misses where the surfaces part between them
-    (benchmarks/bounds.py's "dense max"). Returns as soon as it passes limit.
-    """
-    if not _unit_normal_sum(fn, 0, n, n, nrm):
-        return np.inf
-    nx, ny, nz = nrm[0], nrm[1], nrm[2]
-    for k in range(n):
-        if fn[k, 0] * nx + fn[k, 1] * ny + fn[k, 2] * nz <= 0.0:
-            return np.inf  # a fan triangle folded back: no height over the outline
-    ex, ey, ez, fx, fy, fz = _frame(nx, ny, nz)
-    # v relative: coordinates stay small, so the areas below keep their digits
-    ox, oy, oz = pts[v, 0], pts[v, 1], pts[v, 2]
-    closed = n_loop == n
-    # loop vertices' (x, y, h); v is (0, 0, 0)
-    xs, ys, hs = xyh[:, 0], xyh[:, 1], xyh[:, 2]
-    for k in range(n_loop):
-        u = loop[k]
-        dx, dy, dz = pts[u, 0] - ox, pts[u, 1] - oy, pts[u, 2] - oz
-        xs[k] = ex * dx + ey * dy + ez * dz
-        ys[k] = fx * dx + fy * dy + fz * dz
-        hs[k] = nx * dx + ny * dy + nz * dz
-    outline = 0.0  # twice the loop polygon's area (closed by the chord from its last to first)
-    scale = 0.0
-    for k in range(n_loop):
-        j = (k + 1) % n_loop
-        outline += _cross2(xs[k], ys[k], xs[j], ys[j])
-        scale += xs[k] * xs[k] + ys[k] * ys[k]
-    fan = 0.0
-    for k in range(n if closed else n_loop - 1):
-        j = (k + 1) % n_loop
-        fan += _cross2(xs[k], ys[k], xs[j], ys[j])
-    patch = 0.0
-    for t in range(ntri):
-        a, b, c = tris[t, 0], tris[t, 1], tris[t, 2]
-        area = _cross2(xs[b] - xs[a], ys[b] - ys[a], xs[c] - xs[a], ys[c] - ys[a])
-        if area <= 0.0:
-            return np.inf  # a new triangle folded back
-        patch += area
-    tol = 1e-9 * scale
-    if abs(patch - outline) > tol:
-        return np.inf
-    gap = 0.0
-    if closed:
-        if abs(fan - outline) > tol:
-            return np.inf  # the fan winds round v more than once
-        # v's height over the new triangle beneath it (the one it lies in most)
-        best, height = -np.inf, 0.0
-        for t in range(ntri):
-            a, b, c = tris[t, 0], tris[t, 1], tris[t, 2]
-            area = _cross2(xs[b] - xs[a], ys[b] - ys[a], xs[c] - xs[a], ys[c] - ys[a])
-            la = _cross2(xs[b], ys[b], xs[c], ys[c]) / area
-            lb = _cross2(xs[c], ys[c], xs[a], ys[a]) / area
-            lc = 1.0 - la - lb
-            inside = min(la, lb, lc)
-            if inside > best:
-                best, height = inside, la * hs[a] + lb * hs[b] + lc * hs[c]
-        gap = abs(height)
-    else:
-        # past the closing chord: v, beyond it or on it (a straight border; else the
-        # outlines differ), to that chord
-        a, b = n_loop - 1, 0
-        beyond = _cross2(xs[b] - xs[a], ys[b] - ys[a], -xs[a], -ys[a])
-        if beyond < -tol or abs(fan - outline - beyond) > tol:
-            return np.inf
-        ax, ay, az = pts[loop[a], 0] - ox, pts[loop[a], 1] - oy, pts[loop[a], 2] - oz
-        bx, by, bz = pts[loop[b], 0] - ox, pts[loop[b], 1] - oy, pts[loop[b], 2] - oz
-        gap = math.sqrt(segment_sq(0.0, 0.0, 0.0, ax, ay, az, bx, by, bz))
-    if gap > limit:
-        return gap
-    for i in range(n_loop):
-        for t in range(ntri):
-            for e in range(3):
-                a, b = tris[t, e], tris[t, (e + 1) % 3]
-                if a == i or b == i:
-                    continue
-                lo, hi = min(a, b), max(a, b)
-                if hi - lo == 1 or (closed and lo == 0 and hi == n_loop - 1):
-                    continue  # a loop edge: on the fan too
-                # spoke 0 -> i against chord a -> b, in the plane
-                sx, sy = xs[b] - xs[a], ys[b] - ys[a]
-                d = _cross2(xs[i], ys[i], sx, sy)
-                if d == 0.0:
-                    # parallel: no crossing, or (the chord through v) an overlap whose ends,
-                    # v and loop vertices, are measured already
-                    continue
-                s = _cross2(xs[a], ys[a], sx, sy) / d  # along the spoke
-                r = _cross2(xs[a], ys[a], xs[i], ys[i]) / d  # along the chord
-                if 0.0 <= s <= 1.0 and 0.0 <= r <= 1.0:
-                    gap = max(gap, abs(s * hs[i] - (hs[a] + r * (hs[b] - hs[a]))))
-                    if gap > limit:
-                        return gap
-    return gap
-
-
 # --------------------------------------------------------------------------- mesh update
-
-
-@njit(cache=True, inline="always")
-def _commit(v, faces, alive, vf, vdeg, fan, n, loop, n_loop, tris, ntri, count):
-    """Replace v's fan by the new triangles (tris: loop positions), reusing the fan's face slots.
-
-    count is a scratch array of at least n_loop ints. Returns False, with nothing changed,
-    when a loop vertex would carry more triangles than its row holds.
-    """
-    cap = vf.shape[1]
-    closed = n_loop == n
-    count[:n_loop] = 0
-    for t in range(ntri):
-        for c in range(3):
-            count[tris[t, c]] += 1
-    for t in range(n_loop):
-        in_fan = 2 if closed or 0 < t < n_loop - 1 else 1
-        if vdeg[loop[t]] - in_fan + count[t] > cap:
-            return False
-    for t in range(n_loop):
-        u = loop[t]
-        # Loop vertex t sat in fan triangles t - 1 and t (one of them at the ends of an open fan).
-        f_prev = fan[t - 1] if t > 0 else (fan[n - 1] if closed else -1)
-        f_next = fan[t] if t < n else -1
-        w = 0
-        for k in range(vdeg[u]):
-            f = vf[u, k]
-            if f != f_prev and f != f_next:
-                vf[u, w] = f
-                w += 1
-        vdeg[u] = w
-    for t in range(ntri):
-        f = fan[t]
-        for c in range(3):
-            u = loop[tris[t, c]]
-            faces[f, c] = u
-            vf[u, vdeg[u]] = f
-            vdeg[u] += 1
-    for t in range(ntri, n):
-        alive[fan[t]] = False
-    vdeg[v] = 0
-    return True
 
 
 @njit(cache=True, inline="always")
@@ -693,10 +395,10 @@ def _deletion_bound(v, pts, faces, vf, vdeg, feature_cos, scratch_i, scratch_f):
     fan, loop, a_s, b_s = scratch_i[0], scratch_i[1], scratch_i[2], scratch_i[3]
     fn = scratch_f[0]
     n = vdeg[v]
-    n_loop, closed = _order_fan(v, faces, vf, vdeg, fan, loop, a_s, b_s)
+    n_loop, closed = order_fan(v, faces, vf, vdeg, fan, loop, a_s, b_s)
     if n_loop < 0:
         return np.inf, COMPLEX, -1, -1, n_loop
-    _fan_normals(pts, faces, fan, n, fn)
+    fan_normals(pts, faces, fan, n, fn)
     vtype, p, q = _classify(fn, n, closed, feature_cos)
     if vtype == CORNER:
         return np.inf, vtype, p, q, n_loop
@@ -744,13 +446,13 @@ def _try_delete(
     spent = 0.0
     if len(terr) > 0:
         # nrm and xyh, the split's, are free once the hole is filled
-        spent = carried + _overlay_gap(
+        spent = carried + overlay_gap(
             pts, v, fn, n, loop, n_loop, tris, ntri, nrm, xyh, bound - carried
         )
         if spent > bound:
             vmin[v] = spent
             return -1
-    if not _commit(v, faces, alive, vf, vdeg, fan, n, loop, n_loop, tris, ntri, a_s):
+    if not commit(v, faces, alive, vf, vdeg, fan, n, loop, n_loop, tris, ntri, a_s):
         return -1
     if len(terr) > 0:
         for t in range(ntri):
@@ -768,7 +470,7 @@ def _decimate_pass(
 
     Vertices whose cached vmin (see _try_delete) exceeds the bound are skipped, so a pass with
     a raised bound only looks again at the vertices it might now delete. Without the GIL:
-    passes over vertex sets that share no neighbour run side by side (see _domains).
+    passes over vertex sets that share no neighbour run side by side (see miss.decimate._fan.domains).
     Returns (n_alive, vertices removed in this pass).
     """
     cap = vf.shape[1]
@@ -776,7 +478,7 @@ def _decimate_pass(
     scratch_i = (
         np.zeros(cap, np.int32),
         np.zeros(cap + 1, np.int32),
-        np.zeros(cap + 1, np.int32),  # also counts per loop position in _commit
+        np.zeros(cap + 1, np.int32),  # also counts per loop position in commit
         np.zeros(cap, np.int32),
         np.zeros(2 * (cap + 4) ** 2, np.int32),
         np.zeros((2 * cap + 8, 2), np.int32),
@@ -813,24 +515,6 @@ def _pass_loop(
     return n_alive, removed
 
 
-@njit(cache=True)
-def _vertex_faces(faces, n_vertices, min_cap):
-    """Vertex -> face table: (N, cap) int32 rows of face ids and (N,) int32 row lengths."""
-    vdeg = np.zeros(n_vertices, np.int32)
-    for f in range(faces.shape[0]):
-        for c in range(3):
-            vdeg[faces[f, c]] += 1
-    cap = max(min_cap, vdeg.max() if n_vertices > 0 else 0)
-    vf = np.full((n_vertices, cap), -1, np.int32)
-    vdeg[:] = 0
-    for f in range(faces.shape[0]):
-        for c in range(3):
-            u = faces[f, c]
-            vf[u, vdeg[u]] = f
-            vdeg[u] += 1
-    return vf, vdeg
-
-
 # --------------------------------------------------------------------------- public API
 
 
@@ -857,54 +541,8 @@ def _check_inputs(
         raise ValueError(f"max_error is a distance in mm and must be >= 0; got {max_error}")
 
 
-def _slabs(pts: np.ndarray, faces: np.ndarray, count: int) -> np.ndarray:
-    """(N,) int32: the slab of each vertex, ``count`` slabs across the mesh's longest axis
-    cut at quantiles of its vertices (see _domains)."""
-    used = np.zeros(len(pts), dtype=bool)
-    used[faces.ravel()] = True
-    lo, hi = column_bounds(pts[used])  # np.ptp(axis=0) walks (N, 3) with a stride: 20x slower
-    axis = int(np.argmax(hi - lo))
-    cuts = np.quantile(pts[used, axis], np.arange(1, count) / count)
-    return np.searchsorted(cuts, pts[:, axis], side="right").astype(np.int32)
-
-
-@njit(cache=True, nogil=True)
-def _domains(faces, alive, vdeg, slab, count):
-    """The vertices a pass may decimate side by side, slab by slab, and the rest (the guard:
-    the corners of every live triangle that spans two slabs), each in index order. Returns
-    (order, starts): slab d's vertices are order[starts[d]:starts[d + 1]], the guard's
-    order[starts[count]:].
-
-    A slab's vertices then have neighbours in their own slab only, and no two slabs share a
-    neighbour. Deleting a vertex joins its neighbours, so that stays true while the guard
-    stays (a slab's deletions join vertices of that slab): each slab's deletions read and
-    write only its own vertices' rows and the triangles that touch them, whatever the other
-    slabs do, and the result is the same however the slabs are run.
-    """
-    guard = np.zeros(len(slab), dtype=np.bool_)
-    for f in range(len(faces)):
-        if alive[f]:
-            a, b, c = slab[faces[f, 0]], slab[faces[f, 1]], slab[faces[f, 2]]
-            if a != b or b != c:
-                guard[faces[f, 0]] = guard[faces[f, 1]] = guard[faces[f, 2]] = True
-    starts = np.zeros(count + 2, dtype=np.int64)
-    for v in range(len(slab)):
-        if vdeg[v] > 0:
-            starts[(count if guard[v] else slab[v]) + 1] += 1
-    for d in range(1, count + 2):
-        starts[d] += starts[d - 1]
-    order = np.empty(starts[count + 1], dtype=np.int32)
-    fill = starts[:-1].copy()
-    for v in range(len(slab)):
-        if vdeg[v] > 0:
-            d = count if guard[v] else slab[v]
-            order[fill[d]] = v
-            fill[d] += 1
-    return order, starts
-
-
 def _slab_count(n_faces: int, whole_passes: int) -> int:
-    """Slabs for a run (see _domains): one per ``_SLAB_FACES`` triangles, a power of two up to
+    """Slabs for a run (see miss.decimate._fan.domains): one per ``_SLAB_FACES`` triangles, a power of two up to
     ``_MAX_SLABS``; one (the plain serial run) under the paper's whole passes, which must
     visit every vertex in index order. Set by the mesh alone, not by the machine, so that the
     output is the same on any machine."""
@@ -923,7 +561,7 @@ def _run_passes(
     """Passes with a rising bound until n_alive <= target or a pass at max_error removes
     nothing. Edits faces in place; returns (alive mask, passes, last bound, vertices removed).
 
-    A large mesh's passes run in slabs (see _domains), side by side on up to as many threads
+    A large mesh's passes run in slabs (see miss.decimate._fan.domains), side by side on up to as many threads
     as there are cores, each slab stopping at its share of the triangles to remove; then
     the same pass, serially, over the guard between the slabs. The slabs are set again
     before each pass, so every vertex meets every bound of the schedule.
@@ -936,7 +574,7 @@ def _run_passes(
     alive = np.ones(len(faces), dtype=bool)
     heard = done or (lambda fraction: None)
     to_remove = max(len(faces) - target, 1)
-    vf, vdeg = _vertex_faces(faces, len(pts), _VALENCE_CAP)
+    vf, vdeg = vertex_faces(faces, len(pts), _VALENCE_CAP)
     vmin = np.zeros(len(pts), dtype=np.float64)
     terr = np.zeros(len(faces) if accumulate else 0, dtype=np.float64)
     everything = np.arange(len(pts), dtype=np.int32)
@@ -963,7 +601,7 @@ def _run_passes(
                 break
         return alive, passes, bound, removed_total
     count = _slab_count(len(faces), whole_passes)
-    slab = _slabs(pts, faces, count) if count > 1 else None
+    slab = slabs(pts, faces, count) if count > 1 else None
     pool = (
         ThreadPoolExecutor(min(count, os.cpu_count() or 1), thread_name_prefix="miss-slab")
         if count > 1
@@ -973,7 +611,7 @@ def _run_passes(
         while True:
             removed, visit = 0, everything
             if slab is not None and pool is not None:
-                order, starts = _domains(faces, alive, vdeg, slab, count)
+                order, starts = domains(faces, alive, vdeg, slab, count)
                 sizes = np.diff(starts[: count + 1]).astype(np.float64)
                 # each slab stops at its share (by vertices) of the triangles to remove
                 share = (n_alive - target) / max(sizes.sum(), 1.0)

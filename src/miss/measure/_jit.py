@@ -615,7 +615,7 @@ def bound_check(
 
     ``centroids`` False leaves the new triangles' centroids out (``faces`` and ``face_mm``
     empty), for an output whose bound holds by construction (schroeder's: see
-    :func:`miss.decimate._schroeder._overlay_gap`), where the check measures what the contract
+    :func:`miss.decimate._fan.overlay_gap`), where the check measures what the contract
     names, every input vertex and every output vertex and edge midpoint, and not a point
     more: on the 15 surfaces and bounds of ``benchmarks/bounds.py`` no centroid was ever the
     farthest point (the largest was an input vertex at 13, an edge midpoint at 2), and they

@@ -1,0 +1,178 @@
+"""Bounded half-edge collapse against schroeder and the unbounded quadric: triangles and time.
+
+    .venv/bin/python benchmarks/collapse.py [--cases a,b] [--runs 3] [--out DIR]
+                                            [--dense-samples N]
+
+For each surface and bound (a fraction of the bounding-box diagonal), MISS's two bounded
+methods run as a job runs them (``decimate(..., reduce=0.99)``, the guaranteed schedule:
+the bound decides where they stop, and the run is checked, :func:`miss.measure.bound_check`),
+and MISS's unbounded quadric as before bounds were held (to 10 %, nothing checked). Each is
+timed ``--runs`` times (the median reported): the whole call, and within it the
+decimation's and the check's seconds from the report. Each bounded output is also measured
+densely here (:func:`miss.measure._jit.between`, seed 5), not by the method. Writes
+``results/collapse.{json,md}``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from paper import machine
+
+import miss
+from miss.demo import phantom
+from miss.measure._jit import between
+from miss.types import Mesh
+
+RESULTS = Path(__file__).resolve().parent / "results"
+REDUCE = 0.99
+DATASETS = Path(
+    os.environ.get("MISS_DATASETS", Path(__file__).resolve().parents[2] / "shared" / "datasets")
+)
+
+
+def cases(root: Path = DATASETS) -> dict[str, tuple[Path, float, tuple[float, ...]]]:
+    """Surface name -> (volume, level in the volume's units, bounds)."""
+    cthead = root / "ct_head_stanford_cthead" / "CThead.nhdr"
+    return {
+        "CThead bone": (cthead, 1500.0, (0.002, 0.0005)),
+        "CThead skin": (cthead, 600.0, (0.002, 0.0005)),
+        "MR DICOM head skin": (root / "mr_head_dicom_vsseg001_t1", 270.0, (0.002,)),
+    }
+
+
+def _median_run(mesh: Mesh, method: str, bound: float, runs: int) -> dict[str, Any]:
+    """Median seconds of ``runs`` bounded runs (whole call, decimation, check), the last
+    run's output and report."""
+    walls, cpus, decimating, checking = [], [], [], []
+    for _ in range(runs):
+        start, cpu = time.perf_counter(), time.process_time()
+        out, report = miss.decimate(mesh, method, REDUCE, bound)
+        walls.append(time.perf_counter() - start)
+        cpus.append(time.process_time() - cpu)
+        decimating.append(report.seconds)
+        checking.append(report.measure_seconds)
+    return {
+        "out": out,
+        "report": report,
+        "seconds": statistics.median(walls),
+        "cpu_seconds": statistics.median(cpus),
+        "decimate_seconds": statistics.median(decimating),
+        "check_seconds": statistics.median(checking),
+    }
+
+
+def unbounded(mesh: Mesh, runs: int) -> tuple[int, float, float]:
+    """MISS's quadric as before bounds were held (to 10 %, unchecked): (triangles, median
+    wall s, median CPU s)."""
+    walls, cpus, out = [], [], mesh
+    for _ in range(runs):
+        start, cpu = time.perf_counter(), time.process_time()
+        out = miss.decimate(mesh, "quadric", 0.9, 0.0002, schedule="paper", measure=False)[0]
+        walls.append(time.perf_counter() - start)
+        cpus.append(time.process_time() - cpu)
+    return out.n_triangles, statistics.median(walls), statistics.median(cpus)
+
+
+def bench_case(
+    mesh: Mesh, bounds: tuple[float, ...], runs: int, samples: int, log: Any
+) -> dict[str, Any]:
+    """Rows per bound for one surface."""
+    triangles, reference, reference_cpu = unbounded(mesh, runs)
+    case: dict[str, Any] = {"triangles_in": mesh.n_triangles, "diagonal_mm": mesh.diagonal(),
+                            "quadric_triangles": triangles, "quadric_seconds": reference,
+                            "quadric_cpu_seconds": reference_cpu,
+                            "bounds": {}}  # fmt: skip
+    for bound in bounds:
+        rows = []
+        for method in ("collapse", "schroeder"):
+            run = _median_run(mesh, method, bound, runs)
+            report = run.pop("report")
+            out = run.pop("out")
+            dense = between(mesh, out, samples, seed=5)
+            rows.append({"method": method, "triangles": out.n_triangles, **run,
+                         "max_mm": report.max_error_mm, "dense_max_mm": dense,
+                         "bound_mm": report.bound_mm, "rounds": report.rounds,
+                         "holds_densely": dense <= report.bound_mm + 1e-6 * mesh.diagonal(),
+                         "over_quadric": run["seconds"] / reference})  # fmt: skip
+            log(f"  {bound} {method}: {out.n_triangles} triangles, {run['seconds']:.2f} s")
+        case["bounds"][str(bound)] = rows
+    return case
+
+
+def markdown(result: dict[str, Any]) -> str:
+    lines = [
+        "| surface | triangles in | bound | method | triangles | vs schroeder | seconds "
+        "(decimate + check) | x unbounded quadric | CPU s | CPU x quadric | max mm (check) | dense max mm | bound mm "
+        "| holds densely |\n",
+        "| --- | ---: | ---: | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: "
+        "| --- |\n",
+    ]
+    for name, case in result["cases"].items():
+        lines.append(
+            f"| {name} | {case['triangles_in']} | - | quadric, unbounded (to 10 %) "
+            f"| {case['quadric_triangles']} | | {case['quadric_seconds']:.3f} | 1.0 "
+            f"| {case['quadric_cpu_seconds']:.3f} | 1.0 | | | | |\n"
+        )
+        for bound, rows in case["bounds"].items():
+            schroeder = next(r for r in rows if r["method"] == "schroeder")["triangles"]
+            for r in rows:
+                lines.append(
+                    f"| {name} | {case['triangles_in']} | {bound} | {r['method']} "
+                    f"| {r['triangles']} | {r['triangles'] / schroeder - 1:+.1%} "
+                    f"| {r['seconds']:.3f} ({r['decimate_seconds']:.3f} + "
+                    f"{r['check_seconds']:.3f}) | {r['over_quadric']:.1f} | {r['cpu_seconds']:.3f} "
+                    f"| {r['cpu_seconds'] / case['quadric_cpu_seconds']:.1f} | {r['max_mm']:.4f} "
+                    f"| {r['dense_max_mm']:.4f} | {r['bound_mm']:.4f} "
+                    f"| {'yes' if r['holds_densely'] else 'no'} |\n"
+                )
+    return "".join(lines)
+
+
+def run(out: Path, names: list[str] | None, runs: int, samples: int, log: Any) -> dict[str, Any]:
+    """Measure every case (all by default), write ``collapse.{json,md}`` into ``out``."""
+    chosen = {k: v for k, v in cases().items() if names is None or k in names}
+    warm = miss.extract_surface(phantom(48, spacing=4.0), 200.0)
+    for method in ("quadric", "schroeder", "collapse"):
+        miss.decimate(warm, method, 0.9, 0.001)  # numba's kernels loaded before timing
+    result: dict[str, Any] = {"machine": machine(), "reduce": REDUCE, "runs": runs, "cases": {}}
+    volumes: dict[Path, miss.Volume] = {}
+    for name, (path, level, bounds) in chosen.items():
+        if path not in volumes:
+            volumes[path] = miss.load_volume(path)
+        log(name)
+        mesh = miss.extract_surface(volumes[path], level, normals=False)
+        result["cases"][name] = bench_case(mesh, bounds, runs, samples, log)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "collapse.json").write_text(json.dumps(result, indent=1))
+    (out / "collapse.md").write_text(markdown(result))
+    return result
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--cases", default=None, help="comma-separated names (default: all)")
+    parser.add_argument("--runs", type=int, default=3, help="timed runs per row (median)")
+    parser.add_argument("--dense-samples", type=int, default=200_000, metavar="N")
+    parser.add_argument("--out", default=str(RESULTS), help="folder for JSON and Markdown")
+    args = parser.parse_args(argv)
+    names = args.cases.split(",") if args.cases else None
+    unknown = set(names or ()) - set(cases())
+    if unknown:
+        print(f"unknown case(s) {sorted(unknown)}; choose from {sorted(cases())}", file=sys.stderr)
+        return 2
+    log = lambda line: print(line, file=sys.stderr, flush=True)  # noqa: E731
+    result = run(Path(args.out), names, args.runs, args.dense_samples, log)
+    print(markdown(result))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
