@@ -11,7 +11,7 @@ import pytest
 from test_blocks import FLOAT32_ROUNDING_MM, assert_same_surface
 
 from miss.io import load_volume
-from miss.pipeline import run
+from miss.pipeline import STAGE_SPANS, run
 from miss.server.storage import chunked
 from miss.spec import JobSpec
 from miss.structures.block_components import blockwise_components
@@ -135,9 +135,12 @@ def test_a_job_on_a_lazy_volume_keeps_its_largest_piece(cthead, lazy_cthead) -> 
     seen: list[tuple[str, float]] = []
     result = run(lazy_cthead, spec, measure=False, progress=lambda s, f: seen.append((s, f)))
     assert result.artifacts["glb"][:4] == b"glTF"
+    # the job's fraction (``pipeline.STAGE_SPANS``): surface runs from its start to its end
+    start, end = STAGE_SPANS["surface"]
     surface = [f for stage, f in seen if stage == "surface"]
-    assert surface == sorted(surface) and surface[-1] == pytest.approx(1.0)
-    assert any(0.0 < f < 0.3 for f in surface)  # the labelling counted too
+    assert surface == sorted(surface) and surface[-1] == pytest.approx(end)
+    labelling = start + 0.3 * (end - start)  # the labelling counted too
+    assert any(start < f < labelling for f in surface)
     assert any(n.endswith(": 125 smaller piece(s) left out") for n in result.scene.notes)
     assert len(result.scene.parts) == 1
 

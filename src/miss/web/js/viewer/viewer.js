@@ -276,6 +276,8 @@ export class ModelViewer {
 		else r.render( this.scene, this.camera );
 		// Read before the gizmo's own render resets the counts.
 		status.drawnTriangles = r.info.render.triangles;
+		// the first frame that drew anything, kept: a test reads it after later frames refined
+		if ( this.model && status.drawnTriangles > 0 ) status.firstDrawnTriangles ??= status.drawnTriangles;
 		if ( this.tiles ) {
 			status.lod = this.tiles.state();
 			this.onDrawn?.( status.drawnTriangles );
