@@ -33,6 +33,15 @@ def cube_scan(tmp_path_factory: pytest.TempPathFactory) -> bytes:
     return path.read_bytes()
 
 
+def upload_cube(page: Any, cube_scan: bytes) -> Any:
+    """The cube scan posted through the page's own session (its CSRF token); the response."""
+    csrf = next(c["value"] for c in page.context.cookies() if c["name"] == "miss_csrf")
+    file = {"name": "cube.nii.gz", "mimeType": "application/gzip", "buffer": cube_scan}
+    return page.request.post(
+        "/api/volumes", headers={"X-CSRF-Token": csrf}, multipart={"file": file}
+    )
+
+
 def canvas(page: Any, path: Path) -> np.ndarray:
     """The canvas once the last change is drawn (two animation frames), as RGB."""
     page.evaluate("() => new Promise((r) => requestAnimationFrame(() => requestAnimationFrame(r)))")
@@ -50,11 +59,7 @@ def around(image: np.ndarray, xy: list[float], r: int = 3) -> np.ndarray:
 def test_volume_rendering_of_a_bright_cube(
     page: Any, server: Any, cube_scan: bytes, artifacts: Path
 ) -> None:
-    csrf = next(c["value"] for c in page.context.cookies() if c["name"] == "miss_csrf")
-    file = {"name": "cube.nii.gz", "mimeType": "application/gzip", "buffer": cube_scan}
-    response = page.request.post(
-        "/api/volumes", headers={"X-CSRF-Token": csrf}, multipart={"file": file}
-    )
+    response = upload_cube(page, cube_scan)
     assert response.status == 201, response.text()
     volume_id = response.json()["id"]
     job = server.post("/api/models", {"volume": volume_id, "level": 1500, "decimate": "none"})
@@ -105,11 +110,7 @@ def frame(page: Any, turn: float, path: Path) -> tuple[str, np.ndarray]:
 def test_turning_draws_fast_frames_then_the_full_one(
     page: Any, server: Any, cube_scan: bytes, artifacts: Path
 ) -> None:
-    csrf = next(c["value"] for c in page.context.cookies() if c["name"] == "miss_csrf")
-    file = {"name": "cube.nii.gz", "mimeType": "application/gzip", "buffer": cube_scan}
-    response = page.request.post(
-        "/api/volumes", headers={"X-CSRF-Token": csrf}, multipart={"file": file}
-    )
+    response = upload_cube(page, cube_scan)
     assert response.status == 201, response.text()
     job = server.post("/api/models", {"volume": response.json()["id"], "level": 1500})
     assert server.wait_model(job["id"])["status"] == "done"
@@ -147,11 +148,7 @@ def test_a_guest_sees_the_scan_only_when_the_link_offers_it(
     Volume section at all."""
     from conftest import LAPTOP
 
-    csrf = next(c["value"] for c in page.context.cookies() if c["name"] == "miss_csrf")
-    file = {"name": "cube.nii.gz", "mimeType": "application/gzip", "buffer": cube_scan}
-    response = page.request.post(
-        "/api/volumes", headers={"X-CSRF-Token": csrf}, multipart={"file": file}
-    )
+    response = upload_cube(page, cube_scan)
     volume_id = response.json()["id"]
     job = server.post("/api/models", {"volume": volume_id, "level": 1500, "decimate": "none"})
     assert server.wait_model(job["id"])["status"] == "done"

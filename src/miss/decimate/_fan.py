@@ -390,3 +390,19 @@ def domains(faces, alive, vdeg, slab, count):
             order[fill[d]] = v
             fill[d] += 1
     return order, starts
+
+
+def warm_sphere() -> tuple[np.ndarray, np.ndarray]:
+    """A small closed sphere, (points (N, 3) float64, faces (F, 3) int32): what each
+    bounded method's ``warm_up`` decimates to compile (or load) its kernels."""
+    import vtk
+    from vtk.util import numpy_support
+
+    source = vtk.vtkSphereSource()
+    source.SetThetaResolution(24)
+    source.SetPhiResolution(24)
+    source.Update()
+    poly = source.GetOutput()
+    pts = numpy_support.vtk_to_numpy(poly.GetPoints().GetData()).astype(np.float64)
+    faces = numpy_support.vtk_to_numpy(poly.GetPolys().GetConnectivityArray()).reshape(-1, 3)
+    return pts, faces.astype(np.int32)

@@ -57,6 +57,7 @@ from miss.decimate._fan import (
     slabs,
     unit_normal_sum,
     vertex_faces,
+    warm_sphere,
 )
 from miss.measure.distance import NO_REFCOUNT
 from miss.types import column_bounds
@@ -731,14 +732,5 @@ def warm_up() -> None:
     ``make`` calls this after installing so that tests and the server's worker
     processes load compiled code instead of racing to compile it at the same time.
     """
-    import vtk
-    from vtk.util import numpy_support
-
-    source = vtk.vtkSphereSource()
-    source.SetThetaResolution(24)
-    source.SetPhiResolution(24)
-    source.Update()
-    poly = source.GetOutput()
-    pts = numpy_support.vtk_to_numpy(poly.GetPoints().GetData()).astype(np.float64)
-    faces = numpy_support.vtk_to_numpy(poly.GetPolys().GetConnectivityArray()).reshape(-1, 3)
-    schroeder_decimate(pts, faces.astype(np.int32), reduce=0.5, error_bound=0.01)
+    pts, faces = warm_sphere()
+    schroeder_decimate(pts, faces, reduce=0.5, error_bound=0.01)

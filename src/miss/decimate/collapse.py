@@ -146,14 +146,7 @@ def _slab_count(n_faces: int) -> int:
 
 def warm_up() -> None:
     """Compile (or load from numba's cache) collapse's kernels now, on a small sphere."""
-    import vtk
-    from vtk.util import numpy_support
+    from miss.decimate._fan import warm_sphere
 
-    source = vtk.vtkSphereSource()
-    source.SetThetaResolution(24)
-    source.SetPhiResolution(24)
-    source.Update()
-    poly = source.GetOutput()
-    pts = numpy_support.vtk_to_numpy(poly.GetPoints().GetData()).astype(np.float32)
-    faces = numpy_support.vtk_to_numpy(poly.GetPolys().GetConnectivityArray()).reshape(-1, 3)
-    collapse(Mesh(pts, faces.astype(np.int32)), 0.5, 0.01)
+    pts, faces = warm_sphere()
+    collapse(Mesh(pts.astype(np.float32), faces), 0.5, 0.01)
