@@ -99,6 +99,23 @@ def test_interrupted_twice_fails_with_reason(tmp_path: Path) -> None:
     store.close()
 
 
+def test_a_supervisor_fails_only_the_run_it_started(tmp_path: Path) -> None:
+    """A worker's exit seen after its job finished and was claimed again (another pid)
+    must not fail the new run nor remove its files: CI once lost a model this way."""
+    store = Store(tmp_path, Settings(data_dir=tmp_path).database_url)
+    store.init()
+    with store.session.begin() as s:
+        s.add(VolumeRow(id="v", name="v", slug="v", info={}))
+        s.flush()
+        s.add(ModelRow(id="m", volume_id="v", key="a", status=RUNNING, pid=4242))
+    state = JobState(store)
+    assert not state.fail("m", "worker ended without recording a result", pid=1111)
+    assert store.get_model("m").status == RUNNING
+    assert state.fail("m", "worker ended without recording a result", pid=4242)
+    assert store.get_model("m").status == FAILED
+    store.close()
+
+
 def test_second_server_on_same_data_dir_refuses(
     data_dir: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

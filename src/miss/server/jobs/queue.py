@@ -200,7 +200,7 @@ class JobQueue:
             reason = crash_reason(code, read_log(log_path, offset), self.cpu_seconds)
         else:
             reason = "worker ended without recording a result; see its worker.log."
-        if self.state.fail(model_id, reason):
+        if self.state.fail(model_id, reason, pid=proc.pid):
             remove_outputs(self.store.model_dir(model_id))  # no half model stays
             log.warning("job %s: %s", model_id, reason)
         elif self.state.status(model_id) == FAILED:  # cancelled: what it wrote since goes too

@@ -168,11 +168,14 @@ class JobState:
             finished_at=utcnow(),
         )
 
-    def fail(self, model_id: str, reason: str) -> bool:
+    def fail(self, model_id: str, reason: str, pid: int | None = None) -> bool:
         """Mark a running job failed with a reason a physician can act on; it lists no
-        files nor preview (the failed run's are removed)."""
+        files nor preview (the failed run's are removed). With ``pid``, only while that
+        worker still runs it: a supervisor never fails a run it did not start (the job
+        finished, then was claimed again, before its worker's exit was seen)."""
         return self._ended(
             model_id,
+            *([ModelRow.pid == pid] if pid is not None else []),
             status=FAILED,
             error=reason,
             pid=None,
@@ -193,9 +196,10 @@ class JobState:
             turn.done(self.store.model_dir(model_id))
         return ended
 
-    def _ended(self, model_id: str, **values: Any) -> bool:
-        """A running job's row set to ``values``; its folder keeps no viewer's word."""
-        ended = self.store.update_model(model_id, ModelRow.status == RUNNING, **values)
+    def _ended(self, model_id: str, *where: Any, **values: Any) -> bool:
+        """A running job's row (and ``where``) set to ``values``; its folder keeps no
+        viewer's word."""
+        ended = self.store.update_model(model_id, ModelRow.status == RUNNING, *where, **values)
         if ended:
             turn.done(self.store.model_dir(model_id))
         return ended
