@@ -6,8 +6,7 @@ from __future__ import annotations
 
 import pytest
 
-from miss.server.core.ratelimit import KeyedBuckets, OverLimit
-from miss.server.routes.auth import LoginLimits
+from miss.server.core.ratelimit import KeyedBuckets, LoginLimits, OverLimit
 
 
 def test_a_locked_account_cannot_be_pushed_out() -> None:

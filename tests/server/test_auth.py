@@ -13,8 +13,9 @@ from fastapi.testclient import TestClient
 
 from miss.cli import main as cli
 from miss.server.app import create_app
+from miss.server.core.deps import get_login_limits
+from miss.server.core.ratelimit import LoginLimits
 from miss.server.core.settings import Settings
-from miss.server.routes.auth import failed_login_limits, get_login_limits
 
 PUBLIC = {"/api/auth/login", "/api/health"}
 
@@ -101,7 +102,7 @@ def test_pages_redirect_to_login(client: TestClient) -> None:
 
 def test_failed_logins_are_rate_limited(make_client) -> None:
     c = make_client()
-    fresh = failed_login_limits()  # no attempt counted yet
+    fresh = LoginLimits()  # no attempt counted yet
     c.app.dependency_overrides[get_login_limits] = lambda: fresh
     wrong = {"username": "admin", "password": "guess-guess"}
     codes = [c.post("/api/auth/login", json=wrong).status_code for _ in range(12)]

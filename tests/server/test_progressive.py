@@ -249,6 +249,29 @@ def test_a_spares_warm_up_runs_below_the_job_it_waits_for(make_client: Any) -> N
     client.app.state.queue.stop()
 
 
+def test_a_job_that_comes_early_waits_for_one_warm_up_step_not_all() -> None:
+    """Issue 39: a job that came while its spare warmed up had waited, at WORKER_NICE,
+    for the whole warm-up running at WARM_UP_NICE behind everything (1-2 s under load).
+    It waits for the step under way; the job does the rest itself."""
+    from miss.server.jobs.worker import warm_up_behind
+
+    ran: list[str] = []
+    inside, release = threading.Event(), threading.Event()
+
+    def slow() -> None:
+        inside.set()
+        release.wait(10)
+        ran.append("slow")
+
+    warming = warm_up_behind([lambda: ran.append("first"), slow, lambda: ran.append("last")])
+    assert inside.wait(10)
+    warming.stop.set()  # the job comes
+    release.set()
+    warming.join(10)
+    assert not warming.is_alive()
+    assert ran == ["first", "slow"] and warming.done == 2
+
+
 @pytest.mark.slow
 def test_without_spares_each_job_starts_its_own_worker(make_client: Any, wait_done: Any) -> None:
     client = make_client(demo=True, spare_workers=0)

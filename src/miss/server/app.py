@@ -21,6 +21,7 @@ from miss.server.core.headers import SecurityHeaders
 from miss.server.core.ratelimit import (
     ApiLimits,
     JobLimit,
+    LoginLimits,
     OpenStreams,
     OverLimit,
     PasswordChecks,
@@ -163,7 +164,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:  # noqa: PLR0915 (t
     app.state.bytes = ByteCaches()
     app.state.metrics = Metrics(settings.data_dir)
     app.state.metrics.watch(lambda: getattr(app.state, "store", None))
-    app.state.failed_logins = auth.failed_login_limits()
+    app.state.failed_logins = LoginLimits()
     app.state.password_checks = PasswordChecks(settings.password_checks)
     app.state.api_limits = ApiLimits(settings.api_rate, settings.api_burst)
     app.state.ws_connects = ws_connect_limits(settings.ws_connects_per_minute)

@@ -19,9 +19,11 @@ an uploaded volume's model goes, if ``MISS_PACS_SEND_UPLOADS`` allows, as a new 
 from __future__ import annotations
 
 import builtins
+import contextlib
 import io
 import json
 import logging
+import os
 import shutil
 import threading
 import zipfile
@@ -83,6 +85,13 @@ def fail_interrupted(store: Store) -> None:
         )
 
 
+def _behind() -> None:
+    """A ``behind`` pool thread's start: its own nice value to ``READ_NICE`` (where the
+    system allows it; a thread that cannot runs at the server's)."""
+    with contextlib.suppress(OSError, AttributeError):
+        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), READ_NICE)
+
+
 #: One waiting import: its id, its owner, its PACS.
 Waiting = tuple[str, User, PacsServer]
 
@@ -96,12 +105,17 @@ class PacsImports:
     not the oldest import: one account's queue never holds up another's import. One
     account runs at most all threads but one at once (at least one), so a thread is free
     for the next account's import even while the first keeps posting; and an import
-    whose account has more imports waiting reads its files behind the server
-    (``READ_NICE``), so a burst of imports leaves the cores to others' requests."""
+    whose account has more imports waiting runs behind the server (``READ_NICE``: its
+    confined reads, and its retrieval, checks and writes on a thread of the ``behind``
+    pool), so a burst of imports leaves the cores to others' requests and jobs."""
 
     def __init__(self, store: Store, settings: Settings, reading: Callable[[], Reading]) -> None:
         self.store, self.settings, self.reading = store, settings, reading
         self.pool = ThreadPoolExecutor(settings.pacs_imports, thread_name_prefix="miss-pacs")
+        # Linux: a thread's nice value is its own; raised once, never lowered (RLIMIT_NICE).
+        self.behind = ThreadPoolExecutor(
+            settings.pacs_imports, thread_name_prefix="miss-pacs-behind", initializer=_behind
+        )
         self._lock = threading.Lock()
         self._waiting: dict[str, deque[Waiting]] = {}  # owner id -> its imports, in order
         self._served: dict[str, int] = {}  # owner id -> when its last import started (turn)
@@ -111,6 +125,7 @@ class PacsImports:
 
     def stop(self) -> None:
         self.pool.shutdown(wait=False, cancel_futures=True)
+        self.behind.shutdown(wait=False, cancel_futures=True)
 
     def submit(
         self, user: User, server: PacsServer, study: str, series: str, segmentation: str
@@ -163,7 +178,10 @@ class PacsImports:
                 del self._waiting[owner]
             busy = owner in self._waiting or self._running[owner] > 1
         try:
-            self._run(import_id, user, server, busy)
+            if busy:  # this account has more imports waiting: the whole import goes behind
+                self.behind.submit(self._run, import_id, user, server, busy).result()
+            else:
+                self._run(import_id, user, server, busy)
         finally:
             with self._lock:
                 self._running[owner] -= 1

@@ -5,6 +5,7 @@ from __future__ import annotations
 import functools
 import os
 from collections.abc import AsyncIterator, Callable
+from dataclasses import dataclass
 from typing import Annotated, ParamSpec, TypeVar
 
 import anyio.to_thread
@@ -16,7 +17,13 @@ from starlette.requests import HTTPConnection
 from miss.server.accounts import User, session_cached
 from miss.server.core.auth import can_see, presented_token, user_for_request
 from miss.server.core.errors import Forbidden, NotFound
-from miss.server.core.ratelimit import ApiLimits, JobLimit, KeyedBuckets, PasswordChecks
+from miss.server.core.ratelimit import (
+    ApiLimits,
+    JobLimit,
+    KeyedBuckets,
+    LoginLimits,
+    PasswordChecks,
+)
 from miss.server.core.settings import Settings
 from miss.server.jobs import JobQueue
 from miss.server.metrics.registry import Metrics
@@ -77,8 +84,27 @@ async def get_password_checks(request: Request) -> PasswordChecks:
     return request.app.state.password_checks
 
 
+async def get_login_limits(request: Request) -> LoginLimits:
+    return request.app.state.failed_logins
+
+
 async def get_metrics(request: Request) -> Metrics:
     return request.app.state.metrics
+
+
+@dataclass(frozen=True)
+class ModelFiles:
+    """What serving a model's files needs: the store, this process's byte caches, and the
+    settings (the size of the cache of formats made on request)."""
+
+    store: Store
+    caches: ByteCaches
+    settings: Settings
+
+
+async def get_model_files(request: Request) -> ModelFiles:
+    state = request.app.state
+    return ModelFiles(state.store, state.bytes, state.settings)
 
 
 P = ParamSpec("P")
@@ -128,6 +154,8 @@ ReadingDep = Annotated[Reading, Depends(get_reading)]
 PacsImportsDep = Annotated[PacsImports, Depends(get_pacs_imports)]
 PasswordChecksDep = Annotated[PasswordChecks, Depends(get_password_checks)]
 MetricsDep = Annotated[Metrics, Depends(get_metrics)]
+LoginLimitsDep = Annotated[LoginLimits, Depends(get_login_limits)]
+ModelFilesDep = Annotated[ModelFiles, Depends(get_model_files)]
 
 
 # The look-ups below run on the event loop when the rows are cached (a viewer's usual

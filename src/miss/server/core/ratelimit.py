@@ -25,6 +25,7 @@ import time
 from collections import OrderedDict
 from collections.abc import Callable, Iterator
 from contextlib import AbstractContextManager, contextmanager
+from datetime import UTC, datetime, timedelta
 from typing import ParamSpec, TypeVar
 
 import anyio
@@ -532,3 +533,45 @@ class PasswordChecks:
             return await run_in_threadpool(fn, *args, **kwargs)
         finally:
             self._turns.release()
+
+
+class LoginLimits:
+    """Login attempts per client address (10 at once, then one every 30 s) and per
+    account name (10, then one a minute, from anywhere): enough for a person who
+    mistypes, far too few to guess a password, and a botnet gets no more tries at one
+    account than a single client.
+
+    An attempt is counted *before* the password is checked, in one locked step per
+    bucket, and given back when the password was right: parallel requests cannot all
+    pass a check that reads the count first and adds to it afterwards. Several server
+    processes keep their counts in step (``ratelimit.SharedBuckets``)."""
+
+    def __init__(self) -> None:
+        self.addresses = KeyedBuckets(capacity=10, rate=1 / 30)
+        self.accounts = KeyedBuckets(capacity=10, rate=1 / 60)
+
+    def attempt(self, address: str, name: str) -> None:
+        """Count one attempt; ``OverLimit`` (429) when the address or account is locked."""
+        wait = self.addresses.take_or_wait(address)
+        if wait > 0:
+            raise OverLimit(
+                f"too many failed logins from {address}; try again in {retry_after(wait)} s "
+                f"({_at(wait)}).",
+                wait,
+            )
+        wait = self.accounts.take_or_wait(name.lower())
+        if wait > 0:
+            self.addresses.give_back(address)
+            raise OverLimit(
+                f"too many failed logins for the account {name!r}: it is locked; try again "
+                f"in {retry_after(wait)} s ({_at(wait)}), or ask an administrator.",
+                wait,
+            )
+
+    def succeeded(self, address: str, name: str) -> None:
+        self.addresses.give_back(address)
+        self.accounts.give_back(name.lower())
+
+
+def _at(wait: float) -> str:
+    return f"at {(datetime.now(UTC) + timedelta(seconds=retry_after(wait))):%H:%M:%S} UTC"

@@ -46,7 +46,7 @@ import sys
 import threading
 import time
 import traceback
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
@@ -72,6 +72,7 @@ from miss.server.storage.store import (
 )
 from miss.server.volumes import labelmaps
 from miss.spec import JobSpec, Loaded
+from miss.types import Volume
 
 #: Seconds between progress writes within one stage: enough for a live bar, light on the DB.
 PROGRESS_INTERVAL = 0.3
@@ -470,16 +471,21 @@ def main(argv: list[str]) -> int:
     try:
         if model_id == "-":
             start = time.monotonic()
-            warming = warm_up_behind(warm_up)
+            warming = warm_up_behind(WARM_UP_STEPS)
             model_id = sys.stdin.readline().strip()
-            warming.join()  # a job that came early: the imports are under way, not twice
+            # A job that came early: the step under way ends (its imports, not twice); the
+            # job does the rest itself at its own priority, not waiting behind WARM_UP_NICE.
+            warming.stop.set()
+            warming.join()
             warm = warming.seconds
             if not model_id:
                 return 3
             log_to(store.model_dir(model_id) / "worker.log")
             waited = time.monotonic() - start - warm
+            steps = len(WARM_UP_STEPS)
+            early = f"{warming.done} of {steps} steps " if warming.done < steps else ""
             print(
-                f"spare worker {os.getpid()} (warmed up in {warm:.2f} s, then waited "
+                f"spare worker {os.getpid()} (warmed up {early}in {warm:.2f} s, then waited "
                 f"{waited:.1f} s) takes job {model_id}",
                 file=sys.stderr,
                 flush=True,
@@ -496,12 +502,15 @@ WARM_UP_NICE = 19
 
 
 class _WarmUp(threading.Thread):
-    """Runs ``work`` at :data:`WARM_UP_NICE` (Linux: a thread's nice value is its own) and
-    keeps how long it took, in seconds, in :attr:`seconds`."""
+    """Runs ``steps`` in turn at :data:`WARM_UP_NICE` (Linux: a thread's nice value is its
+    own) until :attr:`stop` is set; keeps how many ran in :attr:`done` and how long they
+    took, in seconds, in :attr:`seconds`."""
 
-    def __init__(self, work: Callable[[], None]) -> None:
+    def __init__(self, steps: Sequence[Callable[[], None]]) -> None:
         super().__init__(name="miss-warm-up", daemon=True)
-        self.work = work
+        self.steps = steps
+        self.stop = threading.Event()
+        self.done = 0
         self.seconds = 0.0
 
     def run(self) -> None:
@@ -511,48 +520,86 @@ class _WarmUp(threading.Thread):
                 os.PRIO_PROCESS, 0, max(os.getpriority(os.PRIO_PROCESS, 0), WARM_UP_NICE)
             )
         try:
-            self.work()
+            for step in self.steps:
+                if self.stop.is_set():
+                    break
+                step()
+                self.done += 1
         finally:
             self.seconds = time.monotonic() - start
 
 
-def warm_up_behind(work: Callable[[], None]) -> _WarmUp:
-    """Start ``work`` (:func:`warm_up`) in a thread at :data:`WARM_UP_NICE` and return it;
-    the caller waits for its job meanwhile and joins the thread before running it."""
-    thread = _WarmUp(work)
+def warm_up_behind(steps: Sequence[Callable[[], None]]) -> _WarmUp:
+    """Start ``steps`` (:data:`WARM_UP_STEPS`) in a thread at :data:`WARM_UP_NICE` and
+    return it; the caller waits for its job meanwhile, then sets its ``stop`` and joins
+    it before running the job: a job that comes early waits for one step, not all."""
+    thread = _WarmUp(steps)
     thread.start()
     return thread
 
 
-def warm_up() -> None:
-    """Import and run, on a small phantom, everything a job uses (reading a stored volume,
-    VTK, meshoptimizer, the numba kernels, the GLB writer, the kept scene, the measurement),
-    so that a spare worker's job starts computing at once: a few seconds of imports and
-    first calls done before it comes. (Reading is the first thing a job does, before its preview: zarr's
-    import alone took 0.39-0.47 s of a first pixel at 1.2-1.7 s)."""
+def _phantom() -> Volume:
+    from miss.demo import phantom
+
+    return phantom(40, spacing=5.0)
+
+
+def _warm_read() -> None:
+    """Reading is the first thing a job does, before its preview: zarr's import alone
+    took 0.39-0.47 s of a first pixel at 1.2-1.7 s. Best effort: a temporary folder that
+    cannot be written (full, read-only) leaves the read to load on the first job, not a
+    spare that dies."""
     import tempfile
 
-    import numpy as np
-
-    from miss.decimate.schroeder import warm_up as warm_schroeder
-    from miss.demo import phantom
-    from miss.pipeline import run
-    from miss.types import Volume
-
-    head = phantom(40, spacing=5.0)
-    # best effort: a temporary folder that cannot be written (full, read-only) leaves the
-    # read to load on the first job, not a spare that dies
+    head = _phantom()
     with contextlib.suppress(OSError, MissError), tempfile.TemporaryDirectory() as tmp:
         stored = Path(tmp) / "voxels"
         chunked.write_array(stored, head.data, {"affine": head.affine.tolist()})
         chunked.read(stored, in_memory_max=head.data.nbytes)
+
+
+def _warm_decimate() -> None:
+    from miss.decimate.schroeder import warm_up as warm_schroeder
+
     warm_schroeder()
-    # what a job writes itself (the other formats are made on request, by the server)
+
+
+def _warm_surface() -> None:
+    """What a job writes itself (the other formats are made on request, by the server)."""
+    from miss.pipeline import run
+
+    head = _phantom()
     done = run(head, JobSpec.of(level=300, formats=formats.KEPT), export_options=EXPORT_OPTIONS)
     formats.scene_bytes(done.scene, done.title, done.metadata)
+
+
+def _warm_labels() -> None:
+    import numpy as np
+
+    from miss.pipeline import run
+
+    head = _phantom()
     labels = np.asfortranarray((head.data > -500).astype(np.uint8) + (head.data > 300))
     spec = JobSpec.of(labels="all", formats=formats.KEPT)
     run(Volume(labels, head.affine), spec, export_options=EXPORT_OPTIONS)
+
+
+#: What a spare worker loads and runs once, on a small phantom, before its job comes, in
+#: the order a job needs them (reading a stored volume, the numba kernels, VTK and
+#: meshoptimizer with the GLB writer and the kept scene, the label-map path), so that its
+#: job starts computing at once: a few seconds of imports and first calls.
+WARM_UP_STEPS: tuple[Callable[[], None], ...] = (
+    _warm_read,
+    _warm_decimate,
+    _warm_surface,
+    _warm_labels,
+)
+
+
+def warm_up() -> None:
+    """Every step of :data:`WARM_UP_STEPS`, here and now."""
+    for step in WARM_UP_STEPS:
+        step()
 
 
 def log_to(path: Path) -> None:

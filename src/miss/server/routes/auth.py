@@ -3,10 +3,9 @@
 
 from __future__ import annotations
 
-from datetime import UTC, datetime, timedelta
-from typing import Annotated, Any
+from typing import Any
 
-from fastapi import APIRouter, Depends, Request, Response
+from fastapi import APIRouter, Request, Response
 from fastapi.responses import JSONResponse
 from pydantic import BaseModel, ConfigDict, Field
 from starlette.concurrency import run_in_threadpool
@@ -16,6 +15,7 @@ from miss.server import accounts, audit, quota
 from miss.server.core.auth import CSRF_COOKIE, SESSION_COOKIE, presented_token
 from miss.server.core.deps import (
     AdminDep,
+    LoginLimitsDep,
     PasswordChecksDep,
     RoomsDep,
     SettingsDep,
@@ -24,67 +24,13 @@ from miss.server.core.deps import (
 )
 from miss.server.core.errors import Forbidden, Unauthorized
 from miss.server.core.nextpath import safe_next
-from miss.server.core.ratelimit import KeyedBuckets, OverLimit, retry_after
+from miss.server.core.ratelimit import LoginLimits, OverLimit
 from miss.server.core.schemas import JSONRoute
 from miss.server.core.settings import Settings
 from miss.server.rooms import Hub
 from miss.server.storage.store import Store
 
 router = APIRouter(tags=["accounts"], route_class=JSONRoute)
-
-
-class LoginLimits:
-    """Login attempts per client address (10 at once, then one every 30 s) and per
-    account name (10, then one a minute, from anywhere): enough for a person who
-    mistypes, far too few to guess a password, and a botnet gets no more tries at one
-    account than a single client.
-
-    An attempt is counted *before* the password is checked, in one locked step per
-    bucket, and given back when the password was right: parallel requests cannot all
-    pass a check that reads the count first and adds to it afterwards. Several server
-    processes keep their counts in step (``ratelimit.SharedBuckets``)."""
-
-    def __init__(self) -> None:
-        self.addresses = KeyedBuckets(capacity=10, rate=1 / 30)
-        self.accounts = KeyedBuckets(capacity=10, rate=1 / 60)
-
-    def attempt(self, address: str, name: str) -> None:
-        """Count one attempt; ``OverLimit`` (429) when the address or account is locked."""
-        wait = self.addresses.take_or_wait(address)
-        if wait > 0:
-            raise OverLimit(
-                f"too many failed logins from {address}; try again in {retry_after(wait)} s "
-                f"({_at(wait)}).",
-                wait,
-            )
-        wait = self.accounts.take_or_wait(name.lower())
-        if wait > 0:
-            self.addresses.give_back(address)
-            raise OverLimit(
-                f"too many failed logins for the account {name!r}: it is locked; try again "
-                f"in {retry_after(wait)} s ({_at(wait)}), or ask an administrator.",
-                wait,
-            )
-
-    def succeeded(self, address: str, name: str) -> None:
-        self.addresses.give_back(address)
-        self.accounts.give_back(name.lower())
-
-
-def _at(wait: float) -> str:
-    return f"at {(datetime.now(UTC) + timedelta(seconds=retry_after(wait))):%H:%M:%S} UTC"
-
-
-def failed_login_limits() -> LoginLimits:
-    """One set of login limits per app."""
-    return LoginLimits()
-
-
-async def get_login_limits(request: Request) -> LoginLimits:
-    return request.app.state.failed_logins
-
-
-LoginLimitsDep = Annotated[LoginLimits, Depends(get_login_limits)]
 
 
 #: What the audit log records for a failed login with a name that is no account: never

@@ -22,6 +22,8 @@ from miss.server.core.deps import (
     EventStreamDep,
     JobLimitDep,
     ModelDep,
+    ModelFiles,
+    ModelFilesDep,
     QueueDep,
     RoomsDep,
     SettingsDep,
@@ -41,10 +43,8 @@ from miss.server.core.schemas import (
     mime_for,
     model_out,
 )
-from miss.server.core.settings import Settings
 from miss.server.jobs import turn
 from miss.server.storage import formats
-from miss.server.storage.caches import ByteCaches
 from miss.server.storage.db import DONE, FAILED, RUNNING, ModelRow, VolumeRow
 from miss.server.storage.store import LOD_DIR, PREVIEW_FILE, Store, remove_outputs
 from miss.server.volumes import labelmaps
@@ -347,12 +347,13 @@ def _etag_matches(header: str | None, etag: str) -> bool:
     responses={304: {"description": "not modified (ETag)"}, 409: {"description": "not done yet"}},
 )
 async def download(
-    model: ModelDep, fmt: str, request: Request, store: StoreDep, user: UserDep
+    model: ModelDep, fmt: str, request: Request, files: ModelFilesDep, user: UserDep
 ) -> Response:
     """The model file, as an attachment with a readable name; ``Accept: x-world/x-vrml``
     gets VRML under its 1998 type."""
-    cached = file_in_memory(model, fmt, request, store)
-    response = await here_or_threadpool(cached, model_file, model, fmt, request, store)
+    store = files.store
+    cached = file_in_memory(model, fmt, request, files)
+    response = await here_or_threadpool(cached, model_file, model, fmt, request, files)
     if response.status_code == 200 and request.method == "GET":
         where, queued = audit.address(request), store.appender.running
         args = (store, "download", user.name, model.id, where)
@@ -360,12 +361,12 @@ async def download(
     return response
 
 
-def file_in_memory(model: ModelRow, fmt: str, request: Request, store: Store) -> bool:
+def file_in_memory(model: ModelRow, fmt: str, request: Request, files: ModelFiles) -> bool:
     """True when ``model_file`` will answer from this process's memory: the volume's row
     and the whole file (not a range of it) are cached."""
     entry = (model.files or {}).get(fmt) or {}
     etag = entry.get("etag")
-    caches: ByteCaches = request.app.state.bytes
+    store, caches = files.store, files.caches
     return (
         etag is not None
         and not entry.get("on_request")  # made on request: its use is recorded on disk
@@ -375,8 +376,9 @@ def file_in_memory(model: ModelRow, fmt: str, request: Request, store: Store) ->
     )
 
 
-def model_file(model: ModelRow, fmt: str, request: Request, store: Store) -> Response:
+def model_file(model: ModelRow, fmt: str, request: Request, files: ModelFiles) -> Response:
     """A model's file with type, name, ETag (304 when unchanged): for owners and links."""
+    store, caches = files.store, files.caches
     if fmt not in WRITERS:
         raise NotFound(f"no format {fmt!r}; choose one of {', '.join(FORMATS)}.")
     # A running job's files are listed as soon as each is in place (the GLB first).
@@ -387,7 +389,7 @@ def model_file(model: ModelRow, fmt: str, request: Request, store: Store) -> Res
         )
     tag = model.files[fmt]["etag"]
     if model.files[fmt].get("on_request"):  # made on its first download, then read
-        tag = made_on_request(model, fmt, request, store)
+        tag = made_on_request(model, fmt, files)
     mime = mime_for(fmt, request.headers.get("accept", ""))
     etag = f'"{tag}{"-legacy" if mime != WRITERS[fmt].mime else ""}"'
     headers = {"ETag": etag, "Cache-Control": "private, max-age=86400", "Vary": "Accept"}
@@ -395,7 +397,6 @@ def model_file(model: ModelRow, fmt: str, request: Request, store: Store) -> Res
         return Response(status_code=304, headers=headers)
     name = download_name(store.get_volume(model.volume_id), model, fmt)
     key, ranged = (model.id, fmt, tag), "range" in request.headers
-    caches: ByteCaches = request.app.state.bytes  # shares' routes call this too
     on_request = bool(model.files[fmt].get("on_request"))
     data = None if ranged or on_request else caches.model_files.peek(key)
     if data is None:
@@ -412,11 +413,11 @@ def model_file(model: ModelRow, fmt: str, request: Request, store: Store) -> Res
     return Response(data, media_type=mime, headers=headers | attachment(name))
 
 
-def made_on_request(model: ModelRow, fmt: str, request: Request, store: Store) -> str:
+def made_on_request(model: ModelRow, fmt: str, files: ModelFiles) -> str:
     """Make ``fmt`` of a finished model unless it is in its folder (waiting while another
     download makes it: :func:`formats.ensure`), record its size and ETag in the model's
     ``files`` the first time; its ETag."""
-    settings: Settings = request.app.state.settings
+    store, settings = files.store, files.settings
     folder = store.model_dir(model.id)
     path, made = formats.ensure(folder, fmt, settings.format_cache_bytes)
     known = (model.files or {}).get(fmt, {}).get("etag")

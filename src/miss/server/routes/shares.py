@@ -23,7 +23,15 @@ from miss.export import WRITERS
 from miss.server import audit, shares
 from miss.server.accounts import User
 from miss.server.core import assets
-from miss.server.core.deps import RoomsDep, StoreDep, UserDep, visible_model, visible_volume
+from miss.server.core.deps import (
+    ModelFiles,
+    ModelFilesDep,
+    RoomsDep,
+    StoreDep,
+    UserDep,
+    visible_model,
+    visible_volume,
+)
 from miss.server.core.errors import Forbidden, Gone, MissError, NotFound, NotReady, status_of
 from miss.server.core.schemas import JSONRoute, lod_url, params_of
 from miss.server.routes.models import lod_response, model_file
@@ -214,17 +222,19 @@ def share_info(token: str, store: StoreDep) -> JSONResponse:
 
 @router.head("/s/{token}/model.{fmt}", include_in_schema=False)
 @router.get("/s/{token}/model.{fmt}")
-def share_default_file(token: str, fmt: str, request: Request, store: StoreDep) -> Response:
+def share_default_file(token: str, fmt: str, request: Request, files: ModelFilesDep) -> Response:
     """The shared model's file (a volume link: its newest finished model)."""
-    return _share_file(store, request, token, fmt, None)
+    return _share_file(files, request, token, fmt, None)
 
 
 @router.head("/s/{token}/models/{model_id}/model.{fmt}", include_in_schema=False)
 @router.get("/s/{token}/models/{model_id}/model.{fmt}")
-def share_file(token: str, model_id: str, fmt: str, request: Request, store: StoreDep) -> Response:
+def share_file(
+    token: str, model_id: str, fmt: str, request: Request, files: ModelFilesDep
+) -> Response:
     """One file of a model the link covers: the GLB always (the viewer draws it), every
     other format only when the link allows downloads."""
-    return _share_file(store, request, token, fmt, model_id)
+    return _share_file(files, request, token, fmt, model_id)
 
 
 @router.get("/s/{token}/models/{model_id}/lod/{name:path}")
@@ -241,8 +251,9 @@ def share_lod_file(
 
 
 def _share_file(
-    store: Store, request: Request, token: str, fmt: str, model_id: str | None
+    files: ModelFiles, request: Request, token: str, fmt: str, model_id: str | None
 ) -> Response:
+    store = files.store
     share = shares.resolve(store, token)
     model = shares.granted_model(store, share, model_id)
     if fmt != "glb" and fmt in WRITERS and not share.can_download:
@@ -251,7 +262,7 @@ def _share_file(
         )
     if model.status == FAILED:  # the reason is the owner's (``model_entry``)
         raise NotReady(f"{GUEST_ERROR} ({model.id})")
-    response = model_file(model, fmt, request, store)
+    response = model_file(model, fmt, request, files)
     response.headers.update(PRIVATE)  # revoked means gone: no copy kept by a cache
     if response.status_code == 200 and request.method == "GET":
         actor = f"link:{share.id}"
