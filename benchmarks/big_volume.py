@@ -33,7 +33,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from common import markdown_table, save
+from common import markdown_table, save, tree_rss
 from scale import _axis, _cthead
 
 #: CThead's skin.
@@ -83,24 +83,9 @@ def write_gz_nifti(path: Path, size: tuple[int, int, int], planes: Iterator[np.n
 def tree_peak(command: Sequence[str], env: dict[str, str] | None = None) -> dict[str, Any]:
     """Run ``command``; the highest sum of its process tree's resident memory (MB), and
     its seconds."""
-    import psutil
-
     start = time.perf_counter()
     proc = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env)
-    root, peak = psutil.Process(proc.pid), 0.0
-    while proc.poll() is None:
-        now = 0.0
-        try:
-            tree = [root, *root.children(recursive=True)]
-        except psutil.NoSuchProcess:
-            break
-        for p in tree:
-            try:
-                now += p.memory_info().rss / 2**20
-            except psutil.NoSuchProcess:
-                continue
-        peak = max(peak, now)
-        time.sleep(POLL)
+    peak = tree_rss(proc, poll=POLL)
     _, err = proc.communicate()
     if proc.returncode != 0:
         raise SystemExit(f"{' '.join(command)} failed:\n{err.decode()[-2000:]}")

@@ -23,7 +23,6 @@ paper's schedule to 10 %, unchecked). Writes ``results/bounds.{json,md}``.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
@@ -32,10 +31,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from common import case_surfaces, warm_methods, write_result
 from paper import machine
 
 import miss
-from miss.demo import phantom
 from miss.measure._jit import between, distances_to
 from miss.types import Mesh
 
@@ -231,20 +230,11 @@ def run(
 ) -> dict[str, Any]:
     """Measure every case (all by default), write ``bounds.{json,md}`` into ``out``."""
     chosen = {k: v for k, v in cases().items() if names is None or k in names}
-    warm = miss.extract_surface(phantom(48, spacing=4.0), 200.0)
-    for method in ("quadric", "schroeder"):
-        miss.decimate(warm, method, 0.9, 0.001)  # numba's kernels loaded before timing
+    warm_methods(("quadric", "schroeder"))
     result: dict[str, Any] = {"machine": machine(), "reduce": REDUCE, "cases": {}}
-    volumes: dict[Path, miss.Volume] = {}
-    for name, (path, level) in chosen.items():
-        if path not in volumes:
-            volumes[path] = miss.load_volume(path)
-        log(name)
-        mesh = miss.extract_surface(volumes[path], level)
+    for name, mesh, _ in case_surfaces(chosen, log):
         result["cases"][name] = bench_case(mesh, bounds, peers, log)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "bounds.json").write_text(json.dumps(result, indent=1))
-    (out / "bounds.md").write_text(markdown(result))
+    write_result(out, "bounds", result, markdown(result))
     return result
 
 

@@ -16,7 +16,6 @@ densely here (:func:`miss.measure._jit.between`, seed 5), not by the method. Wri
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import statistics
 import sys
@@ -24,10 +23,10 @@ import time
 from pathlib import Path
 from typing import Any
 
+from common import case_surfaces, warm_methods, write_result
 from paper import machine
 
 import miss
-from miss.demo import phantom
 from miss.measure._jit import between
 from miss.types import Mesh
 
@@ -139,20 +138,11 @@ def markdown(result: dict[str, Any]) -> str:
 def run(out: Path, names: list[str] | None, runs: int, samples: int, log: Any) -> dict[str, Any]:
     """Measure every case (all by default), write ``collapse.{json,md}`` into ``out``."""
     chosen = {k: v for k, v in cases().items() if names is None or k in names}
-    warm = miss.extract_surface(phantom(48, spacing=4.0), 200.0)
-    for method in ("quadric", "schroeder", "collapse"):
-        miss.decimate(warm, method, 0.9, 0.001)  # numba's kernels loaded before timing
+    warm_methods(("quadric", "schroeder", "collapse"))
     result: dict[str, Any] = {"machine": machine(), "reduce": REDUCE, "runs": runs, "cases": {}}
-    volumes: dict[Path, miss.Volume] = {}
-    for name, (path, level, bounds) in chosen.items():
-        if path not in volumes:
-            volumes[path] = miss.load_volume(path)
-        log(name)
-        mesh = miss.extract_surface(volumes[path], level, normals=False)
+    for name, mesh, (bounds,) in case_surfaces(chosen, log, normals=False):
         result["cases"][name] = bench_case(mesh, bounds, runs, samples, log)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "collapse.json").write_text(json.dumps(result, indent=1))
-    (out / "collapse.md").write_text(markdown(result))
+    write_result(out, "collapse", result, markdown(result))
     return result
 
 

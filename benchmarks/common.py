@@ -18,7 +18,7 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -149,3 +149,62 @@ def save(name: str, data: dict[str, Any], table: str, folder: Path = RESULTS) ->
     folder.mkdir(parents=True, exist_ok=True)
     (folder / f"{name}.json").write_text(json.dumps({"machine": machine(), **data}, indent=1))
     (folder / f"{name}.md").write_text(table)
+
+
+def tree_rss(
+    proc: subprocess.Popen, seen: Callable[[Any, float], None] | None = None, poll: float = 0.02
+) -> float:
+    """Poll ``proc``'s process tree until it ends; the highest sum of its resident memory
+    (MB). ``seen(process, mb)`` is told each process's RSS at each poll."""
+    import psutil
+
+    root, peak = psutil.Process(proc.pid), 0.0
+    while proc.poll() is None:
+        now = 0.0
+        try:
+            tree = [root, *root.children(recursive=True)]
+        except psutil.NoSuchProcess:
+            break
+        for p in tree:
+            try:
+                rss = p.memory_info().rss / 2**20
+                if seen is not None:
+                    seen(p, rss)
+            except psutil.NoSuchProcess:
+                continue
+            now += rss
+        peak = max(peak, now)
+        time.sleep(poll)
+    return peak
+
+
+def warm_methods(methods: Sequence[str]) -> None:
+    """Decimate a small phantom's surface with each method: numba's kernels loaded (or
+    compiled) before anything is timed."""
+    import miss
+
+    warm = miss.extract_surface(phantom(48, spacing=4.0), 200.0)
+    for method in methods:
+        miss.decimate(warm, method, 0.9, 0.001)
+
+
+def case_surfaces(
+    chosen: dict[str, tuple[Any, ...]], log: Callable[[str], None], **options: Any
+) -> Iterator[tuple[str, Any, tuple[Any, ...]]]:
+    """For each case ``name: (path, level, *rest)``: its name, its surface at ``level``
+    (``extract_surface`` with ``options``) and ``rest``; each volume read once."""
+    import miss
+
+    volumes: dict[Path, Volume] = {}
+    for name, (path, level, *rest) in chosen.items():
+        if path not in volumes:
+            volumes[path] = miss.load_volume(path)
+        log(name)
+        yield name, miss.extract_surface(volumes[path], level, **options), tuple(rest)
+
+
+def write_result(out: Path, stem: str, result: dict[str, Any], text: str) -> None:
+    """``result`` as ``out/stem.json`` and ``text`` as ``out/stem.md``."""
+    out.mkdir(parents=True, exist_ok=True)
+    (out / f"{stem}.json").write_text(json.dumps(result, indent=1))
+    (out / f"{stem}.md").write_text(text)

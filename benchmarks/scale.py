@@ -242,6 +242,7 @@ def watch(args: list[str], env: dict[str, str]) -> dict[str, Any]:
     """Run ``scale.py args`` in a child; its JSON answer, the peak RSS (MB) of each process
     of its tree by role, and of the tree together."""
     import psutil
+    from common import tree_rss  # here: the measured child imports none of it
 
     proc = subprocess.Popen(
         [sys.executable, __file__, *args], stdout=subprocess.PIPE, text=True, env=env
@@ -249,23 +250,12 @@ def watch(args: list[str], env: dict[str, str]) -> dict[str, Any]:
     root = psutil.Process(proc.pid)
     peaks: dict[int, float] = {}
     roles: dict[int, str] = {}
-    total = 0.0
-    while proc.poll() is None:
-        now = 0.0
-        try:
-            tree = [root, *root.children(recursive=True)]
-        except psutil.NoSuchProcess:
-            break
-        for p in tree:
-            try:
-                rss = p.memory_info().rss / 2**20
-                roles.setdefault(p.pid, _role(p, root))
-            except psutil.NoSuchProcess:
-                continue
-            peaks[p.pid] = max(peaks.get(p.pid, 0.0), rss)
-            now += rss
-        total = max(total, now)
-        time.sleep(0.02)
+
+    def seen(p: Any, rss: float) -> None:
+        roles.setdefault(p.pid, _role(p, root))
+        peaks[p.pid] = max(peaks.get(p.pid, 0.0), rss)
+
+    total = tree_rss(proc, seen)
     out, _ = proc.communicate()
     if proc.returncode != 0:
         raise SystemExit(f"variant {args} failed (exit {proc.returncode})")
