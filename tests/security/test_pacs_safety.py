@@ -322,6 +322,44 @@ def test_a_flood_leaves_an_import_thread_free(
         client.__exit__(None, None, None)
 
 
+def test_a_busy_accounts_import_runs_behind_the_jobs(
+    orthanc: Orthanc, small: Series, tmp_path: Path
+) -> None:
+    """Issue 39: a flood's imports (its account has more waiting) ran their retrieval,
+    checks and writes on a server thread at nice 0, and their reads at nice 10, ahead of
+    another account's job at nice 15. Now the whole import runs at READ_NICE (19) on a
+    thread of its own; a single import of another account stays at the server's."""
+    import threading
+
+    from miss.server.pacs_exchange import READ_NICE
+
+    client = start_app(tmp_path / "data", orthanc, MISS_PACS_IMPORTS="2")
+    try:
+        imports = client.app.state.pacs_imports
+        seen: list[tuple[str, int]] = []
+        run = imports._run
+
+        def recorded(import_id: str, user: Any, server: Any, busy: bool) -> None:
+            nice = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+            seen.append((user.name, nice))
+            run(import_id, user, server, busy)
+
+        imports._run = recorded
+        flood = make_user(client, "flood4", pacs=True)
+        body = {"study": small.study, "series": small.series, "segmentation": "none"}
+        queued = [client.post("/api/pacs/import", json=body, headers=flood) for _ in range(4)]
+        other = make_user(client, "other4", pacs=True)
+        mine = client.post("/api/pacs/import", json=body, headers=other)
+        assert wait_import(client, mine.json()["id"], other)["status"] == "done"
+        for q in queued:
+            assert wait_import(client, q.json()["id"], flood)["status"] == "done"
+        base = os.getpriority(os.PRIO_PROCESS, 0)
+        assert ("other4", base) in seen, seen
+        assert ("flood4", min(19, base + READ_NICE)) in seen, seen
+    finally:
+        client.__exit__(None, None, None)
+
+
 def test_the_command_line_checks_the_patient_before_storing(
     orthanc: Orthanc, pacs_series: dict[str, Series], tmp_path: Path
 ) -> None:

@@ -67,9 +67,11 @@ MAX_INSTANCES = 5000
 #: Largest DICOM SEG or RT-STRUCT series retrieved (an uncompressed SEG of a 20-slice CT
 #: with 31 segments is 17 MB).
 MAX_SEGMENTATION_BYTES = 1 << 30
-#: The nice increment of the confined reader of an import whose account has more waiting
-#: (weight 110 against the server's 1024 on a contended core).
-READ_NICE = 10
+#: The nice increment of an import whose account has more waiting: its confined reader
+#: and its thread (weight 15 against the server's 1024 on a contended core, below another
+#: account's job at nice 15, weight 36: a flood of imports had taken three times a job's
+#: share at nice 10).
+READ_NICE = 19
 RESTARTED = "the server restarted during the import; import the series again."
 
 
