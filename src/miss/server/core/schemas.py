@@ -18,6 +18,7 @@ from typing import (
 )
 from urllib.parse import quote
 
+import numpy as np
 from fastapi import Request, Response
 from fastapi.routing import APIRoute
 from pydantic import BaseModel, ConfigDict, Field, create_model
@@ -145,6 +146,11 @@ class VolumeOut(BaseModel):
     created: datetime
     dims: list[int] = Field(description="voxels (x, y, z) = (columns, rows, slices)")
     spacing: list[float] = Field(description="mm per voxel along x, y, z")
+    slice_gap: float | None = Field(
+        None,
+        description="mm between slice planes along their normal, as MISS used them: "
+        "less than spacing z when the slices are sheared (gantry tilt)",
+    )
     range: list[float] = Field(description="min and max value, in the volume's units")
     modality: str
     units: str = Field(description='"HU" for CT, "" when unknown')
@@ -255,8 +261,20 @@ def volume_out(row: VolumeRow, owner: str = "") -> VolumeOut:
         burned_in_annotation=bool(info.get("burned_in_annotation", False)),
         deidentification=info.get("deidentification", {}),
         scale=info.get("scale") or _scale_of_old(info),
+        slice_gap=slice_gap(info),
         **{k: info[k] for k in keys},
     )
+
+
+def slice_gap(info: dict[str, Any]) -> float | None:
+    """The distance between slice planes along their normal (mm) of a volume's ``info``:
+    the volume of a voxel over the area of its in-plane face (None without an affine)."""
+    affine = info.get("affine")
+    if not affine:
+        return None
+    m = np.asarray(affine, dtype=float)[:3, :3]
+    face = float(np.linalg.norm(np.cross(m[:, 0], m[:, 1])))
+    return abs(float(np.linalg.det(m))) / face if face > 0 else None
 
 
 def _scale_of_old(info: dict[str, Any]) -> dict[str, str]:

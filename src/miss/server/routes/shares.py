@@ -33,7 +33,7 @@ from miss.server.core.deps import (
     visible_volume,
 )
 from miss.server.core.errors import Forbidden, Gone, MissError, NotFound, NotReady, status_of
-from miss.server.core.schemas import JSONRoute, lod_url, params_of
+from miss.server.core.schemas import JSONRoute, lod_url, params_of, slice_gap
 from miss.server.routes.models import lod_response, model_file
 from miss.server.routes.pages import WEB
 from miss.server.storage.db import DONE, FAILED, ModelRow, ShareRow, VolumeRow
@@ -212,6 +212,8 @@ def share_info(token: str, store: StoreDep) -> JSONResponse:
             "modality": info.get("modality", ""),
             "dims": info.get("dims"),
             "spacing": info.get("spacing"),
+            "slice_gap": slice_gap(info),
+            "notes": info.get("notes", []),
             "burned_in_annotation": bool(info.get("burned_in_annotation", False)),
             "source_sha256": info.get("source_sha256", ""),
         },

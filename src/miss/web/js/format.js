@@ -67,6 +67,27 @@ export function describeVolume( v ) {
 	return `${v.modality || 'volume'} · ${dims} voxels · ${spacing} mm`;
 }
 
+// The spacing MISS used, in words: in-plane, and the slices' distance along their normal
+// (less than the stored z spacing when a gantry tilt shears them).
+export function spacingAsUsed( v ) {
+	const [ sx, sy, sz ] = ( v.spacing || [] ).map( ( s ) => +Number( s ).toFixed( 3 ) );
+	const gap = v.slice_gap != null ? +Number( v.slice_gap ).toFixed( 3 ) : sz;
+	const along = gap !== sz ? ` (${sz} mm along the tilted stack)` : '';
+	return `${sx} × ${sy} mm in-plane, slices ${gap} mm apart${along}`;
+}
+
+// What MISS changed in reading the scan (a gantry tilt, uneven gaps resampled, ...): its
+// notes and the spacing as used, into `root` (a <details>); hidden when nothing changed.
+export function showNotes( root, v ) {
+	const notes = v.notes || [];
+	root.hidden = notes.length === 0;
+	root.replaceChildren(
+		el( 'summary', {}, `What MISS changed in reading the scan (${notes.length})` ),
+		el( 'ul', {}, ...notes.map( ( n ) => el( 'li', {}, n.charAt( 0 ).toUpperCase() + n.slice( 1 ) + '.' ) ) ),
+		el( 'p.spacing', {}, `Spacing as used: ${spacingAsUsed( v )}.` ),
+	);
+}
+
 const CLICK_SLOP = 5; // pixels a press may move and still count as a click, not a turn
 
 // Calls handler(event) for a press released where it started: a click, not an orbit drag.

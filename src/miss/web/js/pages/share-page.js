@@ -5,7 +5,7 @@
 
 import { request } from '../api.js';
 import { Consultation } from '../room/consult.js';
-import { el, fill } from '../format.js';
+import { el, fill, showNotes } from '../format.js';
 import { fillDownloads, fillStats, overlay, setupDisplay, surfacesOf } from '../viewer/viewer-ui.js';
 import { status } from '../test-hooks.js';
 import { StructuresPanel } from '../viewer/structures-panel.js';
@@ -40,6 +40,7 @@ function showShare( data ) {
 		row( 'Scan', `${data.volume.modality || 'volume'} · ${( data.volume.dims || [] ).join( '×' )}` ) );
 	$( 'share-title' ).textContent = `Shared by ${s.shared_by} · until ${when( s.expires )}`;
 	$( 'burned-in' ).hidden = ! data.volume.burned_in_annotation;
+	showNotes( $( 'volume-notes' ), data.volume );
 	$( 'download-section' ).hidden = ! s.can_download;
 }
 

@@ -7,6 +7,7 @@ import { api, urls, watchModel } from '../api.js';
 import { Consultation } from '../room/consult.js';
 import { modelTitle, percent, stageLabel } from '../job.js';
 import { Replay } from '../room/replay.js';
+import { showNotes } from '../format.js';
 import { showSession } from '../session.js';
 import { ShareDialog } from '../share-dialog.js';
 import { StructuresPanel } from '../viewer/structures-panel.js';
@@ -157,6 +158,7 @@ function showVolume( volume ) {
 	$( 'volume-link' ).href = urls.volumePage( volume.id );
 	document.title = `MISS · ${volume.name}`;
 	$( 'burned-in' ).hidden = ! volume.burned_in_annotation;
+	showNotes( $( 'volume-notes' ), volume );
 	const dialog = new ShareDialog( modelId, { burnedIn: volume.burned_in_annotation } );
 	$( 'share' ).addEventListener( 'click', () => dialog.open() );
 }

@@ -5,7 +5,7 @@
 import { showSession } from '../session.js';
 import { api, urls, watchModel } from '../api.js';
 import { describeModel, modelTitle } from '../job.js';
-import { describeVolume, el, formatCount } from '../format.js';
+import { describeVolume, el, formatCount, showNotes } from '../format.js';
 import { Histogram, binEdges } from '../histogram.js';
 import { LabelMapPanel } from '../labelmap.js';
 import { SliceRange } from '../range.js';
@@ -410,6 +410,7 @@ async function main() {
 		setupViews( volume );
 		setupStructures();
 		showPrivacy( $( 'privacy' ), volume );
+		showNotes( $( 'volume-notes' ), volume );
 		labelMap = new LabelMapPanel( $( 'labelmap' ), volume, showError );
 		$( 'generate' ).addEventListener( 'click', () => generate( volume ) );
 		document.body.dataset.ready = '1';
