@@ -157,8 +157,8 @@ class JobState:
         return self.store.update_model(model_id, ModelRow.status == RUNNING, files=files)
 
     def finish(self, model_id: str, stats: dict[str, Any], files: dict[str, Any]) -> bool:
-        """Mark the job done with its statistics and files; False when it is no longer running
-        (deleted, cancelled or claimed by another run)."""
+        """Mark the job done with its statistics and files; False when its row is no longer
+        running (deleted or ended meanwhile)."""
         return self._ended(
             model_id,
             status=DONE,

@@ -137,7 +137,7 @@ class ImportOut(BaseModel):
 
 
 class SendRequest(BaseModel):
-    """Where to send a model (as DICOM encapsulated 3-D objects)."""
+    """Where to send a model (as DICOM Encapsulated STL, one instance a part)."""
 
     model_config = ConfigDict(extra="forbid")
 
