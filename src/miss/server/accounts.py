@@ -233,7 +233,8 @@ def check_password_of(store: Store, user_id: str, password: str) -> bool:
 
 def set_disabled(store: Store, user_id: str, disabled: bool) -> None:
     """Disable or enable the account again: a disabled account can no longer log in, and
-    its logins stop counting once the cached rows are dropped (``announce_change``)."""
+    its logins are refused from their next request once the cached rows are dropped
+    (``announce_change``)."""
     with store.session.begin() as s:
         s.execute(update(UserRow).where(UserRow.id == user_id).values(disabled=disabled))
 
