@@ -61,6 +61,7 @@ def token_hash(token: str) -> str:
 
 
 def check_name(name: str) -> str:
+    """``name`` if it is a valid user name; BadParameter naming the allowed characters otherwise."""
     if not NAME_PATTERN.match(name):
         raise BadParameter(
             f"user name {name!r} is not valid; use 1-64 letters, digits, '.', '_', '@' or '-', "
@@ -70,6 +71,7 @@ def check_name(name: str) -> str:
 
 
 def check_password(password: str) -> str:
+    """``password`` if it is long enough (``MIN_PASSWORD`` characters); BadParameter otherwise."""
     if len(password) < MIN_PASSWORD:
         raise BadParameter(f"the password is too short; use at least {MIN_PASSWORD} characters.")
     return password
@@ -95,11 +97,13 @@ def create_user(
 
 
 def list_users(store: Store) -> list[User]:
+    """Every account, oldest first."""
     with store.session() as s:
         return [_user(r) for r in s.scalars(select(UserRow).order_by(UserRow.created_at))]
 
 
 def get_user(store: Store, user_id: str) -> User | None:
+    """The account with id ``user_id``, or None when there is none."""
     with store.session() as s:
         row = s.get(UserRow, user_id)
     return _user(row) if row else None
@@ -110,6 +114,7 @@ class Disabled(Exception):
 
 
 def exists(store: Store, name: str) -> bool:
+    """Whether an account called ``name`` exists."""
     with store.session() as s:
         return s.scalars(select(UserRow.id).where(UserRow.name == name)).first() is not None
 
@@ -209,6 +214,8 @@ def find_user(store: Store, name: str) -> User:
 
 
 def set_password(store: Store, user_id: str, password: str) -> None:
+    """Replace the account's password (checked for length, stored hashed); BadParameter
+    when it is too short."""
     hashed = _HASHER.hash(check_password(password))
     with store.session.begin() as s:
         s.execute(update(UserRow).where(UserRow.id == user_id).values(password=hashed))
@@ -225,6 +232,9 @@ def check_password_of(store: Store, user_id: str, password: str) -> bool:
 
 
 def set_disabled(store: Store, user_id: str, disabled: bool) -> None:
+    """Disable or enable the account again: a disabled account can no longer log in, and
+    its logins are refused from their next request once the cached rows are dropped
+    (``announce_change``)."""
     with store.session.begin() as s:
         s.execute(update(UserRow).where(UserRow.id == user_id).values(disabled=disabled))
 

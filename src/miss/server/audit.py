@@ -72,6 +72,7 @@ def entries(
 
 
 def as_dict(row: AuditRow) -> dict[str, Any]:
+    """The audit row as JSON: ``at`` in ISO 8601 UTC, the other columns as stored."""
     return {
         "id": row.id,
         "at": row.at.replace(tzinfo=UTC).isoformat(),

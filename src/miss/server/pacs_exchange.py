@@ -126,12 +126,16 @@ class PacsImports:
         self._turns = 0
 
     def stop(self) -> None:
+        """Stop taking imports; queued ones are cancelled, running ones are not waited for."""
         self.pool.shutdown(wait=False, cancel_futures=True)
         self.behind.shutdown(wait=False, cancel_futures=True)
 
     def submit(
         self, user: User, server: PacsServer, study: str, series: str, segmentation: str
     ) -> PacsImportRow:
+        """Queue an import of ``series`` (and of ``segmentation``, if given) from ``server``
+        for ``user``; the new row. TooManyRequests (429) when the account has
+        ``MISS_PACS_IMPORTS_PER_USER`` imports queued or running already."""
         row = PacsImportRow(
             id=new_id(), owner_id=user.id, pacs=server.name, study=study, series=series,
             segmentation=segmentation,
@@ -194,6 +198,7 @@ class PacsImports:
                 self.pool.submit(self._next)
 
     def get(self, import_id: str, user: User) -> PacsImportRow:
+        """The import if it is ``user``'s; NotFound (404) otherwise."""
         with self.store.session() as s:
             row = s.get(PacsImportRow, import_id)
         if row is None or row.owner_id != user.id:
@@ -201,6 +206,7 @@ class PacsImports:
         return row
 
     def list(self, user: User, limit: int = 50) -> list[PacsImportRow]:
+        """``user``'s latest ``limit`` imports, newest first."""
         with self.store.session() as s:
             query = (
                 select(PacsImportRow)

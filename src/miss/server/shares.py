@@ -94,6 +94,7 @@ def _when(value: datetime) -> str:
 
 
 def get(store: Store, share_id: str) -> ShareRow:
+    """The share with id ``share_id``; NotFound (404) when there is none."""
     with store.session() as s:
         row = s.get(ShareRow, share_id)
     if row is None:
@@ -177,6 +178,7 @@ def volume_offer(volume: VolumeRow, confirmed: bool) -> None:
 
 
 def shared_by(store: Store, share: ShareRow) -> str:
+    """The name of the share's owner, or "a former user" when the account is gone."""
     owner = get_user(store, share.owner_id)
     return owner.name if owner else "a former user"
 

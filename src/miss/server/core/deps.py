@@ -39,35 +39,43 @@ from miss.server.volumes.uploads import UploadSlots
 # ``async``: a look-up on the app, answered on the event loop. FastAPI would otherwise
 # run each of these in its threadpool, one thread hop per dependency per request.
 async def get_settings(request: Request) -> Settings:
+    """The server's settings, read once at start."""
     return request.app.state.settings
 
 
 # ``HTTPConnection``: the look-ups a WebSocket route needs too.
 async def get_store(conn: HTTPConnection) -> Store:
+    """The store: database sessions, cached rows and the data folder."""
     return conn.app.state.store
 
 
 async def get_queue(request: Request) -> JobQueue:
+    """The queue that runs surface jobs."""
     return request.app.state.queue
 
 
 async def get_job_limit(request: Request) -> JobLimit:
+    """The limit on the jobs one account may have queued or running."""
     return request.app.state.job_limit
 
 
 async def get_byte_caches(request: Request) -> ByteCaches:
+    """This process's caches of model files and formats made on request."""
     return request.app.state.bytes
 
 
 async def get_rooms(conn: HTTPConnection) -> Hub:
+    """The hub of the live rooms (shared views of a model) of this process."""
     return conn.app.state.rooms
 
 
 async def get_ws_connects(conn: HTTPConnection) -> KeyedBuckets:
+    """The per-address buckets of WebSocket connections opened."""
     return conn.app.state.ws_connects
 
 
 async def get_upload_slots(request: Request) -> UploadSlots:
+    """The limit on uploads being received at once."""
     return request.app.state.upload_slots
 
 
@@ -77,18 +85,22 @@ async def get_reading(request: Request) -> Reading:
 
 
 async def get_pacs_imports(request: Request) -> PacsImports:
+    """The imports from a PACS under way in this process."""
     return request.app.state.pacs_imports
 
 
 async def get_password_checks(request: Request) -> PasswordChecks:
+    """The limit on password checks at once in this process."""
     return request.app.state.password_checks
 
 
 async def get_login_limits(request: Request) -> LoginLimits:
+    """The per-address and per-account buckets of failed logins."""
     return request.app.state.failed_logins
 
 
 async def get_metrics(request: Request) -> Metrics:
+    """The Prometheus metrics of this process."""
     return request.app.state.metrics
 
 
@@ -103,6 +115,7 @@ class ModelFiles:
 
 
 async def get_model_files(request: Request) -> ModelFiles:
+    """What serving a model's files needs, in one value."""
     state = request.app.state
     return ModelFiles(state.store, state.bytes, state.settings)
 
@@ -187,6 +200,7 @@ EventStreamDep = Annotated[None, Depends(event_stream)]
 
 
 async def current_admin(user: UserDep) -> User:
+    """The logged-in user if an administrator; 403 otherwise (401 when nobody is logged in)."""
     if not user.is_admin:
         raise Forbidden("only administrators may do this.")
     return user
@@ -205,6 +219,8 @@ def visible_volume(store: Store, user: User, volume_id: str) -> VolumeRow:
 
 
 def visible_model(store: Store, user: User, model_id: str) -> ModelRow:
+    """The model if ``user`` may see its volume; 404 otherwise (a missing model, or one not
+    shared with ``user``: the message says whom to ask)."""
     row = store.get_model(model_id)
     owner = store.get_volume(row.volume_id).owner_id
     if not can_see(user, owner):
@@ -224,6 +240,7 @@ async def get_volume_row(volume_id: str, store: StoreDep, user: UserDep) -> Volu
 
 
 async def get_model_row(model_id: str, store: StoreDep, user: UserDep) -> ModelRow:
+    """The model named in the path, or 404 before the route (or its stream) starts."""
     model = store.cached_model(model_id)
     cached = model is not None and store.cached_volume(model.volume_id) is not None
     return await here_or_threadpool(cached, visible_model, store, user, model_id)

@@ -118,6 +118,7 @@ STATUS: tuple[tuple[type[MissError], int], ...] = (
 
 
 def status_of(exc: MissError) -> int:
+    """The HTTP status of a MissError: the first match in ``STATUS``, else 422."""
     for cls, code in STATUS:
         if isinstance(exc, cls):
             return code
@@ -125,6 +126,8 @@ def status_of(exc: MissError) -> int:
 
 
 async def miss_error_handler(request: Request, exc: Exception) -> JSONResponse:
+    """Answer a MissError with its status and a JSON ``detail`` (401 with a
+    ``WWW-Authenticate`` challenge); logs all but the everyday 401, 404 and 410."""
     assert isinstance(exc, MissError)
     code = status_of(exc)
     if code not in (401, 404, 410):  # the everyday ones would drown the log
@@ -294,6 +297,7 @@ async def http_error_handler(request: Request, exc: Exception) -> Response:
 
 
 def install(app: FastAPI) -> None:
+    """Register the handlers that turn errors into JSON answers with a ``detail``."""
     app.add_exception_handler(MissError, miss_error_handler)
     app.add_exception_handler(RequestValidationError, validation_handler)
     app.add_exception_handler(FormParserError, multipart_handler)

@@ -81,6 +81,8 @@ class SecurityHeaders:
         self.relaxed = policy(hashes, inline_styles=True).encode()
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        """Add the security headers (CSP, nosniff, frame and referrer policies; HSTS over
+        HTTPS) to every HTTP response."""
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return

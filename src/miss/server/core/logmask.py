@@ -21,6 +21,7 @@ class MaskTokens(logging.Filter):
     """A logging filter that masks tokens in the message and its string arguments."""
 
     def filter(self, record: logging.LogRecord) -> bool:
+        """Mask tokens in the record's message and arguments; always keeps the record."""
         if isinstance(record.msg, str):
             record.msg = mask(record.msg)
         if isinstance(record.args, tuple):

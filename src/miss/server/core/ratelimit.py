@@ -51,6 +51,7 @@ class TokenBucket:
         self.stamp = time.monotonic()
 
     def take(self, cost: float = 1.0) -> bool:
+        """Take ``cost`` tokens if there are that many (True), else take none (False)."""
         now = time.monotonic()
         self.tokens = min(self.capacity, self.tokens + (now - self.stamp) * self.rate)
         self.stamp = now
@@ -95,6 +96,7 @@ class KeyedBuckets:
         self.on_low: Callable[[], None] = lambda: None
 
     def take(self, key: str, cost: float = 1.0) -> bool:
+        """Take ``cost`` tokens from ``key``'s bucket if it has them (True), else none (False)."""
         with self._lock:
             bucket = self._bucket(key)
             taken = bucket.take(cost)
@@ -189,6 +191,8 @@ def too_many(detail: str, wait: float) -> JSONResponse:
 
 
 def retry_after(wait: float) -> int:
+    """Seconds to put in ``Retry-After``: ``wait`` rounded up, at least 1 (an hour if
+    ``wait`` is infinite)."""
     return max(1, math.ceil(wait)) if math.isfinite(wait) else 3600
 
 
@@ -213,6 +217,8 @@ TILE_COST = 0.125
 
 
 def request_cost(path: str) -> float:
+    """What a request to ``path`` takes from its bucket: ``TILE_COST`` for a level-of-detail
+    tile, 1 otherwise."""
     return TILE_COST if "/lod/" in path else 1.0
 
 
@@ -243,6 +249,8 @@ class ApiLimits:
                 self._accounts.popitem(last=False)
 
     def key(self, token: str, address: str) -> str:
+        """The bucket a request counts against: ``user:<id>`` for a session known to belong to
+        an account, ``addr:<address>`` otherwise."""
         if token:
             with self._lock:
                 user_id = self._accounts.get(_digest(token))
@@ -277,6 +285,8 @@ class RateLimitMiddleware:
         self.app, self.limits = app, limits
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        """Refuse with 429 a request under ``LIMITED_PREFIXES`` whose bucket is empty; pass
+        everything else on."""
         path = scope.get("path", "")
         if (
             scope["type"] != "http"
@@ -338,6 +348,7 @@ class SharedBuckets:
         self._thread.start()
 
     def stop(self) -> None:
+        """Stop publishing and wait for the thread (up to 5 s)."""
         self._stopping.set()
         self._wake.set()
         if self._thread is not None:
@@ -361,6 +372,7 @@ class SharedBuckets:
             self._bus.publish(self.CHANNEL, message)
 
     def heard(self, message: dict[str, dict[str, float]]) -> None:
+        """Deduct what the clients of another process spent (a message of ``publish``)."""
         for name, spent in message.items():
             buckets = self.buckets.get(name)
             if buckets is not None:
@@ -569,6 +581,7 @@ class LoginLimits:
             )
 
     def succeeded(self, address: str, name: str) -> None:
+        """Give back the attempts of a login whose password was right."""
         self.addresses.give_back(address)
         self.accounts.give_back(name.lower())
 

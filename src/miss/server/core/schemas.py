@@ -40,6 +40,7 @@ class JSONRoute(APIRoute):
     413 that says so, before more is read (FastAPI would hold any size in memory)."""
 
     def get_route_handler(self) -> Callable[[Request], Coroutine[Any, Any, Response]]:
+        """FastAPI's handler, wrapped to refuse a body over ``MAX_JSON_BYTES`` with 413."""
         handler = super().get_route_handler()
         if self.body_field is None:
             return handler
@@ -141,6 +142,9 @@ else:
 
 
 class VolumeOut(BaseModel):
+    """A stored volume: its size, spacing and value range, where it came from, and how to
+    show it."""
+
     id: str
     name: str
     created: datetime
@@ -198,6 +202,8 @@ class IdentityOut(BaseModel):
 
 
 class ModelOut(BaseModel):
+    """A surface model of a volume: the job's state and parameters, and its files once made."""
+
     id: str
     volume: str
     name: str | None = Field(None, description="the display name its owner gave it, if any")
@@ -238,6 +244,7 @@ def _utc(value: datetime | None) -> datetime | None:
 
 
 def volume_out(row: VolumeRow, owner: str = "") -> VolumeOut:
+    """The API's view of a volume row; ``owner`` is its owner's name."""
     info = row.info
     keys = (
         "dims",
@@ -285,10 +292,13 @@ def _scale_of_old(info: dict[str, Any]) -> dict[str, str]:
 
 
 def params_of(row: ModelRow) -> dict[str, Any]:
+    """The job's parameters as shown to users (not its formats, region or error bound)."""
     return {k: v for k, v in row.spec.items() if k not in ("formats", "roi", "max_error")}
 
 
 def model_out(row: ModelRow, volume: VolumeRow | None = None) -> ModelOut:
+    """The API's view of a model row, with its files' URLs and download names (named after
+    ``volume`` when given)."""
     files = None
     if row.status in (DONE, RUNNING) and row.files:
         files = {

@@ -281,18 +281,22 @@ class Settings:
 
     @property
     def max_upload_bytes(self) -> int:
+        """The upload cap (``MISS_MAX_UPLOAD_MB``) in bytes."""
         return int(self.max_upload_mb * MB)
 
     @property
     def max_unzipped_bytes(self) -> int:
+        """The cap on an archive's unpacked size (``MISS_MAX_UNZIPPED_MB``) in bytes."""
         return int(self.max_unzipped_mb * MB)
 
     @property
     def in_memory_max_bytes(self) -> int:
+        """The largest upload read in memory (``MISS_IN_MEMORY_MAX_MB``) in bytes."""
         return int(self.in_memory_max_mb * MB)
 
     @property
     def min_free_bytes(self) -> int:
+        """Free disk space kept (``MISS_MIN_FREE_MB``) in bytes."""
         return int(self.min_free_mb * MB)
 
     def parse_limits(self) -> Limits:
@@ -307,18 +311,23 @@ class Settings:
 
     @property
     def job_write_bytes(self) -> int:
+        """What one job may write (``MISS_JOB_WRITE_MB``) in bytes."""
         return int(self.job_write_mb * MB)
 
     @property
     def quota_bytes(self) -> int:
+        """One account's disk quota (``MISS_QUOTA_MB``) in bytes; 0: none."""
         return int(self.quota_mb * MB)
 
     @property
     def voxel_budget_bytes(self) -> int:
+        """The voxel budget (``MISS_VOXEL_BUDGET_MB``) in bytes."""
         return int(self.voxel_budget_mb * MB)
 
     @property
     def format_cache_bytes(self) -> int:
+        """The disk the formats made on request may take (``MISS_FORMAT_CACHE_MB``) in bytes;
+        0: no cap."""
         return int(self.format_cache_mb * MB)
 
     def job_env(self) -> dict[str, str]:

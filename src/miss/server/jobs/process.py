@@ -122,11 +122,14 @@ class Running(Protocol):
 
     pid: int
 
-    def wait(self) -> int: ...
+    def wait(self) -> int:
+        """Wait for the job to end; its exit code."""
 
-    def poll(self) -> int | None: ...
+    def poll(self) -> int | None:
+        """The exit code if the job has ended, else None."""
 
-    def kill(self) -> None: ...
+    def kill(self) -> None:
+        """Stop the job at once (SIGKILL for a process)."""
 
 
 class Runner(Protocol):
@@ -136,11 +139,14 @@ class Runner(Protocol):
     queue thread before it waits for work while no job runs, and by a job's thread once
     its model can be drawn) may get workers ready ahead; ``close`` ends them."""
 
-    def start(self, model_id: str) -> Running: ...
+    def start(self, model_id: str) -> Running:
+        """Start the job of model ``model_id``; what runs it."""
 
-    def prepare(self) -> None: ...
+    def prepare(self) -> None:
+        """Get a worker ready ahead of the next job, if this runner can."""
 
-    def close(self) -> None: ...
+    def close(self) -> None:
+        """End the workers made ready ahead."""
 
 
 @dataclass(eq=False)

@@ -117,6 +117,7 @@ class JobQueue:
         self.store.bus.publish("jobs", None)
 
     def wake(self) -> None:
+        """Wake one idle job thread of this process to look for queued work."""
         with self._wake:
             self._wake.notify()
 

@@ -125,6 +125,7 @@ class JobState:
             return s.scalar(select(ModelRow.status).where(ModelRow.id == model_id))
 
     def set_pid(self, model_id: str, pid: int | None) -> None:
+        """Record the process id running the job (None: none runs it)."""
         self.store.update_model(model_id, pid=pid)
 
     def set_progress(self, model_id: str, stage: str, fraction: float) -> bool:
@@ -156,6 +157,8 @@ class JobState:
         return self.store.update_model(model_id, ModelRow.status == RUNNING, files=files)
 
     def finish(self, model_id: str, stats: dict[str, Any], files: dict[str, Any]) -> bool:
+        """Mark the job done with its statistics and files; False when its row is no longer
+        running (deleted or ended meanwhile)."""
         return self._ended(
             model_id,
             status=DONE,

@@ -123,6 +123,8 @@ class Reporter:
         self.stage, self.last = "", 0.0
 
     def __call__(self, stage: str, fraction: float) -> None:
+        """Write (stage, fraction) to the row at most once every ``PROGRESS_INTERVAL`` seconds per
+        stage; raises Stop when the server went away or the job is no longer running."""
         if os.getppid() != self.parent:
             raise Stop
         now = time.monotonic()
@@ -294,6 +296,7 @@ class StoredVolume:
     volume_id: str
 
     def load(self, labels: bool) -> Loaded:
+        """The stored volume, with its label map and label table when ``labels`` and it has one."""
         row = self.store.get_volume(self.volume_id)
         stored = labelmaps.load(self.store, self.volume_id) if labels else None
         label_map, table = stored if stored else (None, None)
@@ -345,6 +348,8 @@ class DataFolder:
         self.written += size
 
     def put(self, fmt: str, data: bytes) -> None:
+        """Write one format's bytes (or the preview) into the model's folder and record them on
+        the row at once; raises WriteLimit over the job's write limit, Stop when the job is gone."""
         self.count(len(data))
         self.folder.mkdir(parents=True, exist_ok=True)
         meta = {"bytes": len(data), "etag": hashlib.sha256(data).hexdigest()[:32]}
@@ -367,6 +372,8 @@ class DataFolder:
         return turn.wait_turn(self.folder, time.time())
 
     def put_lod(self, files: Mapping[str, bytes]) -> None:
+        """Write the levels of detail into ``lod/`` and record them on the row; raises WriteLimit
+        over the job's write limit, Stop when the job is gone."""
         self.count(sum(map(len, files.values())))
         write_tree_atomic(self.folder / LOD_DIR, files)
         tiles = sum(1 for name in files if name.endswith(".glb"))
@@ -375,6 +382,7 @@ class DataFolder:
             raise Stop
 
     def deliver(self, result: JobResult) -> dict[str, Any]:
+        """The files written, ``{fmt: {bytes, etag, mime}}``, in the job's formats' order."""
         return {fmt: self.files[fmt] for fmt in result.artifacts}
 
     def keep_scene(self, result: JobResult) -> dict[str, Any]:

@@ -55,11 +55,13 @@ class SampleFiles:
         self._closed = False
 
     def add(self, kind: str, key: str, amount: float) -> None:
+        """Add ``amount`` to the sample ``key`` of file ``kind`` (a counter, a histogram)."""
         with self._lock:
             value = self._values.get((kind, key), 0.0) + amount
             self._write(kind, key, value)
 
     def set(self, kind: str, key: str, value: float) -> None:
+        """Set the sample ``key`` of file ``kind`` to ``value`` (a gauge)."""
         with self._lock:
             self._write(kind, key, value)
 
@@ -116,6 +118,7 @@ class SharedCounter:
         self.files, self.name, self.doc, self.labels = files, name, doc, list(labels)
 
     def inc(self, *values: str, amount: float = 1.0) -> None:
+        """Add ``amount`` to the counter for the label values ``values``."""
         key = mmap_key(self.name, self.name + "_total", self.labels, list(values), self.doc)
         self.files.add("counter", key, amount)
 
@@ -136,6 +139,8 @@ class SharedHistogram:
         self.bounds = [*sorted(buckets), float("inf")]
 
     def observe(self, *values: str, value: float) -> None:
+        """Count one observation of ``value`` (seconds, bytes: the histogram's unit) for the
+        label values ``values``."""
         bound = next(b for b in self.bounds if value <= b)
         labels, label_values = [*self.labels, "le"], [*values, floatToGoString(bound)]
         bucket = mmap_key(self.name, self.name + "_bucket", labels, label_values, self.doc)
@@ -151,6 +156,7 @@ class SharedLiveSum:
         self.files, self.key = files, mmap_key(name, name, [], [], doc)
 
     def set(self, value: float) -> None:
+        """Set this process's share of the gauge."""
         self.files.set("gauge_livesum", self.key, value)
 
 
@@ -161,6 +167,8 @@ class FolderCollector(Collector):
         self.folder = folder
 
     def collect(self) -> Iterator[Any]:
+        """The samples of every process's files in the folder (those of live-sum gauges only
+        for processes that still run), merged."""
         files = [
             str(path)
             for path in self.folder.glob("*.db")

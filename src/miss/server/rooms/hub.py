@@ -92,6 +92,7 @@ class Hub:
         self.on_people: Callable[[int], None] = lambda n: None
 
     def connections(self) -> int:
+        """Room connections open in this process."""
         return sum(len(room.people) for room in self.rooms.values())
 
     def end(self, kind: str, value: str) -> None:
@@ -103,10 +104,12 @@ class Hub:
         self.store.bus.publish_soon("ended", [kind, value])
 
     def end_here(self, kind: str, value: str) -> None:
+        """Record in this process that a grant ended (``end`` tells the other processes too)."""
         with self._ended_lock:
             self._ended[(kind, value)] = time.monotonic()
 
     def start(self) -> None:
+        """Start watching for ended grants and expired guests (on the running event loop)."""
         self._loop = asyncio.get_running_loop()
         self._watcher = self._loop.create_task(self._watch())
 
@@ -163,6 +166,7 @@ class Hub:
         room.broadcast(message)
 
     async def stop(self) -> None:
+        """Stop the watcher started by ``start``."""
         if self._watcher is not None:
             self._watcher.cancel()
             with contextlib.suppress(asyncio.CancelledError):

@@ -36,6 +36,8 @@ def point(value: Any, name: str) -> list[float]:
 
 
 def text(value: Any, name: str, limit: int, required: bool = True) -> str:
+    """``value`` if it is a string of at most ``limit`` characters (non-blank when
+    ``required``; None gives "" when not); Invalid naming ``name`` otherwise."""
     if value is None and not required:
         return ""
     if not isinstance(value, str) or (required and not value.strip()):
@@ -46,6 +48,7 @@ def text(value: Any, name: str, limit: int, required: bool = True) -> str:
 
 
 def event_id(value: Any, known: dict[int, Any], what: str) -> int:
+    """``value`` if it is the id of an item in ``known``; Invalid naming ``what`` otherwise."""
     if not isinstance(value, int) or isinstance(value, bool) or value not in known:
         raise Invalid("invalid", f"no {what} with id {value!r} in this room.")
     return value
@@ -65,10 +68,12 @@ def _check_model(room: Room, message: dict[str, Any]) -> None:
 
 
 async def on_ping(hub: Hub, room: Room, person: Participant, message: dict[str, Any]) -> None:
+    """Answer a ping with a pong (a client's keep-alive)."""
     person.send({"type": "pong"})
 
 
 async def on_presenter(hub: Hub, room: Room, person: Participant, message: dict[str, Any]) -> None:
+    """Make the sender the presenter (``on``) or stop presenting; tell everyone and record it."""
     on = message.get("on")
     if not isinstance(on, bool):
         raise Invalid("invalid", '"on" must be true (present) or false (stop presenting).')
@@ -84,6 +89,8 @@ async def on_presenter(hub: Hub, room: Room, person: Participant, message: dict[
 
 
 async def on_camera(hub: Hub, room: Room, person: Participant, message: dict[str, Any]) -> None:
+    """Share the presenter's camera (position, target, up in patient mm) with the others;
+    Invalid when the sender is not the presenter."""
     if room.presenter != person.id:
         raise Invalid("not_presenter", "only the presenter's view is shared; press Present first.")
     view = {k: point(message.get(k), k) for k in ("position", "target", "up")}
@@ -159,6 +166,7 @@ async def on_rename(hub: Hub, room: Room, person: Participant, message: dict[str
 
 
 async def on_laser(hub: Hub, room: Room, person: Participant, message: dict[str, Any]) -> None:
+    """Show the sender's laser point on the model to the others (None: laser off); not kept."""
     _check_model(room, message)
     at = message.get("point")
     at = None if at is None else room.on_model(point(at, "point"), "the laser point")
@@ -167,6 +175,7 @@ async def on_laser(hub: Hub, room: Room, person: Participant, message: dict[str,
 
 
 async def on_pin(hub: Hub, room: Room, person: Participant, message: dict[str, Any]) -> None:
+    """Put a pin with an optional note at a point on the model; kept in the room's record."""
     _check_model(room, message)
     data = {
         "point": room.on_model(point(message.get("point"), "point"), "the pin"),
@@ -178,6 +187,8 @@ async def on_pin(hub: Hub, room: Room, person: Participant, message: dict[str, A
 
 
 async def on_measure(hub: Hub, room: Room, person: Participant, message: dict[str, Any]) -> None:
+    """Measure between two points on the model (distance in mm, to 0.01); kept in the
+    room's record."""
     _check_model(room, message)
     a = room.on_model(point(message.get("a"), "a"), "the first point")
     b = room.on_model(point(message.get("b"), "b"), "the second point")
@@ -186,6 +197,7 @@ async def on_measure(hub: Hub, room: Room, person: Participant, message: dict[st
 
 
 async def on_chat(hub: Hub, room: Room, person: Participant, message: dict[str, Any]) -> None:
+    """Post a chat message; kept in the room's record."""
     data = {"text": text(message.get("text"), "text", MAX_CHAT), "colour": person.colour}
     await _keep(hub, room, person, "chat", data)
 

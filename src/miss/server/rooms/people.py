@@ -151,6 +151,7 @@ class Participant:
             self.close(Close.SLOW, "your connection could not keep up with the room; reconnect.")
 
     def error(self, code: str, text: str) -> None:
+        """Send an error frame: ``code`` for the client, ``text`` for the person."""
         self.send({"type": "error", "code": code, "error": text})
 
     def close(self, code: int, reason: str) -> None:
@@ -163,6 +164,7 @@ class Participant:
         self.outbox.put_nowait(("close", (code, reason)))
 
     def expired(self) -> bool:
+        """Whether this visitor's access (a share link's) has expired."""
         return self.visitor.expires is not None and self.visitor.expires <= utcnow()
 
     def admit(self) -> bool:

@@ -23,6 +23,7 @@ CHAT_BACKLOG = 200
 
 
 def iso(value: datetime) -> str:
+    """A naive UTC time from the database as ISO 8601 with milliseconds and ``+00:00``."""
     return value.replace(tzinfo=UTC).isoformat(timespec="milliseconds")
 
 

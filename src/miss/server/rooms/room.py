@@ -57,11 +57,14 @@ class Room:
         self.writing = writing  # the model's, shared with its other sessions (Hub.writing)
 
     def colour(self) -> str:
+        """A colour for a newcomer: the first not in use, else one in turn."""
         used = {p.colour for p in self.people.values()}
         free = [c for c in COLOURS if c not in used]
         return free[0] if free else COLOURS[len(self.people) % len(COLOURS)]
 
     def broadcast(self, message: dict[str, Any], skip: Participant | None = None) -> None:
+        """Send ``message`` to everyone here but ``skip``; those whose access has expired are
+        told so and closed instead."""
         for person in list(self.people.values()):
             if person is skip:
                 continue
@@ -72,6 +75,8 @@ class Room:
                 person.send(message)
 
     def welcome(self, you: Participant) -> dict[str, Any]:
+        """The first frame a newcomer gets: the people, the presenter and view, the model's
+        bounds, the room's limits and its items."""
         return {
             "type": "welcome",
             "model": self.model_id,

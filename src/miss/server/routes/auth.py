@@ -39,6 +39,8 @@ UNKNOWN_ACCOUNT = "(unknown account)"
 
 
 class LoginRequest(BaseModel):
+    """A login: user name, password and the page to go to afterwards."""
+
     model_config = ConfigDict(extra="forbid")
 
     username: str = Field(max_length=64)
@@ -52,6 +54,8 @@ class LoginRequest(BaseModel):
 
 
 class UserOut(BaseModel):
+    """An account as the API shows it (never its password)."""
+
     id: str
     name: str
     admin: bool
@@ -60,6 +64,8 @@ class UserOut(BaseModel):
 
 
 class NewUser(BaseModel):
+    """A new account: its name, password (at least 8 characters) and permissions."""
+
     model_config = ConfigDict(extra="forbid")
 
     name: str = Field(max_length=64)
@@ -69,6 +75,7 @@ class NewUser(BaseModel):
 
 
 def user_out(user: accounts.User) -> UserOut:
+    """The API's view of an account."""
     return UserOut(
         id=user.id, name=user.name, admin=user.is_admin, disabled=user.disabled, pacs=user.pacs
     )
@@ -178,15 +185,19 @@ def logout(request: Request, store: StoreDep, user: UserDep, rooms: RoomsDep) ->
 
 @router.get("/api/auth/me", response_model=UserOut)
 def me(user: UserDep) -> UserOut:
+    """The account of this session (401 when not logged in)."""
     return user_out(user)
 
 
 @router.get("/api/users", response_model=list[UserOut])
 def list_users(store: StoreDep, admin: AdminDep) -> list[UserOut]:
+    """Every account, oldest first; administrators only (403 otherwise)."""
     return [user_out(u) for u in accounts.list_users(store)]
 
 
 class UsageOut(BaseModel):
+    """What one account stores: volumes, models and their bytes on disk, against its quota."""
+
     account: str = Field(description='a user name; "" for what nobody owns (the demo)')
     volumes: int
     models: int = Field(description="models the account queued")
@@ -218,6 +229,8 @@ def add_user(body: NewUser, store: StoreDep, admin: AdminDep, request: Request) 
 
 
 class PasswordChange(BaseModel):
+    """A change of one's own password: the current one and the new one."""
+
     model_config = ConfigDict(extra="forbid")
 
     old: str = Field(max_length=1024)
@@ -277,6 +290,8 @@ def _new_password(
 
 
 class UserChange(BaseModel):
+    """An administrator's change to an account; fields left out stay as they are."""
+
     model_config = ConfigDict(extra="forbid")
 
     disabled: bool | None = Field(default=None, description="disable or enable the account")

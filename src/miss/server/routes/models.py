@@ -179,6 +179,8 @@ def list_models(
 
 @router.get("/{model_id}", response_model=ModelOut)
 async def get_model(model: ModelDep, store: StoreDep) -> ModelOut:
+    """A model: its job's status and progress, its parameters and statistics, and the URLs
+    of its files once made. 404 when there is none you may see."""
     cached = store.cached_volume(model.volume_id) is not None
     volume = await here_or_threadpool(cached, store.get_volume, model.volume_id)
     return model_out(model, volume)

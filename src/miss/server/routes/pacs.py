@@ -56,10 +56,14 @@ def _server(settings: Settings, name: str | None) -> PacsServer:
 
 
 class PacsOut(BaseModel):
+    """A PACS this server may search and import from."""
+
     name: str
 
 
 class StudyOut(BaseModel):
+    """A study found on the PACS: patient, date, description, modalities and counts."""
+
     study: str
     patient_id: str
     patient_name: str
@@ -74,6 +78,8 @@ class StudyOut(BaseModel):
 
 
 class StudiesOut(BaseModel):
+    """A page of studies found on the PACS; ``more`` when there are further pages."""
+
     pacs: str
     studies: list[StudyOut]
     offset: int
@@ -82,6 +88,8 @@ class StudiesOut(BaseModel):
 
 
 class SeriesOut(BaseModel):
+    """A series of a study on the PACS, and whether (or why not) it can be imported."""
+
     series: str
     modality: str
     description: str
@@ -93,6 +101,9 @@ class SeriesOut(BaseModel):
 
 
 class ImportRequest(BaseModel):
+    """An import of one image series from the PACS, with the segmentation to lay over it
+    (found, named, or none)."""
+
     model_config = ConfigDict(extra="forbid")
 
     study: str = Field(max_length=64, description="Study Instance UID (from the search)")
@@ -110,6 +121,8 @@ ImportStatus = Literal["queued", "running", "done", "failed"]
 
 
 class ImportOut(BaseModel):
+    """An import from the PACS: its state, and the volume it made once done."""
+
     id: str
     pacs: str
     status: ImportStatus
@@ -124,6 +137,8 @@ class ImportOut(BaseModel):
 
 
 class SendRequest(BaseModel):
+    """Where to send a model (as DICOM Encapsulated STL, one instance a part)."""
+
     model_config = ConfigDict(extra="forbid")
 
     pacs: str | None = Field(
@@ -132,6 +147,8 @@ class SendRequest(BaseModel):
 
 
 class SendOut(BaseModel):
+    """What was stored on the PACS: the new series' UIDs and its parts."""
+
     pacs: str
     study_uid: str
     series_uid: str
@@ -141,6 +158,7 @@ class SendOut(BaseModel):
 
 
 def import_out(row: PacsImportRow) -> ImportOut:
+    """The API's view of an import row."""
     return ImportOut(
         id=row.id, pacs=row.pacs, status=cast(ImportStatus, row.status), stage=row.stage, progress=row.progress,
         name=row.name, volume_id=row.volume_id, labels=row.labels, error=row.error,
@@ -239,6 +257,8 @@ def list_imports(user: PacsUserDep, imports: PacsImportsDep) -> list[ImportOut]:
 
 @router.get("/api/pacs/imports/{import_id}", response_model=ImportOut)
 def get_import(import_id: str, user: PacsUserDep, imports: PacsImportsDep) -> ImportOut:
+    """The state of one of your PACS imports, and its volume once done. 404 when it is not
+    yours, or this account has no PACS access."""
     return import_out(imports.get(import_id, user))
 
 

@@ -105,11 +105,13 @@ def redoc_page() -> Response:
 
 @router.get("/")
 def library_page(request: Request, store: StoreDep) -> Response:
+    """The library page (volumes and models); to the login page first when not logged in."""
     return _page("index.html") if page_user(request, store) else _login_first(request)
 
 
 @router.get("/volumes/{volume_id}")
 def volume_page(volume_id: str, request: Request, store: StoreDep) -> Response:
+    """A volume's page; to the login page first when not logged in."""
     return _page("volume.html") if page_user(request, store) else _login_first(request)
 
 
@@ -133,6 +135,8 @@ def _audit_view(store: Store, request: Request, user: User, model_id: str) -> No
 
 @router.get("/static/{path:path}")
 def static_file(path: str, request: Request) -> Response:
+    """A file of the browser viewer (``src/miss/web``): its modules, styles and images; 404
+    when there is none."""
     return _asset(safe_file(WEB, path), request)
 
 

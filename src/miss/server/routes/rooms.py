@@ -77,6 +77,8 @@ def admit_user(store: Store, ws: WebSocket, model_id: str) -> tuple[Visitor, Any
 
 
 def admit(store: Store, ws: WebSocket, model_id: str, token: str, name: str) -> tuple[Visitor, Any]:
+    """Let a guest (share-link ``token``) or a signed-in user into the model's room and log
+    it in the audit log; the visitor and the model's bounds (mm). Raises Refused otherwise."""
     if token:
         visitor, bounds = admit_guest(store, model_id, token, name)
         actor = f"link:{visitor.share_id}"

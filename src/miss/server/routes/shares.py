@@ -47,6 +47,9 @@ GUEST_ERROR = "this model could not be made; the person who shared it can see wh
 
 
 class ShareRequest(BaseModel):
+    """A share link to make: of one model or of a volume's models, what it allows, and for
+    how long."""
+
     model_config = ConfigDict(extra="forbid")
 
     model: str | None = Field(None, description="model id to share")

@@ -72,6 +72,8 @@ _VALUE: dict[str, Any] = {"ge": -VALUE_LIMIT, "le": VALUE_LIMIT, "allow_inf_nan"
 
 
 class Axis(StrEnum):
+    """The plane of a slice: axial (z), coronal (y) or sagittal (x)."""
+
     axial = "axial"
     coronal = "coronal"
     sagittal = "sagittal"
@@ -190,6 +192,8 @@ def list_volumes(store: StoreDep, user: UserDep) -> list[VolumeOut]:
 
 @router.get("/{volume_id}", response_model=VolumeOut)
 def get_volume(volume: VolumeDep, store: StoreDep) -> VolumeOut:
+    """A volume: its size in voxels, spacing in mm, value range, source, presets and
+    label map. 404 when there is none you may see."""
     out = volume_out(volume, owner_name(store, volume))
     out.labelmap = labelmaps.public(labelmaps.info(store, volume.id))
     return out
@@ -289,6 +293,7 @@ def identity(volume: VolumeDep, store: StoreDep, user: UserDep, request: Request
 
 @router.get("/{volume_id}/thumbnail.png", response_class=FileResponse)
 def thumbnail(volume: VolumeDep, store: StoreDep) -> FileResponse:
+    """A small preview image of the volume (PNG); 404 when there is none you may see."""
     path = store.volume_dir(volume.id) / "thumbnail.png"
     return FileResponse(
         path, media_type="image/png", headers={"Cache-Control": "private, max-age=86400"}

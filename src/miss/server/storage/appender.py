@@ -36,11 +36,13 @@ class Appender:
         self._thread: threading.Thread | None = None
 
     def start(self) -> None:
+        """Commit from a thread of its own from now on (the server); idempotent."""
         if self._thread is None:
             self._thread = threading.Thread(target=self._run, name="miss-appender", daemon=True)
             self._thread.start()
 
     def add(self, row: Any) -> None:
+        """Commit ``row``: at once when not started, else within milliseconds from the thread."""
         if self._thread is None:
             self._commit([row])
             return
@@ -54,11 +56,13 @@ class Appender:
         return self._thread is not None
 
     def flush(self, timeout: float = 60.0) -> None:
+        """Wait until every row added before this call is committed (at most ``timeout`` s)."""
         with self._done:
             wanted = self._added
             self._done.wait_for(lambda: self._committed >= wanted, timeout)
 
     def stop(self) -> None:
+        """Commit the rows still queued and end the thread (waits up to 60 s)."""
         if self._thread is not None:
             self._queue.put(_STOP)
             self._thread.join(timeout=60)

@@ -59,6 +59,9 @@ CHUNK = 1 << 20
 
 @dataclass(frozen=True)
 class Summary:
+    """What a backup or restore copied: files, their bytes, the database copy's bytes, and
+    the seconds it took."""
+
     files: int
     bytes: int
     database_bytes: int

@@ -160,6 +160,7 @@ class Bus:
         return not free
 
     def start(self) -> None:
+        """Start listening: on PostgreSQL, from a thread of its own; on SQLite, to the bus file."""
         if self._thread is not None:
             return
         if self.enabled:
@@ -202,6 +203,7 @@ class Bus:
         self._deliver(channel, message)
 
     def stop(self) -> None:
+        """Stop the threads (waiting up to 5 s each) and release the liveness lock."""
         self._stopping.set()
         if self._sender is not None:
             self._outbox.put(None)

@@ -37,6 +37,7 @@ class BytesLRU:
         self._lock = threading.Lock()
 
     def peek(self, key: Hashable) -> bytes | None:
+        """The value of ``key`` (now the most recently used), or None."""
         with self._lock:
             value = self._items.get(key)
             if value is not None:
@@ -53,6 +54,8 @@ class BytesLRU:
         return value
 
     def put(self, key: Hashable, value: bytes) -> None:
+        """Keep ``value`` under ``key``, dropping the least recently used to stay within
+        ``max_bytes``; a value larger than the budget, or a key already kept, is ignored."""
         with self._lock:
             if key in self._items or len(value) > self.max_bytes:
                 return
@@ -79,6 +82,7 @@ class RowCache:
         self.on_change: Callable[[tuple[Hashable, ...] | None], None] = lambda keys: None
 
     def get(self, key: Hashable) -> Any | None:
+        """The row kept under ``key`` if younger than ``ttl`` seconds, else None."""
         with self._lock:
             found = self._items.get(key)
             if found is None:
@@ -90,6 +94,8 @@ class RowCache:
             return found[1]
 
     def put(self, key: Hashable, value: Any, generation: int) -> None:
+        """Keep ``value`` under ``key`` unless something was dropped since ``generation`` was
+        read (then the value may be stale and is ignored)."""
         with self._lock:
             if generation != self.generation:
                 return
@@ -104,16 +110,19 @@ class RowCache:
         self.on_change(keys)
 
     def drop_here(self, *keys: Hashable) -> None:
+        """Drop ``keys`` in this process only (``drop`` tells the other processes too)."""
         with self._lock:
             self.generation += 1
             for key in keys:
                 self._items.pop(key, None)
 
     def clear(self) -> None:
+        """Drop every row here and in the other processes."""
         self.clear_here()
         self.on_change(None)
 
     def clear_here(self) -> None:
+        """Drop every row in this process only."""
         with self._lock:
             self.generation += 1
             self._items.clear()

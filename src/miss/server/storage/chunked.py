@@ -167,22 +167,27 @@ class Voxels:
 
     @property
     def shape(self) -> tuple[int, int, int]:
+        """Voxels along (X, Y, Z)."""
         return tuple(self.stored.shape[::-1])
 
     @property
     def chunks(self) -> tuple[int, int, int]:
+        """Voxels per chunk along (X, Y, Z)."""
         return tuple(self.stored.chunks[::-1])
 
     @property
     def dtype(self) -> np.dtype:
+        """The stored voxels' type."""
         return np.dtype(self.stored.dtype)
 
     @property
     def size(self) -> int:
+        """Voxels in all."""
         return math.prod(self.shape)
 
     @property
     def nbytes(self) -> int:
+        """Bytes of all voxels once read (uncompressed)."""
         return self.size * self.dtype.itemsize
 
     def __getitem__(self, key: Any) -> np.ndarray:

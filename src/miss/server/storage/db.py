@@ -30,10 +30,13 @@ QUEUED, RUNNING, DONE, FAILED = "queued", "running", "done", "failed"
 
 
 def utcnow() -> datetime:
+    """Now in UTC without a time zone, as the database columns keep times."""
     return datetime.now(UTC).replace(tzinfo=None)
 
 
 class Base(DeclarativeBase):
+    """The tables' base: dicts and lists are stored as JSON."""
+
     type_annotation_map = {dict[str, Any]: JSON, list[Any]: JSON}
 
 
@@ -282,5 +285,6 @@ def make_engine(url: str, durable: bool = True) -> Engine:
 
 
 def make_sessionmaker(engine: Engine) -> sessionmaker:
+    """Sessions whose rows stay readable after commit (they are not expired)."""
     # Rows leave the session as plain snapshots: routes read them after commit.
     return sessionmaker(engine, expire_on_commit=False)

@@ -33,6 +33,7 @@ LOCK_KEY = 0x4D495353
 
 
 def config(connection: Connection | None = None) -> Config:
+    """Alembic's configuration for MISS's migrations, on ``connection`` if given."""
     cfg = Config()
     cfg.set_main_option("script_location", str(MIGRATIONS))
     cfg.attributes["connection"] = connection

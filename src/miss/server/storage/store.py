@@ -84,6 +84,7 @@ CHUNK_CACHE = 128 << 20
 
 
 def new_id() -> str:
+    """A new random id: 16 hex digits."""
     return secrets.token_hex(8)
 
 
@@ -153,9 +154,11 @@ class Store:
     # -- layout ---------------------------------------------------------------------------
 
     def volume_dir(self, volume_id: str) -> Path:
+        """The volume's folder in the data folder (it may not exist)."""
         return self.data_dir / "volumes" / volume_id
 
     def model_dir(self, model_id: str) -> Path:
+        """The model's folder in the data folder (it may not exist)."""
         return self.data_dir / "models" / model_id
 
     def tmp_dir(self) -> Path:
@@ -291,6 +294,8 @@ class Store:
             self.rows.drop_here(*(tuple(k) for k in keys))
 
     def close(self) -> None:
+        """Stop the bus and the appender, close the database connections and release the
+        data folder's lock."""
         self.bus.stop()
         self.appender.stop()
         self.engine.dispose()
@@ -310,6 +315,7 @@ class Store:
             return list(s.scalars(query))
 
     def count_volumes(self) -> int:
+        """How many volumes are stored."""
         with self.session() as s:
             return s.scalar(select(func.count()).select_from(VolumeRow)) or 0
 
@@ -389,6 +395,7 @@ class Store:
         return chunked.read(path, self.in_memory_max)
 
     def read_json(self, volume_id: str, name: str) -> Any:
+        """The JSON file ``name`` stored with the volume."""
         return json.loads((self.volume_dir(volume_id) / name).read_text())
 
     # -- models ---------------------------------------------------------------------------
@@ -406,6 +413,7 @@ class Store:
         return self.rows.get(("model", model_id))
 
     def get_identity(self, volume_id: str) -> IdentityRow | None:
+        """The original patient identity kept for the volume (owner only), or None."""
         with self.session() as s:
             return s.get(IdentityRow, volume_id)
 
@@ -473,6 +481,7 @@ class Store:
             return s.scalars(query).first()
 
     def delete_model(self, model_id: str) -> None:
+        """Delete the model's row and folder; NotFound (404) when there is no such model."""
         self.get_model(model_id)
         with self.session.begin() as s:
             s.execute(delete(ModelRow).where(ModelRow.id == model_id))
@@ -496,10 +505,12 @@ class Store:
 
 
 def always(_row: Any) -> bool:
+    """Keep every cached row (``RowCache.cached``'s ``keep``)."""
     return True
 
 
 def done(row: ModelRow) -> bool:
+    """Keep a cached model row only once its job is done."""
     return row.status == DONE
 
 
