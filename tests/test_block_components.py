@@ -145,6 +145,7 @@ def test_a_job_on_a_lazy_volume_keeps_its_largest_piece(cthead, lazy_cthead) -> 
     assert len(result.scene.parts) == 1
 
 
+@pytest.mark.slow  # a local Dask cluster
 def test_on_a_dask_cluster_the_same_as_on_threads(tmp_path) -> None:
     """The tasks and their items pickle: both passes on one local cluster, the snake read
     from Zarr by the workers."""

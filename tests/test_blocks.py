@@ -246,6 +246,7 @@ def test_decimated_in_blocks_holds_the_bound_against_the_full_surface(
     assert boundary_edge_count(got.mesh.faces) == 0  # the blocks still meet
 
 
+@pytest.mark.slow  # the whole CThead, blockwise
 def test_blocks_hold_their_borders_and_half_the_bound(cthead) -> None:
     """After the blocks' own decimation (before the pass across them) the blocks still
     meet (the welded mesh is closed: their border vertices were held) and the mesh is

@@ -45,6 +45,7 @@ def bone(datasets) -> Mesh:
     return miss_surface(datasets)
 
 
+@pytest.mark.slow  # the whole CThead bone, collapse against schroeder
 @pytest.mark.parametrize("bound", BOUNDS)
 def test_cthead_bone_is_held_densely_with_fewer_triangles_than_schroeder(
     bone: Mesh, bound: float

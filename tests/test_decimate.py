@@ -92,6 +92,7 @@ def test_quadric_on_a_flat_patch_keeps_zero_error() -> None:
     assert report.max_error_mm == pytest.approx(0.0, abs=1e-4)
 
 
+@pytest.mark.slow  # a real skull
 def test_quadric_keeps_small_pieces_of_a_real_skull(datasets) -> None:
     """CThead's loose bone fragments must not be collapsed away to meet the global target:
     one simplification of the whole mesh lost some, for a measured max error of 70 mm."""

@@ -100,6 +100,7 @@ def test_pages_redirect_to_login(client: TestClient) -> None:
     assert anon.get("/login").status_code == 200
 
 
+@pytest.mark.slow  # a dozen password hashes
 def test_failed_logins_are_rate_limited(make_client) -> None:
     c = make_client()
     fresh = LoginLimits()  # no attempt counted yet

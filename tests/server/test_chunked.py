@@ -415,6 +415,7 @@ def test_upload_whose_voxels_fill_the_disk_gets_507_and_leaves_nothing(
     assert r.status_code == 201, r.text  # room again: stored
 
 
+@pytest.mark.slow  # a real scan read lazily and meshed by a worker
 def test_a_volume_over_the_in_memory_size_is_read_lazily_and_still_meshed(
     make_client, small_nifti: bytes, monkeypatch: pytest.MonkeyPatch, wait_done
 ) -> None:

@@ -192,6 +192,7 @@ def check_database(db: Path, secrets: list[str], volume_id: str) -> None:
     assert "identities" in tables
 
 
+@pytest.mark.slow  # two real DICOM series uploaded
 def test_identity_record_is_the_owners_alone(
     client: TestClient, people: dict, identified_zip: tuple[Path, set]
 ) -> None:

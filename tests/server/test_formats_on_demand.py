@@ -113,6 +113,7 @@ def test_a_job_keeps_the_glb_and_its_scene_and_lists_the_rest_on_request(
         assert entry["url"] == f"/api/models/{body['id']}/model.{fmt}"
 
 
+@pytest.mark.slow  # every format of a job; test_api downloads each in the fast lane
 def test_every_download_has_the_bytes_the_writers_make_of_the_jobs_scene(
     client: TestClient, demo_id: str, tmp_path: Path
 ) -> None:
@@ -154,6 +155,7 @@ def test_a_second_download_reads_the_file_the_first_made(client: TestClient, dem
     assert _made(folder, "stl") == 1
 
 
+@pytest.mark.slow  # threads racing a writer
 def test_downloads_asked_while_a_format_is_made_wait_for_its_one_writer(
     client: TestClient, demo_id: str
 ) -> None:
@@ -197,6 +199,7 @@ def test_the_cache_removes_the_least_recently_used_made_files(tmp_path: Path) ->
     assert all((models / n / "model.glb").exists() for n in "abc")
 
 
+@pytest.mark.slow  # two jobs' formats made and made again
 def test_over_the_cap_the_older_made_file_goes_and_is_made_again_the_same(
     make_client: Callable[..., TestClient],
 ) -> None:
@@ -232,6 +235,7 @@ def test_the_cache_setting_is_checked() -> None:
         Settings.from_env({"MISS_FORMAT_CACHE_MB": "-1"})
 
 
+@pytest.mark.slow  # a tmpfs mounted for the job
 @pytest.mark.usefixtures("can_mount_tmpfs")
 def test_a_format_that_does_not_fit_on_the_disk_gives_507_and_leaves_nothing(
     tmp_path: Path,

@@ -93,6 +93,7 @@ def test_ingest_of_a_big_gzipped_nifti_stays_far_under_its_size(
         assert r.status_code == 200 and r.headers["content-type"] == "image/png"
 
 
+@pytest.mark.slow  # two `miss ingest` processes
 def test_ingest_errors_are_one_line_and_leave_nothing(tmp_path: Path) -> None:
     data = tmp_path / "data"
     broken = tmp_path / "broken.nii.gz"

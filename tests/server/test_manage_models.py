@@ -7,6 +7,7 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
+import pytest
 from fastapi.testclient import TestClient
 from support.realserver import alive, serving
 
@@ -40,6 +41,7 @@ def worker_pid(data: Path, model_id: str) -> int:
     return pid
 
 
+@pytest.mark.slow  # kills a real worker process
 def test_cancel_kills_the_worker_removes_its_files_and_frees_the_slot(
     data_dir: Path, tmp_path: Path
 ) -> None:
