@@ -28,6 +28,7 @@ from miss.errors import BadParameter
 from miss.export import FORMATS, WRITERS
 from miss.server.core.errors import BodyTooLarge
 from miss.server.storage.db import DONE, RUNNING, ModelRow, VolumeRow
+from miss.server.volumes.plain import plain_notes
 from miss.spec import GROUPS, JobSpec, Structure, declared, default_of, form_name
 
 #: Largest JSON request body: the biggest real one (a job with many labels) is under 2 KB.
@@ -161,6 +162,10 @@ class VolumeOut(BaseModel):
     series: list[dict[str, Any]]
     source_format: str
     notes: list[str]
+    notes_plain: list[str] = Field(
+        default_factory=list,
+        description="the notes said for a person, as the volume and model pages show them",
+    )
     window: dict[str, float] = Field(description="default window/level for slice images")
     presets: list[dict[str, Any]] = Field(
         description="suggested levels, the default first: bone and skin for CT, skin and "
@@ -269,6 +274,7 @@ def volume_out(row: VolumeRow, owner: str = "") -> VolumeOut:
         deidentification=info.get("deidentification", {}),
         scale=info.get("scale") or _scale_of_old(info),
         slice_gap=slice_gap(info),
+        notes_plain=plain_notes(info["notes"]),
         **{k: info[k] for k in keys},
     )
 

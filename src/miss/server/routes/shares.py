@@ -38,6 +38,7 @@ from miss.server.routes.models import lod_response, model_file
 from miss.server.routes.pages import WEB
 from miss.server.storage.db import DONE, FAILED, ModelRow, ShareRow, VolumeRow
 from miss.server.storage.store import Store
+from miss.server.volumes.plain import plain_notes
 
 router = APIRouter(tags=["shares"], route_class=JSONRoute)
 #: Share pages must not leak their URL (the token) to anything they link to, nor be kept
@@ -217,6 +218,7 @@ def share_info(token: str, store: StoreDep) -> JSONResponse:
             "spacing": info.get("spacing"),
             "slice_gap": slice_gap(info),
             "notes": info.get("notes", []),
+            "notes_plain": plain_notes(info.get("notes", [])),
             "burned_in_annotation": bool(info.get("burned_in_annotation", False)),
             "source_sha256": info.get("source_sha256", ""),
         },

@@ -10,6 +10,7 @@ check it was not renamed from another format or damaged."
 from __future__ import annotations
 
 import re
+from collections.abc import Sequence
 
 from miss.errors import MissError, UnreadableVolume, UnsafeArchive, UnsupportedFormat
 
@@ -69,4 +70,43 @@ def explained(exc: MissError, label: str) -> MissError:
         return exc
     said = type(exc)(plain)
     said.technical = str(exc)  # type: ignore[union-attr]  # read by the error handler
+    return said
+
+
+#: A reader's note on what it changed, and the same said for a physician: the gantry tilt
+#: and the uneven slice gaps of issue 42 ("the affine is sheared", "linear interpolation",
+#: "the median gap (the smallest would exceed 4x)" mean nothing to them).
+_NOTES_SAID_PLAINLY = (
+    (
+        re.compile(r"^gantry tilt: slices step ([\d.]+) deg off their normal\b.*"),
+        r"The scanner's gantry was tilted \1°: each slice was placed at its true slant, its pixels "
+        "unchanged",
+    ),
+    (
+        re.compile(
+            r"^uneven slice gaps \(([\d.]+)-([\d.]+) mm\): resampled (\d+) slices onto (\d+) "
+            r"slices ([\d.]+) mm apart\b.*"
+        ),
+        r"The gaps between slices were uneven (\1 to \2 mm): the \3 slices were blended "
+        r"into \4 evenly spaced slices, \5 mm apart",
+    ),
+    (
+        re.compile(r"^no usable PixelSpacing: assumed 1 mm pixels$"),
+        "The scan did not say its pixel size: 1 mm pixels were assumed",
+    ),
+)
+
+
+def plain_notes(notes: Sequence[str]) -> list[str]:
+    """A volume's notes (what its reader changed or assumed) as a page shows them: the
+    known technical ones reworded, the others without technical asides (byte offsets,
+    tags) and each starting with a capital."""
+    said = []
+    for note in notes:
+        for pattern, plain in _NOTES_SAID_PLAINLY:
+            if pattern.match(note):
+                note = pattern.sub(plain, note, count=1)
+                break
+        note = _without_technical_asides(note.strip())
+        said.append(note[:1].upper() + note[1:])
     return said

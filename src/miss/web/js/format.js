@@ -63,27 +63,35 @@ export function formatMm( v, digits = 3 ) {
 
 export function describeVolume( v ) {
 	const dims = ( v.dims || [] ).join( ' × ' );
-	const spacing = ( v.spacing || [] ).map( ( s ) => +Number( s ).toFixed( 3 ) ).join( ' × ' );
-	return `${v.modality || 'volume'} · ${dims} voxels · ${spacing} mm`;
+	return `${v.modality || 'volume'} · ${dims} voxels · ${spacingMm( v ).join( ' × ' )} mm`;
 }
 
-// The spacing MISS used, in words: in-plane, and the slices' distance along their normal
-// (less than the stored z spacing when a gantry tilt shears them).
-export function spacingAsUsed( v ) {
+// mm between voxels as MISS used them (x, y, z), rounded to µm: z is the distance between
+// slice planes along their normal, less than the stored z step when a gantry tilt shears them.
+function spacingMm( v ) {
 	const [ sx, sy, sz ] = ( v.spacing || [] ).map( ( s ) => +Number( s ).toFixed( 3 ) );
 	const gap = v.slice_gap != null ? +Number( v.slice_gap ).toFixed( 3 ) : sz;
-	const along = gap !== sz ? ` (${sz} mm along the tilted stack)` : '';
-	return `${sx} × ${sy} mm in-plane, slices ${gap} mm apart${along}`;
+	return [ sx, sy, gap ];
+}
+
+// The spacing MISS used, in words, with the step along a tilted stack when it differs.
+export function spacingAsUsed( v ) {
+	const [ sx, sy, gap ] = spacingMm( v );
+	const sz = +Number( ( v.spacing || [] )[ 2 ] ).toFixed( 3 );
+	const along = gap !== sz ? `; ${sz} mm along the tilted stack` : '';
+	return `${sx} × ${sy} × ${gap} mm (across × down × between slices${along})`;
 }
 
 // What MISS changed in reading the scan (a gantry tilt, uneven gaps resampled, ...): its
-// notes and the spacing as used, into `root` (a <details>); hidden when nothing changed.
+// notes said plainly and the spacing as used, into `root` (a <details>, open: issue 42 was
+// that nobody saw them); hidden when nothing changed.
 export function showNotes( root, v ) {
-	const notes = v.notes || [];
+	const notes = v.notes_plain || v.notes || [];
 	root.hidden = notes.length === 0;
+	root.open = true;
 	root.replaceChildren(
 		el( 'summary', {}, `What MISS changed in reading the scan (${notes.length})` ),
-		el( 'ul', {}, ...notes.map( ( n ) => el( 'li', {}, n.charAt( 0 ).toUpperCase() + n.slice( 1 ) + '.' ) ) ),
+		el( 'ul', {}, ...notes.map( ( n ) => el( 'li', {}, n.replace( /\.?$/, '.' ) ) ) ),
 		el( 'p.spacing', {}, `Spacing as used: ${spacingAsUsed( v )}.` ),
 	);
 }
