@@ -14,6 +14,8 @@ import SimpleITK as sitk
 from fastapi.testclient import TestClient
 from pydicom.uid import generate_uid
 
+from miss.server.volumes.plain import plain_notes
+
 GE = "ct_head_dicom_ge_gantrytilt"
 MR = "mr_head_dicom_vsseg001_t1"
 
@@ -116,3 +118,29 @@ def test_unreadable_upload_is_one_plain_sentence(client: TestClient) -> None:
     assert detail.count("notes.nii.gz") == 1 and "not a NIfTI file" in detail
     assert "byte" not in detail and "magic" not in detail
     assert "magic at byte 344" in technical  # the reader's finding, kept for "more"
+
+
+def test_a_tilted_series_keeps_its_notes_said_plainly(client: TestClient, datasets: Path) -> None:
+    """Issue 42: the GE head CT (gantry tilt 18.5 deg, 28 slices 1.08-7.00 mm apart) keeps
+    what its reader changed, in the reader's words and plainly, without file names; the
+    slice gap as used (3.894 mm) is given beside the stored step along the stack."""
+    files = [(f"IM{k:04d}.dcm", p.read_bytes()) for k, p in enumerate(slices(datasets, GE, 28))]
+    r = post(client, files)
+    assert r.status_code == 201, r.text
+    body = client.get(f"/api/volumes/{r.json()['id']}").json()
+    assert len(body["notes"]) == 2 and body["notes"][0].startswith("gantry tilt: ")
+    assert body["notes_plain"] == [
+        "The scanner's gantry was tilted 18.5°: each slice was placed at its true slant, its "
+        "pixels unchanged",
+        "The gaps between slices were uneven (1.08 to 7.00 mm): the 28 slices were blended "
+        "into 38 evenly spaced slices, 3.894 mm apart",
+    ]
+    assert body["dims"] == [512, 512, 38]
+    assert body["slice_gap"] == pytest.approx(3.894, abs=5e-4)
+    assert body["spacing"][2] == pytest.approx(4.106, abs=5e-4)
+    assert "IM00" not in str(body["notes"] + body["notes_plain"])
+
+
+def test_other_notes_lose_only_their_technical_asides() -> None:
+    said = plain_notes(["skipped 2 file(s) that are not DICOM images (bytes 0-3 not DICM)"])
+    assert said == ["Skipped 2 file(s) that are not DICOM images"]
