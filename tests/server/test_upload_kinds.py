@@ -141,6 +141,23 @@ def test_a_tilted_series_keeps_its_notes_said_plainly(client: TestClient, datase
     assert "IM00" not in str(body["notes"] + body["notes_plain"])
 
 
-def test_other_notes_lose_only_their_technical_asides() -> None:
-    said = plain_notes(["skipped 2 file(s) that are not DICOM images (bytes 0-3 not DICM)"])
-    assert said == ["Skipped 2 file(s) that are not DICOM images"]
+@pytest.mark.parametrize(
+    ("note", "plain"),
+    [
+        (
+            "skipped 2 file(s) that are not DICOM images (bytes 0-3 not DICM)",
+            "Skipped 2 file(s) that are not DICOM images",
+        ),
+        (
+            "no `space` field: axes taken as LPS-aligned with the spacings",
+            "The file did not say which way the patient lies: the usual orientation (LPS) was "
+            "assumed",
+        ),
+        (
+            "pydicom: Invalid value for VR UI: [value]",
+            "An odd entry in the file's header was passed over (Invalid value for VR UI: [value])",
+        ),
+    ],
+)
+def test_other_notes_are_said_plainly(note: str, plain: str) -> None:
+    assert plain_notes([note]) == [plain]

@@ -94,6 +94,27 @@ _NOTES_SAID_PLAINLY = (
         re.compile(r"^no usable PixelSpacing: assumed 1 mm pixels$"),
         "The scan did not say its pixel size: 1 mm pixels were assumed",
     ),
+    (
+        re.compile(
+            r"^(?:`space directions` without `space`|no `space` field|space '.*' has no "
+            r"anatomical orientation): axes taken as LPS.*"
+        ),
+        "The file did not say which way the patient lies: the usual orientation (LPS) was assumed",
+    ),
+    (
+        re.compile(r"^no usable `spacings`: 1 mm assumed where missing$"),
+        "The file did not give every voxel size: 1 mm was assumed where missing",
+    ),
+    (
+        re.compile(r"^the header mixed `space` with `spacings`.*"),
+        "The file gave its orientation in two ways: its voxel sizes were read along the "
+        "scan's axes",
+    ),
+    (re.compile(r"^contours rasterised$"), "The outlined structures were filled in as voxels"),
+    (
+        re.compile(r"^(?:pydicom|nibabel): (.+)"),
+        r"An odd entry in the file's header was passed over (\1)",
+    ),
 )
 
 
