@@ -5,20 +5,16 @@ from __future__ import annotations
 
 import importlib
 import json
-import sys
 from pathlib import Path
 
+import measure as measure_bench  # benchmarks/ (pyproject: pythonpath), not the package
 import numpy as np
+import paper as bench
+import paper_tables
 import pytest
+from paper import MODES, SAMPLE_RATES, markdown, paper_rows, resample_axis
 
 from miss import BadParameter, Mesh, Volume, decimate, extract_surface
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-import measure as measure_bench  # noqa: E402
-import paper as bench  # noqa: E402  (benchmarks/, not part of the package)
-import paper_tables  # noqa: E402
-from paper import MODES, SAMPLE_RATES, markdown, paper_rows, resample_axis  # noqa: E402
-
 from miss.demo import phantom
 from miss.geometry import boundary_edge_count, enclosed_volume
 from miss.measure._jit import deviation, distances_to

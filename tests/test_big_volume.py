@@ -15,13 +15,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from big_volume import cthead_planes, write_gz_nifti  # benchmarks/ (pyproject: pythonpath)
+from test_blocks import FLOAT32_ROUNDING_MM, assert_same_surface
 
 from miss import BadParameter, extract_surface
 from miss.types import IN_MEMORY_ENV, memory_budget
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from big_volume import cthead_planes, write_gz_nifti  # noqa: E402  (benchmarks/)
-from test_blocks import FLOAT32_ROUNDING_MM, assert_same_surface  # noqa: E402
 
 CTHEAD = (256, 256, 113)
 MB = 2**20

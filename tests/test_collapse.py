@@ -145,14 +145,10 @@ def test_collapse_is_offered_by_the_api_and_the_command_line() -> None:
 
 def test_the_benchmark_rows_on_the_phantom(capsys) -> None:
     """``benchmarks/collapse.py``: both bounded methods per bound, measured densely here."""
-    import sys
-    from pathlib import Path
+    import collapse as bench  # benchmarks/collapse.py, not the package's
 
     from miss import extract_surface
     from miss.demo import phantom
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-    import collapse as bench  # benchmarks/collapse.py, not the package's
 
     mesh = extract_surface(phantom(48, spacing=4.0), 200.0)
     case = bench.bench_case(mesh, (0.002,), runs=1, samples=20_000, log=lambda line: None)

@@ -210,6 +210,10 @@ def sqlalchemy_url(data_dir: Path) -> str:
 def settings_for(data_dir: Path, **values: Any) -> Settings:
     """Settings of a test server on ``data_dir`` with this run's database."""
     values.setdefault("database_url", database_url(data_dir))
+    # No spare worker unless a test asks (tests/server/test_progressive.py does): a spare
+    # imports and warms up everything a job uses (about 3 s of a core), wasted in an app
+    # that runs no job or is closed before its next one; each job starts its own worker.
+    values.setdefault("spare_workers", 0)
     return Settings(data_dir=data_dir, **values)
 
 
