@@ -176,3 +176,57 @@ def test_a_guest_sees_the_scan_only_when_the_link_offers_it(
         assert np.abs(around(after, middle) - around(before, middle)).max() > 60
     finally:
         context.close()
+
+
+def test_a_room_follows_the_scans_view(
+    page: Any, browser: Any, server: Any, cube_scan: bytes, artifacts: Path
+) -> None:
+    """Issue 43: rooms follow the volume view like the camera: the owner turns the scan on
+    and picks a preset, and a guest in the room (a link that offers the scan) sees the same,
+    the cube drawn on their canvas; a reload gives the owner the view back."""
+    from conftest import LAPTOP
+
+    response = upload_cube(page, cube_scan)
+    volume_id = response.json()["id"]
+    job = server.post("/api/models", {"volume": volume_id, "level": 1500, "decimate": "none"})
+    assert server.wait_model(job["id"])["status"] == "done"
+    link = server.post(
+        "/api/shares",
+        {"model": job["id"], "expires_in": 3600, "can_view_volume": True, "can_annotate": True},
+    )["url"]
+    connected = (
+        "() => window.__miss.room && window.__miss.room.connected && !!window.__miss.room.you"
+    )
+    page.goto(f"/models/{job['id']}")
+    page.wait_for_function("() => window.__miss.ready === true")
+    page.wait_for_function(connected)
+    context = browser.new_context(viewport=LAPTOP, base_url=server.url)
+    try:
+        guest = context.new_page()
+        guest.goto(link)
+        guest.wait_for_function("() => window.__miss.ready === true")
+        guest.wait_for_function(connected)
+        before = canvas(guest, artifacts / "volume-room-off.png")
+        page.click("#volume-toggle")
+        guest.wait_for_function("() => window.__miss.volume && window.__miss.volume.on")
+        middle = guest.evaluate(
+            f"() => window.__miss.voxelToScreen([{N // 2}, {N // 2}, {N // 2}])"
+        )
+        after = canvas(guest, artifacts / "volume-room-on.png")
+        assert np.abs(around(after, middle) - around(before, middle)).max() > 60
+        assert guest.locator("#volume-toggle").get_attribute("aria-pressed") == "true"
+
+        page.wait_for_function("() => window.__miss.volume && window.__miss.volume.on")
+        page.select_option("#volume-preset", "CT lung")
+        guest.wait_for_function("() => window.__miss.volume.preset === 'CT lung'")
+        assert guest.locator("#volume-preset").input_value() == "CT lung"
+        page.fill("#volume-level", "250")
+        guest.wait_for_function("() => window.__miss.volume.level === 250")
+
+        page.goto(f"/models/{job['id']}")  # no ?view= in the address: the room's view
+        page.wait_for_function("() => window.__miss.volume && window.__miss.volume.level === 250")
+        assert page.evaluate("() => window.__miss.volume.preset") == "CT lung"
+        page.click("#volume-toggle")
+        guest.wait_for_function("() => !window.__miss.volume.on")
+    finally:
+        context.close()

@@ -381,6 +381,35 @@ def test_what_shows_is_shared_and_kept(client: TestClient, room: dict) -> None:
         assert until(alice, "error")["code"] == "not_presenter"
 
 
+def test_the_volume_view_is_part_of_what_shows(client: TestClient, room: dict) -> None:
+    """Issue 43: rooms follow the scan's view like the parts: whether the volume shows, its
+    preset and its window reach the others and are kept; bad views are refused."""
+    model = room["model"]
+    parts = [{"visible": True, "opacity": 1}]
+    volume = {"on": True, "preset": "CT soft tissue", "level": 40, "window": 400}
+    with (
+        joined(client, url(model), room["alice"]) as alice,
+        joined(client, url(model, room["token"], "Guest")) as guest,
+    ):
+        alice.send_json({"type": "display", "parts": parts, "clip": None, "volume": volume})
+        assert until(guest, "display")["item"]["volume"] == volume | {
+            "level": 40.0,
+            "window": 400.0,
+        }
+        for bad in (
+            {"on": "yes"},
+            {"on": True, "level": 40},
+            {"on": True, "level": 40, "window": 0},
+            {"on": True, "level": float("inf"), "window": 10},
+            {"on": True, "preset": "x" * 41},
+            "volume",
+        ):
+            alice.send_json({"type": "display", "parts": parts, "clip": None, "volume": bad})
+            assert until(alice, "error")["code"] == "invalid", bad
+    with joined(client, url(model, room["token"], "Late")) as late:
+        assert late.welcome["display"]["volume"]["preset"] == "CT soft tissue"
+
+
 def test_a_guest_renames_without_leaving(client: TestClient, room: dict) -> None:
     """Issue 42: a guest's new name is one ``rename`` event that everyone hears, not a
     leave and a join; an account's name is not the guest's to change."""

@@ -111,8 +111,9 @@ def fraction(value: Any, name: str) -> float:
 
 
 def display_state(message: dict[str, Any]) -> dict[str, Any]:
-    """``parts`` (each part's ``visible`` and ``opacity``, in the model's order) and
-    ``clip`` (null, or an ``axis`` and the ``fraction`` of the extent kept), checked."""
+    """``parts`` (each part's ``visible`` and ``opacity``, in the model's order),
+    ``clip`` (null, or an ``axis`` and the ``fraction`` of the extent kept) and ``volume``
+    (:func:`volume_view`), checked."""
     parts = message.get("parts")
     if not isinstance(parts, list) or len(parts) > MAX_PARTS:
         raise Invalid("invalid", f"parts must be a list of at most {MAX_PARTS} parts.")
@@ -130,7 +131,37 @@ def display_state(message: dict[str, Any]) -> dict[str, Any]:
                 "invalid", f"clip must be null or {{axis: {'|'.join(CLIP_AXES)}, fraction}}."
             )
         clip = {"axis": clip["axis"], "fraction": fraction(clip.get("fraction"), "clip fraction")}
-    return {"parts": shown, "clip": clip}
+    return {"parts": shown, "clip": clip, "volume": volume_view(message.get("volume"))}
+
+
+#: The longest name of a volume preset ("CT bone", "MR T1 head", ...) a display may carry.
+MAX_PRESET = 40
+
+
+def number(value: Any, name: str, positive: bool = False) -> float:
+    """A finite number below 1e6 in size (above 0 when ``positive``): a level or window
+    in the volume's units (HU for CT)."""
+    ok = isinstance(value, int | float) and not isinstance(value, bool)
+    if ok and math.isfinite(value) and abs(value) < 1e6 and (value > 0 or not positive):
+        return float(value)
+    kind = "a positive number" if positive else "a number"
+    raise Invalid("invalid", f"{name} must be {kind} below 1e6 in the volume's units.")
+
+
+def volume_view(value: Any) -> dict[str, Any] | None:
+    """The scan's view in the 3-D scene (issue 43): null, or ``on``, the ``preset`` and
+    the ``level`` and ``window`` (the volume's units), checked."""
+    if value is None:
+        return None
+    if not isinstance(value, dict) or not isinstance(value.get("on"), bool):
+        raise Invalid("invalid", "volume must be null or {on: true|false, preset, level, window}.")
+    view: dict[str, Any] = {"on": value["on"], "level": None, "window": None}
+    view["preset"] = text(value.get("preset"), "volume preset", MAX_PRESET, required=False) or None
+    # Level and window go together: one without the other is not a window.
+    if value.get("level") is not None or value.get("window") is not None:
+        view["level"] = number(value.get("level"), "volume level")
+        view["window"] = number(value.get("window"), "volume window", positive=True)
+    return view
 
 
 async def on_display(hub: Hub, room: Room, person: Participant, message: dict[str, Any]) -> None:

@@ -118,7 +118,7 @@ export async function start() {
 			// with a session's cookie: a guest's browser would log a 401)
 			const signedIn = document.cookie.split( '; ' ).some( ( c ) => c.startsWith( 'miss_csrf=' ) );
 			const me = signedIn ? await request( 'GET', '/api/auth/me', undefined, { login: false } ).catch( () => null ) : null;
-			consult = new Consultation( { viewer, modelId: model.id, container: $( 'room' ), share: token, guest: true, structures, signedIn: me?.name } );
+			consult = new Consultation( { viewer, modelId: model.id, container: $( 'room' ), share: token, guest: true, structures, volume: volumePanel, signedIn: me?.name } );
 		}
 		$( 'room' ).hidden = ! data.share.can_annotate;
 		$( 'view-only' ).hidden = data.share.can_annotate;

@@ -21,10 +21,13 @@ const CLOSED = {
 
 export class Consultation {
 	// structures: the page's StructuresPanel, whose parts shown and clipping the room shares.
+	// volume: the page's VolumePanel (null where the scan is not offered), its view shared too.
 	// signedIn: the name of a colleague signed in on this server who opened a share link.
-	constructor( { viewer, modelId, container, share = '', guest = false, structures = null, signedIn = null } ) {
+	constructor( { viewer, modelId, container, share = '', guest = false, structures = null, volume = null, signedIn = null } ) {
 		this.viewer = viewer;
 		this.structures = structures;
+		this.volume = volume;
+		this.addressView = new URLSearchParams( location.search ).has( 'view' );
 		this.modelId = modelId;
 		this.annotations = new Annotations( viewer );
 		this.follower = new CameraFollower( viewer );
@@ -36,6 +39,12 @@ export class Consultation {
 		this.tools = new PointerTools( this );
 		viewer.onCameraChange( () => this.isPresenting() && this.sendCamera() );
 		if ( structures ) structures.onChange = () => this.sendDisplay();
+		if ( volume ) {
+			volume.onChange = () => {
+				this.addressView = false;
+				this.sendDisplay();
+			};
+		}
 		this.publish();
 		this.room.connect();
 	}
@@ -52,12 +61,16 @@ export class Consultation {
 
 	sendDisplay() {
 		if ( ! this.setsDisplay() ) return;
-		this.state.display = this.structures.display();
+		this.state.display = { ...this.structures.display(), volume: this.volume?.state() ?? this.state.display?.volume ?? null };
 		this.room.throttled( 'display', { type: 'display', ...this.state.display }, 150 );
 	}
 
+	// The scan's view too, except that an address asking for one (?view=, a deep link) keeps
+	// it until the room's next change.
 	showDisplay() {
-		if ( this.state.display && this.viewer.model ) this.structures?.applyDisplay( this.state.display );
+		if ( ! this.state.display || ! this.viewer.model ) return;
+		this.structures?.applyDisplay( this.state.display );
+		if ( ! this.addressView ) this.volume?.apply( this.state.display.volume ).catch( () => {} );
 	}
 
 	sendCamera() {
@@ -227,6 +240,7 @@ export class Consultation {
 		room.on( 'laser', ( m ) => this.annotations.laser( m.from, m.colour, m.point ) );
 		room.on( 'display', ( m ) => {
 			this.state.display = m.item;
+			this.addressView = false;
 			this.showDisplay();
 		} );
 	}

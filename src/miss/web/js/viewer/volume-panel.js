@@ -15,13 +15,44 @@ export class VolumePanel {
 		this.voxelsUrl = voxelsUrl;
 		this.layer = null;
 		this.loading = null;
+		this.onChange = null; // a person changed the view (a room passes it on), not apply()
 		this.button = $( 'volume-toggle' );
 		if ( ! this.button ) return; // a page without the section
 		$( 'volume-section' ).hidden = false;
 		this.button.hidden = false;
-		this.button.addEventListener( 'click', () => this.show( this.button.getAttribute( 'aria-pressed' ) !== 'true' ) );
-		$( 'volume-preset' ).addEventListener( 'change', ( e ) => this.setPreset( e.target.value ) );
-		for ( const id of [ 'volume-level', 'volume-window' ] ) $( id ).addEventListener( 'input', () => this.setWindow() );
+		// Said at once, and again once done (a first showing loads the preset and window).
+		const changed = ( done ) => {
+			this.onChange?.();
+			Promise.resolve( done ).then( () => this.onChange?.() );
+		};
+		this.button.addEventListener( 'click', () => changed( this.show( ! this.isOn() ) ) );
+		$( 'volume-preset' ).addEventListener( 'change', ( e ) => changed( this.setPreset( e.target.value ) ) );
+		for ( const id of [ 'volume-level', 'volume-window' ] ) $( id ).addEventListener( 'input', () => changed( this.setWindow() ) );
+	}
+
+	isOn() {
+		return this.button?.getAttribute( 'aria-pressed' ) === 'true';
+	}
+
+	// What a room shares of the scan's view: shown or not, its preset and window.
+	state() {
+		const l = this.layer;
+		return { on: this.isOn(), preset: l ? l.preset : null, level: l ? l.level : null, window: l ? l.width : null };
+	}
+
+	// Shows what a room says (the presenter's or the owner's view), without passing it on.
+	// A page without the scan (a link that does not offer it) shows the surfaces alone.
+	async apply( view ) {
+		if ( ! view || ! this.button ) return;
+		if ( view.on !== this.isOn() ) await this.show( view.on );
+		if ( ! view.on || ! this.layer ) return;
+		if ( view.preset && view.preset in this.layer.presets && view.preset !== this.layer.preset ) {
+			this.layer.setPreset( view.preset );
+			$( 'volume-preset' ).value = view.preset;
+		}
+		if ( view.level != null && view.window > 0 ) this.layer.setWindow( view.level, view.window );
+		this.fillWindow();
+		await this.drawn();
 	}
 
 	// The voxels and the renderer's module, fetched once (a deep link asks before the
@@ -81,6 +112,7 @@ export class VolumePanel {
 		this.addHooks();
 		const select = $( 'volume-preset' );
 		select.replaceChildren( ...Object.keys( this.layer.presets ).map( ( name ) => new Option( name, name ) ) );
+		select.value = this.layer.preset;
 		this.fillWindow();
 		const [ nx, ny, nz ] = header.dims;
 		$( 'volume-note' ).textContent = `${nx} × ${ny} × ${nz} voxels${header.factors.some( ( f ) => f > 1 ) ? ' (a coarse level)' : ''}`;
@@ -151,7 +183,7 @@ export class VolumePanel {
 		if ( ! this.layer ) return;
 		this.layer.setPreset( name );
 		this.fillWindow();
-		this.drawn();
+		return this.drawn();
 	}
 
 	setWindow() {
@@ -159,6 +191,6 @@ export class VolumePanel {
 		const width = Number( $( 'volume-window' ).value );
 		if ( ! this.layer || ! Number.isFinite( level ) || ! ( width > 0 ) ) return;
 		this.layer.setWindow( level, width );
-		this.drawn();
+		return this.drawn();
 	}
 }
