@@ -222,11 +222,89 @@ def test_a_room_follows_the_scans_view(
         assert guest.locator("#volume-preset").input_value() == "CT lung"
         page.fill("#volume-level", "250")
         guest.wait_for_function("() => window.__miss.volume.level === 250")
+        page.click("#tf-editor summary")  # an edited transfer function reaches the guest too
+        page.focus("#tf-canvas")
+        page.keyboard.press("PageDown")
+        for _ in range(5):
+            page.keyboard.press("ArrowUp")
+        page.wait_for_function("() => window.__miss.volume.preset === 'Custom'")
+        guest.wait_for_function("() => window.__miss.volume.preset === 'Custom'")
+        mine = page.evaluate("() => window.__miss.transfer.points")
+        guest.wait_for_function(
+            "(p) => JSON.stringify(window.__miss.transfer.points.map((q) => q[4].toFixed(3)))"
+            " === JSON.stringify(p.map((q) => q[4].toFixed(3)))",
+            arg=mine,
+        )
+        page.fill("#volume-level", "250")  # after the edit, as before it
 
         page.goto(f"/models/{job['id']}")  # no ?view= in the address: the room's view
         page.wait_for_function("() => window.__miss.volume && window.__miss.volume.level === 250")
-        assert page.evaluate("() => window.__miss.volume.preset") == "CT lung"
+        assert page.evaluate("() => window.__miss.volume.preset") == "Custom"
         page.click("#volume-toggle")
         guest.wait_for_function("() => !window.__miss.volume.on")
     finally:
         context.close()
+
+
+def drag_point(page: Any, index: int, to: tuple[float, float]) -> None:
+    """Drags transfer-function point ``index`` to ``to`` (fractions of the editor's canvas
+    across and down), as a mouse would."""
+    box = page.locator("#tf-canvas").bounding_box()
+    px = page.evaluate("() => window.__miss.transfer.pixels")
+    scale = box["width"] / page.evaluate("() => document.getElementById('tf-canvas').width")
+    x, y = box["x"] + px[index][0] * scale, box["y"] + px[index][1] * scale
+    page.mouse.move(x, y)
+    page.mouse.down()
+    page.mouse.move(box["x"] + to[0] * box["width"], box["y"] + to[1] * box["height"], steps=4)
+    page.mouse.up()
+
+
+def test_the_transfer_function_is_edited_on_the_histogram(
+    page: Any, server: Any, cube_scan: bytes, artifacts: Path
+) -> None:
+    """Issue 43: an editable transfer function: dragging every point of the opacity curve to
+    the bottom leaves the cube transparent; a point added (double-click) at the cube's
+    700 HU and coloured green paints it green. The edit is the "Custom" preset."""
+    response = upload_cube(page, cube_scan)
+    volume_id = response.json()["id"]
+    job = server.post("/api/models", {"volume": volume_id, "level": 1500, "decimate": "none"})
+    assert server.wait_model(job["id"])["status"] == "done"
+    page.goto(f"/models/{job['id']}")
+    page.wait_for_function("() => window.__miss.ready === true")
+    before = canvas(page, artifacts / "volume-tf-off.png")
+    page.click("#volume-toggle")
+    page.wait_for_function("() => window.__miss.volume && window.__miss.volume.on")
+    middle = page.evaluate(f"() => window.__miss.voxelToScreen([{N // 2}, {N // 2}, {N // 2}])")
+    page.select_option("#volume-preset", "CT soft tissue")
+    page.wait_for_function("() => window.__miss.volume.preset === 'CT soft tissue'")
+    shown = canvas(page, artifacts / "volume-tf-soft.png")
+    assert np.abs(around(shown, middle) - around(before, middle)).max() > 60
+
+    page.click("#tf-editor summary")
+    count = len(page.evaluate("() => window.__miss.transfer.points"))
+    for i in range(count):
+        x = page.evaluate(f"() => window.__miss.transfer.pixels[{i}][0]") / 560
+        drag_point(page, i, (x, 0.99))
+    page.wait_for_function("() => window.__miss.transfer.points.every((p) => p[4] === 0)")
+    page.wait_for_function("() => window.__miss.volume.preset === 'Custom'")
+    assert page.locator("#volume-preset").input_value() == "Custom"
+    clear = canvas(page, artifacts / "volume-tf-clear.png")
+    assert np.abs(around(clear, middle) - around(before, middle)).max() < 12
+
+    lo, hi = page.evaluate(
+        "() => [window.__miss.transfer.range[0], window.__miss.transfer.range[1]]"
+    )
+    box = page.locator("#tf-canvas").bounding_box()
+    page.mouse.dblclick(
+        box["x"] + (700 - lo) / (hi - lo) * box["width"], box["y"] + 0.1 * box["height"]
+    )
+    page.wait_for_function(f"() => window.__miss.transfer.points.length === {count + 1}")
+    page.locator("#tf-colour").fill("#00ff00")
+    page.wait_for_function(
+        "() => window.__miss.transfer.points.some((p) => p[2] === 1 && p[1] === 0)"
+    )
+    page.wait_for_function("() => window.__miss.volume.level !== undefined")
+    green = around(canvas(page, artifacts / "volume-tf-green.png"), middle)
+    assert green[1] > green[0] + 40 and green[1] > green[2] + 40, green
+    assert "opacity" in page.inner_text("#tf-note")
+    page.screenshot(path=artifacts / "volume-tf-page.png")

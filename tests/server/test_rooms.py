@@ -392,10 +392,12 @@ def test_the_volume_view_is_part_of_what_shows(client: TestClient, room: dict) -
         joined(client, url(model, room["token"], "Guest")) as guest,
     ):
         alice.send_json({"type": "display", "parts": parts, "clip": None, "volume": volume})
-        assert until(guest, "display")["item"]["volume"] == volume | {
-            "level": 40.0,
-            "window": 400.0,
-        }
+        heard = until(guest, "display")["item"]["volume"]
+        assert heard == volume | {"level": 40.0, "window": 400.0, "points": None}
+        custom = {"on": True, "preset": "Custom", "level": 40, "window": 400,
+                  "points": [[-100, 1, 0, 0, 0], [300, 1, 1, 0.5, 0.75]]}  # fmt: skip
+        alice.send_json({"type": "display", "parts": parts, "clip": None, "volume": custom})
+        assert until(guest, "display")["item"]["volume"]["points"] == custom["points"]
         for bad in (
             {"on": "yes"},
             {"on": True, "level": 40},
@@ -403,11 +405,15 @@ def test_the_volume_view_is_part_of_what_shows(client: TestClient, room: dict) -
             {"on": True, "level": float("inf"), "window": 10},
             {"on": True, "preset": "x" * 41},
             "volume",
+            {"on": True, "points": [[0, 1, 1, 1, 0.5]]},
+            {"on": True, "points": [[10, 1, 1, 1, 0], [0, 1, 1, 1, 1]]},
+            {"on": True, "points": [[0, 1, 1, 1, 0], [10, 1, 2, 1, 1]]},
+            {"on": True, "points": [[0, 1, 1, 1, 0]] * 33},
         ):
             alice.send_json({"type": "display", "parts": parts, "clip": None, "volume": bad})
             assert until(alice, "error")["code"] == "invalid", bad
     with joined(client, url(model, room["token"], "Late")) as late:
-        assert late.welcome["display"]["volume"]["preset"] == "CT soft tissue"
+        assert late.welcome["display"]["volume"]["preset"] == "Custom"
 
 
 def test_a_guest_renames_without_leaving(client: TestClient, room: dict) -> None:

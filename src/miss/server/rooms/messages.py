@@ -149,8 +149,9 @@ def number(value: Any, name: str, positive: bool = False) -> float:
 
 
 def volume_view(value: Any) -> dict[str, Any] | None:
-    """The scan's view in the 3-D scene (issue 43): null, or ``on``, the ``preset`` and
-    the ``level`` and ``window`` (the volume's units), checked."""
+    """The scan's view in the 3-D scene (issue 43): null, or ``on``, the ``preset``, the
+    ``level`` and ``window`` (the volume's units) and an edited transfer function's
+    ``points`` (:func:`transfer_points`), checked."""
     if value is None:
         return None
     if not isinstance(value, dict) or not isinstance(value.get("on"), bool):
@@ -161,7 +162,31 @@ def volume_view(value: Any) -> dict[str, Any] | None:
     if value.get("level") is not None or value.get("window") is not None:
         view["level"] = number(value.get("level"), "volume level")
         view["window"] = number(value.get("window"), "volume window", positive=True)
+    view["points"] = transfer_points(value.get("points"))
     return view
+
+
+#: Most points an edited transfer function may have (js/viewer/tf-editor.js MAX_POINTS).
+MAX_POINTS = 32
+
+
+def transfer_points(value: Any) -> list[list[float]] | None:
+    """An edited transfer function: null, or 2 to :data:`MAX_POINTS` points ``[value, r, g,
+    b, opacity]``, values (the volume's units) in increasing order, the rest from 0 to 1."""
+    if value is None:
+        return None
+    shape = f"points must be null or 2 to {MAX_POINTS} [value, r, g, b, opacity] in value order."
+    if not isinstance(value, list) or not 2 <= len(value) <= MAX_POINTS:
+        raise Invalid("invalid", shape)
+    points: list[list[float]] = []
+    for n, p in enumerate(value):
+        if not isinstance(p, list) or len(p) != 5:
+            raise Invalid("invalid", shape)
+        at = number(p[0], f"points[{n}] value")
+        if points and at < points[-1][0]:
+            raise Invalid("invalid", shape)
+        points.append([at, *(fraction(c, f"points[{n}] colour and opacity") for c in p[1:])])
+    return points
 
 
 async def on_display(hub: Hub, room: Room, person: Participant, message: dict[str, Any]) -> None:

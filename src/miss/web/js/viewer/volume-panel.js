@@ -4,6 +4,7 @@
 // toggle keeps the address in step.
 
 import { status } from '../test-hooks.js';
+import { CUSTOM, pointsAt, TransferEditor } from './tf-editor.js';
 
 const $ = ( id ) => document.getElementById( id );
 
@@ -34,10 +35,13 @@ export class VolumePanel {
 		return this.button?.getAttribute( 'aria-pressed' ) === 'true';
 	}
 
-	// What a room shares of the scan's view: shown or not, its preset and window.
+	// What a room shares of the scan's view: shown or not, its preset and window (and an
+	// edited transfer function's points, in the volume's units at that window).
 	state() {
 		const l = this.layer;
-		return { on: this.isOn(), preset: l ? l.preset : null, level: l ? l.level : null, window: l ? l.width : null };
+		if ( ! l ) return { on: this.isOn(), preset: null, level: null, window: null, points: null };
+		const points = l.preset === CUSTOM ? pointsAt( l.presets[ CUSTOM ], l.level, l.width ) : null;
+		return { on: this.isOn(), preset: l.preset, level: l.level, window: l.width, points };
 	}
 
 	// Shows what a room says (the presenter's or the owner's view), without passing it on.
@@ -46,12 +50,19 @@ export class VolumePanel {
 		if ( ! view || ! this.button ) return;
 		if ( view.on !== this.isOn() ) await this.show( view.on );
 		if ( ! view.on || ! this.layer ) return;
+		if ( view.preset === CUSTOM && view.points ) {
+			this.layer.presets[ CUSTOM ] = { level: view.level, window: view.window, points: view.points };
+			const select = $( 'volume-preset' );
+			if ( ! [ ...select.options ].some( ( o ) => o.value === CUSTOM ) ) select.add( new Option( CUSTOM, CUSTOM ) );
+			this.layer.preset = null; // set again below, with the new points
+		}
 		if ( view.preset && view.preset in this.layer.presets && view.preset !== this.layer.preset ) {
 			this.layer.setPreset( view.preset );
 			$( 'volume-preset' ).value = view.preset;
 		}
 		if ( view.level != null && view.window > 0 ) this.layer.setWindow( view.level, view.window );
 		this.fillWindow();
+		this.editor?.draw();
 		await this.drawn();
 	}
 
@@ -114,6 +125,7 @@ export class VolumePanel {
 		select.replaceChildren( ...Object.keys( this.layer.presets ).map( ( name ) => new Option( name, name ) ) );
 		select.value = this.layer.preset;
 		this.fillWindow();
+		this.editor = new TransferEditor( this, { canvas: $( 'tf-canvas' ), colour: $( 'tf-colour' ), note: $( 'tf-note' ) } );
 		const [ nx, ny, nz ] = header.dims;
 		$( 'volume-note' ).textContent = `${nx} × ${ny} × ${nz} voxels${header.factors.some( ( f ) => f > 1 ) ? ' (a coarse level)' : ''}`;
 	}
@@ -183,7 +195,19 @@ export class VolumePanel {
 		if ( ! this.layer ) return;
 		this.layer.setPreset( name );
 		this.fillWindow();
+		this.editor?.draw();
 		return this.drawn();
+	}
+
+	// The transfer function's editor made the Custom preset: show it and say so.
+	useCustom() {
+		const select = $( 'volume-preset' );
+		if ( ! [ ...select.options ].some( ( o ) => o.value === CUSTOM ) ) select.add( new Option( CUSTOM, CUSTOM ) );
+		select.value = CUSTOM;
+		this.layer.setPreset( CUSTOM );
+		this.fillWindow();
+		this.drawn();
+		this.onChange?.();
 	}
 
 	setWindow() {
@@ -191,6 +215,7 @@ export class VolumePanel {
 		const width = Number( $( 'volume-window' ).value );
 		if ( ! this.layer || ! Number.isFinite( level ) || ! ( width > 0 ) ) return;
 		this.layer.setWindow( level, width );
+		this.editor?.draw();
 		return this.drawn();
 	}
 }

@@ -255,6 +255,7 @@ export class VolumeLayer {
 	// header, data: the decoded /voxels body; lpsToWorld: the viewer's matrix.
 	constructor( header, data, lpsToWorld ) {
 		this.header = header;
+		this.data = data; // the voxels, also read by the transfer function's histogram
 		this.presets = presetsFor( header );
 		const [ nx, ny, nz ] = header.dims;
 		const texture = new THREE.Data3DTexture( data, nx, ny, nz );
