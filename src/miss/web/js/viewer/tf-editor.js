@@ -192,7 +192,7 @@ export class TransferEditor {
 		const units = this.layer().header.units || '';
 		this.note.textContent = sel
 			? `Point ${this.selected + 1} of ${pts.length}: ${Math.round( sel[ 0 ] )} ${units}, opacity ${sel[ 4 ].toFixed( 2 )}`
-			: 'Drag a point; double-click to add one; Delete removes the one picked.';
+			: `${Math.round( this.range()[ 0 ] )} to ${Math.round( this.range()[ 1 ] )} ${units} left to right, opacity up. Drag a point; double-click to add one; Delete removes the one picked.`;
 		status.transfer = { preset: this.layer().preset, points: pts, selected: this.selected, pixels: pts.map( ( p ) => this.toPx( p ) ), range: this.range() };
 	}
 }
