@@ -72,6 +72,7 @@ def test_volume_rendering_of_a_bright_cube(
     page.wait_for_function("() => window.__miss.volume && window.__miss.volume.on")
     after = canvas(page, artifacts / "volume-bone.png")
     assert "view=volume" in page.url  # the address says what is shown
+    assert not page.locator("#volume-full").is_visible()  # 64³ is its full resolution
 
     middle = page.evaluate(f"() => window.__miss.voxelToScreen([{N // 2}, {N // 2}, {N // 2}])")
     air = page.evaluate(f"() => window.__miss.voxelToScreen([8, {N - 8}, 8])")
@@ -308,3 +309,35 @@ def test_the_transfer_function_is_edited_on_the_histogram(
     assert green[1] > green[0] + 40 and green[1] > green[2] + 40, green
     assert "opacity" in page.inner_text("#tf-note")
     page.screenshot(path=artifacts / "volume-tf-page.png")
+
+
+def test_the_full_resolution_is_fetched_when_asked(
+    page: Any, server: Any, tmp_path: Path, artifacts: Path
+) -> None:
+    """Issue 43: the first picture comes from a coarse level (no side over 256 voxels); a
+    click on "Full resolution" fetches level 1 and draws it in its place, the preset kept;
+    a scan whose first level is whole offers no such button."""
+    nib = pytest.importorskip("nibabel")
+    data = np.full((320, 40, 40), -1000, dtype=np.int16)
+    data[100:220, 10:30, 10:30] = 700
+    nib.save(nib.Nifti1Image(data, np.diag([0.5, 2.0, 2.0, 1.0])), tmp_path / "long.nii.gz")
+    response = upload_cube(page, (tmp_path / "long.nii.gz").read_bytes())
+    assert response.status == 201, response.text()
+    job = server.post(
+        "/api/models", {"volume": response.json()["id"], "level": 300, "decimate": "none"}
+    )
+    assert server.wait_model(job["id"])["status"] == "done"
+    page.goto(f"/models/{job['id']}?view=volume")
+    page.wait_for_function("() => window.__miss.volume && window.__miss.volume.on")
+    assert page.evaluate("() => window.__miss.volume.dims")[0] <= 256
+    assert "(a coarse level)" in page.inner_text("#volume-note")
+    page.select_option("#volume-preset", "CT soft tissue")
+    page.wait_for_function("() => window.__miss.volume.preset === 'CT soft tissue'")
+    page.click("#volume-full")
+    page.wait_for_function("() => window.__miss.volume.dims[0] === 320")
+    assert page.evaluate("() => window.__miss.volume.preset") == "CT soft tissue"
+    assert page.inner_text("#volume-note") == "320 × 40 × 40 voxels"
+    assert not page.locator("#volume-full").is_visible()
+    middle = page.evaluate("() => window.__miss.voxelToScreen([160, 20, 20])")
+    shot = canvas(page, artifacts / "volume-full.png")
+    assert np.abs(around(shot, middle) - shot[5, 5]).max() > 60  # the block, on the background

@@ -52,6 +52,12 @@ export class TransferEditor {
 		return this.panel.layer;
 	}
 
+	// Another level's voxels (the full resolution): their histogram.
+	useVoxels( data ) {
+		this.bins = histogram( data );
+		this.draw();
+	}
+
 	// The volume's units shown across the canvas: byte 0 to byte 255.
 	range() {
 		const h = this.layer().header;

@@ -29,6 +29,7 @@ export class VolumePanel {
 		this.button.addEventListener( 'click', () => changed( this.show( ! this.isOn() ) ) );
 		$( 'volume-preset' ).addEventListener( 'change', ( e ) => changed( this.setPreset( e.target.value ) ) );
 		for ( const id of [ 'volume-level', 'volume-window' ] ) $( id ).addEventListener( 'input', () => changed( this.setWindow() ) );
+		$( 'volume-full' ).addEventListener( 'click', () => this.full() );
 	}
 
 	isOn() {
@@ -126,8 +127,44 @@ export class VolumePanel {
 		select.value = this.layer.preset;
 		this.fillWindow();
 		this.editor = new TransferEditor( this, { canvas: $( 'tf-canvas' ), colour: $( 'tf-colour' ), note: $( 'tf-note' ) } );
-		const [ nx, ny, nz ] = header.dims;
-		$( 'volume-note' ).textContent = `${nx} × ${ny} × ${nz} voxels${header.factors.some( ( f ) => f > 1 ) ? ' (a coarse level)' : ''}`;
+		this.describe();
+	}
+
+	describe() {
+		const { dims: [ nx, ny, nz ], factors } = this.layer.header;
+		const coarse = factors.some( ( f ) => f > 1 );
+		$( 'volume-note' ).textContent = `${nx} × ${ny} × ${nz} voxels${coarse ? ' (a coarse level)' : ''}`;
+		$( 'volume-full' ).hidden = ! coarse || this.layer.header.level === 1;
+	}
+
+	// Level 1, the scan at full resolution within the server's budget, in place of the
+	// first picture's level: asked for with a click (megabytes, and slower turning), the
+	// preset, window and edited transfer function kept.
+	async full() {
+		const button = $( 'volume-full' );
+		button.disabled = true;
+		$( 'volume-note' ).textContent = 'Loading the full resolution…';
+		try {
+			const r = await fetch( `${this.voxelsUrl}?level=1`, { credentials: 'same-origin' } );
+			if ( ! r.ok ) throw new Error( `the full resolution could not be fetched (${r.status})` );
+			const [ module, body ] = await Promise.all( [ import( './volume.js' ), r.arrayBuffer() ] );
+			const { header, data } = module.decode( body );
+			const old = this.layer;
+			const layer = new module.VolumeLayer( header, data, this.viewer.lpsToWorld );
+			if ( old.presets[ CUSTOM ] ) layer.presets[ CUSTOM ] = old.presets[ CUSTOM ];
+			layer.setPreset( old.preset );
+			layer.setWindow( old.level, old.width );
+			layer.mesh.visible = old.mesh.visible;
+			this.layer = layer;
+			this.viewer.setVolume( layer );
+			this.editor?.useVoxels( data );
+			this.describe();
+		} catch ( err ) {
+			$( 'volume-note' ).textContent = err.message || String( err );
+		} finally {
+			button.disabled = false;
+		}
+		if ( this.isOn() ) await this.drawn();
 	}
 
 	// What the benchmark and the tests ask the page (window.__miss).
