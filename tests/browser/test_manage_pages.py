@@ -198,3 +198,33 @@ def test_no_send_to_pacs_without_a_pacs(
     assert not page.is_visible("#send-pacs")
     page.screenshot(path=artifacts / "manage-no-pacs.png")
     page.context.close()
+
+
+def test_the_library_lists_newest_first_and_searches(
+    browser: Any, server: Server, artifacts: Path, logged_in: Any
+) -> None:
+    """Issue 42: after a reload the library shows the newest upload first (it came last
+    before), a search box narrows the cards as one types with a count ("1 of N"), and a
+    NIfTI scan's kind reads "MR · NIfTI" (what its values say, its format), not "volume"."""
+    data = np.zeros((16, 16, 8), dtype=np.int16)  # values no CT has: an MR-like scan
+    data[4:12, 4:12, 2:6] = 400
+    first = upload(server, nib.Nifti1Image(data, np.eye(4)).to_bytes(), "first.nii")
+    last = upload(server, nib.Nifti1Image(data + 1, np.eye(4)).to_bytes(), "second.nii")
+    page = new_page(browser, server, logged_in)
+    page.goto("/")
+    page.wait_for_selector("body[data-ready='1']")
+    ids = page.eval_on_selector_all("#volumes article", "cards => cards.map(c => c.dataset.id)")
+    assert ids.index(last) < ids.index(first), ids
+    total = len(ids)
+    assert page.inner_text("#volume-count") == f"{total} volumes"
+    card = page.locator(f"#volumes article[data-id='{first}']")
+    assert card.locator(".facts").first.inner_text().startswith("MR · NIfTI · 16 × 16 × 8")
+    page.fill("#volume-search", "DEMO phantom")  # every word, in any case
+    shown = page.locator("#volumes article:visible")
+    assert shown.count() == 1 and "Demo head phantom" in shown.inner_text()
+    assert page.inner_text("#volume-count") == f"1 of {total} volumes"
+    page.screenshot(path=artifacts / "library-search.png")
+    page.fill("#volume-search", "no such scan anywhere")
+    assert page.locator("#volumes article:visible").count() == 0
+    assert page.locator("#no-match").is_visible()
+    page.context.close()

@@ -63,7 +63,18 @@ export function formatMm( v, digits = 3 ) {
 
 export function describeVolume( v ) {
 	const dims = ( v.dims || [] ).join( ' × ' );
-	return `${v.modality || 'volume'} · ${dims} voxels · ${spacingMm( v ).join( ' × ' )} mm`;
+	return `${kindOf( v )} · ${dims} voxels · ${spacingMm( v ).join( ' × ' )} mm`;
+}
+
+const FORMAT_NAMES = { nifti: 'NIfTI', nrrd: 'NRRD', metaimage: 'MetaImage', mha: 'MetaImage', mhd: 'MetaImage', dicom: 'DICOM' };
+
+// What a scan is, in the words its header allows: its DICOM modality; else what its values
+// say (CT in HU, MR) with its file's format ("CT · NIfTI"); else the format alone.
+export function kindOf( v ) {
+	if ( v.modality ) return v.modality;
+	const format = FORMAT_NAMES[ String( v.source_format || '' ).toLowerCase() ] || v.source_format || '';
+	const kind = v.scale?.kind || '';
+	return [ kind, format ].filter( Boolean ).join( ' · ' ) || 'Scan';
 }
 
 // mm between voxels as MISS used them (x, y, z), rounded to µm: z is the distance between

@@ -3,7 +3,7 @@
 
 import { showSession } from '../session.js';
 import { api, urls } from '../api.js';
-import { describeVolume, el } from '../format.js';
+import { describeVolume, el, kindOf } from '../format.js';
 import { droppedFiles, groupUploads, uploadLabel, uploadVolume } from '../upload.js';
 import { setupPacs } from '../pacs-panel.js';
 
@@ -29,11 +29,14 @@ function volumeCard( volume ) {
 			await api.deleteVolume( volume.id );
 			card.remove();
 			$( 'empty' ).hidden = $( 'volumes' ).children.length > 0;
+			filterCards();
 		} catch ( err ) {
 			showError( $( 'list-error' ), err );
 		}
 	};
-	const card = el( 'article.card.volume-card', { dataset: { id: volume.id } },
+	const words = [ volume.name, kindOf( volume ), volume.modality, volume.owner,
+		...( volume.series || [] ).map( ( s ) => s.description ) ];
+	const card = el( 'article.card.volume-card', { dataset: { id: volume.id, search: words.filter( Boolean ).join( ' ' ).toLowerCase() } },
 		el( 'a.thumb', { href, 'aria-label': `Open ${volume.name}` },
 			el( 'img', { src: urls.thumbnail( volume.id ), alt: '', loading: 'lazy' } ) ),
 		el( 'div.body',
@@ -46,10 +49,29 @@ function volumeCard( volume ) {
 	return card;
 }
 
+// Newest first, as uploads join the list (the API lists oldest first); the same second
+// ordered by id, so that the order holds from one reload to the next.
+const newestFirst = ( a, b ) => ( a.created < b.created ? 1 : a.created > b.created ? - 1 : a.id < b.id ? 1 : - 1 );
+
+// Shows the cards whose name, kind, owner or series description hold every word typed.
+function filterCards() {
+	const words = $( 'volume-search' ).value.toLowerCase().split( /\s+/ ).filter( Boolean );
+	const cards = [ ...$( 'volumes' ).children ];
+	let shown = 0;
+	for ( const card of cards ) {
+		card.hidden = ! words.every( ( w ) => card.dataset.search.includes( w ) );
+		shown += card.hidden ? 0 : 1;
+	}
+	const total = `${cards.length} volume${cards.length === 1 ? '' : 's'}`;
+	$( 'volume-count' ).textContent = words.length ? `${shown} of ${total}` : cards.length ? total : '';
+	$( 'no-match' ).hidden = ! ( words.length && cards.length && ! shown );
+}
+
 async function refresh() {
 	try {
-		const volumes = await api.volumes();
+		const volumes = ( await api.volumes() ).sort( newestFirst );
 		$( 'volumes' ).replaceChildren( ...volumes.map( volumeCard ) );
+		filterCards();
 		$( 'empty' ).hidden = volumes.length > 0;
 		showError( $( 'list-error' ), null );
 	} catch ( err ) {
@@ -121,6 +143,7 @@ async function uploadOne( files, label ) {
 			bar.dataset.done = '1';
 			$( 'volumes' ).prepend( volumeCard( volume ) );
 			$( 'empty' ).hidden = true;
+			filterCards();
 			return;
 		} catch ( err ) {
 			const series = err?.status === 409 && err.body?.series;
@@ -190,6 +213,7 @@ async function addVolume( id ) {
 		$( 'volumes' ).querySelector( `[data-id="${CSS.escape( id )}"]` )?.remove();
 		$( 'volumes' ).prepend( volumeCard( volume ) );
 		$( 'empty' ).hidden = true;
+		filterCards();
 	} catch ( err ) {
 		showError( $( 'list-error' ), err );
 	}
@@ -197,4 +221,5 @@ async function addVolume( id ) {
 
 showSession().then( ( me ) => setupPacs( me, { onImported: addVolume } ) );
 setupUpload();
+$( 'volume-search' ).addEventListener( 'input', filterCards );
 refresh();
