@@ -414,3 +414,43 @@ def test_long_snake_case_names_read_as_words_and_keep_the_row(
         assert abs(offset) < 2, offset
     finally:
         context.close()
+
+
+def test_a_phone_guest_is_offered_the_glb_first(browser: Any, server: Any, artifacts: Path) -> None:
+    """Issue 42: a guest on a phone was offered VRML and a 139 MB OBJ beside the GLB: on a
+    phone the compact GLB comes first, the desktop formats fold behind "More formats", and
+    the VRML display mode is not offered; a laptop still sees them all."""
+    volume = demo_volume(server)
+    # a level of its own: the same parameters would be another test's model (and its links)
+    body = {"volume": volume["id"], "level": 317, "sample_rate": 4, "decimate": "none"}
+    model = server.wait_model(server.post("/api/models", body)["id"])
+    link = server.post("/api/shares", {"model": model["id"], "can_download": True})["url"]
+    phone = {"width": 390, "height": 844}
+    for name, options in (
+        ("phone", {"viewport": phone, "is_mobile": True, "has_touch": True}),
+        ("laptop", {"viewport": {"width": 1366, "height": 768}}),
+    ):
+        context = browser.new_context(base_url=server.url, **options)
+        try:
+            page = context.new_page()
+            page.goto(link)
+            page.wait_for_function("() => window.__miss.ready")
+            first = page.locator("#downloads > a").first
+            shown = page.locator("#downloads a:visible").all_inner_texts()
+            if name == "phone":
+                assert first.get_attribute("data-format") == "glb"
+                assert len(shown) == 1 and "glb" in shown[0].lower(), shown
+                more = page.locator("#downloads details.more-formats")
+                assert "More formats" in more.locator("summary").inner_text()
+                assert not page.locator("#downloads a[data-format=wrl]").is_visible()
+                assert not page.locator("[data-mode=vrml]").is_visible()
+                page.locator("#downloads").scroll_into_view_if_needed()
+                page.screenshot(path=artifacts / "downloads-phone.png")
+                more.locator("summary").click()
+                assert page.locator("#downloads a[data-format=wrl]").is_visible()
+            else:
+                assert page.locator("#downloads a[data-format=wrl]").is_visible()
+                assert page.locator("[data-mode=vrml]").is_visible()
+                assert page.locator("#downloads details").count() == 0
+        finally:
+            context.close()

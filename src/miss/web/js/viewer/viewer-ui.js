@@ -99,14 +99,31 @@ function madeBy( asked, made ) {
 // with url, bytes, a one-line description and its button's label: ".stl", or words
 // where the extension alone would not tell, as for the plain GLB).
 export function fillDownloads( files ) {
-	$( 'downloads' ).replaceChildren( ...Object.entries( files || {} ).map( ( [ fmt, file ] ) => {
+	const phone = onPhone();
+	const link = ( [ fmt, file ] ) => {
 		const label = file.label || `.${fmt}`;
+		const big = phone && file.bytes > BIG_ON_PHONE;
 		// words take the whole row, so that they read on one line beside the size
-		return el( label === `.${fmt}` ? 'a.button.small' : 'a.button.small.wide', {
+		return el( label === `.${fmt}` && ! big ? 'a.button.small' : 'a.button.small.wide', {
 			href: file.url, download: '', dataset: { format: fmt }, title: file.description,
-		}, el( 'span', {}, label ), el( 'span.size', {}, formatBytes( file.bytes ) ) );
-	} ) );
+		}, el( 'span', {}, label ), el( 'span.size', {}, formatBytes( file.bytes ) ),
+		big ? el( 'span.warning', {}, 'large for a phone' ) : null );
+	};
+	const entries = Object.entries( files || {} );
+	if ( ! phone ) return $( 'downloads' ).replaceChildren( ...entries.map( link ) );
+	// A phone: the compact GLB (what the viewer draws, and phones open) first; the formats
+	// for desktop tools (VRML, STL, OBJ, often tens of megabytes) folded behind it.
+	const first = entries.filter( ( [ fmt ] ) => fmt === 'glb' );
+	const rest = entries.filter( ( [ fmt ] ) => fmt !== 'glb' );
+	$( 'downloads' ).replaceChildren( ...first.map( link ), rest.length ? el( 'details.more-formats', {},
+		el( 'summary', {}, `More formats (${rest.length}), for desktop tools` ), ...rest.map( link ) ) : '' );
 }
+
+// A phone (a narrow screen, or a touch screen held sideways; not a tablet): what it is
+// offered is what it can use.
+export const onPhone = () => matchMedia( '(max-width: 600px), (pointer: coarse) and (hover: none) and (max-height: 500px)' ).matches;
+// A file this large (bytes) is marked as such on a phone: mobile data, and a phone's memory.
+const BIG_ON_PHONE = 50 * 2 ** 20;
 
 // Loads the GLB or the VRML file (urlOf(fmt)) into the viewer; resolves once
 // drawn, after calling onLoaded(). drawn: the GLB is on the stage already (drawn
@@ -158,6 +175,8 @@ export function setupDisplay( viewer, urlOf, { canVrml = () => true, onLoaded = 
 	$( 'background' ).addEventListener( 'click', () => setBackground( viewer, status.background === 'dark' ? 'light' : 'dark' ) );
 	for ( const b of document.querySelectorAll( '[data-mode]' ) ) {
 		b.addEventListener( 'click', () => status.mode !== b.dataset.mode && canVrml() && show( viewer, b.dataset.mode, urlOf, onLoaded ) );
+		// VRML is the 1998 deliverable for desktop tools: a phone draws the GLB, a tenth the size.
+		if ( b.dataset.mode === 'vrml' && onPhone() ) b.hidden = true;
 	}
 	status.cameraLps = () => viewer.pose();
 	return ( mode, options ) => show( viewer, mode === 'vrml' && canVrml() ? 'vrml' : 'glb', urlOf, onLoaded, options );
