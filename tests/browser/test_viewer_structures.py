@@ -454,3 +454,32 @@ def test_a_phone_guest_is_offered_the_glb_first(browser: Any, server: Any, artif
                 assert page.locator("#downloads details").count() == 0
         finally:
             context.close()
+
+
+def test_vrml_is_read_off_the_page_in_its_colours_and_asked_for_when_big(
+    page: Any, server: Any, artifacts: Path
+) -> None:
+    """Issue 42: VRML mode froze the page (a 2 M-triangle file read by three.js's loader on
+    the page's thread) and drew a single part grey: MISS's own file is read in a worker,
+    each part in its colour as the GLB shows it, and a big file is loaded only once the
+    person agrees (the tests lower the size that counts as big)."""
+    volume = demo_volume(server)
+    body = {"volume": volume["id"], "level": 333, "sample_rate": 4, "decimate": "none"}
+    model = server.wait_model(server.post("/api/models", body)["id"])
+    page.goto(f"/models/{model['id']}")
+    page.wait_for_function("() => window.__miss.ready && window.__miss.mode === 'glb'")
+    glb = page.evaluate("() => window.__miss.partColours")
+    page.evaluate("() => { window.__miss.vrmlAskBytes = 1000; }")  # every VRML file is big
+    page.once("dialog", lambda d: d.dismiss())
+    page.click("[data-mode=vrml]")
+    page.wait_for_function("() => window.__miss.vrmlAsked > 1000")
+    assert page.evaluate("() => window.__miss.mode") == "glb"  # declined: the GLB stays
+    page.once("dialog", lambda d: d.accept())
+    page.click("[data-mode=vrml]")
+    page.wait_for_function("() => window.__miss.ready && window.__miss.mode === 'vrml'")
+    assert page.evaluate("() => window.__miss.vrmlReader") == "worker"
+    assert page.evaluate("() => window.__miss.partColours") == glb, glb
+    assert page.evaluate("() => window.__miss.triangles") == model["stats"]["triangles"]
+    names = page.evaluate("() => window.__miss.structures.parts.map((p) => p.name)")
+    assert names == ["bone (333 HU)"], names
+    page.screenshot(path=artifacts / "vrml-mode.png")

@@ -99,6 +99,7 @@ function madeBy( asked, made ) {
 // with url, bytes, a one-line description and its button's label: ".stl", or words
 // where the extension alone would not tell, as for the plain GLB).
 export function fillDownloads( files ) {
+	shownFiles = files || {};
 	const phone = onPhone();
 	const link = ( [ fmt, file ] ) => {
 		const label = file.label || `.${fmt}`;
@@ -117,6 +118,24 @@ export function fillDownloads( files ) {
 	const rest = entries.filter( ( [ fmt ] ) => fmt !== 'glb' );
 	$( 'downloads' ).replaceChildren( ...first.map( link ), rest.length ? el( 'details.more-formats', {},
 		el( 'summary', {}, `More formats (${rest.length}), for desktop tools` ), ...rest.map( link ) ) : '' );
+}
+
+// The model's files as last listed (their sizes: a big VRML file is asked about first).
+let shownFiles = {};
+// A VRML file larger than this (bytes) is loaded only once the person agrees.
+const VRML_ASK_BYTES = 30 * 2 ** 20;
+
+// Whether to go on to a VRML file of this size: it is the 1998 deliverable, text a dozen
+// times the GLB's size, which the browser must read whole before it draws.
+function vrmlWanted() {
+	// Not made yet (formats are made on their first download): about 48 bytes a triangle,
+	// as MISS writes them (a 2.04 M-triangle model's was 98 MB).
+	const known = shownFiles.wrl?.bytes;
+	const bytes = known || 48 * ( status.triangles || 0 );
+	if ( bytes <= ( status.vrmlAskBytes ?? VRML_ASK_BYTES ) ) return true; // the tests lower it
+	const glb = shownFiles.glb?.bytes ? ` (the GLB, which shows the same model, is ${formatBytes( shownFiles.glb.bytes )})` : '';
+	status.vrmlAsked = bytes;
+	return confirm( `The VRML file is ${known ? '' : 'about '}${formatBytes( bytes )}${glb}: your browser must fetch and read all of it, which takes time and memory. Load it anyway?` );
 }
 
 // A phone (a narrow screen, or a touch screen held sideways; not a tablet): what it is
@@ -174,10 +193,11 @@ export function setupDisplay( viewer, urlOf, { canVrml = () => true, onLoaded = 
 	$( 'fit' ).addEventListener( 'click', () => viewer.fit() );
 	$( 'background' ).addEventListener( 'click', () => setBackground( viewer, status.background === 'dark' ? 'light' : 'dark' ) );
 	for ( const b of document.querySelectorAll( '[data-mode]' ) ) {
-		b.addEventListener( 'click', () => status.mode !== b.dataset.mode && canVrml() && show( viewer, b.dataset.mode, urlOf, onLoaded ) );
+		b.addEventListener( 'click', () => status.mode !== b.dataset.mode && canVrml()
+			&& ( b.dataset.mode !== 'vrml' || vrmlWanted() ) && show( viewer, b.dataset.mode, urlOf, onLoaded ) );
 		// VRML is the 1998 deliverable for desktop tools: a phone draws the GLB, a tenth the size.
 		if ( b.dataset.mode === 'vrml' && onPhone() ) b.hidden = true;
 	}
 	status.cameraLps = () => viewer.pose();
-	return ( mode, options ) => show( viewer, mode === 'vrml' && canVrml() ? 'vrml' : 'glb', urlOf, onLoaded, options );
+	return ( mode, options ) => show( viewer, mode === 'vrml' && canVrml() && vrmlWanted() ? 'vrml' : 'glb', urlOf, onLoaded, options );
 }

@@ -41,6 +41,37 @@ function partMaterial( source ) {
 	} );
 }
 
+// A MISS-written VRML file's parts, read by vrml-worker.js off this thread (the page stays
+// responsive through a file of 100 MB); null when the file is not as MISS writes them.
+function readInWorker( url, onProgress ) {
+	return new Promise( ( resolve, reject ) => {
+		const worker = new Worker( new URL( './vrml-worker.js', import.meta.url ), { type: 'module' } );
+		worker.onmessage = ( { data } ) => {
+			if ( data.progress ) return onProgress?.( { loaded: data.progress[ 0 ], total: data.progress[ 1 ], lengthComputable: data.progress[ 1 ] > 0 } );
+			worker.terminate();
+			if ( data.error ) reject( new Error( data.error ) );
+			else resolve( data.unknown ? null : data.parts );
+		};
+		worker.onerror = ( e ) => {
+			worker.terminate();
+			reject( new Error( e.message || 'the VRML reader failed' ) );
+		};
+		worker.postMessage( { url: new URL( url, location.href ).href } );
+	} );
+}
+
+// One part read by the worker as a mesh in LPS mm, coloured as its Material says (sRGB).
+function vrmlMesh( p ) {
+	const geometry = new THREE.BufferGeometry();
+	geometry.setAttribute( 'position', new THREE.BufferAttribute( p.positions, 3 ) );
+	if ( p.normals ) geometry.setAttribute( 'normal', new THREE.BufferAttribute( p.normals, 3 ) );
+	geometry.setIndex( new THREE.BufferAttribute( p.indices, 1 ) );
+	const material = new THREE.MeshPhongMaterial( { color: new THREE.Color().setRGB( ...p.color, THREE.SRGBColorSpace ), opacity: p.opacity, transparent: p.opacity < 1 } );
+	const mesh = new THREE.Mesh( geometry, material );
+	mesh.name = p.name;
+	return mesh;
+}
+
 export function countTriangles( object ) {
 	let n = 0;
 	object.traverse( ( o ) => {
@@ -381,7 +412,8 @@ export class ModelViewer {
 		} );
 		// A scene (several parts, or measures in the node extras) keeps each part's
 		// colour and opacity; a plain surface is drawn in bone ivory as always.
-		const scene = meshes.length > 1 || meshes.some( ( o ) => o.userData?.volume_ml != null );
+		// A VRML file's parts carry their colours too (its single part's, as the GLB's does).
+		const scene = mode === 'vrml' || meshes.length > 1 || meshes.some( ( o ) => o.userData?.volume_ml != null );
 		this.parts = meshes.map( ( o, i ) => {
 			o.material = scene ? partMaterial( o.material ) : this.material;
 			const extras = { ...o.userData };
@@ -392,6 +424,7 @@ export class ModelViewer {
 			return { name: o.name || `part ${i + 1}`, mesh: o, material: o.material, extras, closed };
 		} );
 		for ( const p of this.parts ) p.material.clippingPlanes = this.clipping ? [ this.clipPlane ] : null;
+		status.partColours = this.parts.map( ( p ) => '#' + p.material.color.getHexString( THREE.SRGBColorSpace ) );
 		this.updateSides();
 		this.clear();
 		this.model = object;
@@ -445,7 +478,17 @@ export class ModelViewer {
 	}
 
 	async loadVRML( url, onProgress ) {
-		// Asked for only here: the VRML loader and its parser are a tenth of the page's code.
+		const parts = await readInWorker( url, onProgress );
+		status.vrmlReader = parts ? 'worker' : 'VRMLLoader';
+		if ( parts ) {
+			const group = new THREE.Group();
+			for ( const p of parts ) group.add( vrmlMesh( p ) );
+			group.matrixAutoUpdate = false;
+			group.matrix.copy( this.lpsToWorld );
+			return group;
+		}
+		// Not a file as MISS writes them: three.js's loader, on this thread. Asked for only
+		// here: the VRML loader and its parser are a tenth of the page's code.
 		const { VRMLLoader } = await import( 'three/addons/loaders/VRMLLoader.js' );
 		const vrml = await new VRMLLoader().loadAsync( url, onProgress );
 		vrml.updateMatrixWorld( true );
