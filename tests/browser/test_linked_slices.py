@@ -87,7 +87,9 @@ def to_canvas(view: dict[str, Any], name: str, lps: np.ndarray) -> np.ndarray:
     """LPS mm points (n, 3) -> the view's canvas CSS px (n, 2): radiological orientation
     over the picture's rectangle, which spans the grid's voxels edge to edge."""
     right, down, _ = ORIENT[name]
-    corners = np.array([[i, j, k, 1] for i in (-0.5, N - 0.5) for j in (-0.5, N - 0.5) for k in (-0.5, N - 0.5)])
+    corners = np.array(
+        [[i, j, k, 1] for i in (-0.5, N - 0.5) for j in (-0.5, N - 0.5) for k in (-0.5, N - 0.5)]
+    )
     corners = (corners @ AFFINE.T)[:, :3]
     x0, y0, w, h = view["rect"]
     out = []
@@ -186,7 +188,6 @@ def test_outlines_lie_where_the_mesh_crosses_each_slice(
         ):
             assert abs(found - edge) < 4, (name, found, edge)
 
-
     # Another colour in the list: the outlines follow; the part hidden: none.
     swatch.fill("#00ff00")
     page.wait_for_function(
@@ -197,16 +198,31 @@ def test_outlines_lie_where_the_mesh_crosses_each_slice(
     assert on_outline(image, expected_segments(box_model["mesh"], axial, "axial"), rgb("#00ff00"))
 
 
-
-def test_a_hidden_part_has_no_outline(page: Any, server: Any, box_scan: bytes) -> None:
-    # A scan of its own: the room keeps what the parts show for the next visitor.
-    job = box_surface(page, server, box_scan)
+def test_hidden_parts_and_the_volumes_window(
+    page: Any, server: Any, box_scan: bytes, artifacts: Path
+) -> None:
+    """A hidden part has no outline; the slices take the volume's window (the lung
+    window shows the 700 HU box white) and the address keeps both views."""
+    job = box_surface(page, server, box_scan)  # a scan of its own: the room keeps the view
     page.goto(f"/models/{job['id']}?view=slices")
     page.wait_for_function(OUTLINED)
     page.locator("[data-role=visible]").first.uncheck()
     page.wait_for_function("() => !window.__miss.slices.views.axial.outlines.length")
     page.locator("[data-role=visible]").first.check()
     page.wait_for_function(OUTLINED)
+
+    page.click("#volume-toggle")
+    page.wait_for_function("() => window.__miss.volume && window.__miss.volume.on")
+    views = page.evaluate("() => new URL(location.href).searchParams.get('view')")
+    assert set(views.split(",")) == {"volume", "slices"}
+    axial = page.evaluate("() => window.__miss.slices.views.axial")
+    inside = to_canvas(axial, "axial", np.array([[-40.0, -65.0, 80.0]]))[0]  # in the box
+    image = view_image(page, "axial", artifacts / "slices-bone-window.png")
+    assert 100 < image[round(inside[1]), round(inside[0])].mean() < 160  # bone: 700 HU mid-grey
+    page.select_option("#volume-preset", "CT lung")
+    page.wait_for_function("() => window.__miss.slices.window[0] === -600")
+    image = view_image(page, "axial", artifacts / "slices-lung-window.png")
+    assert image[round(inside[1]), round(inside[0])].min() > 240  # lung: 700 HU white
 
 
 def test_a_click_on_a_slice_moves_the_other_two(page: Any, box_model: dict[str, Any]) -> None:
@@ -309,5 +325,30 @@ def test_the_slices_fit_a_phone(
             assert box["width"] > 100 and box["height"] > 100, name
             assert box["y"] >= stage["y"] + stage["height"] - 1, name  # under the 3-D view
             assert box["y"] + box["height"] <= 844, name  # seen without scrolling
+    finally:
+        context.close()
+
+
+def test_a_link_that_offers_the_scan_opens_the_slices(
+    browser: Any, server: Any, box_model: dict[str, Any]
+) -> None:
+    """A guest's page draws the slices from /s/{token}/voxels; a plain link has none."""
+    from conftest import LAPTOP
+
+    plain = server.post("/api/shares", {"model": box_model["id"], "expires_in": 3600})
+    scan = server.post(
+        "/api/shares", {"model": box_model["id"], "expires_in": 3600, "can_view_volume": True}
+    )
+    context = browser.new_context(viewport=LAPTOP, base_url=server.url)
+    try:
+        guest = context.new_page()
+        guest.goto(f"{plain['url']}?view=slices")
+        guest.wait_for_function("() => window.__miss.ready === true")
+        assert not guest.locator("#slices-toggle").is_visible()
+        assert not guest.locator("#slices").is_visible()
+        guest.goto(f"{scan['url']}?view=slices")
+        guest.wait_for_function(OUTLINED)
+        assert guest.locator("#slices-toggle").get_attribute("aria-pressed") == "true"
+        assert guest.get_by_role("slider", name="Sagittal slice").is_visible()
     finally:
         context.close()
