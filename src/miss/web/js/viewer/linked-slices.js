@@ -47,7 +47,8 @@ class SliceView {
 
 	bind() {
 		const c = this.canvas;
-		const put = ( e ) => this.panel.setPoint( this.toLps( e.clientX, e.clientY ) );
+		// Nothing to do until the first drawing (the scan may still be on its way).
+		const put = ( e ) => this.rect && this.panel.setPoint( this.toLps( e.clientX, e.clientY ) );
 		c.addEventListener( 'pointerdown', ( e ) => {
 			if ( e.button !== 0 ) return;
 			c.focus();
@@ -57,10 +58,11 @@ class SliceView {
 		c.addEventListener( 'pointermove', ( e ) => e.pointerType === 'mouse' && c.hasPointerCapture( e.pointerId ) && put( e ) );
 		c.addEventListener( 'wheel', ( e ) => {
 			e.preventDefault(); // the page stays put: the wheel turns the slices
-			if ( e.deltaY ) this.panel.step( this, Math.sign( e.deltaY ) );
+			if ( e.deltaY && this.rect ) this.panel.step( this, Math.sign( e.deltaY ) );
 		}, { passive: false } );
 		const keys = { ArrowUp: 1, ArrowRight: 1, ArrowDown: - 1, ArrowLeft: - 1, PageUp: 10, PageDown: - 10 };
 		c.addEventListener( 'keydown', ( e ) => {
+			if ( ! this.rect ) return;
 			const last = this.layout.count - 1;
 			const to = e.key === 'Home' ? 0 : e.key === 'End' ? last : e.key in keys ? this.index + keys[ e.key ] : null;
 			if ( to == null ) return;
