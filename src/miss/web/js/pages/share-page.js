@@ -11,7 +11,8 @@ import { status } from '../test-hooks.js';
 import { StructuresPanel } from '../viewer/structures-panel.js';
 import { ModelViewer } from '../viewer/viewer.js';
 import { VolumePanel } from '../viewer/volume-panel.js';
-import { linkCamera } from '../viewer/deep-link.js';
+import { addressViews, linkCamera } from '../viewer/deep-link.js';
+import { LinkedSlices } from '../viewer/linked-slices.js';
 
 const $ = ( id ) => document.getElementById( id );
 const token = decodeURIComponent( location.pathname.split( '/' )[ 2 ] || '' );
@@ -111,7 +112,9 @@ export async function start() {
 		if ( vrml.disabled ) vrml.title = 'This link includes the GLB only (no downloads).';
 		showProvenance( model.provenance );
 		const volumePanel = data.share.can_view_volume ? new VolumePanel( viewer, `${base}/voxels` ) : null;
-		const volumeView = volumePanel && new URLSearchParams( location.search ).get( 'view' ) === 'volume';
+		const volumeView = volumePanel && addressViews().has( 'volume' );
+		const slices = volumePanel ? new LinkedSlices( viewer, volumePanel ) : null;
+		const slicesShown = slices && addressViews().has( 'slices' ) ? slices.show( true ) : null;
 		if ( volumeView ) volumePanel.prefetch(); // arrives while the model loads
 		if ( data.share.can_annotate ) {
 			// a colleague signed in here joins under their own name, not "Guest" (asked only
@@ -125,6 +128,7 @@ export async function start() {
 		await display( new URLSearchParams( location.search ).get( 'mode' ) );
 		linkCamera( viewer ); // a link with ?cam= opens on the view it was sent with
 		if ( volumeView ) await volumePanel.show( true );
+		await slicesShown;
 	} catch ( err ) {
 		overlay( 'This shared model cannot be shown', err.message || String( err ) );
 		status.error = err.message || String( err );

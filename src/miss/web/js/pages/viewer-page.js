@@ -15,7 +15,8 @@ import { fillDownloads, fillStats, overlay, setupDisplay } from '../viewer/viewe
 import { status } from '../test-hooks.js';
 import { ModelViewer } from '../viewer/viewer.js';
 import { VolumePanel } from '../viewer/volume-panel.js';
-import { linkCamera } from '../viewer/deep-link.js';
+import { addressViews, linkCamera } from '../viewer/deep-link.js';
+import { LinkedSlices } from '../viewer/linked-slices.js';
 
 const $ = ( id ) => document.getElementById( id );
 // The page's model, from its address when the page starts (the volume page may load this
@@ -213,7 +214,9 @@ export async function start() {
 		setupManage( model );
 		offerCancel( model );
 		const volumePanel = new VolumePanel( viewer, `/api/volumes/${encodeURIComponent( model.volume )}/voxels` );
-		const volumeView = new URLSearchParams( location.search ).get( 'view' ) === 'volume';
+		const volumeView = addressViews().has( 'volume' );
+		const slices = new LinkedSlices( viewer, volumePanel );
+		const slicesShown = addressViews().has( 'slices' ) ? slices.show( true ) : null; // voxels while the model loads
 		let onStage = null;
 		const staged = new Promise( ( resolve ) => ( onStage = resolve ) );
 		// Voxels, module and layer while the model loads: its first frame has the volume.
@@ -239,7 +242,7 @@ export async function start() {
 		await display( new URLSearchParams( location.search ).get( 'mode' ), { drawn } );
 		linkCamera( viewer ); // ?cam= in the address: this view, and the address follows it
 		onStage();
-		await shown;
+		await Promise.all( [ shown, slicesShown ] );
 	} catch ( err ) {
 		overlay( cancelled ? 'Job cancelled' : 'This model cannot be shown', err.message || String( err ) );
 		status.error = err.message || String( err );

@@ -27,7 +27,7 @@ export class Consultation {
 		this.viewer = viewer;
 		this.structures = structures;
 		this.volume = volume;
-		this.addressView = new URLSearchParams( location.search ).has( 'view' );
+		this.addressView = ( new URLSearchParams( location.search ).get( 'view' ) || '' ).split( ',' ).includes( 'volume' );
 		this.modelId = modelId;
 		this.annotations = new Annotations( viewer );
 		this.follower = new CameraFollower( viewer );

@@ -35,3 +35,19 @@ export function linkCamera( viewer ) {
 		}, 250 );
 	} );
 }
+
+// The views an address asks for besides the surfaces: ?view=volume, ?view=slices or both
+// (?view=volume,slices); each panel keeps its own name in the address in step.
+export function addressViews( search = location.search ) {
+	return new Set( ( new URLSearchParams( search ).get( 'view' ) || '' ).split( ',' ).filter( Boolean ) );
+}
+
+export function setAddressView( name, on ) {
+	const views = addressViews();
+	if ( on ) views.add( name );
+	else views.delete( name );
+	const url = new URL( location.href );
+	if ( views.size ) url.searchParams.set( 'view', [ ...views ].join( ',' ) );
+	else url.searchParams.delete( 'view' );
+	history.replaceState( history.state, '', url );
+}

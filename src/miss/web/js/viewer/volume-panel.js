@@ -5,6 +5,7 @@
 
 import { status } from '../test-hooks.js';
 import { CUSTOM, pointsAt, TransferEditor } from './tf-editor.js';
+import { setAddressView } from './deep-link.js';
 
 const $ = ( id ) => document.getElementById( id );
 
@@ -88,10 +89,7 @@ export class VolumePanel {
 		if ( ! this.button ) return;
 		this.button.setAttribute( 'aria-pressed', String( on ) );
 		$( 'volume-controls' ).hidden = ! on;
-		const url = new URL( location.href );
-		if ( on ) url.searchParams.set( 'view', 'volume' );
-		else url.searchParams.delete( 'view' );
-		history.replaceState( history.state, '', url );
+		setAddressView( 'volume', on );
 		if ( ! on ) {
 			if ( this.layer ) this.layer.mesh.visible = false;
 			if ( status.softwareWebGL ) this.viewer.setCoarse( false );
