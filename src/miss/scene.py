@@ -41,6 +41,9 @@ class Part:
         In (0, 1]; 1 is opaque. Writers turn it into transparency or alpha blending.
     label : int or None
         The label-map value the part was built from; None for threshold surfaces.
+    smoothed_mm : (float, float) or None
+        How far smoothing moved the surface: its vertices' largest and mean displacement
+        in mm (exact, before decimation); None when the part was not smoothed.
     """
 
     name: str
@@ -48,6 +51,7 @@ class Part:
     color: RGB = (0.8, 0.8, 0.8)
     opacity: float = 1.0
     label: int | None = None
+    smoothed_mm: tuple[float, float] | None = None
 
     def __post_init__(self) -> None:
         if not str(self.name).strip():
@@ -75,7 +79,8 @@ class Part:
         return surface_area(self.mesh.vertices, self.mesh.faces) / 100.0
 
     def summary(self) -> dict[str, Any]:
-        """JSON-ready description: name, label, colour, opacity, triangles, mL, cm²."""
+        """JSON-ready description: name, label, colour, opacity, triangles, mL, cm², and how
+        far smoothing moved it (mm) when it was smoothed."""
         return {
             "name": self.name,
             "label": self.label,
@@ -85,6 +90,14 @@ class Part:
             "vertices": self.mesh.n_vertices,
             "volume_ml": round(self.volume_ml, 4),
             "area_cm2": round(self.area_cm2, 4),
+            **(
+                {}
+                if self.smoothed_mm is None
+                else {
+                    "smoothing_max_mm": round(self.smoothed_mm[0], 4),
+                    "smoothing_mean_mm": round(self.smoothed_mm[1], 4),
+                }  # fmt: skip
+            ),
         }
 
 

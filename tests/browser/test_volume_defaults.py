@@ -141,3 +141,40 @@ def test_the_page_shows_the_jobs_stage_while_the_model_is_made(
     assert stages, shown
     assert any("%" in text for text in stages), stages
     page.screenshot(path=artifacts / "volume-job-done.png")
+
+
+def test_slice_steps_are_smoothed_by_default_where_slices_are_far_apart(
+    page: Any, server: Any, artifacts: Path
+) -> None:
+    """Issue 42: a scan whose slices are far apart for its pixels (here 0.5 x 0.5 x 2 mm)
+    opens with "Smooth slice steps" on, the hint naming both spacings; the model made says
+    how far smoothing moved its surface beside the bound. A scan of nearly cubic voxels
+    (the demo, 1.5 mm) opens with it off."""
+    nib = pytest.importorskip("nibabel")
+    import numpy as np
+
+    grid = np.indices((64, 64, 24)).astype(np.float32)
+    inside = ((grid[0] - 32) * 0.5) ** 2 + ((grid[1] - 32) * 0.5) ** 2 + ((grid[2] - 12) * 2) ** 2
+    data = np.where(inside < 12.0**2, 1000, 0).astype(np.int16)
+    image = nib.Nifti1Image(data, np.diag([0.5, 0.5, 2.0, 1.0]))
+    volume = upload(server, "steps.nii", image.to_bytes())
+    demo = next(v for v in server.http.get("/api/volumes").json() if "emo" in v["name"])
+    open_volume(page, demo)
+    assert not page.is_checked("#smooth-steps")
+    assert "no steps" in page.inner_text("#smooth-hint")
+    open_volume(page, volume)
+    assert page.is_checked("#smooth-steps")
+    hint = page.inner_text("#smooth-hint")
+    assert "Slices 2 mm apart, pixels 0.5 mm" in hint, hint
+    page.fill("#threshold", "500")
+    page.click("#generate")
+    page.wait_for_url("**/models/*")
+    model_id = page.url.rstrip("/").split("/")[-1].split("?")[0]
+    model = server.wait_model(model_id)
+    assert model["status"] == "done" and model["params"].get("smooth") == 15, model["params"]
+    part = model["stats"]["parts"][0]
+    assert 0 < part["smoothing_mean_mm"] < part["smoothing_max_mm"] < 2.0, part
+    stats = page.locator("#stats")
+    stats.get_by_text("Smoothing moved the surface").wait_for()
+    assert f"{part['smoothing_max_mm']:.3f} mm" in stats.inner_text()
+    page.screenshot(path=artifacts / "volume-smoothed-model.png")

@@ -36,7 +36,7 @@ from miss.decimate import (
 from miss.errors import BadParameter, EmptySurface
 from miss.measure import measurer, native
 from miss.scene import DEFAULT_SCENE_TITLE, Part, Scene
-from miss.smooth import VOLUME_TOLERANCE, smooth_mesh
+from miss.smooth import VOLUME_TOLERANCE, displacement, smooth_mesh
 from miss.spec import LABEL_SMOOTHING, Decimation, JobSpec, Structure
 from miss.structures.block_components import blockwise_components, component_surfaces
 from miss.structures.components import relabel_components, select_components
@@ -336,6 +336,7 @@ def _level_parts(
         part_name = f"{name} {rank + 1}" if split else name
         part_color = PALETTE[rank % len(PALETTE)] if split and item.color is None else color
         smoothed = _smoothed(mesh, item.smooth or 0, item.passband, part_name, notes)
+        moved = displacement(mesh, smoothed) if item.smooth else None
         # a guaranteed bound is checked (and held) while decimating, whatever ``measure`` says
         checked = measure or decimation.schedule == "guaranteed"
         unchanged = decimation.method == "none" or smoothed.n_triangles == 0
@@ -345,7 +346,7 @@ def _level_parts(
             max_error=decimation.max_error, schedule=decimation.schedule,
             measure=checked, progress=progress,
         )  # fmt: skip
-        part = Part(part_name, decimated, part_color, opacity)
+        part = Part(part_name, decimated, part_color, opacity, smoothed_mm=moved)
         out.append((part, report, Source(smoothed, SAMPLES, side)))
     return out
 

@@ -263,6 +263,26 @@ function setupForm( schema ) {
 	}
 }
 
+// Windowed-sinc passes for "Smooth slice steps": on the MR head (0.41 × 0.41 × 1.5 mm) 15
+// moved the skin 0.14 mm on average and 1.03 mm at most (10: 0.08 / 0.53; 20: 0.18 / 1.30),
+// its volume by 0.02 %; the model's details show the figures of each model.
+const SMOOTH_STEPS = 15;
+
+// Slices much farther apart than the pixels leave stair steps across every surface (3D
+// Slicer smooths its surfaces by default): on by default when the gap is over twice the
+// pixel spacing, off for a nearly isotropic scan; the switch says why either way.
+function setupSmoothing( volume ) {
+	const [ sx, sy, sz ] = volume.spacing || [ 1, 1, 1 ];
+	const gap = volume.slice_gap ?? sz;
+	const pixel = Math.min( sx, sy );
+	const steps = gap > 2 * pixel;
+	$( 'smooth-steps' ).checked = steps;
+	const mm = ( v ) => `${+v.toFixed( 2 )} mm`;
+	$( 'smooth-hint' ).textContent = steps
+		? `Slices ${mm( gap )} apart, pixels ${mm( pixel )}: light smoothing (${SMOOTH_STEPS} passes) takes away the steps; the model's details say how far it moved the surface.`
+		: `Slices ${mm( gap )} apart, pixels ${mm( pixel )}: no steps to smooth away.`;
+}
+
 function sampleRate() {
 	const parts = parseSampleRate( $( 'sample-rate' ).value ); // checked as typed
 	return parts.length === 1 ? parts[ 0 ] : parts;
@@ -293,6 +313,8 @@ function modelParams( volume ) {
 		if ( list.length <= 1 ) delete params.level; // the label parts alone, no threshold surface
 	}
 	if ( $( 'components' ).value !== 'all' ) params.components = $( 'components' ).value;
+	// A label map's parts keep their own smoothing (the server's default for labels).
+	if ( $( 'smooth-steps' ).checked && ! params.labels ) params.smooth = SMOOTH_STEPS;
 	const minSize = Number( $( 'min-size' ).value );
 	if ( minSize > 0 ) params.min_size_mm3 = minSize;
 	// The whole stack is sent as no range at all, so it shares the cache with API clients that omit it.
@@ -409,6 +431,7 @@ async function main() {
 		setupThreshold( hist, volume );
 		setupViews( volume );
 		setupStructures();
+		setupSmoothing( volume );
 		showPrivacy( $( 'privacy' ), volume );
 		showNotes( $( 'volume-notes' ), volume );
 		labelMap = new LabelMapPanel( $( 'labelmap' ), volume, showError );

@@ -58,6 +58,7 @@ export function fillStats( model, { timings = true } = {} ) {
 		row( 'Max error', formatMm( d.max_error_mm ) ),
 		row( 'Mean error', formatMm( d.mean_error_mm, 4 ) ),
 		d.bound_mm ? row( 'Error bound held', boundHeld( d ) ) : null,
+		smoothingRow( s.parts || [] ),
 		...( timings ? Object.entries( seconds ).filter( ( [ k ] ) => k !== 'total' ).map( ( [ k, v ] ) => row( `Time: ${TIME_LABELS[ k ] || k}`, formatSeconds( v ) ) ) : [] ),
 		timings ? row( 'Time: total', formatSeconds( total ) ) : null,
 		row( 'Drawn now', el( 'span', { id: 'drawn' }, '–' ) ),
@@ -75,6 +76,16 @@ export function fillStats( model, { timings = true } = {} ) {
 		row( 'Reduce', p.reduce ),
 	);
 	$( 'model-meta' ).textContent = `${formatCount( s.triangles )} triangles`;
+}
+
+// How far smoothing moved the surface before decimation (the parts' largest and mean
+// vertex displacement): its effect, beside the bound the decimation held.
+function smoothingRow( parts ) {
+	const smoothed = parts.filter( ( p ) => p.smoothing_max_mm != null );
+	if ( ! smoothed.length ) return null;
+	const most = Math.max( ...smoothed.map( ( p ) => p.smoothing_max_mm ) );
+	const mean = smoothed.reduce( ( a, p ) => a + p.smoothing_mean_mm * p.vertices, 0 ) / smoothed.reduce( ( a, p ) => a + p.vertices, 0 );
+	return row( 'Smoothing moved the surface', `≤ ${formatMm( most )} (mean ${formatMm( mean, 3 )})` );
 }
 
 // Whether the model is within the bound it was given, and what stopped the decimation.
