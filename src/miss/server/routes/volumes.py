@@ -332,12 +332,15 @@ async def slice_png(
     ] = None,
     level: Annotated[float | None, Query(**_VALUE, description="centre, volume units")] = None,
     threshold: Annotated[float | None, Query(**_VALUE, description="tint voxels above")] = None,
+    labels: Annotated[bool, Query(description="the label map's colours laid over")] = False,
     size: Annotated[
         int, Query(ge=16, le=4096, description="longest side, pixels")
     ] = imaging.MAX_SIDE,
 ) -> Response:
     """One slice (0-based ``index``) with window/level, square millimetres, radiological
-    orientation (see the volume's ``views``); voxels above ``threshold`` are tinted."""
+    orientation (see the volume's ``views``); voxels above ``threshold`` are tinted and, with
+    ``labels``, each label of the volume's label map takes its colour (the one its part
+    gets in a model)."""
     view = volume.info["views"][axis.value]
     if not 0 <= index < view["count"]:
         raise NotFound(f"{axis.value} slice {index} is outside 0..{view['count'] - 1} (0-based).")
@@ -345,12 +348,21 @@ async def slice_png(
     window = window or default["window"]
     level = default["level"] if level is None else level
 
+    # the map's hash in the key: a new label map is a new picture
+    sha = (labelmaps.info(store, volume.id) or {}).get("sha256") if labels else None
+
     def make() -> bytes:
         # lazy: only the chunks the plane crosses are read and decompressed
-        plane = imaging.slice_plane(store.open_volume(volume.id, lazy=True).data, view, index)
+        scan = store.open_volume(volume.id, lazy=True)
+        plane = imaging.slice_plane(scan.data, view, index)
         size_px = imaging.display_size(view, plane.shape, size)
-        return imaging.render(plane, size_px, window, level, threshold)
+        overlay = None
+        if sha is not None:
+            overlay = labelmaps.slice_overlay(
+                store, volume.id, scan.affine, scan.data.shape, view, index
+            )
+        return imaging.render(plane, size_px, window, level, threshold, overlay)
 
-    key = (volume.id, axis.value, index, window, level, threshold, size)
+    key = (volume.id, axis.value, index, window, level, threshold, size, sha)
     png = caches.slices.peek(key) or await rendering(request, caches.slices.get, key, make)
     return Response(png, media_type="image/png", headers={"Cache-Control": "private, max-age=3600"})

@@ -1,25 +1,29 @@
 """``/api/volumes/{id}/voxels``: the stored (de-identified) voxels for the browser's volume
 renderer, one level at a time (``miss.server.volumes.voxels`` has the format); and a share
 link's ``/s/{token}/voxels``, the same bytes for a link whose owner offered the scan
-(``can_view_volume``; a scan flagged for burned-in text only once they confirmed it).
+(``can_view_volume``; a scan flagged for burned-in text only once they confirmed it);
+and ``/api/volumes/{id}/voxel``, one voxel's exact value and label (the slice views'
+readout under the pointer).
 """
 
 from __future__ import annotations
 
 import gzip
 import hashlib
-from typing import Annotated
+from typing import Annotated, Any
 
+import numpy as np
 from fastapi import APIRouter, Query, Request, Response
 from starlette.concurrency import run_in_threadpool
 
 from miss.server import shares
 from miss.server.core.deps import BytesDep, SettingsDep, StoreDep, VolumeDep, rendering
+from miss.server.core.errors import NotFound
 from miss.server.core.settings import Settings
 from miss.server.storage.caches import ByteCaches
 from miss.server.storage.db import VolumeRow
 from miss.server.storage.store import Store
-from miss.server.volumes import voxels
+from miss.server.volumes import labelmaps, voxels
 
 router = APIRouter(tags=["volumes"])
 
@@ -113,3 +117,32 @@ async def _voxels(
     if "gzip" not in request.headers.get("accept-encoding", ""):
         return Response(gzip.decompress(body), media_type=MIME, headers=headers)
     return Response(body, media_type=MIME, headers=headers | {"Content-Encoding": "gzip"})
+
+
+Index = Annotated[int, Query(ge=0, description="0-based voxel index")]
+
+
+@router.get("/api/volumes/{volume_id}/voxel")
+def get_voxel(volume: VolumeDep, store: StoreDep, i: Index, j: Index, k: Index) -> dict[str, Any]:
+    """One voxel's stored value (volume units: HU for CT) and, over a label map, its label
+    and that label's name (``label`` 0 and ``name`` "" outside every label; both null
+    without a map)."""
+    scan = store.open_volume(volume.id, lazy=True)  # one chunk read
+    dims = scan.data.shape
+    if not (i < dims[0] and j < dims[1] and k < dims[2]):
+        raise NotFound(
+            f"voxel ({i}, {j}, {k}) is outside the volume's 0..{dims[0] - 1}, 0..{dims[1] - 1}, "
+            f"0..{dims[2] - 1} (0-based i, j, k); pick one inside."
+        )
+    found = labelmaps.labels_at(store, volume.id, scan.affine, np.array([[i], [j], [k]]))
+    label = None if found is None else int(found[0])
+    names = {
+        e["label"]: e["name"] for e in (labelmaps.info(store, volume.id) or {}).get("labels", [])
+    }
+    return {
+        "index": [i, j, k],
+        "value": float(scan.data[i, j, k]),
+        "units": volume.info.get("units", ""),
+        "label": label,
+        "name": None if label is None else names.get(label, ""),
+    }

@@ -85,16 +85,23 @@ def render(
     window: float,
     level: float,
     threshold: float | None = None,
+    overlay: np.ndarray | None = None,
 ) -> bytes:
-    """PNG of a plane under window/level (units of the volume), voxels above ``threshold`` tinted."""
+    """PNG of a plane under window/level (units of the volume), voxels above ``threshold``
+    tinted, then ``overlay`` ((rows, columns, 4): RGB 0-255 and alpha, e.g. a label map's
+    colours) laid over it."""
     low = level - window / 2.0
     grey = np.clip((plane - low) * (255.0 / window), 0.0, 255.0)
-    if threshold is None:  # grey: one channel, a third of the work to scale and encode
+    if threshold is None and overlay is None:  # one channel: a third of the work
         image = Image.fromarray(np.ascontiguousarray(grey.astype(np.uint8)), "L")
     else:
         rgb = np.repeat(grey[:, :, None], 3, axis=2)
-        above = plane > threshold
-        rgb[above] = (1.0 - TINT_ALPHA) * rgb[above] + TINT_ALPHA * TINT
+        if threshold is not None:
+            above = plane > threshold
+            rgb[above] = (1.0 - TINT_ALPHA) * rgb[above] + TINT_ALPHA * TINT
+        if overlay is not None:
+            alpha = overlay[:, :, 3:]
+            rgb = (1.0 - alpha) * rgb + alpha * overlay[:, :, :3]
         image = Image.fromarray(np.ascontiguousarray(rgb.astype(np.uint8)), "RGB")
     if image.size != size:
         image = image.resize(size, Image.Resampling.BILINEAR)

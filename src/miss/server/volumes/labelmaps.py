@@ -20,6 +20,7 @@ from miss.errors import BadParameter, MissError
 from miss.io.confined import Confinement, Limits, parse_upload
 from miss.server.storage import chunked
 from miss.server.storage.store import Store, write_atomic
+from miss.server.volumes import imaging
 from miss.server.volumes.ingest import source_hash
 from miss.structures.labelmap import align_labels, label_counts
 from miss.structures.labels import LabelInfo, LabelTable, describe
@@ -180,6 +181,8 @@ def public(meta: dict[str, Any] | None) -> dict[str, Any] | None:
     return {
         "labels": [{k: e[k] for k in ("label", "name", "voxels", "color")} for e in meta["labels"]],
         "table": meta.get("table", ""),
+        # names this map in slice URLs, so a browser never shows a replaced map's colours
+        "sha256": meta.get("sha256", ""),
     }
 
 
@@ -188,3 +191,77 @@ def cache_key(spec_key: str, meta: dict[str, Any] | None) -> str:
     if meta is None:
         return spec_key
     return hashlib.sha256(f"{spec_key}:{meta['sha256']}".encode()).hexdigest()[:32]
+
+
+def labels_at(
+    store: Store, volume_id: str, affine: np.ndarray, ijk: np.ndarray
+) -> np.ndarray | None:
+    """The label map's labels at volume voxels, nearest neighbour in patient mm.
+
+    Parameters
+    ----------
+    affine : (4, 4) float array
+        The volume's voxel-to-patient (mm) affine.
+    ijk : (3, N) int array
+        Voxel indices of the volume (0-based).
+
+    Returns
+    -------
+    (N,) int64 array, 0 outside the map; None when the volume has no label map.
+    """
+    meta = info(store, volume_id)
+    if meta is None:
+        return None
+    folder = store.volume_dir(volume_id)
+    data = store.voxels(folder / DATA, folder / OLD_DATA, lazy=True)
+    to_labels = np.linalg.inv(np.asarray(meta["affine"])) @ affine  # volume index -> map index
+    where = np.rint(to_labels[:3, :3] @ ijk + to_labels[:3, 3:4]).astype(np.int64)
+    inside = np.all((where >= 0) & (where < np.asarray(data.shape)[:, None]), axis=0)
+    out = np.zeros(ijk.shape[1], dtype=np.int64)
+    if not inside.any():
+        return out
+    hit = where[:, inside]
+    lo, hi = hit.min(axis=1), hit.max(axis=1) + 1
+    # only the box the points fall in is read: one plane when both share a grid
+    block = np.asarray(data[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]])
+    out[inside] = block[tuple(hit - lo[:, None])]
+    return out
+
+
+def colours(store: Store, volume_id: str) -> dict[int, tuple[float, float, float]]:
+    """Each label's sRGB colour (fractions), the one its part gets in a model."""
+    meta = info(store, volume_id) or {"labels": []}
+    return {e["label"]: tuple(e["color"]) for e in meta["labels"] if len(e.get("color") or ()) == 3}
+
+
+#: Opacity of a label's colour laid over a slice: the grey beneath still reads.
+OVERLAY_ALPHA = 0.45
+
+
+def slice_overlay(
+    store: Store, volume_id: str, affine: np.ndarray, dims: tuple[int, int, int],
+    view: dict[str, Any], index: int,
+) -> np.ndarray | None:  # fmt: skip
+    """The label map's colours over one slice of the volume (``imaging.slice_plane``'s
+    view and index), in display orientation.
+
+    Returns
+    -------
+    (rows, columns, 4) float32 array, RGB 0-255 and alpha (0 where no label); None when
+    the volume has no label map.
+    """
+    fixed = view["axis"]
+    axes = [slice(0, n) for n in dims]
+    axes[fixed] = slice(index, index + 1)
+    grid = np.mgrid[tuple(axes)]  # (3, X, Y, Z) with the fixed axis one long
+    found = labels_at(store, volume_id, affine, grid.reshape(3, -1))
+    if found is None:
+        return None
+    labels = imaging.slice_plane(found.reshape(grid.shape[1:]), view, 0)
+    rgba = np.zeros((*labels.shape, 4), dtype=np.float32)
+    table = colours(store, volume_id)
+    for label in np.unique(labels):
+        if label:
+            rgb = 255.0 * np.asarray(table.get(int(label), (1.0, 1.0, 0.0)))
+            rgba[labels == label] = (*rgb, OVERLAY_ALPHA)
+    return rgba

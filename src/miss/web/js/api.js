@@ -81,6 +81,8 @@ export const api = {
 	volume: ( id ) => request( 'GET', `/api/volumes/${enc( id )}` ),
 	deleteVolume: ( id ) => request( 'DELETE', `/api/volumes/${enc( id )}` ),
 	histogram: ( id ) => request( 'GET', `/api/volumes/${enc( id )}/histogram` ),
+	// One voxel's value (volume units) and label; [i, j, k] 0-based.
+	voxel: ( id, [ i, j, k ] ) => request( 'GET', `/api/volumes/${enc( id )}/voxel?i=${i}&j=${j}&k=${k}` ),
 	models: ( volumeId ) => request( 'GET', `/api/models?volume=${enc( volumeId )}` ),
 	model: ( id ) => request( 'GET', `/api/models/${enc( id )}` ),
 	createModel: ( params ) => request( 'POST', '/api/models', params ),
@@ -114,11 +116,15 @@ export const urls = {
 	volumePage: ( id ) => `/volumes/${enc( id )}`,
 	viewerPage: ( id ) => `/models/${enc( id )}`,
 	thumbnail: ( id ) => `/api/volumes/${enc( id )}/thumbnail.png`,
-	slice( id, axis, index, { window, level, threshold } ) {
+	slice( id, axis, index, { window, level, threshold, labels } ) {
 		const q = new URLSearchParams();
 		if ( window != null ) q.set( 'window', String( window ) );
 		if ( level != null ) q.set( 'level', String( level ) );
 		if ( threshold != null ) q.set( 'threshold', String( threshold ) );
+		if ( labels ) { // the label map's colours laid over; its hash: a new map, a new URL
+			q.set( 'labels', 'true' );
+			q.set( 'map', String( labels ).slice( 0, 16 ) );
+		}
 		return `/api/volumes/${enc( id )}/slices/${axis}/${index}.png?${q}`;
 	},
 	download: ( id, format ) => `/api/models/${enc( id )}/model.${format}`,

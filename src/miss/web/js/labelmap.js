@@ -7,11 +7,16 @@ import { el, formatCount } from './format.js';
 const path = ( id ) => `/api/volumes/${encodeURIComponent( id )}/labelmap`;
 
 export class LabelMapPanel {
-	// root: the section element; volume: GET /api/volumes/{id}; onError(err or null).
-	constructor( root, volume, onError ) {
+	// root: the section element; volume: GET /api/volumes/{id}; onError(err or null);
+	// onOverlay(map): the map's hash when the slices should lay its colours over (a map
+	// is there and "show on the slices" is ticked), else null.
+	constructor( root, volume, onError, onOverlay = () => {} ) {
 		this.root = root;
 		this.volumeId = volume.id;
 		this.onError = onError;
+		this.onOverlay = onOverlay;
+		this.overlay = root.querySelector( '.label-overlay input' );
+		this.overlay.addEventListener( 'change', () => this.onOverlay( this.overlay.checked ? this.sha : null ) );
 		this.list = root.querySelector( '.label-list' );
 		this.all = root.querySelector( '.label-all' );
 		this.file = root.querySelector( 'input[type=file]' );
@@ -35,6 +40,9 @@ export class LabelMapPanel {
 		this.all.checked = false;
 		this.all.closest( 'label' ).hidden = ! labelmap;
 		this.remove.hidden = ! labelmap;
+		this.overlay.closest( 'label' ).hidden = ! labelmap;
+		this.sha = labelmap ? labelmap.sha256 || '1' : null;
+		this.onOverlay( this.overlay.checked ? this.sha : null );
 		this.list.replaceChildren( ...labels.map( ( e ) => {
 			const box = el( 'input', { type: 'checkbox', value: String( e.label ) } );
 			box.addEventListener( 'change', () => {

@@ -1,9 +1,11 @@
-// One orthogonal slice view: a server-rendered PNG (window/level applied and
-// the voxels above the threshold tinted), fitted to its box at the physical
-// aspect ratio the server already gives it.
+// One orthogonal slice view: a server-rendered PNG (window/level applied, the
+// voxels above the threshold tinted, a label map's colours laid over), fitted to
+// its box at the physical aspect ratio the server already gives it. The pointer
+// tools (readout, cross-hair, zoom, window/level) are in slice-tools.js.
 
 import { urls } from './api.js';
 import { el } from './format.js';
+import { SliceTools } from './slice-tools.js';
 
 // Screen edges in patient terms as the server draws the views (radiological
 // convention: the patient's right on the screen's left, superior up).
@@ -14,8 +16,10 @@ const ORIENT = {
 };
 
 export class SliceView {
-	// root: the .view article; count: slices along this axis.
-	constructor( root, { volumeId, axis, count, index, display, onIndex = () => {} } ) {
+	// root: the .view article; count: slices along this axis; view: the volume's
+	// views[axis] (which voxel axes run across and down, flipped or not); dims: the
+	// volume's; tools: SliceTools' callbacks (onHover, onPick, onWindowLevel).
+	constructor( root, { volumeId, axis, count, index, display, onIndex = () => {}, view = null, dims = null, tools = {} } ) {
 		this.root = root;
 		this.volumeId = volumeId;
 		this.axis = axis;
@@ -33,16 +37,19 @@ export class SliceView {
 		this.timer = 0;
 
 		for ( const [ side, letter ] of Object.entries( ORIENT[ axis ] || {} ) ) {
-			this.frame.append( el( `span.orient.${side}`, { 'aria-hidden': 'true' }, letter ) );
+			this.stage.append( el( `span.orient.${side}`, { 'aria-hidden': 'true' }, letter ) );
 		}
 		this.slider.max = String( count - 1 );
 		this.slider.value = String( index );
 		this.slider.addEventListener( 'input', () => this.setIndex( Number( this.slider.value ) ) );
-		// The wheel steps one slice, like a radiology workstation.
+		// The wheel steps one slice, like a radiology workstation (Ctrl+wheel and a
+		// trackpad's pinch, which the browser sends as one, zoom: SliceTools).
 		this.stage.addEventListener( 'wheel', ( e ) => {
+			if ( e.ctrlKey ) return;
 			e.preventDefault();
 			this.setIndex( this.index + Math.sign( e.deltaY ) );
 		}, { passive: false } );
+		this.tools = view && dims ? new SliceTools( this, view, dims, tools ) : null;
 		new ResizeObserver( () => this.fit() ).observe( this.stage );
 		this.showReadout();
 		this.load( 0 );
@@ -54,7 +61,7 @@ export class SliceView {
 		this.index = index;
 		this.slider.value = String( index );
 		this.showReadout();
-		this.onIndex( index );
+		this.onIndex( index, this );
 		this.load( 40 );
 	}
 

@@ -16,7 +16,8 @@ import { SliceView } from '../slices.js';
 const $ = ( id ) => document.getElementById( id );
 const volumeId = decodeURIComponent( location.pathname.split( '/' ).filter( Boolean ).pop() );
 
-const state = { window: 400, level: 40, threshold: 0 };
+// labels: the label map's hash while its colours are laid over the slices, else null.
+const state = { window: 400, level: 40, threshold: 0, labels: null };
 let views = [];
 let histogram = null;
 let range = null;
@@ -153,12 +154,20 @@ function setupThreshold( hist, volume ) {
 function setupViews( volume ) {
 	const [ nx, ny, nz ] = volume.dims;
 	const counts = { sagittal: nx, coronal: ny, axial: nz };
+	const tools = { onHover: showProbe, onPick: pick, onWindowLevel: dragWindowLevel };
 	views = [ ...document.querySelectorAll( '.view[data-axis]' ) ].map( ( root ) => {
 		const axis = root.dataset.axis;
 		return new SliceView( root, {
 			volumeId, axis, count: counts[ axis ], index: Math.floor( counts[ axis ] / 2 ), display: { ...state },
+			view: volume.views?.[ axis ], dims: volume.dims, tools,
+			onIndex: ( index, view ) => {
+				cross[ view.tools?.view.axis ?? 0 ] = index;
+				drawCross();
+			},
 		} );
 	} );
+	cross = [ nx, ny, nz ].map( ( n ) => Math.floor( n / 2 ) );
+	drawCross();
 	const sagittal = document.querySelector( '.view[data-axis=sagittal] .frame' );
 	// The server draws superior up; whether that is the last slice depends on
 	// how the series was stacked (feet-to-head or head-to-feet).
@@ -181,6 +190,75 @@ function setupViews( volume ) {
 	} );
 	$( 'start-slice' ).value = 1;
 	$( 'end-slice' ).value = nz;
+}
+
+// The voxel the three views share (0-based [i, j, k]): each view is the slice through
+// it and draws the other two as a cross-hair.
+let cross = [ 0, 0, 0 ];
+
+function drawCross() {
+	for ( const view of views ) view.tools?.setCross( cross );
+}
+
+// A click on a view: the other views go to the slices through that voxel.
+function pick( ijk, from ) {
+	cross = ijk;
+	for ( const view of views ) {
+		if ( view.tools && view !== from.slice ) view.setIndex( ijk[ view.tools.view.axis ] );
+	}
+	drawCross();
+	showProbe( ijk, from );
+}
+
+// Right-drag or Shift+drag: left–right widens the window, up–down raises the level,
+// a pixel being a 500th of the volume's values.
+function dragWindowLevel( dx, dy ) {
+	const [ lo, hi ] = limits.range || [ 0, 500 ];
+	const step = Math.max( hi - lo, 1 ) / 500;
+	const round = ( v ) => Math.round( v * 100 ) / 100;
+	state.window = round( Math.max( 1, state.window + dx * step ) );
+	state.level = round( state.level - dy * step );
+	$( 'window' ).value = state.window;
+	$( 'level' ).value = state.level;
+	$( 'wl-preset' ).value = '';
+	refreshSlices( 120 );
+}
+
+// The readout under the pointer: the voxel's place at once (1-based, as the slice
+// fields count), its value and label once the server answers; one question at a time,
+// the newest asked next.
+const probe = { wanted: null, tools: null, busy: false };
+
+function showProbe( ijk, tools ) {
+	if ( probe.tools && probe.tools !== tools ) probe.tools.probe.hidden = true;
+	Object.assign( probe, { wanted: ijk, tools } );
+	tools.probe.hidden = ! ijk;
+	if ( ! ijk ) return;
+	tools.probe.textContent = `${place( ijk )} · …`;
+	askProbe();
+}
+
+function place( [ i, j, k ] ) {
+	return `i ${i + 1}, j ${j + 1}, slice ${k + 1}`;
+}
+
+async function askProbe() {
+	if ( probe.busy || ! probe.wanted ) return;
+	const ijk = probe.wanted;
+	probe.busy = true;
+	try {
+		const v = await api.voxel( volumeId, ijk );
+		if ( probe.wanted === ijk ) {
+			const value = Number.isInteger( v.value ) ? v.value : Number( v.value.toPrecision( 5 ) );
+			const label = v.label ? ` · ${v.name || `label ${v.label}`}` : '';
+			probe.tools.probe.textContent = `${place( ijk )} · ${value} ${v.units || limits.units}${label}`;
+		}
+	} catch ( err ) {
+		if ( probe.wanted === ijk ) probe.tools.probe.textContent = `${place( ijk )} · ${err.message}`;
+	} finally {
+		probe.busy = false;
+	}
+	if ( probe.wanted !== ijk ) askProbe();
 }
 
 // The slice fields as typed, refused as the server would (never swapped nor clamped);
@@ -434,7 +512,10 @@ async function main() {
 		setupSmoothing( volume );
 		showPrivacy( $( 'privacy' ), volume );
 		showNotes( $( 'volume-notes' ), volume );
-		labelMap = new LabelMapPanel( $( 'labelmap' ), volume, showError );
+		labelMap = new LabelMapPanel( $( 'labelmap' ), volume, showError, ( map ) => {
+			state.labels = map;
+			refreshSlices( 0 );
+		} );
 		$( 'generate' ).addEventListener( 'click', () => generate( volume ) );
 		document.body.dataset.ready = '1';
 		loadModels();
