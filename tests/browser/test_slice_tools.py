@@ -162,3 +162,28 @@ def test_ctrl_wheel_zooms_about_the_pointer_and_right_drag_sets_window_level(
     assert float(page.input_value("#window")) > window
     assert page.input_value("#wl-preset") == ""  # custom now
     assert re.search(r"window=([\d.]+)", page.get_attribute(f"{AXIAL} img", "src") or "")
+
+
+def test_a_tap_on_a_phone_reads_the_voxel_and_moves_the_views(
+    browser: Any, server: Any, scan: dict[str, Any], logged_in: Any, artifacts: Path
+) -> None:
+    """A finger has no hover: the tap's readout stays after it lifts (390x844, touch)."""
+    context = browser.new_context(
+        viewport={"width": 390, "height": 844}, has_touch=True, is_mobile=True,
+        base_url=server.url,
+    )  # fmt: skip
+    logged_in(context)
+    page = context.new_page()
+    try:
+        open_page(page, scan)
+        box = page.locator(f"{AXIAL} .frame").bounding_box()
+        middle = {"x": box["width"] * 20.5 / N, "y": box["height"] * 20.5 / N}  # a voxel's centre
+        page.tap(f"{AXIAL} .frame", position=middle)
+        text = probe_text(page)
+        page.screenshot(path=artifacts / "slices-phone-tap.png")
+        i, j, k = N - 1 - 20, N - 1 - 20, N // 2
+        assert f"i {i + 1}, j {j + 1}, slice {k + 1}" in text
+        assert f"{int(ramp()[i, j, k])} HU" in text
+        assert page.inner_text(".view[data-axis=sagittal] .index").startswith(f"{i + 1} /")
+    finally:
+        context.close()

@@ -35,7 +35,8 @@ export class SliceTools {
 		stage.addEventListener( 'pointermove', ( e ) => this.move( e ) );
 		stage.addEventListener( 'pointerup', ( e ) => this.up( e ) );
 		stage.addEventListener( 'pointercancel', ( e ) => this.up( e ) );
-		stage.addEventListener( 'pointerleave', () => this.drag || this.onHover( null, this ) );
+		// a finger leaves as it lifts: the readout of its tap stays
+		stage.addEventListener( 'pointerleave', ( e ) => this.drag || e.pointerType === 'touch' || this.onHover( null, this ) );
 		stage.addEventListener( 'contextmenu', ( e ) => e.preventDefault() ); // right-drag is window/level
 		stage.addEventListener( 'dblclick', () => this.zoomTo( 1 ) );
 		stage.addEventListener( 'wheel', ( e ) => {
