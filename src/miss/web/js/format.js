@@ -61,9 +61,16 @@ export function formatMm( v, digits = 3 ) {
 	return v == null || ! Number.isFinite( v ) ? '–' : `${v.toFixed( digits )} mm`;
 }
 
+// What kind of scan, as a person names it: the modality its header gives (CT, MR ...),
+// else its file format (NIfTI, NRRD and MetaImage carry no modality).
+const FORMAT_NAMES = { dicom: 'DICOM', nifti: 'NIfTI', nrrd: 'NRRD', metaimage: 'MetaImage' };
+export function modalityLabel( v ) {
+	return v.modality || FORMAT_NAMES[ v.source_format ] || 'Scan';
+}
+
 export function describeVolume( v ) {
 	const dims = ( v.dims || [] ).join( ' × ' );
-	return `${v.modality || 'volume'} · ${dims} voxels · ${spacingMm( v ).join( ' × ' )} mm`;
+	return `${modalityLabel( v )} · ${dims} voxels · ${spacingMm( v ).join( ' × ' )} mm`;
 }
 
 // mm between voxels as MISS used them (x, y, z), rounded to µm: z is the distance between

@@ -1,9 +1,11 @@
-// Library page: the list of volumes as cards, upload by picker or drag and drop, and
-// (for an account that may use one) the From PACS tab.
+// Library page: the links colleagues shared with you, the list of volumes as cards
+// (newest first, searchable), upload by picker or drag and drop, and (for an account
+// that may use one) the From PACS tab.
 
 import { showSession } from '../session.js';
 import { api, urls } from '../api.js';
-import { describeVolume, el } from '../format.js';
+import { describeVolume, el, modalityLabel } from '../format.js';
+import { keepOnly, rememberedLink } from '../shared-links.js';
 import { droppedFiles, groupUploads, uploadLabel, uploadVolume } from '../upload.js';
 import { setupPacs } from '../pacs-panel.js';
 
@@ -28,12 +30,12 @@ function volumeCard( volume ) {
 		try {
 			await api.deleteVolume( volume.id );
 			card.remove();
-			$( 'empty' ).hidden = $( 'volumes' ).children.length > 0;
+			applySearch();
 		} catch ( err ) {
 			showError( $( 'list-error' ), err );
 		}
 	};
-	const card = el( 'article.card.volume-card', { dataset: { id: volume.id } },
+	const card = el( 'article.card.volume-card', { dataset: { id: volume.id, search: searchText( volume ) } },
 		el( 'a.thumb', { href, 'aria-label': `Open ${volume.name}` },
 			el( 'img', { src: urls.thumbnail( volume.id ), alt: '', loading: 'lazy' } ) ),
 		el( 'div.body',
@@ -46,16 +48,60 @@ function volumeCard( volume ) {
 	return card;
 }
 
+// What the search box matches: the name, the kind of scan and its series' descriptions.
+function searchText( volume ) {
+	const descriptions = ( volume.series || [] ).map( ( s ) => s.description || '' );
+	return [ volume.name, modalityLabel( volume ), volume.modality, ...descriptions ].join( ' ' ).toLowerCase();
+}
+
+// Show the cards whose text holds every word typed, and say how many: "3 of 12".
+function applySearch() {
+	const words = $( 'volume-search' ).value.toLowerCase().split( /\s+/ ).filter( Boolean );
+	const cards = [ ...$( 'volumes' ).children ];
+	let shown = 0;
+	for ( const card of cards ) {
+		card.hidden = ! words.every( ( w ) => card.dataset.search.includes( w ) );
+		if ( ! card.hidden ) shown ++;
+	}
+	const n = cards.length;
+	$( 'volume-count' ).textContent = words.length ? `${shown} of ${n}` : `${n} volume${n === 1 ? '' : 's'}`;
+	$( 'empty' ).hidden = n > 0;
+	$( 'no-match' ).hidden = n === 0 || shown > 0;
+	$( 'no-match' ).textContent = `No volume matches “${$( 'volume-search' ).value.trim()}”.`;
+}
+
+function sharedItem( entry ) {
+	const path = rememberedLink( entry.id );
+	const opened = new Date( entry.opened ).toLocaleString( [], { dateStyle: 'medium', timeStyle: 'short' } );
+	const name = path ? el( 'a.name', { href: path }, entry.name ) : el( 'span.name', entry.name );
+	return el( 'li', { dataset: { id: entry.id } }, name,
+		el( 'span.facts', `shared by ${entry.shared_by} · ${entry.allows.join( ', ' )} · opened ${opened}` ),
+		path ? null : el( 'span.facts', 'open it from the message you were sent: this browser did not keep the link' ) );
+}
+
+async function refreshShared() {
+	try {
+		const entries = await api.sharedWithMe();
+		keepOnly( entries.map( ( e ) => e.id ) );
+		$( 'shared-list' ).replaceChildren( ...entries.map( sharedItem ) );
+		$( 'shared-empty' ).hidden = entries.length > 0;
+		$( 'shared-section' ).hidden = false;
+	} catch ( err ) {
+		showError( $( 'list-error' ), err );
+	}
+}
+
 async function refresh() {
 	try {
-		const volumes = await api.volumes();
+		const volumes = await api.volumes(); // newest first, as the server orders them
 		$( 'volumes' ).replaceChildren( ...volumes.map( volumeCard ) );
-		$( 'empty' ).hidden = volumes.length > 0;
+		applySearch();
 		showError( $( 'list-error' ), null );
 	} catch ( err ) {
 		showError( $( 'list-error' ), err );
 	}
-	document.body.dataset.ready = '1'; // the list is drawn (tests wait for this)
+	await refreshShared();
+	document.body.dataset.ready = '1'; // the lists are drawn (tests wait for this)
 }
 
 // An upload's failure: the server's plain sentence, and what the reader found
@@ -120,7 +166,7 @@ async function uploadOne( files, label ) {
 			$( 'upload-text' ).textContent = 'done';
 			bar.dataset.done = '1';
 			$( 'volumes' ).prepend( volumeCard( volume ) );
-			$( 'empty' ).hidden = true;
+			applySearch();
 			return;
 		} catch ( err ) {
 			const series = err?.status === 409 && err.body?.series;
@@ -189,7 +235,7 @@ async function addVolume( id ) {
 		const volume = await api.volume( id );
 		$( 'volumes' ).querySelector( `[data-id="${CSS.escape( id )}"]` )?.remove();
 		$( 'volumes' ).prepend( volumeCard( volume ) );
-		$( 'empty' ).hidden = true;
+		applySearch();
 	} catch ( err ) {
 		showError( $( 'list-error' ), err );
 	}
@@ -197,4 +243,5 @@ async function addVolume( id ) {
 
 showSession().then( ( me ) => setupPacs( me, { onImported: addVolume } ) );
 setupUpload();
+$( 'volume-search' ).addEventListener( 'input', applySearch );
 refresh();
