@@ -47,7 +47,7 @@ def violations(page: Any, name: str, artifacts: Path) -> list[str]:
 def model_and_link(server: Any) -> tuple[str, str, str]:
     """(volume id, a finished two-part model of the demo head, a link to it that allows
     consulting and downloads)."""
-    demo = server.get("/api/volumes")[0]["id"]
+    demo = server.get("/api/volumes")[-1]["id"]  # the demo: the oldest, listed last
     parts = [{"level": 300, "name": "bone"}, {"level": -500, "name": "skin"}]
     body = {"volume": demo, "parts": parts, "sample_rate": 4, "decimate": "none"}
     model = server.wait_model(server.post("/api/models", body)["id"])

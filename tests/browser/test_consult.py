@@ -23,7 +23,7 @@ CONNECTED = "() => window.__miss && window.__miss.room && window.__miss.room.con
 @pytest.fixture(scope="module")
 def model_id(server: Any) -> str:
     """A small finished model of the demo head (the administrator's)."""
-    demo = server.get("/api/volumes")[0]["id"]
+    demo = server.get("/api/volumes")[-1]["id"]  # the demo: the oldest, listed last
     job = server.post(
         "/api/models", {"volume": demo, "level": 300, "sample_rate": 4, "decimate": "none"}
     )
@@ -279,7 +279,7 @@ def test_what_shows_is_shared_kept_and_picked_through(
     """Issue 42: the owner hides a part and clips; a guest who joins sees the same, and so
     does the owner after a reload. A pin clicked where the 35 %-opaque skin lies over the
     bone lands on the bone (as when the skin is hidden) and selects nothing."""
-    demo = server.get("/api/volumes")[0]["id"]
+    demo = server.get("/api/volumes")[-1]["id"]  # the demo: the oldest, listed last
     job = server.post(
         "/api/models",
         {"volume": demo, "levels": [300, -500], "sample_rate": 4, "decimate": "none"},

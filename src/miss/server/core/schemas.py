@@ -239,6 +239,24 @@ class ModelOut(BaseModel):
     )
 
 
+class SharedWithMeOut(BaseModel):
+    """A share link someone else made that you opened while signed in, still valid.
+    Its token is not kept, so no URL: the browser that opened it remembers it."""
+
+    id: str = Field(description="the share link's id")
+    kind: str = Field(description='"model": one model; "volume": a volume\'s models')
+    name: str = Field(description="the model's name (else its volume's)")
+    volume_name: str
+    modality: str = Field(description='the scan\'s modality, "" when the file does not say')
+    shared_by: str = Field(description="user name of who made the link")
+    message: str = Field(description="what they wrote for the link's holders")
+    opened: datetime = Field(description="when you last opened it")
+    expires: datetime
+    allows: list[str] = Field(
+        description='"view", then any of "annotate", "download", "scan" (the voxels in 3-D)'
+    )
+
+
 @overload
 def _utc(value: datetime) -> datetime: ...
 @overload

@@ -20,9 +20,10 @@ from starlette.concurrency import run_in_threadpool
 from miss import __version__
 from miss.errors import BadParameter
 from miss.export import WRITERS
-from miss.server import audit, shares
+from miss.server import audit, openings, shares
 from miss.server.accounts import User
 from miss.server.core import assets
+from miss.server.core.auth import page_user
 from miss.server.core.deps import (
     ModelFiles,
     ModelFilesDep,
@@ -33,7 +34,13 @@ from miss.server.core.deps import (
     visible_volume,
 )
 from miss.server.core.errors import Forbidden, Gone, MissError, NotFound, NotReady, status_of
-from miss.server.core.schemas import JSONRoute, lod_url, params_of, slice_gap
+from miss.server.core.schemas import (
+    JSONRoute,
+    SharedWithMeOut,
+    lod_url,
+    params_of,
+    slice_gap,
+)
 from miss.server.routes.models import lod_response, model_file
 from miss.server.routes.pages import WEB
 from miss.server.storage.db import DONE, FAILED, ModelRow, ShareRow, VolumeRow
@@ -115,6 +122,13 @@ def list_shares(
     return [shares.as_dict(r, store) for r in shares.list_for(store, user, model, volume)]
 
 
+@router.get("/api/shared-with-me", response_model=list[SharedWithMeOut])
+def shared_with_me(store: StoreDep, user: UserDep) -> list[dict[str, Any]]:
+    """Links others made that you opened while signed in and that still open, the latest
+    opened first; who made each by name only."""
+    return openings.opened_by(store, user)
+
+
 def _own_share(store: Store, user: User, share_id: str) -> ShareRow:
     row = shares.get(store, share_id)
     if not (user.is_admin or row.owner_id == user.id):
@@ -156,6 +170,7 @@ def share_page(token: str, store: StoreDep, request: Request) -> Response:
         return gone_page(exc)
     target = share.model_id or share.volume_id or ""
     audit.record(store, "view", f"link:{share.id}", target, audit.address(request))
+    openings.record(store, share, page_user(request, store))
     return assets.page("model.html", headers=PRIVATE)
 
 
@@ -203,9 +218,11 @@ def model_entry(model: ModelRow, volume: VolumeRow, share: ShareRow, token: str)
 
 
 @router.get("/s/{token}/info")
-def share_info(token: str, store: StoreDep) -> JSONResponse:
-    """Who shared what until when, the volume (de-identified) and its model(s)."""
+def share_info(token: str, store: StoreDep, request: Request) -> JSONResponse:
+    """Who shared what until when, the volume (de-identified) and its model(s). A
+    signed-in holder's opening is noted (their "Shared with me")."""
     share = shares.resolve(store, token)
+    openings.record(store, share, page_user(request, store))
     found = shares.models(store, share)
     volume = store.get_volume(share.volume_id or found[0].volume_id)
     info = volume.info

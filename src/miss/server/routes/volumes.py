@@ -184,8 +184,8 @@ def owner_name(store: Store, row: VolumeRow, cache: dict[str, str] | None = None
 
 @router.get("", response_model=list[VolumeOut])
 def list_volumes(store: StoreDep, user: UserDep) -> list[VolumeOut]:
-    """Your volumes (an administrator's list holds everyone's)."""
-    rows = store.list_volumes(None if user.is_admin else user.id)
+    """Your volumes (an administrator's list holds everyone's), the newest first."""
+    rows = store.list_volumes(None if user.is_admin else user.id, newest_first=True)
     names: dict[str, str] = {}
     return [volume_out(row, owner_name(store, row, names)) for row in rows]
 

@@ -1,6 +1,6 @@
 """Database tables (SQLAlchemy 2): volumes and models (the jobs that make them), users and
-their sessions, the owner-only identity records, share links, the audit log and the
-consultation rooms' events.
+their sessions, the owner-only identity records, share links and who opened them, the
+audit log and the consultation rooms' events.
 
 Voxel arrays and model files live on disk under the data folder; the database holds
 what lists, looks up and survives a restart: names, sizes, job state and statistics.
@@ -158,6 +158,21 @@ class ShareRow(Base):
     created_at: Mapped[datetime] = mapped_column(default=utcnow)
     expires_at: Mapped[datetime] = mapped_column()
     revoked_at: Mapped[datetime | None] = mapped_column(default=None)
+
+
+class ShareOpeningRow(Base):
+    """A signed-in user (not its owner) opened a share link: when last. The library's
+    "Shared with me" lists these; a guest without an account leaves none."""
+
+    __tablename__ = "share_openings"
+
+    share_id: Mapped[str] = mapped_column(
+        ForeignKey("shares.id", ondelete="CASCADE"), primary_key=True
+    )
+    user_id: Mapped[str] = mapped_column(
+        ForeignKey("users.id", ondelete="CASCADE"), primary_key=True, index=True
+    )
+    opened_at: Mapped[datetime] = mapped_column(default=utcnow)
 
 
 class AuditRow(Base):

@@ -306,9 +306,15 @@ class Store:
 
     # -- volumes --------------------------------------------------------------------------
 
-    def list_volumes(self, owner_id: str | None = None) -> list[VolumeRow]:
-        """Every volume, or only those of ``owner_id``."""
-        query = select(VolumeRow).order_by(VolumeRow.created_at)
+    def list_volumes(
+        self, owner_id: str | None = None, newest_first: bool = False
+    ) -> list[VolumeRow]:
+        """Every volume, or only those of ``owner_id``; oldest first, or ``newest_first``
+        (the id breaks ties between volumes stored within the clock's resolution)."""
+        if newest_first:
+            query = select(VolumeRow).order_by(VolumeRow.created_at.desc(), VolumeRow.id.desc())
+        else:
+            query = select(VolumeRow).order_by(VolumeRow.created_at, VolumeRow.id)
         if owner_id is not None:
             query = query.where(VolumeRow.owner_id == owner_id)
         with self.session() as s:

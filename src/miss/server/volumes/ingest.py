@@ -407,14 +407,21 @@ def display_name(name: str, volume: Volume, identity: list[str]) -> str:
     return volume_name(volume)
 
 
+#: How a person names a file format, for a scan whose header gives no modality (the
+#: library shows the same words: js/format.js ``kindOf``).
+FORMAT_NAMES = {"dicom": "DICOM", "nifti": "NIfTI", "nrrd": "NRRD", "metaimage": "MetaImage"}
+
+
 def volume_name(volume: Volume) -> str:
     """A name from what the de-identified volume says of itself: modality, body part and
     series description ("CT HEAD Axial 5 mm"). A description that had anything cut out
     is left out (what is left reads as a riddle about what was cut); without one, the
-    modality, body part and the upload's time ("CT HEAD volume, uploaded 2026-11-24
-    14:05"), which says when it came, never when the patient was scanned."""
+    modality (else the file's format: "NIfTI"), body part and the upload's time ("CT HEAD
+    volume, uploaded 2026-11-24 14:05"), which says when it came, never when the patient
+    was scanned."""
     meta = volume.meta
     modality = str(meta.get("modality") or "").strip()
+    kind = modality or FORMAT_NAMES.get(str(meta.get("source_format", "")), "Scan")
     body = str(meta.get("body_part") or "").strip()
     description = str(meta.get("series_description") or "").strip()
     body = "" if REMOVED in body else body
@@ -425,7 +432,7 @@ def volume_name(volume: Volume) -> str:
         said = " ".join(p for p in (modality, body, description) if p)
         return " ".join("".join(c for c in said if c.isprintable()).split())[:200] or "Scan"
     when = datetime.now(UTC).strftime("%Y-%m-%d %H:%M")
-    return f"{' '.join(p for p in (modality or 'Scan', body) if p)} volume, uploaded {when}"
+    return f"{' '.join(p for p in (kind, body) if p)} volume, uploaded {when}"
 
 
 def slugify(name: str) -> str:

@@ -99,6 +99,7 @@ export const api = {
 	shares: ( modelId ) => request( 'GET', `/api/shares?model=${enc( modelId )}` ),
 	createShare: ( params ) => request( 'POST', '/api/shares', params ),
 	revokeShare: ( id ) => request( 'DELETE', `/api/shares/${enc( id )}` ),
+	sharedWithMe: () => request( 'GET', '/api/shared-with-me' ),
 	roomSessions: ( modelId ) => request( 'GET', `/api/models/${enc( modelId )}/room/sessions` ),
 	roomEvents: ( modelId, session ) => request( 'GET', `/api/models/${enc( modelId )}/room/events?session=${enc( session )}` ),
 	// The PACS (only for accounts with the pacs permission; 404 for the others).

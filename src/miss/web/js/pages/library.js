@@ -1,9 +1,11 @@
-// Library page: the list of volumes as cards, upload by picker or drag and drop, and
-// (for an account that may use one) the From PACS tab.
+// Library page: the links colleagues shared with you, the list of volumes as cards
+// (newest first, searchable), upload by picker or drag and drop, and (for an account
+// that may use one) the From PACS tab.
 
 import { showSession } from '../session.js';
 import { api, urls } from '../api.js';
 import { describeVolume, el, kindOf } from '../format.js';
+import { keepOnly, rememberedLink } from '../shared-links.js';
 import { droppedFiles, groupUploads, uploadLabel, uploadVolume } from '../upload.js';
 import { setupPacs } from '../pacs-panel.js';
 
@@ -49,10 +51,6 @@ function volumeCard( volume ) {
 	return card;
 }
 
-// Newest first, as uploads join the list (the API lists oldest first); the same second
-// ordered by id, so that the order holds from one reload to the next.
-const newestFirst = ( a, b ) => ( a.created < b.created ? 1 : a.created > b.created ? - 1 : a.id < b.id ? 1 : - 1 );
-
 // Shows the cards whose name, kind, owner or series description hold every word typed.
 function filterCards() {
 	const words = $( 'volume-search' ).value.toLowerCase().split( /\s+/ ).filter( Boolean );
@@ -67,9 +65,30 @@ function filterCards() {
 	$( 'no-match' ).hidden = ! ( words.length && cards.length && ! shown );
 }
 
+function sharedItem( entry ) {
+	const path = rememberedLink( entry.id );
+	const opened = new Date( entry.opened ).toLocaleString( [], { dateStyle: 'medium', timeStyle: 'short' } );
+	const name = path ? el( 'a.name', { href: path }, entry.name ) : el( 'span.name', entry.name );
+	return el( 'li', { dataset: { id: entry.id } }, name,
+		el( 'span.facts', `shared by ${entry.shared_by} · ${entry.allows.join( ', ' )} · opened ${opened}` ),
+		path ? null : el( 'span.facts', 'open it from the message you were sent: this browser did not keep the link' ) );
+}
+
+async function refreshShared() {
+	try {
+		const entries = await api.sharedWithMe();
+		keepOnly( entries.map( ( e ) => e.id ) );
+		$( 'shared-list' ).replaceChildren( ...entries.map( sharedItem ) );
+		$( 'shared-empty' ).hidden = entries.length > 0;
+		$( 'shared-section' ).hidden = false;
+	} catch ( err ) {
+		showError( $( 'list-error' ), err );
+	}
+}
+
 async function refresh() {
 	try {
-		const volumes = ( await api.volumes() ).sort( newestFirst );
+		const volumes = await api.volumes(); // newest first, as the server orders them
 		$( 'volumes' ).replaceChildren( ...volumes.map( volumeCard ) );
 		filterCards();
 		$( 'empty' ).hidden = volumes.length > 0;
@@ -77,7 +96,8 @@ async function refresh() {
 	} catch ( err ) {
 		showError( $( 'list-error' ), err );
 	}
-	document.body.dataset.ready = '1'; // the list is drawn (tests wait for this)
+	await refreshShared();
+	document.body.dataset.ready = '1'; // the lists are drawn (tests wait for this)
 }
 
 // An upload's failure: the server's plain sentence, and what the reader found

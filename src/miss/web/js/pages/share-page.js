@@ -13,6 +13,7 @@ import { ModelViewer } from '../viewer/viewer.js';
 import { VolumePanel } from '../viewer/volume-panel.js';
 import { addressViews, linkCamera } from '../viewer/deep-link.js';
 import { LinkedSlices } from '../viewer/linked-slices.js';
+import { rememberLink } from '../shared-links.js';
 
 const $ = ( id ) => document.getElementById( id );
 const token = decodeURIComponent( location.pathname.split( '/' )[ 2 ] || '' );
@@ -100,6 +101,9 @@ export async function start() {
 	try {
 		const data = await info();
 		showShare( data );
+		// a signed-in colleague finds this link again under Shared with me in the library
+		const signedIn = document.cookie.split( '; ' ).some( ( c ) => c.startsWith( 'miss_csrf=' ) );
+		if ( signedIn ) rememberLink( data.share.id, location.pathname );
 		model = pickModel( data.models );
 		if ( ! model || model.status !== 'done' ) throw new Error( 'the shared model is not finished yet; reload this page in a minute.' );
 		document.title = `MISS · Shared model · ${data.share.shared_by}`;
@@ -119,7 +123,6 @@ export async function start() {
 		if ( data.share.can_annotate ) {
 			// a colleague signed in here joins under their own name, not "Guest" (asked only
 			// with a session's cookie: a guest's browser would log a 401)
-			const signedIn = document.cookie.split( '; ' ).some( ( c ) => c.startsWith( 'miss_csrf=' ) );
 			const me = signedIn ? await request( 'GET', '/api/auth/me', undefined, { login: false } ).catch( () => null ) : null;
 			consult = new Consultation( { viewer, modelId: model.id, container: $( 'room' ), share: token, guest: true, structures, volume: volumePanel, signedIn: me?.name } );
 		}
