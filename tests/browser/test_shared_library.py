@@ -93,15 +93,15 @@ def test_newest_first_after_a_reload_search_and_format(
     page.wait_for_function("() => document.body.dataset.ready === '1'")
     assert library(page) == ["Shoulder right", "Pelvis", "Knee left"]
     facts = page.locator("#volumes .volume-card .facts").first.inner_text()
-    assert facts.startswith("NIfTI · 32 × 32 × 32 voxels"), facts
+    assert facts.startswith("MR · NIfTI · 32 × 32 × 32 voxels"), facts
     assert page.inner_text("#volume-count") == "3 volumes"
     page.fill("#volume-search", "pelv")
     assert page.locator("#volumes .volume-card:visible .name").all_inner_texts() == ["Pelvis"]
-    assert page.inner_text("#volume-count") == "1 of 3"
+    assert page.inner_text("#volume-count") == "1 of 3 volumes"
     page.fill("#volume-search", "nifti right")
-    assert page.inner_text("#volume-count") == "1 of 3"
+    assert page.inner_text("#volume-count") == "1 of 3 volumes"
     page.fill("#volume-search", "lung")
-    assert page.inner_text("#volume-count") == "0 of 3"
+    assert page.inner_text("#volume-count") == "0 of 3 volumes"
     assert page.inner_text("#no-match") == "No volume matches “lung”."
     page.fill("#volume-search", "")
     assert page.inner_text("#volume-count") == "3 volumes"

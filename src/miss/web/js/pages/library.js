@@ -63,6 +63,7 @@ function filterCards() {
 	const total = `${cards.length} volume${cards.length === 1 ? '' : 's'}`;
 	$( 'volume-count' ).textContent = words.length ? `${shown} of ${total}` : cards.length ? total : '';
 	$( 'no-match' ).hidden = ! ( words.length && cards.length && ! shown );
+	$( 'no-match' ).textContent = `No volume matches “${$( 'volume-search' ).value.trim()}”.`;
 }
 
 function sharedItem( entry ) {
