@@ -352,3 +352,74 @@ def test_a_link_that_offers_the_scan_opens_the_slices(
         assert guest.get_by_role("slider", name="Sagittal slice").is_visible()
     finally:
         context.close()
+
+
+def test_a_room_follows_the_slices_and_the_crosshair(
+    page: Any, browser: Any, server: Any, box_scan: bytes, artifacts: Path
+) -> None:
+    """Rooms follow the crosshair like the camera: the owner opens the slices and clicks a
+    point on one, and a guest in the room (a link that offers the scan) gets the slices on,
+    the same crosshair and the same slices; a reload gives the owner the view back."""
+    from conftest import LAPTOP
+
+    csrf = next(c["value"] for c in page.context.cookies() if c["name"] == "miss_csrf")
+    file = {"name": "box.nii.gz", "mimeType": "application/gzip", "buffer": box_scan}
+    volume = page.request.post(
+        "/api/volumes", headers={"X-CSRF-Token": csrf}, multipart={"file": file}
+    )
+    assert volume.status == 201, volume.text()
+    # A level of its own: the same parameters are the same model, and its room.
+    job = server.post(
+        "/api/models", {"volume": volume.json()["id"], "level": 310, "decimate": "none"}
+    )
+    assert server.wait_model(job["id"])["status"] == "done"
+    link = server.post(
+        "/api/shares",
+        {"model": job["id"], "expires_in": 3600, "can_view_volume": True, "can_annotate": True},
+    )["url"]
+    connected = (
+        "() => window.__miss.room && window.__miss.room.connected && !!window.__miss.room.you"
+    )
+    page.goto(f"/models/{job['id']}")
+    page.wait_for_function("() => window.__miss.ready === true")
+    page.wait_for_function(connected)
+    context = browser.new_context(viewport=LAPTOP, base_url=server.url)
+    try:
+        guest = context.new_page()
+        guest.goto(link)
+        guest.wait_for_function("() => window.__miss.ready === true")
+        guest.wait_for_function(connected)
+        assert not guest.locator("#slices").is_visible()
+        page.click("#slices-toggle")
+        page.wait_for_function(OUTLINED)
+        guest.wait_for_function(OUTLINED)
+        assert guest.locator("#slices-toggle").get_attribute("aria-pressed") == "true"
+
+        axial = page.evaluate("() => window.__miss.slices.views.axial")
+        target = np.array([[-40.0, -60.0, SPACING[2] * axial["index"]]])
+        x, y = to_canvas(axial, "axial", target)[0]
+        box = page.locator('.slice-view[data-view="axial"] canvas').bounding_box()
+        page.mouse.click(box["x"] + x, box["y"] + y)
+        moved = (
+            "() => window.__miss.slices.views.coronal.index === 40"
+            " && window.__miss.slices.views.sagittal.index === 20"
+        )
+        page.wait_for_function(moved)
+        guest.wait_for_function(moved)
+        mine = page.evaluate("() => window.__miss.slices.point")
+        theirs = guest.evaluate("() => window.__miss.slices.point")
+        np.testing.assert_allclose(theirs, mine, atol=1e-6)
+        assert (
+            guest.locator('.slice-view[data-view="coronal"] .readout').inner_text()
+            == f"coronal 41 / {N}"
+        )
+        guest.screenshot(path=artifacts / "slices-room-guest.png")
+
+        page.goto(f"/models/{job['id']}")  # no ?view= in the address: the room's view
+        page.wait_for_function(OUTLINED)
+        page.wait_for_function(moved)
+        np.testing.assert_allclose(
+            page.evaluate("() => window.__miss.slices.point"), mine, atol=1e-6
+        )
+    finally:
+        context.close()

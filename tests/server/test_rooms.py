@@ -416,6 +416,35 @@ def test_the_volume_view_is_part_of_what_shows(client: TestClient, room: dict) -
         assert late.welcome["display"]["volume"]["preset"] == "Custom"
 
 
+def test_the_linked_slices_and_crosshair_are_part_of_what_shows(
+    client: TestClient, room: dict
+) -> None:
+    """Issue 43: rooms follow the crosshair like the camera: whether the linked slices show
+    and where the crosshair is (LPS mm) reach the others and are kept; bad ones refused."""
+    model = room["model"]
+    parts = [{"visible": True, "opacity": 1}]
+    slices = {"on": True, "point": [12.5, -40, 77]}
+    with (
+        joined(client, url(model), room["alice"]) as alice,
+        joined(client, url(model, room["token"], "Guest")) as guest,
+    ):
+        alice.send_json({"type": "display", "parts": parts, "clip": None, "slices": slices})
+        assert until(guest, "display")["item"]["slices"] == {"on": True, "point": [12.5, -40.0, 77.0]}
+        for bad in (
+            {"on": 1, "point": None},
+            {"point": [0, 0, 0]},
+            {"on": True, "point": [0, 0]},
+            {"on": True, "point": [0, 0, float("nan")]},
+            {"on": True, "point": [0, 0, 1e7]},
+            {"on": True, "point": ["1", 0, 0]},
+            [True, [0, 0, 0]],
+        ):
+            alice.send_json({"type": "display", "parts": parts, "clip": None, "slices": bad})
+            assert until(alice, "error")["code"] == "invalid", bad
+    with joined(client, url(model, room["token"], "Late")) as late:
+        assert late.welcome["display"]["slices"] == {"on": True, "point": [12.5, -40.0, 77.0]}
+
+
 def test_a_guest_renames_without_leaving(client: TestClient, room: dict) -> None:
     """Issue 42: a guest's new name is one ``rename`` event that everyone hears, not a
     leave and a join; an account's name is not the guest's to change."""

@@ -112,8 +112,8 @@ def fraction(value: Any, name: str) -> float:
 
 def display_state(message: dict[str, Any]) -> dict[str, Any]:
     """``parts`` (each part's ``visible`` and ``opacity``, in the model's order),
-    ``clip`` (null, or an ``axis`` and the ``fraction`` of the extent kept) and ``volume``
-    (:func:`volume_view`), checked."""
+    ``clip`` (null, or an ``axis`` and the ``fraction`` of the extent kept), ``volume``
+    (:func:`volume_view`) and ``slices`` (:func:`linked_slices`), checked."""
     parts = message.get("parts")
     if not isinstance(parts, list) or len(parts) > MAX_PARTS:
         raise Invalid("invalid", f"parts must be a list of at most {MAX_PARTS} parts.")
@@ -131,7 +131,23 @@ def display_state(message: dict[str, Any]) -> dict[str, Any]:
                 "invalid", f"clip must be null or {{axis: {'|'.join(CLIP_AXES)}, fraction}}."
             )
         clip = {"axis": clip["axis"], "fraction": fraction(clip.get("fraction"), "clip fraction")}
-    return {"parts": shown, "clip": clip, "volume": volume_view(message.get("volume"))}
+    return {
+        "parts": shown,
+        "clip": clip,
+        "volume": volume_view(message.get("volume")),
+        "slices": linked_slices(message.get("slices")),
+    }
+
+
+def linked_slices(value: Any) -> dict[str, Any] | None:
+    """The linked slices beside the 3-D view (issue 43): null, or ``on`` and the
+    crosshair's ``point`` (patient LPS mm, or null before the scan came), checked."""
+    if value is None:
+        return None
+    if not isinstance(value, dict) or not isinstance(value.get("on"), bool):
+        raise Invalid("invalid", "slices must be null or {on: true|false, point: [x, y, z]}.")
+    at = value.get("point")
+    return {"on": value["on"], "point": None if at is None else point(at, "slices point")}
 
 
 #: The longest name of a volume preset ("CT bone", "MR T1 head", ...) a display may carry.

@@ -124,7 +124,7 @@ export async function start() {
 			// a colleague signed in here joins under their own name, not "Guest" (asked only
 			// with a session's cookie: a guest's browser would log a 401)
 			const me = signedIn ? await request( 'GET', '/api/auth/me', undefined, { login: false } ).catch( () => null ) : null;
-			consult = new Consultation( { viewer, modelId: model.id, container: $( 'room' ), share: token, guest: true, structures, volume: volumePanel, signedIn: me?.name } );
+			consult = new Consultation( { viewer, modelId: model.id, container: $( 'room' ), share: token, guest: true, structures, volume: volumePanel, slices, signedIn: me?.name } );
 		}
 		$( 'room' ).hidden = ! data.share.can_annotate;
 		$( 'view-only' ).hidden = data.share.can_annotate;

@@ -236,7 +236,7 @@ export async function start() {
 		structures.setStats( model.stats );
 		fillDownloads( model.files );
 		Promise.all( [ me, volume ] ).then( ( [ m, v ] ) => offerPacs( m, v ) ).catch( () => {} );
-		consult = new Consultation( { viewer, modelId, container: $( 'room' ), structures, volume: volumePanel } );
+		consult = new Consultation( { viewer, modelId, container: $( 'room' ), structures, volume: volumePanel, slices } );
 		const replay = new Replay( viewer, modelId, $( 'history' ), consult );
 		replay.list().catch( () => {} );
 		await display( new URLSearchParams( location.search ).get( 'mode' ), { drawn } );

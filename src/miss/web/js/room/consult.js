@@ -22,12 +22,16 @@ const CLOSED = {
 export class Consultation {
 	// structures: the page's StructuresPanel, whose parts shown and clipping the room shares.
 	// volume: the page's VolumePanel (null where the scan is not offered), its view shared too.
+	// slices: the page's LinkedSlices (null where the scan is not offered): on or off and the crosshair.
 	// signedIn: the name of a colleague signed in on this server who opened a share link.
-	constructor( { viewer, modelId, container, share = '', guest = false, structures = null, volume = null, signedIn = null } ) {
+	constructor( { viewer, modelId, container, share = '', guest = false, structures = null, volume = null, slices = null, signedIn = null } ) {
 		this.viewer = viewer;
 		this.structures = structures;
 		this.volume = volume;
-		this.addressView = ( new URLSearchParams( location.search ).get( 'view' ) || '' ).split( ',' ).includes( 'volume' );
+		this.slices = slices;
+		const asked = ( new URLSearchParams( location.search ).get( 'view' ) || '' ).split( ',' );
+		this.addressView = asked.includes( 'volume' );
+		this.addressSlices = asked.includes( 'slices' );
 		this.modelId = modelId;
 		this.annotations = new Annotations( viewer );
 		this.follower = new CameraFollower( viewer );
@@ -42,6 +46,12 @@ export class Consultation {
 		if ( volume ) {
 			volume.onChange = () => {
 				this.addressView = false;
+				this.sendDisplay();
+			};
+		}
+		if ( slices ) {
+			slices.onChange = () => {
+				this.addressSlices = false;
 				this.sendDisplay();
 			};
 		}
@@ -61,7 +71,9 @@ export class Consultation {
 
 	sendDisplay() {
 		if ( ! this.setsDisplay() ) return;
-		this.state.display = { ...this.structures.display(), volume: this.volume?.state() ?? this.state.display?.volume ?? null };
+		const was = this.state.display;
+		this.state.display = { ...this.structures.display(), volume: this.volume?.state() ?? was?.volume ?? null,
+			slices: this.slices?.state() ?? was?.slices ?? null };
 		this.room.throttled( 'display', { type: 'display', ...this.state.display }, 150 );
 	}
 
@@ -71,6 +83,7 @@ export class Consultation {
 		if ( ! this.state.display || ! this.viewer.model ) return;
 		this.structures?.applyDisplay( this.state.display );
 		if ( ! this.addressView ) this.volume?.apply( this.state.display.volume ).catch( () => {} );
+		if ( ! this.addressSlices ) this.slices?.apply( this.state.display.slices ).catch( () => {} );
 	}
 
 	sendCamera() {
@@ -240,7 +253,7 @@ export class Consultation {
 		room.on( 'laser', ( m ) => this.annotations.laser( m.from, m.colour, m.point ) );
 		room.on( 'display', ( m ) => {
 			this.state.display = m.item;
-			this.addressView = false;
+			this.addressView = this.addressSlices = false;
 			this.showDisplay();
 		} );
 	}

@@ -179,7 +179,9 @@ export class LinkedSlices {
 		this.root.replaceChildren( ...this.views.map( ( v ) => v.root ) );
 		this.cache = new WeakMap(); // a part's mesh -> its vertices in voxel coordinates
 		this.point = null;
+		this.wanted = null; // a point asked for (a room's) before the voxels came
 		this.pending = false;
+		this.onChange = null; // a person moved the crosshair or turned the slices on or off
 		this.button.addEventListener( 'click', () => this.show( ! this.isOn() ) );
 		this.bindPage();
 		status.slices = { on: false };
@@ -208,7 +210,25 @@ export class LinkedSlices {
 		} );
 	}
 
-	async show( on ) {
+	// What a room shares of the slices: whether they show and the crosshair (LPS mm).
+	state() {
+		if ( ! this.button ) return null;
+		const point = this.point || this.wanted;
+		return { on: this.isOn(), point: point ? [ ...point ] : null };
+	}
+
+	// A room's slices: shown or hidden, the crosshair where the presenter put it.
+	async apply( state ) {
+		if ( ! this.button || ! state ) return;
+		if ( state.point ) {
+			if ( this.volume ) this.setPoint( state.point, false );
+			else this.wanted = [ ...state.point ];
+		}
+		if ( state.on !== this.isOn() ) await this.show( state.on, false );
+	}
+
+	// notify: a person did it (the room hears of it), not a room's message.
+	async show( on, notify = true ) {
 		if ( ! this.button ) return;
 		this.button.setAttribute( 'aria-pressed', String( on ) );
 		this.root.hidden = ! on;
@@ -216,6 +236,7 @@ export class LinkedSlices {
 		setAddressView( 'slices', on );
 		if ( this.marker ) this.marker.visible = on;
 		this.viewer.requestRender();
+		if ( notify ) this.onChange?.();
 		if ( ! on ) {
 			status.slices = { on: false };
 			return;
@@ -239,7 +260,8 @@ export class LinkedSlices {
 		this.frame = frameOf( header.affine );
 		this.voxelMatrix = new THREE.Matrix4().set( ...header.affine.flat() ).invert();
 		for ( const view of this.views ) view.setLayout( layoutOf( this.frame, header.dims, view.name ) );
-		this.point = toLps( this.frame, header.dims.map( ( n ) => ( n - 1 ) / 2 ) ); // the scan's middle
+		this.point = this.wanted || toLps( this.frame, header.dims.map( ( n ) => ( n - 1 ) / 2 ) ); // else the scan's middle
+		this.wanted = null;
 		this.followPoint();
 		status.lpsToScreen = ( lps ) => {
 			const p = this.viewer.toWorld( lps ).project( this.viewer.camera );
@@ -257,12 +279,13 @@ export class LinkedSlices {
 	}
 
 	// The crosshair at a patient LPS mm point: each view goes to the slice through it.
-	setPoint( lps ) {
+	setPoint( lps, notify = true ) {
 		if ( ! this.volume ) return;
 		this.point = [ ...lps ];
 		this.followPoint();
 		this.placeMarker();
 		this.redraw();
+		if ( notify ) this.onChange?.();
 	}
 
 	followPoint() {
