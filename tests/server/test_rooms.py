@@ -429,7 +429,10 @@ def test_the_linked_slices_and_crosshair_are_part_of_what_shows(
         joined(client, url(model, room["token"], "Guest")) as guest,
     ):
         alice.send_json({"type": "display", "parts": parts, "clip": None, "slices": slices})
-        assert until(guest, "display")["item"]["slices"] == {"on": True, "point": [12.5, -40.0, 77.0]}
+        assert until(guest, "display")["item"]["slices"] == {
+            "on": True,
+            "point": [12.5, -40.0, 77.0],
+        }
         for bad in (
             {"on": 1, "point": None},
             {"point": [0, 0, 0]},
