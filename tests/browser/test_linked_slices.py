@@ -69,15 +69,16 @@ def box_model(browser: Any, server: Any, box_scan: bytes) -> dict[str, Any]:
     return {"id": job["id"], "mesh": mesh}
 
 
-def box_surface(page: Any, server: Any, box_scan: bytes) -> dict[str, Any]:
-    """The box scan uploaded through the page's session, and its surface at 300 HU made."""
+def box_surface(page: Any, server: Any, box_scan: bytes, level: int = 300) -> dict[str, Any]:
+    """The box scan uploaded through the page's session, and its surface at ``level`` HU
+    made (a level of its own is a model, and a room, of its own)."""
     csrf = next(c["value"] for c in page.context.cookies() if c["name"] == "miss_csrf")
     file = {"name": "box.nii.gz", "mimeType": "application/gzip", "buffer": box_scan}
     response = page.request.post(
         "/api/volumes", headers={"X-CSRF-Token": csrf}, multipart={"file": file}
     )
     assert response.status == 201, response.text()
-    body = {"volume": response.json()["id"], "level": 300, "decimate": "none"}
+    body = {"volume": response.json()["id"], "level": level, "decimate": "none"}
     job = server.post("/api/models", body)
     assert server.wait_model(job["id"])["status"] == "done"
     return job
@@ -272,9 +273,11 @@ def test_a_click_on_the_surface_moves_all_three(
 
 
 def test_keys_and_wheel_step_slices_and_the_address_keeps_the_view(
-    page: Any, box_model: dict[str, Any]
+    page: Any, server: Any, box_scan: bytes
 ) -> None:
-    page.goto(f"/models/{box_model['id']}")
+    # Its own model: the others' rooms keep the slices their tests left open.
+    job = box_surface(page, server, box_scan, level=290)
+    page.goto(f"/models/{job['id']}")
     page.wait_for_function("() => window.__miss.ready === true")
     assert not page.locator("#slices").is_visible()
     page.click("#slices-toggle")
@@ -298,12 +301,22 @@ def test_keys_and_wheel_step_slices_and_the_address_keeps_the_view(
     page.mouse.wheel(0, 100)
     page.wait_for_function(f"() => window.__miss.slices.views.sagittal.index === {i + 1}")
 
-    page.reload()  # the address opens the slices again
-    page.wait_for_function(OUTLINED)
+    here = page.evaluate("() => window.__miss.slices.point")
+    address = "() => (new URLSearchParams(location.search).get('at') || '').split(',').map(Number)"
+    page.wait_for_function(
+        f"(p) => ({address})().every((x, n) => Math.abs(x - p[n]) <= 0.051)", arg=here
+    )
+
+    page.reload()  # the address opens the slices again, at the same crosshair
+    page.wait_for_function("() => window.__miss.ready && window.__miss.slices?.views")
     assert page.locator("#slices-toggle").get_attribute("aria-pressed") == "true"
+    views = page.evaluate("() => window.__miss.slices.views")
+    assert views["axial"]["index"] == k - 10 and views["sagittal"]["index"] == i + 1
+    np.testing.assert_allclose(page.evaluate("() => window.__miss.slices.point"), here, atol=0.05)
     page.click("#slices-toggle")
     page.wait_for_function("() => !window.__miss.slices.on")
-    assert "view=" not in page.url and not page.locator("#slices").is_visible()
+    assert "view=" not in page.url and "at=" not in page.url
+    assert not page.locator("#slices").is_visible()
 
 
 def test_the_slices_fit_a_phone(
@@ -362,17 +375,7 @@ def test_a_room_follows_the_slices_and_the_crosshair(
     the same crosshair and the same slices; a reload gives the owner the view back."""
     from conftest import LAPTOP
 
-    csrf = next(c["value"] for c in page.context.cookies() if c["name"] == "miss_csrf")
-    file = {"name": "box.nii.gz", "mimeType": "application/gzip", "buffer": box_scan}
-    volume = page.request.post(
-        "/api/volumes", headers={"X-CSRF-Token": csrf}, multipart={"file": file}
-    )
-    assert volume.status == 201, volume.text()
-    # A level of its own: the same parameters are the same model, and its room.
-    job = server.post(
-        "/api/models", {"volume": volume.json()["id"], "level": 310, "decimate": "none"}
-    )
-    assert server.wait_model(job["id"])["status"] == "done"
+    job = box_surface(page, server, box_scan, level=310)  # a room of its own
     link = server.post(
         "/api/shares",
         {"model": job["id"], "expires_in": 3600, "can_view_volume": True, "can_annotate": True},

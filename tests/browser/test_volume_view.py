@@ -341,3 +341,34 @@ def test_the_full_resolution_is_fetched_when_asked(
     middle = page.evaluate("() => window.__miss.voxelToScreen([160, 20, 20])")
     shot = canvas(page, artifacts / "volume-full.png")
     assert np.abs(around(shot, middle) - shot[5, 5]).max() > 60  # the block, on the background
+
+
+def test_the_address_carries_the_preset_and_the_window(
+    page: Any, server: Any, cube_scan: bytes
+) -> None:
+    """A deep link's ?preset= and ?wl=level,window open the scan so; a change is written
+    back, and a reload of the address shows it again."""
+    response = upload_cube(page, cube_scan)
+    assert response.status == 201, response.text()
+    job = server.post("/api/models", {"volume": response.json()["id"], "level": 1450})
+    assert server.wait_model(job["id"])["status"] == "done"
+    page.goto(f"/models/{job['id']}?view=volume&preset=CT%20lung&wl=-400,1300")
+    page.wait_for_function("() => window.__miss.volume && window.__miss.volume.on")
+    shown = page.evaluate("() => window.__miss.volume")
+    assert (shown["preset"], shown["level"], shown["window"]) == ("CT lung", -400, 1300)
+    assert page.locator("#volume-preset").input_value() == "CT lung"
+    assert page.locator("#volume-level").input_value() == "-400"
+
+    page.select_option("#volume-preset", "MIP")
+    page.wait_for_function("() => new URLSearchParams(location.search).get('preset') === 'MIP'")
+    page.fill("#volume-level", "250")
+    page.wait_for_function(
+        "() => (new URLSearchParams(location.search).get('wl') || '').startsWith('250,')"
+    )
+    page.reload()
+    page.wait_for_function("() => window.__miss.volume && window.__miss.volume.on")
+    shown = page.evaluate("() => window.__miss.volume")
+    assert (shown["preset"], shown["level"]) == ("MIP", 250)
+    page.click("#volume-toggle")
+    page.wait_for_function("() => !window.__miss.volume.on")
+    page.wait_for_function("() => !/[?&](preset|wl|view)=/.test(location.search)")

@@ -51,3 +51,28 @@ export function setAddressView( name, on ) {
 	else url.searchParams.delete( 'view' );
 	history.replaceState( history.state, '', url );
 }
+
+// One more part of the view in the address (the scan's preset and window, the slices'
+// crosshair), null to leave it out; written after `delay` ms of quiet (a drag writes once).
+const pending = new Map();
+export function setAddressParam( name, value, delay = 0 ) {
+	clearTimeout( pending.get( name ) );
+	pending.set( name, setTimeout( () => {
+		const url = new URL( location.href );
+		if ( value == null ) url.searchParams.delete( name );
+		else url.searchParams.set( name, value );
+		history.replaceState( history.state, '', url );
+	}, delay ) );
+}
+
+// `count` finite numbers from ?name=a,b,...; null when absent or mangled.
+export function addressNumbers( name, count, search = location.search ) {
+	const raw = new URLSearchParams( search ).get( name );
+	if ( ! raw ) return null;
+	const v = raw.split( ',' ).map( Number );
+	return v.length === count && v.every( Number.isFinite ) ? v : null;
+}
+
+export function addressParam( name, search = location.search ) {
+	return new URLSearchParams( search ).get( name );
+}

@@ -4,12 +4,13 @@
 // visible surface's outline on the slice in its colour, and one crosshair (a patient LPS
 // mm point) for all four views: a click on a slice moves the other two, a click on a
 // surface in 3-D moves all three (and a marker there), the wheel and the arrow keys step
-// through a focused view's slices. ?view=slices in the address opens them.
+// through a focused view's slices. ?view=slices in the address opens them, ?at=x,y,z (LPS
+// mm) puts the crosshair there; the address follows the crosshair.
 
 import * as THREE from 'three';
 import { onClick } from '../format.js';
 import { status } from '../test-hooks.js';
-import { setAddressView } from './deep-link.js';
+import { addressNumbers, setAddressParam, setAddressView } from './deep-link.js';
 import { frameOf, imageToVoxel, layoutOf, outline, slicePixels, toLps, toVoxel, voxelToImage } from './slice-geometry.js';
 
 const $ = ( id ) => document.getElementById( id );
@@ -238,6 +239,7 @@ export class LinkedSlices {
 		this.viewer.requestRender();
 		if ( notify ) this.onChange?.();
 		if ( ! on ) {
+			setAddressParam( 'at', null );
 			status.slices = { on: false };
 			return;
 		}
@@ -260,7 +262,8 @@ export class LinkedSlices {
 		this.frame = frameOf( header.affine );
 		this.voxelMatrix = new THREE.Matrix4().set( ...header.affine.flat() ).invert();
 		for ( const view of this.views ) view.setLayout( layoutOf( this.frame, header.dims, view.name ) );
-		this.point = this.wanted || toLps( this.frame, header.dims.map( ( n ) => ( n - 1 ) / 2 ) ); // else the scan's middle
+		const middle = toLps( this.frame, header.dims.map( ( n ) => ( n - 1 ) / 2 ) );
+		this.point = this.wanted || addressNumbers( 'at', 3 ) || middle; // a room's, a deep link's, the scan's middle
 		this.wanted = null;
 		this.followPoint();
 		status.lpsToScreen = ( lps ) => {
@@ -285,6 +288,7 @@ export class LinkedSlices {
 		this.followPoint();
 		this.placeMarker();
 		this.redraw();
+		setAddressParam( 'at', this.point.map( ( x ) => Number( x.toFixed( 1 ) ) ).join( ',' ), 250 );
 		if ( notify ) this.onChange?.();
 	}
 

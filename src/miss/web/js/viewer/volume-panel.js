@@ -1,11 +1,11 @@
 // The "Volume" section of the model page: a toggle that shows the scan itself in the 3-D
 // view (volume.js, loaded the first time it is asked for), its presets and its window.
-// ?view=volume in the address turns it on as the page opens (a deep link), and the
-// toggle keeps the address in step.
+// ?view=volume in the address turns it on as the page opens (a deep link), ?preset= and
+// ?wl=level,window pick its look; the panel keeps the address in step.
 
 import { status } from '../test-hooks.js';
 import { CUSTOM, pointsAt, TransferEditor } from './tf-editor.js';
-import { setAddressView } from './deep-link.js';
+import { addressNumbers, addressParam, setAddressParam, setAddressView } from './deep-link.js';
 
 const $ = ( id ) => document.getElementById( id );
 
@@ -91,6 +91,8 @@ export class VolumePanel {
 		$( 'volume-controls' ).hidden = ! on;
 		setAddressView( 'volume', on );
 		if ( ! on ) {
+			setAddressParam( 'preset', null );
+			setAddressParam( 'wl', null );
 			if ( this.layer ) this.layer.mesh.visible = false;
 			if ( status.softwareWebGL ) this.viewer.setCoarse( false );
 			status.volume = { ...status.volume, on: false };
@@ -119,6 +121,11 @@ export class VolumePanel {
 		this.layer = new module.VolumeLayer( header, data, this.viewer.lpsToWorld );
 		this.viewer.setVolume( this.layer );
 		performance.mark( 'volume:layer' );
+		// A deep link's look: its preset, then its window (a Custom curve is not in addresses).
+		const preset = addressParam( 'preset' );
+		if ( preset && preset !== CUSTOM && preset in this.layer.presets ) this.layer.setPreset( preset );
+		const wl = addressNumbers( 'wl', 2 );
+		if ( wl && wl[ 1 ] > 0 ) this.layer.setWindow( wl[ 0 ], wl[ 1 ] );
 		this.addHooks();
 		const select = $( 'volume-preset' );
 		select.replaceChildren( ...Object.keys( this.layer.presets ).map( ( name ) => new Option( name, name ) ) );
@@ -212,6 +219,10 @@ export class VolumePanel {
 			on: true, preset: this.layer.preset, level: this.layer.level, window: this.layer.width,
 			dims: this.layer.header.dims, frames: status.volumeFrames, firstAt, drawnAt: performance.now(),
 		};
+		if ( this.isOn() ) {
+			setAddressParam( 'preset', this.layer.preset === CUSTOM ? null : this.layer.preset );
+			setAddressParam( 'wl', `${Math.round( this.layer.level )},${Math.round( this.layer.width )}`, 250 );
+		}
 	}
 
 	// The camera turned about its target by an angle (radians), as a drag does.
