@@ -426,3 +426,51 @@ def test_a_room_follows_the_slices_and_the_crosshair(
         )
     finally:
         context.close()
+
+
+def test_a_share_link_opens_on_the_view_its_owner_sees(
+    page: Any, browser: Any, server: Any, box_scan: bytes
+) -> None:
+    """The share dialog's link carries the camera, the slices and their crosshair when the
+    link offers the scan; without the scan, the camera alone."""
+    from conftest import LAPTOP
+
+    job = box_surface(page, server, box_scan, level=295)
+    page.goto(f"/models/{job['id']}?view=slices")
+    page.wait_for_function(OUTLINED)
+    axial = page.evaluate("() => window.__miss.slices.views.axial")
+    target = np.array([[-40.0, -60.0, SPACING[2] * axial["index"]]])
+    x, y = to_canvas(axial, "axial", target)[0]
+    box = page.locator('.slice-view[data-view="axial"] canvas').bounding_box()
+    page.mouse.click(box["x"] + x, box["y"] + y)
+    page.wait_for_function("() => /[?&]at=/.test(location.search)")
+    here = page.evaluate("() => window.__miss.slices.point")
+
+    def link(scan: bool) -> str:
+        page.click("#share")
+        page.wait_for_selector("#share-dialog[open]")
+        assert page.is_checked("#share-here")
+        page.set_checked("#share-volume", scan)
+        page.evaluate("() => { document.getElementById('share-url').value = '' }")
+        page.click("#share-create")
+        page.wait_for_function("() => document.getElementById('share-url').value.includes('/s/')")
+        url = page.input_value("#share-url")
+        page.click("#share-dialog button:text('Close')")
+        return url
+
+    with_scan, plain = link(True), link(False)
+    assert "view=slices" in with_scan and "at=" in with_scan
+    assert "view=" not in plain and "at=" not in plain
+    context = browser.new_context(viewport=LAPTOP)
+    try:
+        guest = context.new_page()
+        guest.goto(with_scan)
+        guest.wait_for_function(OUTLINED)
+        np.testing.assert_allclose(
+            guest.evaluate("() => window.__miss.slices.point"), here, atol=0.06
+        )
+        guest.goto(plain)
+        guest.wait_for_function("() => window.__miss.ready === true")
+        assert not guest.locator("#slices").is_visible()
+    finally:
+        context.close()

@@ -4,6 +4,7 @@
 
 import { api } from './api.js';
 import { el } from './format.js';
+import { viewParams } from './viewer/deep-link.js';
 
 const EXPIRIES = [ [ 3600, '1 hour' ], [ 86400, '1 day' ], [ 7 * 86400, '7 days' ], [ 30 * 86400, '30 days' ] ];
 
@@ -25,6 +26,7 @@ export class ShareDialog {
 				el( 'label.check', {}, el( 'input#share-annotate', { type: 'checkbox', checked: true } ), ' may join the consultation (pins, chat, measure)' ),
 				el( 'label.check', {}, el( 'input#share-download', { type: 'checkbox' } ), ' may download the model files' ),
 				el( 'label.check', {}, el( 'input#share-volume', { type: 'checkbox' } ), ' may see the scan itself in 3-D (its de-identified voxels)' ),
+				el( 'label.check', {}, el( 'input#share-here', { type: 'checkbox', checked: true } ), ' opens on the view I see now (camera; the scan and slices if allowed)' ),
 				burnedIn ? el( 'label.check', {}, el( 'input#share-burned-ok', { type: 'checkbox' } ), ' I have looked at the slices: no identity shows in the pixels' ) : null,
 				el( 'div.row', {},
 					el( 'button#share-create.primary', { type: 'submit' }, 'Create link' ),
@@ -64,7 +66,11 @@ export class ShareDialog {
 				message: this.$( 'share-message' ).value,
 			} );
 			this.shown = link.id; // the link whose URL the copy field holds
-			this.$( 'share-url' ).value = new URL( link.url, location.origin ).href;
+			const url = new URL( link.url, location.origin );
+			if ( this.$( 'share-here' ).checked ) {
+				for ( const [ name, value ] of viewParams( link.can_view_volume ) ) url.searchParams.set( name, value );
+			}
+			this.$( 'share-url' ).value = url.href;
 			this.$( 'share-result' ).hidden = false;
 			this.$( 'share-url' ).select();
 			await this.refresh();

@@ -76,3 +76,11 @@ export function addressNumbers( name, count, search = location.search ) {
 export function addressParam( name, search = location.search ) {
 	return new URLSearchParams( search ).get( name );
 }
+
+// The view in this page's address that a share link may carry: the camera, and with the
+// scan (a link that offers it) the volume and slices, preset, window and crosshair.
+export function viewParams( withScan, search = location.search ) {
+	const names = withScan ? [ 'cam', 'view', 'preset', 'wl', 'at' ] : [ 'cam' ];
+	const params = new URLSearchParams( search );
+	return names.filter( ( n ) => params.has( n ) ).map( ( n ) => [ n, params.get( n ) ] );
+}
