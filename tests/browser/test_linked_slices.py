@@ -429,7 +429,7 @@ def test_a_room_follows_the_slices_and_the_crosshair(
 
 
 def test_a_share_link_opens_on_the_view_its_owner_sees(
-    page: Any, browser: Any, server: Any, box_scan: bytes
+    page: Any, browser: Any, server: Any, box_scan: bytes, artifacts: Path
 ) -> None:
     """The share dialog's link carries the camera, the slices and their crosshair when the
     link offers the scan; without the scan, the camera alone."""
@@ -455,6 +455,7 @@ def test_a_share_link_opens_on_the_view_its_owner_sees(
         page.click("#share-create")
         page.wait_for_function("() => document.getElementById('share-url').value.includes('/s/')")
         url = page.input_value("#share-url")
+        page.screenshot(path=artifacts / f"slices-share-dialog-{'scan' if scan else 'plain'}.png")
         page.click("#share-dialog button:text('Close')")
         return url
 
