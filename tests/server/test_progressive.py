@@ -27,9 +27,9 @@ from miss.pipeline import PREVIEW, JobResult, run
 from miss.server.core.schemas import model_out
 from miss.server.core.settings import Settings
 from miss.server.jobs import JobQueue
+from miss.server.jobs import follow as followers
 from miss.server.jobs.state import JobState
 from miss.server.jobs.worker import DataFolder
-from miss.server.routes import models as model_routes
 from miss.server.storage import chunked
 from miss.server.storage.store import Store
 from miss.spec import JobSpec
@@ -123,7 +123,7 @@ def test_the_events_tell_a_file_put_in_place_before_the_next_read_of_the_row(
     """Between its reads of the job's row the stream looks at the model's folder (a stat):
     a GLB renamed into place is told at once. The row's reads are a minute apart here, so
     only the folder can tell it in time."""
-    monkeypatch.setattr(model_routes, "EVENT_POLL", 60.0)
+    monkeypatch.setattr(followers, "EVENT_POLL", 60.0)
     store: Store = client.app.state.store
     model_id = running_row(store, demo_id)
     folder = DataFolder(store.model_dir(model_id), JobState(store), model_id)
@@ -145,6 +145,61 @@ def test_the_events_tell_a_file_put_in_place_before_the_next_read_of_the_row(
     assert client.delete(f"/api/models/{model_id}").status_code == 204  # the stream ends
     reader.join(timeout=20)
     assert not reader.is_alive() and events[-1]["status"] == "failed"
+
+
+def test_streams_on_one_job_read_its_row_once_for_all(client: TestClient, demo_id: str) -> None:
+    """Ten event streams on one running job (tabs, a room's guests, a flood) read its row
+    as often as one stream does, not ten times as often; each still hears every change."""
+    from sqlalchemy import event
+
+    store: Store = client.app.state.store
+    model_id = running_row(store, demo_id)
+    folder = DataFolder(store.model_dir(model_id), JobState(store), model_id)
+    reads: list[float] = []
+
+    def seen(_conn: Any, _cursor: Any, statement: str, *_: Any) -> None:
+        if statement.lstrip().upper().startswith("SELECT") and "FROM models" in statement:
+            reads.append(time.monotonic())
+
+    def reads_per_second(streams: int) -> tuple[float, list[list[dict[str, Any]]], list[Any]]:
+        heard: list[list[dict[str, Any]]] = [[] for _ in range(streams)]
+
+        def follow(n: int) -> None:
+            with client.stream("GET", f"/api/models/{model_id}/events") as stream:
+                for line in stream.iter_lines():
+                    if line.startswith("data:"):
+                        heard[n].append(json.loads(line[5:]))
+                        if heard[n][-1]["status"] != "running":
+                            return
+
+        threads = [threading.Thread(target=follow, args=(n,), daemon=True) for n in range(streams)]
+        for t in threads:
+            t.start()
+        _until(lambda: all(heard))
+        reads.clear()
+        time.sleep(1.5)
+        rate = len(reads) / 1.5
+        folder.put("glb", b"glTF model bytes")  # every stream hears it
+        _until(lambda: all(any(e.get("files") for e in h) for h in heard))
+        return rate, heard, threads
+
+    event.listen(store.engine, "before_cursor_execute", seen)
+    try:
+        one, _, threads = reads_per_second(1)
+        assert client.delete(f"/api/models/{model_id}").status_code == 204  # the streams end
+        for t in threads:
+            t.join(timeout=20)
+        model_id = running_row(store, demo_id)
+        folder = DataFolder(store.model_dir(model_id), JobState(store), model_id)
+        ten, heard, threads = reads_per_second(10)
+        assert client.delete(f"/api/models/{model_id}").status_code == 204
+        for t in threads:
+            t.join(timeout=20)
+    finally:
+        event.remove(store.engine, "before_cursor_execute", seen)
+    assert one > 3, one  # the stream does read the row meanwhile (every 0.1 s)
+    assert ten < 2 * one, (one, ten)  # the old streams: about 10x one's
+    assert all(any(list(e.get("files") or []) == ["glb"] for e in h) for h in heard)
 
 
 def _until(condition: Any, timeout: float = 20.0) -> None:

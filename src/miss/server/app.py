@@ -32,6 +32,7 @@ from miss.server.core.ratelimit import (
 )
 from miss.server.core.settings import Settings
 from miss.server.jobs import JobQueue, WorkerProcess
+from miss.server.jobs.follow import Followers
 from miss.server.metrics.registry import Metrics, RequestMetrics
 from miss.server.pacs_exchange import PacsImports, fail_interrupted
 from miss.server.rooms import Hub
@@ -178,6 +179,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:  # noqa: PLR0915 (t
     )
     app.state.job_limit = JobLimit(settings.max_jobs_per_user)
     app.state.open_streams = OpenStreams(settings.sse_per_user)
+    app.state.followers = Followers()
     app.state.upload_slots = UploadSlots(settings.uploads_per_user, settings.uploads_at_once)
     app.add_middleware(RateLimitMiddleware, limits=app.state.api_limits)
     # Added last, so outermost: the rate limiter's 429 and every error get the headers too,

@@ -26,6 +26,7 @@ from miss.server.core.ratelimit import (
 )
 from miss.server.core.settings import Settings
 from miss.server.jobs import JobQueue
+from miss.server.jobs.follow import Followers
 from miss.server.metrics.registry import Metrics
 from miss.server.pacs_exchange import PacsImports
 from miss.server.rooms import Hub
@@ -197,6 +198,15 @@ async def event_stream(request: Request, user: UserDep) -> AsyncIterator[None]:
 
 
 EventStreamDep = Annotated[None, Depends(event_stream)]
+
+
+def model_followers(request: Request) -> Followers:
+    """This process's one look at each followed job (:mod:`miss.server.jobs.follow`)."""
+    followers: Followers = request.app.state.followers
+    return followers
+
+
+FollowersDep = Annotated[Followers, Depends(model_followers)]
 
 
 async def current_admin(user: UserDep) -> User:

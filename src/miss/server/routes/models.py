@@ -5,10 +5,8 @@ from __future__ import annotations
 
 import re
 from collections.abc import AsyncIterator
-from pathlib import Path
 from typing import Annotated, Any
 
-import anyio
 from fastapi import APIRouter, Query, Request, Response
 from fastapi.responses import FileResponse, JSONResponse
 from fastapi.sse import EventSourceResponse, ServerSentEvent
@@ -20,6 +18,7 @@ from miss.export import FORMATS, WRITERS
 from miss.server import audit, quota
 from miss.server.core.deps import (
     EventStreamDep,
+    FollowersDep,
     JobLimitDep,
     ModelDep,
     ModelFiles,
@@ -43,7 +42,7 @@ from miss.server.core.schemas import (
     mime_for,
     model_out,
 )
-from miss.server.jobs import turn
+from miss.server.jobs import follow, turn
 from miss.server.storage import formats
 from miss.server.storage.db import DONE, FAILED, RUNNING, ModelRow, VolumeRow
 from miss.server.storage.store import LOD_DIR, PREVIEW_FILE, Store, remove_outputs
@@ -52,17 +51,6 @@ from miss.spec import JobSpec
 from miss.structures.labelmap import label_counts
 
 router = APIRouter(prefix="/api/models", tags=["models"], route_class=JSONRoute)
-
-#: Seconds between looks at a job's row while streaming its progress (its stage and
-#: progress bar).
-EVENT_POLL = 0.1
-#: Seconds between looks at the model's folder meanwhile (a stat, no database): a file
-#: renamed into place there (the preview, the GLB, the levels of detail) is told this
-#: soon, not up to ``EVENT_POLL`` later; the row is then read every ``FOLDER_POLL`` until
-#: it lists the file (the worker records each file just after renaming it), at most
-#: ``FOLLOW_READS`` times.
-FOLDER_POLL = 0.02
-FOLLOW_READS = 10
 
 
 def check_against_volume(spec: JobSpec, volume: VolumeRow, store: Store) -> None:
@@ -241,6 +229,7 @@ async def model_events(
     model: ModelDep,
     store: StoreDep,
     _stream: EventStreamDep,
+    followers: FollowersDep,
     draws: Annotated[bool, Query(description="the caller draws the model and says so")] = False,
 ) -> AsyncIterator[ServerSentEvent]:
     """Server-Sent Events: the model (as GET /api/models/{id}) each time its status,
@@ -251,59 +240,26 @@ async def model_events(
     most ``MISS_SSE_PER_USER`` streams at once (429 beyond)."""
     volume = await run_in_threadpool(store.get_volume, model.volume_id)
     folder = store.model_dir(model.id)
-    row, last, seen, follow = model, None, _mtime(folder), 0
-    while True:
-        preview = (row.stats or {}).get("preview")
-        lod = (row.stats or {}).get("lod")
-        state = (
-            row.status,
-            row.stage,
-            round(row.progress, 3),
-            str(preview),
-            str(lod),
-            str(row.files),
-        )
-        if state != last:
-            last, follow = state, 0
-            yield ServerSentEvent(data=model_out(row, volume).model_dump(mode="json"))
-        if row.status in (DONE, FAILED):
-            if draws:  # (it may have touched .watched as the job ended)
-                turn.done(folder)
-            return
-        if draws:  # a viewer follows the job: the job waits for its word
-            turn.watching(folder)
-        if follow:  # the folder changed; the row will list what came
-            follow -= 1
-            await anyio.sleep(FOLDER_POLL)
-        else:
-            now = await _folder_change(folder, seen, EVENT_POLL)
-            if now != seen:
-                seen, follow = now, FOLLOW_READS
-        try:
-            row = await run_in_threadpool(store.get_model, model.id)
-        except NotFound:
-            yield ServerSentEvent(data={"id": model.id, "status": FAILED, "error": "model deleted"})
-            return
-
-
-def _mtime(folder: Path) -> int | None:
-    """The folder's modification time, ns (a file created, renamed or removed in it
-    changes it; appending to one does not); None while it does not exist."""
-    try:
-        return folder.stat().st_mtime_ns
-    except OSError:
-        return None
-
-
-async def _folder_change(folder: Path, seen: int | None, timeout: float) -> int | None:
-    """Wait until ``folder``'s modification time is no longer ``seen``, at most ``timeout``
-    seconds; returns it then."""
-    deadline = anyio.current_time() + timeout
-    while True:
-        await anyio.sleep(min(FOLDER_POLL, max(0.0, deadline - anyio.current_time())))
-        now = _mtime(folder)
-        if now != seen or anyio.current_time() >= deadline:
-            return now
+    last = None
+    async with followers.follow(store, model) as watch:  # one look for all its followers
+        while True:
+            version, row = watch.version, watch.row
+            if row is None:
+                yield ServerSentEvent(
+                    data={"id": model.id, "status": FAILED, "error": "model deleted"}
+                )
+                return
+            state = follow.shown_state(row)
+            if state != last:
+                last = state
+                yield ServerSentEvent(data=model_out(row, volume).model_dump(mode="json"))
+            if row.status in (DONE, FAILED):
+                if draws:  # (it may have touched .watched as the job ended)
+                    turn.done(folder)
+                return
+            if draws:  # a viewer follows the job: the job waits for its word
+                turn.watching(folder)
+            await watch.changed(version, follow.EVENT_POLL)
 
 
 @router.post("/{model_id}/shown", status_code=204)
