@@ -30,6 +30,8 @@ process its 25 threads had held her requests behind the GIL. On this 2-core mach
 runs at ``--flood-nice`` (19 by default): its own client's CPU (about a core, parsing
 answers) stands for other machines' and is kept off the server's cores as far as the
 scheduler allows; ``--flood-nice 0`` gives it the same share as the server.
+``ana``'s client is another machine's browser too: one client with its connections kept,
+at ``--client-nice`` (19 by default) once the server and Orthanc run.
 
 Writes ``results/flood.{json,md}``; the table gives each median quiet, flooded, and their
 ratio (the target: within 2x).
@@ -54,7 +56,7 @@ from typing import Any
 import httpx
 import numpy as np
 from common import markdown_table, paper_volume_file, save, write_nifti
-from load import PASSWORD, log_in, start_server, submit, upload
+from load import PASSWORD, log_in, start_server, upload
 
 from miss.server.core.settings import Settings
 from miss.types import Volume
@@ -80,10 +82,10 @@ def small_volume(folder: Path) -> Path:
     return write_nifti(Volume(data, np.eye(4)), folder / "ball.nii")
 
 
-def wait_status(url: str, headers: dict[str, str], path: str) -> dict[str, Any]:
+def wait_status(http: httpx.Client, path: str) -> dict[str, Any]:
     deadline = time.monotonic() + TIMEOUT
     while time.monotonic() < deadline:
-        row = httpx.get(url + path, headers=headers, timeout=TIMEOUT).json()
+        row = http.get(path).json()
         if row["status"] in ("done", "failed"):
             return row
         time.sleep(0.1)
@@ -91,24 +93,32 @@ def wait_status(url: str, headers: dict[str, str], path: str) -> dict[str, Any]:
 
 
 class Ana:
-    """The colleague: her volume, her repeats; each method returns seconds."""
+    """The colleague: her volume, her repeats; each method returns seconds. One client
+    with its connections kept, as her browser has (a new ``httpx`` client a request had
+    cost 18 ms of this machine's CPU each, ten times a second while she waited)."""
 
     def __init__(self, url: str, headers: dict[str, str], volume: dict[str, Any], folder: Path):
         self.url, self.headers, self.volume, self.folder = url, headers, volume, folder
+        self.http = httpx.Client(base_url=url, headers=headers, timeout=TIMEOUT)
         self.level, self.slice = 300.0, 0
 
     def job(self) -> float:
         self.level += 7.0
         start = time.monotonic()
-        model = submit(self.url, self.headers, self.volume["id"], {
-            "level": self.level, "sample_rate": 2, "decimate": "quadric"})  # fmt: skip
-        row = wait_status(self.url, self.headers, f"/api/models/{model}")
+        body = {"volume": self.volume["id"], "level": self.level, "sample_rate": 2,
+                "decimate": "quadric"}  # fmt: skip
+        r = self.http.post("/api/models", json=body)
+        assert r.status_code in (200, 202), r.text
+        row = wait_status(self.http, f"/api/models/{r.json()['id']}")
         assert row["status"] == "done", row
         return time.monotonic() - start
 
     def upload(self) -> float:
+        path = small_volume(self.folder)
         start = time.monotonic()
-        upload(self.url, self.headers, small_volume(self.folder))
+        with open(path, "rb") as f:
+            r = self.http.post("/api/volumes", files={"file": (path.name, f)})
+        assert r.status_code == 201, r.text
         return time.monotonic() - start
 
     def slices(self) -> float:
@@ -116,17 +126,15 @@ class Ana:
         start = time.monotonic()
         for _ in range(10):
             self.slice = (self.slice + 7) % count
-            path = f"/api/volumes/{self.volume['id']}/slices/axial/{self.slice}.png"
-            r = httpx.get(self.url + path, headers=self.headers, timeout=TIMEOUT)
+            r = self.http.get(f"/api/volumes/{self.volume['id']}/slices/axial/{self.slice}.png")
             assert r.status_code == 200, r.text
         return (time.monotonic() - start) / 10
 
     def pacs(self, series: dict[str, str]) -> float:
         start = time.monotonic()
-        r = httpx.post(self.url + "/api/pacs/import", json=series, headers=self.headers,
-                       timeout=TIMEOUT)  # fmt: skip
+        r = self.http.post("/api/pacs/import", json=series)
         assert r.status_code == 202, r.text
-        row = wait_status(self.url, self.headers, f"/api/pacs/imports/{r.json()['id']}")
+        row = wait_status(self.http, f"/api/pacs/imports/{r.json()['id']}")
         assert row["status"] == "done", row
         return time.monotonic() - start
 
@@ -302,11 +310,14 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         who = accounts(url)
         ana = Ana(url, who["ana"], upload(url, who["ana"], paper_volume_file()), folder)
         flood_volume = upload(url, who["flood"], paper_volume_file())["id"]
+        # Her client stands for her browser on another machine, as the flood's does.
+        os.nice(args.client_nice)  # this thread's (Linux): not the server's nor Orthanc's
         quiet = measure(ana, series, args.repeats)
         with flooding(url, who["flood"], flood_volume, series, nice=args.flood_nice) as counts:
             flooded = measure(ana, series, args.repeats)
         return {"quiet": quiet, "flooded": flooded, "flood_answers": counts,
                 "workers": args.workers, "repeats": args.repeats, "flood_nice": args.flood_nice,
+                "client_nice": args.client_nice,
                 "job_cpu_seconds": args.job_cpu_seconds or Settings.job_cpu_seconds}  # fmt: skip
 
 
@@ -319,7 +330,8 @@ def table(result: dict[str, Any]) -> str:
     answers = ", ".join(f"{k}: {v}" for k, v in sorted(result["flood_answers"].items()))
     nice = result.get("flood_nice", 0)
     return (
-        f"{markdown_table(head, rows)}\n\nThe flooding client at nice {nice}; "
+        f"{markdown_table(head, rows)}\n\nThe flooding client at nice {nice}, ana's at nice "
+        f"{result.get('client_nice', 0)}; "
         f"what it was answered: {answers}\n"
     )
 
@@ -337,6 +349,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--flood-nice", type=int, default=19,
         help="the flooding client's nice value (19: it stands for other machines)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--client-nice", type=int, default=19,
+        help="ana's client's nice value once the servers run (19: her browser is elsewhere)",
     )  # fmt: skip
     args = parser.parse_args(argv)
     result = run(args)
