@@ -475,3 +475,44 @@ def test_a_share_link_opens_on_the_view_its_owner_sees(
         assert not guest.locator("#slices").is_visible()
     finally:
         context.close()
+
+
+def test_outlines_stop_at_the_clipping_plane(
+    page: Any, server: Any, box_scan: bytes, artifacts: Path
+) -> None:
+    """What the 3-D view's clipping plane cuts away has no outline on the slices: an axial
+    plane halfway up the model leaves the coronal outline below it only."""
+    job = box_surface(page, server, box_scan, level=305)  # its own room: the clip is kept
+    stl = server.http.get(f"/api/models/{job['id']}/model.stl")
+    mesh = trimesh.load(io.BytesIO(stl.content), file_type="stl", process=False)
+    low, high = mesh.bounds[:, 2]
+    middle = (low + high) / 2  # the plane at fraction 0.5 of the model's axial extent
+    page.goto(f"/models/{job['id']}?view=slices")
+    page.wait_for_function(OUTLINED)
+    page.wait_for_function("() => window.__miss.slices.views.coronal.outlines[0].segments.length")
+
+    def heights() -> np.ndarray:
+        coronal = page.evaluate("() => window.__miss.slices.views.coronal")
+        segments = np.array(coronal["outlines"][0]["segments"], float).reshape(-1, 2, 2)
+        return segments[:, :, 1].ravel()
+
+    coronal = page.evaluate("() => window.__miss.slices.views.coronal")
+    plane_y = to_canvas(coronal, "coronal", np.array([[0.0, 0.0, middle]]))[0][1]
+    assert heights().min() < plane_y - 5  # the whole box's outline, over the plane too
+    page.select_option("#clip-axis", "axial")
+    page.evaluate(
+        """([selector, value]) => {
+            const input = document.querySelector(selector);
+            input.value = String(value);
+            input.dispatchEvent(new Event('input', { bubbles: true }));
+        }""",
+        ["#clip-position", 0.5],
+    )
+    page.wait_for_function(
+        "(y) => window.__miss.slices.views.coronal.outlines[0].segments"
+        ".every((s) => s[1] >= y - 1 && s[3] >= y - 1)",
+        arg=float(plane_y),
+    )
+    kept = heights()
+    assert kept.min() >= plane_y - 1 and kept.max() > plane_y + 5  # the part below stays
+    view_image(page, "coronal", artifacts / "slices-clipped.png")

@@ -84,6 +84,7 @@ export class Consultation {
 		this.structures?.applyDisplay( this.state.display );
 		if ( ! this.addressView ) this.volume?.apply( this.state.display.volume ).catch( () => {} );
 		if ( ! this.addressSlices ) this.slices?.apply( this.state.display.slices ).catch( () => {} );
+		this.slices?.redraw(); // the parts shown and the clipping cut the outlines too
 	}
 
 	sendCamera() {

@@ -11,7 +11,7 @@ import * as THREE from 'three';
 import { onClick } from '../format.js';
 import { status } from '../test-hooks.js';
 import { addressNumbers, setAddressParam, setAddressView } from './deep-link.js';
-import { frameOf, imageToVoxel, layoutOf, outline, slicePixels, toLps, toVoxel, voxelToImage } from './slice-geometry.js';
+import { clipSegments, frameOf, imageToVoxel, layoutOf, outline, slicePixels, toLps, toVoxel, voxelToImage } from './slice-geometry.js';
 
 const $ = ( id ) => document.getElementById( id );
 const NAMES = [ 'axial', 'coronal', 'sagittal' ];
@@ -140,7 +140,10 @@ class SliceView {
 	// A part's outline on this slice in its colour: segments [x0, y0, x1, y1] (CSS px).
 	drawOutline( ctx, part ) {
 		const { voxels, index } = this.panel.voxelsOf( part );
-		const segments = outline( voxels, index, this.layout.s, this.index ).map( ( [ p, q ] ) => [ ...this.toCanvas( p ), ...this.toCanvas( q ) ] );
+		let cut = outline( voxels, index, this.layout.s, this.index );
+		const keep = this.panel.clipInVoxels();
+		if ( keep ) cut = clipSegments( cut, keep ); // what the clipping plane cuts away in 3-D
+		const segments = cut.map( ( [ p, q ] ) => [ ...this.toCanvas( p ), ...this.toCanvas( q ) ] );
 		const colour = `#${part.material.color.getHexString()}`;
 		ctx.strokeStyle = colour;
 		ctx.lineWidth = 2;
@@ -320,6 +323,16 @@ export class LinkedSlices {
 			this.cache.set( part.mesh, found );
 		}
 		return found;
+	}
+
+	// The 3-D view's clipping plane as a signed distance over voxel coordinates (kept
+	// where >= 0), or null while nothing is clipped.
+	clipInVoxels() {
+		if ( ! this.viewer.clipping ) return null;
+		const toWorld = this.viewer.lpsToWorld.clone().multiply( this.voxelMatrix.clone().invert() );
+		const plane = this.viewer.clipPlane.clone().applyMatrix4( toWorld.invert() );
+		const v = new THREE.Vector3();
+		return ( c ) => plane.distanceToPoint( v.set( c[ 0 ], c[ 1 ], c[ 2 ] ) );
 	}
 
 	// The crosshair in 3-D: a small sphere drawn over the surfaces.

@@ -131,3 +131,20 @@ export function outline( voxels, index, axis, at ) {
 	}
 	return segments;
 }
+
+// The parts of `segments` ([[c0, c1], ...], voxel coordinates) on the kept side of a
+// plane: `keep(c)` its signed distance, kept where >= 0 (the 3-D view's clipping plane,
+// in voxel coordinates); a segment that crosses it is cut where it does.
+export function clipSegments( segments, keep ) {
+	const kept = [];
+	for ( const [ p, q ] of segments ) {
+		const [ dp, dq ] = [ keep( p ), keep( q ) ];
+		if ( dp >= 0 && dq >= 0 ) kept.push( [ p, q ] );
+		else if ( dp >= 0 || dq >= 0 ) {
+			const t = dp / ( dp - dq );
+			const cut = [ 0, 1, 2 ].map( ( r ) => p[ r ] + t * ( q[ r ] - p[ r ] ) );
+			kept.push( dp >= 0 ? [ p, cut ] : [ cut, q ] );
+		}
+	}
+	return kept;
+}
