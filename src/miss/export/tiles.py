@@ -26,7 +26,9 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 from collections.abc import Mapping
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -97,19 +99,32 @@ def write_tiles(
     """
     root = plan(scene, tile_triangles)
     normals = [mesh_normals(p.mesh) for p in scene.parts]  # shared: no seams between tiles
-    files: dict[str, bytes] = {}
-    for node in walk(root):
+
+    def encode(node: TileNode) -> bytes:
         parts = [
             Part(p.name, _compact(p.mesh.vertices, n, faces), p.color, p.opacity, p.label)
             for p, faces, n in zip(scene.parts, node.fragment, normals, strict=True)
             if len(faces)
         ]
         tile = Scene(tuple(parts), title=scene.title)
-        files[f"tiles/{node.key}.glb"] = write_scene(
-            tile, title=title, metadata=metadata, compress=compress
-        )
+        return write_scene(tile, title=title, metadata=metadata, compress=compress)
+
+    nodes = walk(root)
+    with ThreadPoolExecutor(_threads(), thread_name_prefix="miss-tiles") as pool:
+        encoded = list(pool.map(encode, nodes))  # meshoptimizer's calls leave the GIL
+    files = {f"tiles/{node.key}.glb": data for node, data in zip(nodes, encoded, strict=True)}
     files[TILESET] = json.dumps(_tileset(root, scene), indent=1).encode()
     return files
+
+
+def _threads() -> int:
+    """Threads for the tiles' simplification and encoding: the cores this process may use,
+    at most four (each tile is the same bytes however many there are)."""
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        cores = os.cpu_count() or 1
+    return max(1, min(4, cores))
 
 
 def plan(scene: Scene, tile_triangles: int = TILE_TRIANGLES) -> TileNode:
@@ -170,11 +185,22 @@ def _octree(scene: Scene, tile_triangles: int) -> TileNode:
     return root
 
 
-def _simplify(node: TileNode, scene: Scene, tile_triangles: int) -> None:
-    """Fill each node's fragment, leaves first: a leaf keeps its faces, a parent
+def _simplify(root: TileNode, scene: Scene, tile_triangles: int) -> None:
+    """Fill each node's fragment, the deepest nodes first, the nodes of one depth on
+    several threads (each needs only its children's): a leaf keeps its faces, a parent
     simplifies its children's fragments together, its border locked."""
-    for child in node.children:
-        _simplify(child, scene, tile_triangles)
+    depths: list[list[TileNode]] = []
+    level = [root]
+    while level:
+        depths.append(level)
+        level = [child for node in level for child in node.children]
+    with ThreadPoolExecutor(_threads(), thread_name_prefix="miss-tiles") as pool:
+        for nodes in reversed(depths):
+            list(pool.map(lambda node: _fill(node, scene, tile_triangles), nodes))
+
+
+def _fill(node: TileNode, scene: Scene, tile_triangles: int) -> None:
+    """One node's fragment and error, its children's filled in already."""
     if not node.children:
         node.fragment = [p.mesh.faces[m] for p, m in zip(scene.parts, node.members, strict=True)]
         return
