@@ -180,6 +180,7 @@ def run(
             if measure:
                 measuring = measuring or pool.submit(built.measured)
         seconds["write"] = time.perf_counter() - start
+        seconds |= _keep_scene(sink, built.scene, title, metadata)  # while it measures
         if measuring is not None:
             report("measure", 0.0)
             built = measuring.result()
@@ -269,6 +270,18 @@ def _viewer_turn(sink: Sink) -> dict[str, float]:
     return {"viewer": waited} if waited > 0 else {}
 
 
+def _keep_scene(
+    sink: Sink | None, scene: Scene, title: str | None, metadata: dict[str, str] | None
+) -> dict[str, float]:
+    """The sink's ``keep_scene`` (if it has one) given the scene; the seconds it took."""
+    keep = getattr(sink, "keep_scene", None)
+    if keep is None:
+        return {}
+    start = time.perf_counter()
+    keep(scene, title, dict(metadata or {}))
+    return {"keep": time.perf_counter() - start}
+
+
 #: A tile holds an eighth of the budget's triangles, within these bounds.
 LOD_TILE_MIN, LOD_TILE_MAX = 4096, 65_536
 
@@ -281,7 +294,9 @@ class Sink(Protocol):
     A sink may also have ``wait_for_viewer() -> seconds``, called once what a viewer
     draws (the levels of detail, else the GLB) is put, before the other files and the
     error: the server's waits while a viewer draws the model on the same machine
-    (:mod:`miss.server.jobs.turn`)."""
+    (:mod:`miss.server.jobs.turn`); and ``keep_scene(scene, title, metadata)``, called
+    once the files are put, while the error is measured: the server keeps the scene, from
+    which it makes the other formats when they are asked for."""
 
     # read-only: the pipeline reads them, and a sink may fix them on its class
     @property

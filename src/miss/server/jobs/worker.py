@@ -56,6 +56,7 @@ from miss.errors import BadParameter, MissError
 from miss.export import FORMATS, WRITERS
 from miss.export.tiles import etag
 from miss.pipeline import PREVIEW, JobResult, execute
+from miss.scene import Scene
 from miss.server.core.settings import Settings
 from miss.server.jobs import turn
 from miss.server.jobs.state import JobState
@@ -339,6 +340,8 @@ class DataFolder:
     #: Seconds from ``started`` (the job's start) until the model's GLB was in place.
     started: float = field(default_factory=time.perf_counter)
     ready_seconds: float | None = None
+    #: Whether the scene for the other formats is stored (:meth:`keep_scene`).
+    kept: bool = False
 
     def count(self, size: int) -> None:
         """Count ``size`` bytes about to be written; raises :class:`WriteLimit` (before
@@ -385,13 +388,20 @@ class DataFolder:
         """The files written, ``{fmt: {bytes, etag, mime}}``, in the job's formats' order."""
         return {fmt: self.files[fmt] for fmt in result.artifacts}
 
-    def keep_scene(self, result: JobResult) -> dict[str, Any]:
+    def keep_scene(self, scene: Scene, title: str | None, metadata: dict[str, str]) -> None:
         """Store the scene the job encoded (:mod:`miss.server.storage.formats`), from which
-        the other formats are made on their first download; every format's ``files``
-        entry in the formats' order, those not made yet without bytes nor ETag."""
-        data = formats.scene_bytes(result.scene, result.title, result.metadata)
+        the other formats are made on their first download (the pipeline calls it while
+        the error is measured)."""
+        data = formats.scene_bytes(scene, title, metadata)
         self.count(len(data))
         write_atomic(self.folder / formats.MESH_FILE, data)
+        self.kept = True
+
+    def listing(self, result: JobResult) -> dict[str, Any]:
+        """Every format's ``files`` entry in the formats' order, those not made yet without
+        bytes nor ETag (the scene kept first, if the pipeline did not)."""
+        if not self.kept:
+            self.keep_scene(result.scene, result.title, result.metadata)
         made = {fmt: meta | {"on_request": False} for fmt, meta in self.files.items()}
         listed = formats.entries(result.scene) | made
         return {fmt: listed[fmt] for fmt in FORMATS if fmt in listed}
@@ -439,9 +449,7 @@ def run_job(store: Store, model_id: str, parent: int) -> None:
     turn.forget(folder.folder)
     result, _ = execute(spec, folder, reporter, export_options=EXPORT_OPTIONS)
     reporter("store", 1.0)
-    kept = time.perf_counter()
-    files = folder.keep_scene(result)
-    result.seconds["keep"] = time.perf_counter() - kept  # the scene for the other formats
+    files = folder.listing(result)  # the scene was kept while the error was measured
     print(  # what an administrator sizes MISS_JOB_CPU_SECONDS and MISS_JOB_WRITE_MB by
         f"job {model_id}: {time.process_time() - cpu:.1f} s of CPU, "
         f"{folder.written / 2**20:.1f} MB of model files written",
