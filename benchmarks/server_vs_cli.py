@@ -75,8 +75,16 @@ def server_run(http: httpx.Client, volume: str, level: float) -> dict[str, Any]:
         time.sleep(POLL)
     stats = row.get("stats") or {}
     http.delete(f"/api/models/{model_id}").raise_for_status()  # the next repeat: the same job
+    from datetime import datetime
+
+    created, started, finished = (
+        datetime.fromisoformat(row[k]) for k in ("created", "started", "finished")
+    )
     return {"drawable": drawable if drawable is not None else now, "free": now,
-            "stages": stats.get("seconds", {}), "triangles": stats.get("triangles")}  # fmt: skip
+            "stages": stats.get("seconds", {}), "triangles": stats.get("triangles"),
+            "queued_s": (started - created).total_seconds(),
+            "ran_s": (finished - started).total_seconds(),
+            "ready_s": stats.get("ready_seconds")}  # fmt: skip
 
 
 def main(argv: list[str] | None = None) -> int:

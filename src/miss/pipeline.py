@@ -166,7 +166,12 @@ def run(
     formats = sorted(spec.outputs.formats, key=lambda f: f != "glb")  # what viewers load first
     # The error is measured on a second thread once the first file is out, while the others
     # are written (the measurement's kernels run without the GIL): a job is done sooner.
-    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="miss-measure") as pool:
+    # The sink keeps the scene on a thread of its own meanwhile (zlib leaves the GIL too).
+    with (
+        ThreadPoolExecutor(max_workers=1, thread_name_prefix="miss-measure") as pool,
+        ThreadPoolExecutor(max_workers=1, thread_name_prefix="miss-keep") as keeper,
+    ):
+        keeping = keeper.submit(_keep_scene, sink, built.scene, title, metadata)
         measuring: Future[SceneBuild] | None = None
         for i, fmt in enumerate(formats):
             report("write", i / len(formats))
@@ -180,7 +185,7 @@ def run(
             if measure:
                 measuring = measuring or pool.submit(built.measured)
         seconds["write"] = time.perf_counter() - start
-        seconds |= _keep_scene(sink, built.scene, title, metadata)  # while it measures
+        seconds |= keeping.result()
         if measuring is not None:
             report("measure", 0.0)
             built = measuring.result()
@@ -294,8 +299,8 @@ class Sink(Protocol):
     A sink may also have ``wait_for_viewer() -> seconds``, called once what a viewer
     draws (the levels of detail, else the GLB) is put, before the other files and the
     error: the server's waits while a viewer draws the model on the same machine
-    (:mod:`miss.server.jobs.turn`); and ``keep_scene(scene, title, metadata)``, called
-    once the files are put, while the error is measured: the server keeps the scene, from
+    (:mod:`miss.server.jobs.turn`); and ``keep_scene(scene, title, metadata)``, called on
+    a thread of its own while the files are written: the server keeps the scene, from
     which it makes the other formats when they are asked for."""
 
     # read-only: the pipeline reads them, and a sink may fix them on its class

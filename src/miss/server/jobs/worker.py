@@ -342,13 +342,16 @@ class DataFolder:
     ready_seconds: float | None = None
     #: Whether the scene for the other formats is stored (:meth:`keep_scene`).
     kept: bool = False
+    #: :meth:`count` is called from the pipeline's writing and keeping threads.
+    counting: threading.Lock = field(default_factory=threading.Lock, repr=False)
 
     def count(self, size: int) -> None:
         """Count ``size`` bytes about to be written; raises :class:`WriteLimit` (before
         they are) when they would take the job over its limit."""
-        if self.write_limit is not None and self.written + size > self.write_limit:
-            raise WriteLimit(over_write_limit(self.write_limit))
-        self.written += size
+        with self.counting:
+            if self.write_limit is not None and self.written + size > self.write_limit:
+                raise WriteLimit(over_write_limit(self.write_limit))
+            self.written += size
 
     def put(self, fmt: str, data: bytes) -> None:
         """Write one format's bytes (or the preview) into the model's folder and record them on
@@ -390,10 +393,11 @@ class DataFolder:
 
     def keep_scene(self, scene: Scene, title: str | None, metadata: dict[str, str]) -> None:
         """Store the scene the job encoded (:mod:`miss.server.storage.formats`), from which
-        the other formats are made on their first download (the pipeline calls it while
-        the error is measured)."""
+        the other formats are made on their first download (the pipeline calls it on a
+        thread of its own while the files are written)."""
         data = formats.scene_bytes(scene, title, metadata)
         self.count(len(data))
+        self.folder.mkdir(parents=True, exist_ok=True)
         write_atomic(self.folder / formats.MESH_FILE, data)
         self.kept = True
 
