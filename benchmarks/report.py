@@ -287,10 +287,31 @@ def bounds_targets(result: dict[str, Any]) -> list[str]:
     return lines
 
 
+def server_vs_cli_targets(result: dict[str, Any]) -> list[str]:
+    """The server's job against ``miss convert`` (issue 41): drawable within 1.1x the
+    command's whole process, the worker free within 1.3x, medians."""
+    lines = []
+    for case in result["cases"]:
+        runs = case["runs"]
+        cli = statistics.median(r["cli"] for r in runs)
+        drawable = statistics.median(r["drawable"] for r in runs) / cli
+        free = statistics.median(r["free"] for r in runs) / cli
+        lines.append(
+            f"- {case['case']}: drawable {drawable:.2f}x `miss convert` (target <= 1.1x): "
+            f"{_yes(drawable <= 1.1)}; worker free {free:.2f}x (target <= 1.3x): {_yes(free <= 1.3)}."
+        )
+    return lines
+
+
 SECTIONS: tuple[tuple[str, str, Callable[[dict[str, Any]], list[str]]], ...] = (
     ("bounds", "Error bounds that hold (`benchmarks/bounds.py`)", bounds_targets),
     ("peers", "Beside the peers (`benchmarks/peers.py`)", peer_targets),
     ("cli", "Commands as a person feels them (`benchmarks/cli.py`)", cli_targets),
+    (
+        "server_vs_cli",
+        "The server's job against the command (`benchmarks/server_vs_cli.py`)",
+        server_vs_cli_targets,
+    ),  # fmt: skip
     ("measure", "The error measurement's share (`benchmarks/measure.py`)", measure_targets),
     ("first_pixels", "Generate to pixels (`benchmarks/first_pixels.py`)", first_pixels_targets),
     ("scaling", "Scaling (`benchmarks/scaling.py`)", scaling_targets),
