@@ -453,7 +453,7 @@ def run_job(store: Store, model_id: str, parent: int) -> None:
     turn.forget(folder.folder)
     result, _ = execute(spec, folder, reporter, export_options=EXPORT_OPTIONS)
     reporter("store", 1.0)
-    files = folder.listing(result)  # the scene was kept while the error was measured
+    files = folder.listing(result)  # the scene was kept while the files were written
     print(  # what an administrator sizes MISS_JOB_CPU_SECONDS and MISS_JOB_WRITE_MB by
         f"job {model_id}: {time.process_time() - cpu:.1f} s of CPU, "
         f"{folder.written / 2**20:.1f} MB of model files written",
