@@ -106,6 +106,35 @@ def laptop_page(browser: Any, server: Server) -> Iterator[Any]:
     assert not errors, "the page logged errors:\n" + "\n".join(errors)
 
 
+#: The page's room is open and knows who this browser is.
+ROOM_CONNECTED = (
+    "() => window.__miss.room && window.__miss.room.connected && !!window.__miss.room.you"
+)
+
+
+@contextlib.contextmanager
+def owner_and_guest(page: Any, browser: Any, server: Server, model_id: str) -> Iterator[Any]:
+    """The owner's ``page`` on the model and a guest's page, in another browser context, on a
+    new link to it that offers the scan and the room; both in the room when it yields the
+    guest's page."""
+    link = server.post(
+        "/api/shares",
+        {"model": model_id, "expires_in": 3600, "can_view_volume": True, "can_annotate": True},
+    )["url"]
+    page.goto(f"/models/{model_id}")
+    page.wait_for_function("() => window.__miss.ready === true")
+    page.wait_for_function(ROOM_CONNECTED)
+    context = browser.new_context(viewport=LAPTOP, base_url=server.url)
+    try:
+        guest = context.new_page()
+        guest.goto(link)
+        guest.wait_for_function("() => window.__miss.ready === true")
+        guest.wait_for_function(ROOM_CONNECTED)
+        yield guest
+    finally:
+        context.close()
+
+
 @pytest.fixture(scope="session")
 def phantom(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """The synthetic CT head as NIfTI, written by the CLI as a user would."""

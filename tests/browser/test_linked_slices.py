@@ -373,25 +373,10 @@ def test_a_room_follows_the_slices_and_the_crosshair(
     """Rooms follow the crosshair like the camera: the owner opens the slices and clicks a
     point on one, and a guest in the room (a link that offers the scan) gets the slices on,
     the same crosshair and the same slices; a reload gives the owner the view back."""
-    from conftest import LAPTOP
+    from conftest import owner_and_guest
 
     job = box_surface(page, server, box_scan, level=310)  # a room of its own
-    link = server.post(
-        "/api/shares",
-        {"model": job["id"], "expires_in": 3600, "can_view_volume": True, "can_annotate": True},
-    )["url"]
-    connected = (
-        "() => window.__miss.room && window.__miss.room.connected && !!window.__miss.room.you"
-    )
-    page.goto(f"/models/{job['id']}")
-    page.wait_for_function("() => window.__miss.ready === true")
-    page.wait_for_function(connected)
-    context = browser.new_context(viewport=LAPTOP, base_url=server.url)
-    try:
-        guest = context.new_page()
-        guest.goto(link)
-        guest.wait_for_function("() => window.__miss.ready === true")
-        guest.wait_for_function(connected)
+    with owner_and_guest(page, browser, server, job["id"]) as guest:
         assert not guest.locator("#slices").is_visible()
         page.click("#slices-toggle")
         page.wait_for_function(OUTLINED)
@@ -424,8 +409,6 @@ def test_a_room_follows_the_slices_and_the_crosshair(
         np.testing.assert_allclose(
             page.evaluate("() => window.__miss.slices.point"), mine, atol=1e-6
         )
-    finally:
-        context.close()
 
 
 def test_a_share_link_opens_on_the_view_its_owner_sees(

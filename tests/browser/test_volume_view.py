@@ -185,28 +185,13 @@ def test_a_room_follows_the_scans_view(
     """Issue 43: rooms follow the volume view like the camera: the owner turns the scan on
     and picks a preset, and a guest in the room (a link that offers the scan) sees the same,
     the cube drawn on their canvas; a reload gives the owner the view back."""
-    from conftest import LAPTOP
+    from conftest import owner_and_guest
 
     response = upload_cube(page, cube_scan)
     volume_id = response.json()["id"]
     job = server.post("/api/models", {"volume": volume_id, "level": 1500, "decimate": "none"})
     assert server.wait_model(job["id"])["status"] == "done"
-    link = server.post(
-        "/api/shares",
-        {"model": job["id"], "expires_in": 3600, "can_view_volume": True, "can_annotate": True},
-    )["url"]
-    connected = (
-        "() => window.__miss.room && window.__miss.room.connected && !!window.__miss.room.you"
-    )
-    page.goto(f"/models/{job['id']}")
-    page.wait_for_function("() => window.__miss.ready === true")
-    page.wait_for_function(connected)
-    context = browser.new_context(viewport=LAPTOP, base_url=server.url)
-    try:
-        guest = context.new_page()
-        guest.goto(link)
-        guest.wait_for_function("() => window.__miss.ready === true")
-        guest.wait_for_function(connected)
+    with owner_and_guest(page, browser, server, job["id"]) as guest:
         before = canvas(guest, artifacts / "volume-room-off.png")
         page.click("#volume-toggle")
         guest.wait_for_function("() => window.__miss.volume && window.__miss.volume.on")
@@ -243,8 +228,6 @@ def test_a_room_follows_the_scans_view(
         assert page.evaluate("() => window.__miss.volume.preset") == "Custom"
         page.click("#volume-toggle")
         guest.wait_for_function("() => !window.__miss.volume.on")
-    finally:
-        context.close()
 
 
 def drag_point(page: Any, index: int, to: tuple[float, float]) -> None:
