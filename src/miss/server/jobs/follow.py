@@ -65,20 +65,23 @@ class Watch:
     was deleted. ``version`` counts the changes followers see."""
 
     def __init__(self, store: Store, row: ModelRow) -> None:
-        self.store = store
+        self.store, self.model_id = store, row.id
         self.row: ModelRow | None = row
         self.version = 0
         self.followers = 0
         self._changed = asyncio.Event()
         self.task: asyncio.Task[None] | None = None
 
-    def _set(self, row: ModelRow | None) -> None:
+    def _set(self, row: ModelRow | None) -> bool:
+        """Take the row as last read; True (the followers woken) when what they show changed."""
         before = self.row
         self.row = row
-        if row is None or before is None or shown_state(row) != shown_state(before):
-            self.version += 1
-            self._changed.set()
-            self._changed = asyncio.Event()
+        if row is not None and before is not None and shown_state(row) == shown_state(before):
+            return False
+        self.version += 1
+        self._changed.set()
+        self._changed = asyncio.Event()
+        return True
 
     async def changed(self, version: int, timeout: float) -> None:
         """Return once ``version`` is no longer the latest, or after ``timeout`` seconds."""
@@ -93,8 +96,8 @@ class Watch:
 
     async def run(self) -> None:
         """Read the row as the streams did, until the job ends or nobody follows."""
-        folder = self.store.model_dir(self.row.id if self.row else "")
-        model_id = self.row.id if self.row else ""
+        model_id = self.model_id
+        folder = self.store.model_dir(model_id)
         seen, follow = _mtime(folder), 0
         while not self.ended():
             if follow:  # the folder changed; the row will list what came
@@ -113,9 +116,8 @@ class Watch:
                 log.exception("following model %s", model_id)
                 await anyio.sleep(EVENT_POLL)
                 continue
-            if self.row is not None and shown_state(row) != shown_state(self.row):
+            if self._set(row):
                 follow = 0  # what came is listed
-            self._set(row)
 
 
 async def _folder_change(folder: Path, seen: int | None, timeout: float) -> int | None:

@@ -8,6 +8,7 @@ import { RoomClient } from './room.js';
 import { RoomPanel } from './room-panel.js';
 import { PointerTools } from './tools.js';
 import { status } from '../test-hooks.js';
+import { addressViews } from '../viewer/deep-link.js';
 
 // What the server's close codes mean, in words for the panel.
 const CLOSED = {
@@ -29,9 +30,9 @@ export class Consultation {
 		this.structures = structures;
 		this.volume = volume;
 		this.slices = slices;
-		const asked = ( new URLSearchParams( location.search ).get( 'view' ) || '' ).split( ',' );
-		this.addressView = asked.includes( 'volume' );
-		this.addressSlices = asked.includes( 'slices' );
+		const asked = addressViews();
+		this.addressView = asked.has( 'volume' );
+		this.addressSlices = asked.has( 'slices' );
 		this.modelId = modelId;
 		this.annotations = new Annotations( viewer );
 		this.follower = new CameraFollower( viewer );

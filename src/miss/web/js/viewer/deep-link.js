@@ -6,10 +6,8 @@
 const DIGITS = 2;
 
 export function cameraFromUrl( search = location.search ) {
-	const raw = new URLSearchParams( search ).get( 'cam' );
-	if ( ! raw ) return null;
-	const v = raw.split( ',' ).map( Number );
-	if ( v.length !== 9 || ! v.every( Number.isFinite ) ) return null; // a mangled link: the default view
+	const v = addressNumbers( 'cam', 9, search );
+	if ( ! v ) return null; // none, or a mangled link: the default view
 	const up = v.slice( 6 );
 	if ( Math.hypot( ...up ) < 1e-6 || Math.hypot( v[ 0 ] - v[ 3 ], v[ 1 ] - v[ 4 ], v[ 2 ] - v[ 5 ] ) < 1e-6 ) return null;
 	return { position: v.slice( 0, 3 ), target: v.slice( 3, 6 ), up };
