@@ -205,7 +205,9 @@ def test_a_job_of_a_killed_process_is_run_by_the_other(tmp_path: Path) -> None:
     url = pg.shared().create(f"procs_{secrets.token_hex(4)}")
     env = {"MISS_DATABASE_URL": url, "MISS_DEMO": "0", "MISS_SPARE_WORKERS": "0"}
     data = tmp_path / "data"
-    noise = np.random.default_rng(0).integers(-1000, 1000, (64, 64, 64)).astype(np.int16)
+    # Noise at level 0 crosses nearly every cell: ~8 M triangles, several seconds of work
+    # even on a quiet machine, longer than B takes to start (64³ once ended first in CI).
+    noise = np.random.default_rng(0).integers(-1000, 1000, (128, 128, 128)).astype(np.int16)
     content = gzip.compress(nib.Nifti1Image(noise, np.eye(4)).to_bytes(), compresslevel=1)
     a = Server(data, tmp_path / "serve-a.log", env=env)
     b = None
