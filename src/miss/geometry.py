@@ -47,6 +47,39 @@ def compact(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.nda
     return vertices[used], remap[faces].astype(np.int32)
 
 
+def locality_order(mesh: Mesh) -> Mesh:
+    """``mesh`` with its triangles in vertex-cache order (meshoptimizer's
+    ``optimize_vertex_cache``) and its vertices in first-use order, unused ones dropped,
+    normals carried along: the same surface, laid out so that neighbours are near in both
+    arrays. A mesh with face labels is returned as it is (the optimiser does not say how
+    it moved the triangles).
+
+    Every file a job writes holds its scene in this order, so GPUs reuse vertices and
+    codecs find small steps (a million triangles' index list encodes to a fifth).
+    """
+    import meshoptimizer  # lazily: the command line's start does not pay for it
+
+    n = mesh.n_vertices
+    if mesh.labels is not None or mesh.n_triangles == 0:
+        return mesh
+    indices = np.ascontiguousarray(mesh.faces, dtype=np.uint32).ravel()
+    optimized = np.zeros_like(indices)
+    meshoptimizer.optimize_vertex_cache(optimized, indices, len(indices), n)
+    remap = np.zeros(n, dtype=np.uint32)
+    used = meshoptimizer.optimize_vertex_fetch_remap(remap, optimized, len(optimized), n)
+    keep = remap != np.iinfo(np.uint32).max  # unreferenced vertices map to ~0
+    to = remap[keep]
+
+    def moved(values: np.ndarray) -> np.ndarray:
+        out = np.zeros((used, *values.shape[1:]), dtype=values.dtype)
+        out[to] = values[keep]
+        return out
+
+    faces = remap[optimized].reshape(-1, 3).astype(mesh.faces.dtype)
+    normals = None if mesh.normals is None else moved(mesh.normals)
+    return Mesh(moved(mesh.vertices), faces, normals, None)
+
+
 def boundary_edge_count(faces: np.ndarray) -> int:
     """Number of edges used by exactly one triangle (0 for a closed surface)."""
     e = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)

@@ -175,7 +175,7 @@ def run(
         measuring: Future[SceneBuild] | None = None
         for i, fmt in enumerate(formats):
             report("write", i / len(formats))
-            options = (export_options or {}).get(fmt, {})
+            options = _writer_options(export_options, fmt)
             artifacts[fmt] = export(built.scene, fmt, title=title, metadata=metadata, **options)
             if sink is not None:
                 sink.put(fmt, artifacts[fmt])
@@ -194,6 +194,13 @@ def run(
     artifacts = {fmt: artifacts[fmt] for fmt in spec.outputs.formats}  # in the asked order
     report_ = combined_report(built.reports)
     return JobResult(built.scene, report_, artifacts, seconds, dict(metadata or {}), title)
+
+
+def _writer_options(export_options: ExportOptions | None, fmt: str) -> dict[str, Any]:
+    """The options ``fmt``'s writer gets: the caller's, and for the GLB that the built
+    scene is in :func:`~miss.geometry.locality_order` already (not reordered again)."""
+    options = dict((export_options or {}).get(fmt, {}))
+    return options | {"ordered": True} if fmt == "glb" else options
 
 
 #: The name a sink gets a job's preview under (a coarse GLB, before the model).
@@ -242,7 +249,7 @@ def preview(
         )
     except EmptySurface:  # thin structures may vanish at a coarse resolution
         return None
-    return export(built.scene, "glb", title=title, compress=True)
+    return export(built.scene, "glb", title=title, compress=True, ordered=True)
 
 
 def _levels_of_detail(

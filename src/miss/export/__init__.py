@@ -93,7 +93,7 @@ WRITERS: dict[str, Writer] = {
                   gzip=True),
     "x3d": Writer("x3d", "model/x3d+xml", False, "X3D 3.3 XML, VRML's successor"),
     "glb": Writer("gltf", "model/gltf-binary", True, "glTF 2.0 binary, for web viewers",
-                  frozenset({"compress"})),
+                  frozenset({"compress", "ordered"})),
     # No extension required: float32 positions and normals, plain indices (the writers'
     # default); the server's .glb is meshopt-compressed, which many tools cannot read.
     "plain.glb": Writer("gltf", "model/gltf-binary", True,
@@ -152,8 +152,9 @@ def export(
     metadata : dict of str to str, optional
         Provenance to embed (parameters, software version, source hash).
     **options
-        Format-specific, e.g. ``compress=True`` for "glb" ("plain.glb" takes none:
-        it is never compressed).
+        Format-specific, e.g. ``compress=True`` for "glb" (and ``ordered=True`` when
+        the scene is already in :func:`miss.geometry.locality_order`, as a job's is;
+        "plain.glb" takes none: it is never compressed).
 
     Returns
     -------

@@ -37,7 +37,7 @@ import meshoptimizer
 import numpy as np
 
 from miss.export.vrml import BONE_RGB, DEFAULT_TITLE
-from miss.geometry import mesh_normals
+from miss.geometry import locality_order, mesh_normals
 from miss.scene import Part, Scene, linear_rgb
 from miss.types import Mesh, column_bounds
 
@@ -74,6 +74,7 @@ def write(
     title: str | None = None,
     metadata: dict[str, str] | None = None,
     compress: bool = False,
+    ordered: bool = False,
 ) -> bytes:
     """Encode ``mesh`` as binary glTF 2.0.
 
@@ -88,6 +89,9 @@ def write(
     compress : bool
         EXT_meshopt_compression with quantised positions and normals (about a
         tenth of the size; needs a loader with the meshopt decoder).
+    ordered : bool
+        The mesh is already in :func:`miss.geometry.locality_order` (a job's scene is):
+        compressed as it is rather than reordered first.
 
     Returns
     -------
@@ -96,7 +100,7 @@ def write(
     """
     normals = mesh_normals(mesh)
     if compress:
-        streams, mesh_matrix = _quantized_streams(mesh.vertices, normals, mesh.faces)
+        streams, mesh_matrix = _quantized_streams(mesh.vertices, normals, mesh.faces, ordered)
         binary, buffers = _compressed_buffers(streams)
     else:
         streams, mesh_matrix = _float_streams(mesh.vertices, normals, mesh.faces), None
@@ -118,7 +122,7 @@ def _float_streams(vertices: np.ndarray, normals: np.ndarray, faces: np.ndarray)
 
 
 def _quantized_streams(
-    vertices: np.ndarray, normals: np.ndarray, faces: np.ndarray
+    vertices: np.ndarray, normals: np.ndarray, faces: np.ndarray, ordered: bool = False
 ) -> tuple[list[_Stream], np.ndarray]:
     """Reordered, quantised streams and the mesh-node matrix that restores millimetres.
 
@@ -126,7 +130,9 @@ def _quantized_streams(
     meshopt attribute codec wants strides divisible by 4; the constant pad costs
     almost nothing compressed). The matrix maps q back: ``v = lo + step * q``.
     """
-    vertices, normals, faces = _locality_order(vertices, normals, faces)
+    if not ordered:  # both codecs predict from the recent past: locality is most of the gain
+        mesh = locality_order(Mesh(np.asarray(vertices, np.float32), faces, normals))
+        vertices, normals, faces = mesh.vertices, mesh.normals, mesh.faces
     lo, hi = (b.astype(np.float64) for b in column_bounds(vertices))
     extent = float((hi - lo).max())
     step = extent / 65535 if extent > 0 else 1.0  # one step for all axes: a uniform scale
@@ -148,28 +154,6 @@ def _quantized_streams(
     matrix = np.diag([step, step, step, 1.0])
     matrix[:3, 3] = lo
     return streams, matrix
-
-
-def _locality_order(
-    vertices: np.ndarray, normals: np.ndarray, faces: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Triangles in vertex-cache order, vertices in first-use order (unused ones dropped).
-
-    Both codecs predict from the recent past, so locality is most of the gain.
-    """
-    indices = np.ascontiguousarray(faces, dtype=np.uint32).ravel()
-    optimized = np.zeros_like(indices)
-    meshoptimizer.optimize_vertex_cache(optimized, indices, len(indices), len(vertices))
-    remap = np.zeros(len(vertices), dtype=np.uint32)
-    used = meshoptimizer.optimize_vertex_fetch_remap(
-        remap, optimized, len(optimized), len(vertices)
-    )
-    keep = remap != np.iinfo(np.uint32).max  # unreferenced vertices map to ~0
-    new_vertices = np.zeros((used, 3), dtype=np.float32)
-    new_normals = np.zeros((used, 3), dtype=np.float32)
-    new_vertices[remap[keep]] = vertices[keep]
-    new_normals[remap[keep]] = normals[keep]
-    return new_vertices, new_normals, remap[optimized].reshape(-1, 3)
 
 
 def octahedral(normals: np.ndarray) -> np.ndarray:
@@ -368,6 +352,7 @@ def write_scene(
     title: str | None = None,
     metadata: dict[str, str] | None = None,
     compress: bool = False,
+    ordered: bool = False,
 ) -> bytes:
     """Encode a :class:`~miss.scene.Scene` as binary glTF 2.0: one mesh and material per part.
 
@@ -375,7 +360,8 @@ def write_scene(
     is the part's colour made linear with its opacity as alpha; a translucent
     part (opacity < 1) uses ``alphaMode: BLEND``. Each part node's ``extras``
     (three.js ``userData``) hold ``label``, ``volume_ml`` and ``area_cm2``. The
-    root node carries ``FRAME`` as for a single mesh; ``compress`` as :func:`write`.
+    root node carries ``FRAME`` as for a single mesh; ``compress`` and ``ordered`` as
+    :func:`write`.
     """
     streams: list[_Stream] = []
     matrices: list[np.ndarray | None] = []
@@ -383,7 +369,7 @@ def write_scene(
         mesh = part.mesh
         normals = mesh_normals(mesh)
         if compress:
-            part_streams, matrix = _quantized_streams(mesh.vertices, normals, mesh.faces)
+            part_streams, matrix = _quantized_streams(mesh.vertices, normals, mesh.faces, ordered)
         else:
             part_streams, matrix = _float_streams(mesh.vertices, normals, mesh.faces), None
         streams += part_streams

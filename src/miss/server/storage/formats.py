@@ -55,8 +55,9 @@ MADE_LOG = "made.log"
 KEPT = ("glb",)
 #: Formats made from the internal form on their first download.
 ON_REQUEST = tuple(fmt for fmt in FORMATS if fmt not in KEPT)
-#: Version of the internal form's layout.
-VERSION = 1
+#: Version of the internal form's layout (2: faces through meshoptimizer's index codec,
+#: normals as their XOR with the computed ones; version 1's files are read too).
+VERSION = 2
 
 
 @dataclass(frozen=True)
@@ -69,24 +70,39 @@ class Stored:
 
 
 def scene_bytes(scene: Scene, title: str | None, metadata: dict[str, str]) -> bytes:
-    """``scene`` as an .npz: ``v<i>`` (N, 3) vertices in mm, ``f<i>`` (F, 3) faces,
-    ``n<i>`` normals and ``l<i>`` face labels where the part has them, in their own dtypes;
-    ``header`` the JSON of everything else (floats round-trip exactly). Normals that are
-    the area-weighted ones of the faces (what the pipeline gives) are not stored but made
-    again on reading, bit for bit: a third less to keep. Deflated at zlib's fastest level:
-    half the bytes for about 0.3 s a million triangles."""
+    """``scene`` as an .npz, every array given back bit for bit in its own dtype.
+
+    Per part ``v<i>`` (N, 3) vertices in mm, ``f<i>`` its faces, ``n<i>`` normals and
+    ``l<i>`` face labels where the part has them; ``header`` the JSON of everything else
+    (floats round-trip exactly). Deflated at zlib's fastest level, and:
+
+    - faces through meshoptimizer's index codec (a job's scene is in vertex-cache order,
+      :func:`miss.geometry.locality_order`: about 1 byte a triangle, a fifth of the list
+      deflated), with ``r<i>``, how far the codec turned each triangle, to turn it back;
+      plain where the codec would not give them back;
+    - normals that are the area-weighted ones of the faces (what the pipeline gives) not
+      at all, made again on reading; float32 ones that differ by a few bits as their XOR
+      with those; others as they are.
+    """
     arrays: dict[str, np.ndarray] = {}
     parts = []
     for i, part in enumerate(scene.parts):
         mesh = part.mesh
-        arrays[f"v{i}"], arrays[f"f{i}"] = mesh.vertices, mesh.faces
-        normals = _normals_kind(mesh)
-        if normals == "stored" and mesh.normals is not None:
-            arrays[f"n{i}"] = mesh.normals
+        arrays[f"v{i}"] = mesh.vertices
+        faces = _encoded_faces(mesh.faces, mesh.n_vertices)
+        if faces is None:
+            arrays[f"f{i}"] = mesh.faces
+        else:
+            arrays[f"f{i}"], arrays[f"r{i}"] = faces
+        normals, stored = _normals(mesh)
+        if stored is not None:
+            arrays[f"n{i}"] = stored
         if mesh.labels is not None:
             arrays[f"l{i}"] = mesh.labels
         parts.append({"name": part.name, "color": list(part.color), "opacity": part.opacity,
-                      "label": part.label, "normals": normals})  # fmt: skip
+                      "label": part.label, "normals": normals,
+                      "faces": "plain" if faces is None else "meshopt",
+                      "faces_dtype": mesh.faces.dtype.str})  # fmt: skip
     header = {"version": VERSION, "title": title, "metadata": metadata, "parts": parts,
               "scene_title": scene.title, "notes": list(scene.notes)}  # fmt: skip
     arrays["header"] = np.frombuffer(json.dumps(header).encode(), dtype=np.uint8)
@@ -98,24 +114,64 @@ def scene_bytes(scene: Scene, title: str | None, metadata: dict[str, str]) -> by
     return buffer.getvalue()
 
 
-def _normals_kind(mesh: Mesh) -> str | None:
-    """None: the mesh has none; "computed": they are its faces' area-weighted normals, made
-    again on reading; "stored": other ones, kept."""
-    if mesh.normals is None:
+#: meshoptimizer's index codec version written (its decoders read every version).
+_INDEX_CODEC = 1
+#: The turns of a triangle: its vertices' order after ``np.roll(face, -turn)``.
+_TURNS = (0, 1, 2)
+
+
+def _encoded_faces(faces: np.ndarray, n_vertices: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """``faces`` through meshoptimizer's index codec and each triangle's turn (uint8) that
+    gives it back from the decoded one; None when that would not be exact (faces not
+    integers in [0, 2^32), or the codec gave a triangle that is no turn of its own)."""
+    import meshoptimizer
+
+    if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0 or faces.dtype.kind not in "iu":
         return None
+    if int(faces.min()) < 0 or int(faces.max()) >= min(n_vertices, 2**32):
+        return None
+    indices = np.ascontiguousarray(faces, dtype=np.uint32).ravel()
+    meshoptimizer.encode_index_version(_INDEX_CODEC)
+    encoded = np.frombuffer(
+        meshoptimizer.encode_index_buffer(indices, len(indices)), dtype=np.uint8
+    )
+    decoded = _decoded_faces(encoded, len(faces))
+    turns = np.full(len(faces), 255, dtype=np.uint8)
+    for turn in reversed(_TURNS):  # the smallest turn that fits wins
+        turns[(np.roll(decoded, -turn, axis=1) == faces).all(axis=1)] = turn
+    return None if (turns == 255).any() else (encoded, turns)
+
+
+def _decoded_faces(encoded: np.ndarray, count: int) -> np.ndarray:
+    import meshoptimizer
+
+    data = meshoptimizer.decode_index_buffer(count * 3, 4, encoded.tobytes())
+    return np.asarray(data).view(np.uint32).reshape(-1, 3)
+
+
+def _normals(mesh: Mesh) -> tuple[str | None, np.ndarray | None]:
+    """How the normals are kept and the array stored for them: (None, None) the mesh has
+    none; ("computed", None) they are its faces' area-weighted normals, made again on
+    reading; ("xor", bits) float32 ones as their bits' XOR with those; ("stored", them)."""
+    if mesh.normals is None:
+        return None, None
     again = vertex_normals(mesh.vertices, mesh.faces)
-    same = again.dtype == mesh.normals.dtype and np.array_equal(again, mesh.normals)
-    return "computed" if same else "stored"
+    if again.dtype != mesh.normals.dtype or again.shape != mesh.normals.shape:
+        return "stored", mesh.normals
+    if np.array_equal(again, mesh.normals):
+        return "computed", None
+    return "xor", again.view(np.uint32) ^ np.ascontiguousarray(mesh.normals).view(np.uint32)
 
 
 def read_scene(path: Path) -> Stored:
-    """The scene, title and provenance :func:`scene_bytes` stored at ``path``."""
+    """The scene, title and provenance :func:`scene_bytes` stored at ``path`` (this
+    layout's and the first's, version 1)."""
     with np.load(path, allow_pickle=False) as stored:
         header = json.loads(stored["header"].tobytes())
         parts = tuple(
             Part(
                 entry["name"],
-                _mesh(stored, i, entry["normals"]),
+                _mesh(stored, i, entry),
                 tuple(entry["color"]),
                 entry["opacity"],
                 entry["label"],
@@ -126,12 +182,25 @@ def read_scene(path: Path) -> Stored:
     return Stored(scene, header["title"], header["metadata"])
 
 
-def _mesh(stored: Any, i: int, normals: str | None) -> Mesh:
-    vertices, faces = stored[f"v{i}"], stored[f"f{i}"]
+def _mesh(stored: Any, i: int, entry: dict[str, Any]) -> Mesh:
+    vertices = stored[f"v{i}"]
+    if entry.get("faces", "plain") == "meshopt":
+        decoded, turns = _decoded_faces(stored[f"f{i}"], len(stored[f"r{i}"])), stored[f"r{i}"]
+        faces = np.empty_like(decoded)
+        for turn in _TURNS:
+            mine = turns == turn
+            faces[mine] = np.roll(decoded[mine], -turn, axis=1)
+        faces = faces.astype(np.dtype(entry["faces_dtype"]))
+    else:
+        faces = stored[f"f{i}"]
     labels = stored[f"l{i}"] if f"l{i}" in stored.files else None
-    if normals == "computed":
-        return Mesh(vertices, faces, vertex_normals(vertices, faces), labels)
-    return Mesh(vertices, faces, stored[f"n{i}"] if normals else None, labels)
+    kind = entry["normals"]
+    if kind in ("computed", "xor"):
+        normals = vertex_normals(vertices, faces)
+        if kind == "xor":
+            normals = (normals.view(np.uint32) ^ stored[f"n{i}"]).view(np.float32)
+        return Mesh(vertices, faces, normals, labels)
+    return Mesh(vertices, faces, stored[f"n{i}"] if kind else None, labels)
 
 
 def entries(scene: Scene) -> dict[str, dict[str, Any]]:
