@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -224,12 +225,30 @@ def test_progress_bar_on_a_terminal_and_nothing_on_a_pipe(demo_file: Path, tmp_p
 
 
 def test_a_path_that_is_not_there_is_said_before_the_job_loads() -> None:
-    """A mistyped path is answered at once: before numpy, VTK or the job's code load."""
-    code = (
-        "import sys; from miss.cli import main; "
-        "rc = main(['convert', '/no/such/scan', '--level', '300', '-o', 'x.glb']); "
-        "print(rc, [m for m in ('numpy', 'vtk', 'miss.pipeline') if m in sys.modules])"
+    """A mistyped path is answered at once: before numpy, VTK or the job's code load (the
+    command loads what its subcommand needs, not what ``import miss`` loads for the API)."""
+    argv = ["convert", "/no/such/scan", "--level", "300", "-o", "x.glb"]
+    proc = subprocess.run(
+        [sys.executable, "-X", "importtime", "-m", "miss", *argv], capture_output=True, text=True
     )
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
-    assert proc.stdout.split("\n")[0] == "2 []"
-    assert proc.stderr.strip() == "miss: /no/such/scan: no such file or folder; check the path."
+    assert proc.returncode == 2
+    lines = proc.stderr.strip().splitlines()
+    loaded = {line.rsplit("|", 1)[1].strip() for line in lines if line.startswith("import time:")}
+    assert not loaded & {"numpy", "vtkmodules", "miss.pipeline"}, sorted(loaded)
+    said = [line for line in lines if not line.startswith("import time:")]
+    assert said == ["miss: /no/such/scan: no such file or folder; check the path."]
+
+
+def test_a_python_program_gets_the_api_loaded_by_import_miss() -> None:
+    """``import miss`` in a program loads what the API's calls use (its first call does not
+    pay for it); the command and the processes it starts (``MISS_LEAN_IMPORT``) do not."""
+    code = "import sys, miss; print(sorted({'numpy', 'vtkmodules', 'miss.surface'} & set(sys.modules)))"
+    program = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True
+    )
+    assert program.stdout.strip() == "['miss.surface', 'numpy', 'vtkmodules']"
+    env = {**os.environ, "MISS_LEAN_IMPORT": "1"}
+    child = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True, env=env
+    )
+    assert child.stdout.strip() == "[]"

@@ -15,14 +15,17 @@ The stable Python API::
 from __future__ import annotations
 
 import importlib
+import os
+import sys
 from typing import TYPE_CHECKING, Any
 
-# Light on purpose: ``decimate`` and ``export`` are small front doors whose native
-# libraries (meshoptimizer, numba, VTK) load on the first call; the rest below load on
-# first use, so ``import miss`` (and every ``miss`` command) starts quickly.
+# ``decimate`` and ``export`` are small front doors whose native libraries load on the
+# first call, the names of ``_LAZY`` on first use: so every ``miss`` command starts quickly
+# (it loads what its subcommand needs). A Python program's ``import miss`` then loads what
+# the API's calls use (``_API_MODULES``), so that its first call does not pay for them.
 from miss.decimate import DecimationReport, decimate
 from miss.errors import BadParameter, EmptySurface, MissError, UnreadableVolume, UnsupportedFormat
-from miss.export import export
+from miss.export import WRITERS, export
 
 if TYPE_CHECKING:
     from miss.io import load_volume
@@ -50,6 +53,36 @@ def __getattr__(name: str) -> Any:
     globals()[name] = value
     return value
 
+
+#: What the API's calls load: the readers, VTK's filters, the simplifiers, the writers
+#: (numba, pydicom, SimpleITK stay on first use: a few calls need them).
+_API_MODULES = (
+    "numpy",
+    "meshoptimizer",
+    "miss.io",
+    "miss.surface",
+    "miss.structures.build",
+    "miss.decimate.quadric",
+    "miss.decimate.schroeder",
+    *(f"miss.export.{writer.module}" for writer in WRITERS.values()),
+)
+#: Set by the ``miss`` command for itself and the processes it starts.
+LEAN_ENV = "MISS_LEAN_IMPORT"
+
+
+def _as_command() -> bool:
+    """Whether this process is the ``miss`` command (its script, ``python -m miss`` or
+    ``-m miss.cli``) or one it started."""
+    if os.environ.get(LEAN_ENV) == "1" or os.path.basename((sys.argv or [""])[0]) == "miss":
+        return True
+    argv = list(getattr(sys, "orig_argv", ()))  # the interpreter's own -m comes first
+    at = argv.index("-m") if "-m" in argv else -1
+    return at >= 0 and argv[at + 1 : at + 2] in (["miss"], ["miss.cli"])
+
+
+if not _as_command():
+    for _module in _API_MODULES:
+        importlib.import_module(_module)
 
 __version__ = "0.1.0"
 
