@@ -70,7 +70,7 @@ _API_MODULES = (
 LEAN_ENV = "MISS_LEAN_IMPORT"
 
 
-def _as_command() -> bool:
+def as_command() -> bool:
     """Whether this process is the ``miss`` command (its script, ``python -m miss`` or
     ``-m miss.cli``) or one it started."""
     if os.environ.get(LEAN_ENV) == "1" or os.path.basename((sys.argv or [""])[0]) == "miss":
@@ -80,7 +80,7 @@ def _as_command() -> bool:
     return at >= 0 and argv[at + 1 : at + 2] in (["miss"], ["miss.cli"])
 
 
-if not _as_command():
+if not as_command():
     for _module in _API_MODULES:
         importlib.import_module(_module)
 

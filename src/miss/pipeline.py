@@ -31,7 +31,7 @@ from miss.export import export
 from miss.measure import measurer
 from miss.scene import Scene
 from miss.spec import JobSpec
-from miss.structures.build import SceneBuild, build_scene, combined_report
+from miss.structures.build import SceneBuild, build_scene, combined_report, ordered_scene
 from miss.structures.labels import TableSpec
 from miss.surface.blockwise import BlockRun, in_blocks
 from miss.types import Mesh, Volume
@@ -154,13 +154,11 @@ def run(
         blocks = replace(blocks or BlockRun(), progress=report)
     built = build_scene(
         volume, spec, label_map=label_map, table=table, title=title, measure=False,
-        blocks=blocks, measure_later=measure, progress=report,
+        blocks=blocks, measure_later=measure, progress=report, ordered=False,
     )  # fmt: skip
     seconds |= built.seconds
-    if sink is not None:  # a viewer draws these rather than a GLB too large to draw
-        seconds |= _levels_of_detail(built.scene, sink, title, metadata, report)
-        if "lod" in seconds:
-            seconds |= _viewer_turn(sink)
+    built, spent = _tiled_then_ordered(built, sink, title, metadata, report)
+    seconds |= spent
     start = time.perf_counter()
     artifacts: dict[str, bytes] = {}
     formats = sorted(spec.outputs.formats, key=lambda f: f != "glb")  # what viewers load first
@@ -250,6 +248,26 @@ def preview(
     except EmptySurface:  # thin structures may vanish at a coarse resolution
         return None
     return export(built.scene, "glb", title=title, compress=True, ordered=True)
+
+
+def _tiled_then_ordered(
+    built: SceneBuild,
+    sink: Sink | None,
+    title: str | None,
+    metadata: dict[str, str] | None,
+    report: Progress,
+) -> tuple[SceneBuild, dict[str, float]]:
+    """The levels of detail a sink takes (a viewer draws them rather than a GLB too large
+    to draw), then the scene laid out for its files (:func:`ordered_scene`; the tiles lay
+    out their own, so a viewer has them sooner); the build and the seconds each took."""
+    seconds: dict[str, float] = {}
+    if sink is not None:
+        seconds |= _levels_of_detail(built.scene, sink, title, metadata, report)
+        if "lod" in seconds:
+            seconds |= _viewer_turn(sink)
+    start = time.perf_counter()
+    built = replace(built, scene=ordered_scene(built.scene))
+    return built, seconds | {"order": time.perf_counter() - start}
 
 
 def _levels_of_detail(

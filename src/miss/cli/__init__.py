@@ -136,11 +136,12 @@ def _command_in(argv: Sequence[str]) -> str:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the ``miss`` command line with ``argv`` (default ``sys.argv[1:]``); the exit status."""
-    from miss import LEAN_ENV
+    from miss import LEAN_ENV, as_command
     from miss.errors import MissError
 
     argv = sys.argv[1:] if argv is None else list(argv)
-    os.environ.setdefault(LEAN_ENV, "1")  # the processes it starts load what they need too
+    if as_command():  # not when a program calls main(): the processes it starts are lean too
+        os.environ.setdefault(LEAN_ENV, "1")
     # On a terminal whose locale cannot spell "mm³" (ASCII, no UTF-8 coercion) a character
     # it lacks is written escaped, not a crash of the whole command (stderr already does).
     if hasattr(sys.stdout, "reconfigure"):

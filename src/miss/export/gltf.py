@@ -132,6 +132,7 @@ def _quantized_streams(
     """
     if not ordered:  # both codecs predict from the recent past: locality is most of the gain
         mesh = locality_order(Mesh(np.asarray(vertices, np.float32), faces, normals))
+        assert mesh.normals is not None  # carried along
         vertices, normals, faces = mesh.vertices, mesh.normals, mesh.faces
     lo, hi = (b.astype(np.float64) for b in column_bounds(vertices))
     extent = float((hi - lo).max())

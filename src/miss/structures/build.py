@@ -234,6 +234,7 @@ def build_scene(
     blocks: BlockRun | None = None,
     measure_later: bool = False,
     progress: Heard | None = None,
+    ordered: bool = True,
 ) -> SceneBuild:
     """The scene ``spec`` asks for, with the per-part reports and timings: every
     threshold part of the region, then the label parts (built together). ``blocks``
@@ -241,7 +242,9 @@ def build_scene(
     ``measure_later`` (with ``measure`` False): the caller measures the build after
     (:meth:`SceneBuild.measured`), so the half of a measurement that needs only a part's
     surface before decimation is started as soon as that surface exists. ``progress(stage,
-    fraction)`` hears the decimation's ("decimate", "check") of the threshold parts."""
+    fraction)`` hears the decimation's ("decimate", "check") of the threshold parts.
+    ``ordered``: the scene's meshes in :func:`ordered_scene`'s layout (the caller lays
+    them out later when False)."""
     start = time.perf_counter()
     items = spec.structures.items
     label_items = [p for p in items if p.labels is not None]
@@ -272,21 +275,25 @@ def build_scene(
         )
     decimating = sum(b[1].seconds for b in built)
     checking = sum(b[1].measure_seconds for b in built)  # a held bound's check, measured
+    scene = Scene(tuple(b[0] for b in built), title or DEFAULT_SCENE_TITLE, tuple(notes))
     ordering = time.perf_counter()
-    # One layout for every file the scene becomes: triangles in vertex-cache order.
-    parts = tuple(replace(b[0], mesh=locality_order(b[0].mesh)) for b in built)
+    scene = ordered_scene(scene) if ordered else scene
     ordering = time.perf_counter() - ordering
-    scene = Scene(parts, title or DEFAULT_SCENE_TITLE, tuple(notes))
     total = time.perf_counter() - start
-    seconds = {
-        "surface": total - decimating - checking - ordering,
-        "decimate": decimating,
-        "order": ordering,
-    }
+    seconds = {"surface": total - decimating - checking - ordering, "decimate": decimating}
+    if ordered:
+        seconds["order"] = ordering
     if checking:
         seconds["measure"] = checking
     sources = () if measure else tuple(b[2] for b in built)
     return SceneBuild(scene, tuple(b[1] for b in built), seconds, sources)
+
+
+def ordered_scene(scene: Scene) -> Scene:
+    """``scene`` laid out for every file it becomes: each part's triangles in vertex-cache
+    order, its vertices in first-use order (:func:`~miss.geometry.locality_order`)."""
+    parts = tuple(replace(part, mesh=locality_order(part.mesh)) for part in scene.parts)
+    return replace(scene, parts=parts)
 
 
 def level_style(
