@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 from collections.abc import Mapping
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -35,6 +34,7 @@ from typing import Any
 import meshoptimizer
 import numpy as np
 
+from miss._cores import usable_cores
 from miss.errors import EmptySurface
 from miss.export.gltf import write_scene
 from miss.geometry import mesh_normals
@@ -120,11 +120,7 @@ def write_tiles(
 def _threads() -> int:
     """Threads for the tiles' simplification and encoding: the cores this process may use,
     at most four (each tile is the same bytes however many there are)."""
-    try:
-        cores = len(os.sched_getaffinity(0))
-    except (AttributeError, OSError):
-        cores = os.cpu_count() or 1
-    return max(1, min(4, cores))
+    return min(4, usable_cores())
 
 
 def plan(scene: Scene, tile_triangles: int = TILE_TRIANGLES) -> TileNode:

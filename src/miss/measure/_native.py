@@ -24,12 +24,12 @@ from __future__ import annotations
 import ctypes
 import importlib
 import math
-import os
 from functools import cache
 from typing import Any
 
 import numpy as np
 
+from miss._cores import usable_cores
 from miss.measure._core import Deviation, Kernels, Side, grid_shape, half, measure
 from miss.types import Mesh
 
@@ -181,7 +181,7 @@ def distances(
     failed = search(
         pts.ctypes.data, len(pts), lo.ctypes.data, cell, dims.ctypes.data,
         offsets.ctypes.data, items.ctypes.data, tri.ctypes.data, cap * cap, int(ordered),
-        _cores(), out.ctypes.data,
+        usable_cores(), out.ctypes.data,
     )  # fmt: skip
     _checked(failed)
     return out
@@ -193,11 +193,3 @@ NATIVE = Kernels(
     grid=native_grid,
     search=lambda points, grid, ordered: distances(points, grid, ordered=ordered),
 )
-
-
-def _cores() -> int:
-    """The cores this process may run on (what numba's threads default to)."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:
-        return os.cpu_count() or 1
