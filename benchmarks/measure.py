@@ -94,11 +94,13 @@ Pair = tuple[Any, Any, int]  # (undecimated, decimated, samples)
 def run_job(path: Path, what: dict[str, Any]) -> list[Pair]:
     """The job with ``measure=False``; returns what a measuring job would have compared."""
     import miss
+    from miss.geometry import locality_order
 
     volume = miss.load_volume(path)
     if "level" in what:
         surface = miss.extract_surface(volume, what["level"])
         mesh, _ = miss.decimate(surface, "quadric", REDUCE, measure=False, schedule="paper")
+        mesh = locality_order(mesh)  # laid out as a job lays out its scene (and measures it)
         miss.export(mesh, "glb")
         miss.export(mesh, "wrl")
         return [(surface, mesh, 100_000)]

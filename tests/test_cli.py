@@ -194,7 +194,6 @@ def test_json_keeps_its_keys(demo_file: Path, tmp_path: Path) -> None:
 
 def _convert_stderr(demo_file: Path, out: Path, terminal: bool) -> str:
     """What ``miss convert`` writes on stderr when stderr is a terminal, or a pipe."""
-    import os
     import pty
 
     args = [sys.executable, "-m", "miss", "convert", str(demo_file), "--level", "300",
@@ -237,19 +236,3 @@ def test_a_path_that_is_not_there_is_said_before_the_job_loads() -> None:
     assert not loaded & {"numpy", "vtkmodules", "miss.pipeline"}, sorted(loaded)
     said = [line for line in lines if not line.startswith("import time:")]
     assert said == ["miss: /no/such/scan: no such file or folder; check the path."]
-
-
-def test_a_python_program_gets_the_api_loaded_by_import_miss() -> None:
-    """``import miss`` in a program loads what the API's calls use (its first call does not
-    pay for it); the command and the processes it starts (``MISS_LEAN_IMPORT``) do not."""
-    code = "import sys, miss; print(sorted({'numpy', 'vtkmodules', 'miss.surface'} & set(sys.modules)))"
-    env = {k: v for k, v in os.environ.items() if k != "MISS_LEAN_IMPORT"}
-    program = subprocess.run(
-        [sys.executable, "-c", code], capture_output=True, text=True, check=True, env=env
-    )
-    assert program.stdout.strip() == "['miss.surface', 'numpy', 'vtkmodules']"
-    env["MISS_LEAN_IMPORT"] = "1"
-    child = subprocess.run(
-        [sys.executable, "-c", code], capture_output=True, text=True, check=True, env=env
-    )
-    assert child.stdout.strip() == "[]"

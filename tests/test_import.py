@@ -1,9 +1,12 @@
-"""``import miss`` is cheap: the heavy libraries load on first use, and the documented
-functions keep their names (``miss.decimate`` and ``miss.export`` are functions)."""
+"""``import miss`` in a program loads what the API's calls use, so their first call does
+not pay for it; the ``miss`` command, MISS's modules run as programs and the processes MISS
+starts (``MISS_LEAN_IMPORT=1``) load what they need on first use. The documented functions
+keep their names (``miss.decimate`` and ``miss.export`` are functions)."""
 
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -13,14 +16,29 @@ import pytest
 HEAVY = ["vtk", "numba", "meshoptimizer", "pydicom", "SimpleITK", "nibabel", "scipy"]
 
 
-def _modules_after(code: str) -> dict[str, bool]:
+def _modules_after(code: str, lean: bool = True) -> dict[str, bool]:
+    """Which of ``HEAVY`` a fresh ``python -c`` of ``code`` loaded: as a process MISS
+    started (``lean``) or as a user's program."""
     probe = f"import sys\n{code}\nimport json\nprint(json.dumps({{m: m in sys.modules for m in {HEAVY!r}}}))"
-    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True)
+    env = {k: v for k, v in os.environ.items() if k != "MISS_LEAN_IMPORT"}
+    if lean:
+        env["MISS_LEAN_IMPORT"] = "1"
+    out = subprocess.run(
+        [sys.executable, "-c", probe], capture_output=True, text=True, check=True, env=env
+    )
     return json.loads(out.stdout)
 
 
-def test_import_miss_loads_no_heavy_library() -> None:
+def test_import_miss_in_a_process_miss_started_loads_no_heavy_library() -> None:
     assert _modules_after("import miss") == dict.fromkeys(HEAVY, False)
+
+
+def test_import_miss_in_a_program_loads_what_the_api_calls_use() -> None:
+    """VTK's filters and meshoptimizer (the surface, the simplifier, the GLB), not numba,
+    the DICOM reader, SimpleITK, nibabel or scipy (a few calls need them: first use)."""
+    loaded = _modules_after("import miss", lean=False)
+    assert loaded == dict.fromkeys(HEAVY, False) | {"meshoptimizer": True}
+    assert _modules_after("import miss, sys; assert 'vtkmodules' in sys.modules", lean=False)
 
 
 def test_the_cli_parser_loads_no_heavy_library() -> None:
@@ -29,7 +47,8 @@ def test_the_cli_parser_loads_no_heavy_library() -> None:
 
 
 def test_colour_tables_load_without_the_scene_builder() -> None:
-    """The confined reader of a label-map upload reads its colour table only."""
+    """The confined reader of a label-map upload (a process MISS starts) reads its colour
+    table only."""
     assert _modules_after("import miss.structures.labels") == dict.fromkeys(HEAVY, False)
 
 

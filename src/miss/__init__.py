@@ -72,12 +72,14 @@ LEAN_ENV = "MISS_LEAN_IMPORT"
 
 def as_command() -> bool:
     """Whether this process is the ``miss`` command (its script, ``python -m miss`` or
-    ``-m miss.cli``) or one it started."""
+    ``-m miss.cli``), another of MISS's modules run as a program, or a process that MISS
+    started (``MISS_LEAN_IMPORT=1``: workers, measurers, confined readers)."""
     if os.environ.get(LEAN_ENV) == "1" or os.path.basename((sys.argv or [""])[0]) == "miss":
         return True
     argv = list(getattr(sys, "orig_argv", ()))  # the interpreter's own -m comes first
     at = argv.index("-m") if "-m" in argv else -1
-    return at >= 0 and argv[at + 1 : at + 2] in (["miss"], ["miss.cli"])
+    module = argv[at + 1] if 0 <= at < len(argv) - 1 else ""
+    return module == "miss" or module.startswith("miss.")
 
 
 if not as_command():

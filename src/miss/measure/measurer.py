@@ -35,6 +35,7 @@ import threading
 from concurrent.futures import Future, ThreadPoolExecutor
 from typing import TYPE_CHECKING, Any, BinaryIO
 
+from miss import LEAN_ENV
 from miss.measure import native
 
 if TYPE_CHECKING:
@@ -53,7 +54,7 @@ class Measurer:
         # the child imports this same tree of miss, wherever it was found
         here = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
         path = os.pathsep.join(p for p in (here, os.environ.get("PYTHONPATH", "")) if p)
-        env = {**os.environ, "PYTHONPATH": path}
+        env = {**os.environ, "PYTHONPATH": path, LEAN_ENV: "1"}  # it loads what it needs
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "miss.measure.measurer"],
             stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, env=env,

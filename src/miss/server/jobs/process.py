@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Protocol
 
+from miss import LEAN_ENV
 from miss.server.storage.store import Store
 
 #: What native code and Python print when an allocation fails: the worker hit its memory
@@ -221,6 +222,7 @@ class WorkerProcess:
         cmd = [sys.executable, "-c", _BOOTSTRAP, model_id, str(self.store.data_dir), "-"]
         cmd.append(str(os.getpid()))
         env = {k: v for k, v in os.environ.items() if k not in WORKER_HIDDEN_ENV} | self.env
+        env[LEAN_ENV] = "1"  # a worker loads what its jobs need, not the whole API
         with open(log_path, "ab") as log_file:
             # A session of its own: a Ctrl-C in the server's terminal reaches the server,
             # which stops the workers itself and queues their jobs again.
