@@ -15,14 +15,13 @@ The stable Python API::
 from __future__ import annotations
 
 import importlib
-import os
-import sys
 from typing import TYPE_CHECKING, Any
 
 # ``decimate`` and ``export`` are small front doors whose native libraries load on the
 # first call, the names of ``_LAZY`` on first use: so every ``miss`` command starts quickly
 # (it loads what its subcommand needs). A Python program's ``import miss`` then loads what
 # the API's calls use (``_API_MODULES``), so that its first call does not pay for them.
+from miss._process import as_command
 from miss.decimate import DecimationReport, decimate
 from miss.errors import BadParameter, EmptySurface, MissError, UnreadableVolume, UnsupportedFormat
 from miss.export import WRITERS, export
@@ -66,22 +65,6 @@ _API_MODULES = (
     "miss.decimate.schroeder",
     *(f"miss.export.{writer.module}" for writer in WRITERS.values()),
 )
-#: Set by the ``miss`` command for itself and the processes it starts.
-LEAN_ENV = "MISS_LEAN_IMPORT"
-
-
-def as_command() -> bool:
-    """Whether this process is the ``miss`` command (its script, ``python -m miss`` or
-    ``-m miss.cli``), another of MISS's modules run as a program, or a process that MISS
-    started (``MISS_LEAN_IMPORT=1``: workers, measurers, confined readers)."""
-    if os.environ.get(LEAN_ENV) == "1" or os.path.basename((sys.argv or [""])[0]) == "miss":
-        return True
-    argv = list(getattr(sys, "orig_argv", ()))  # the interpreter's own -m comes first
-    at = argv.index("-m") if "-m" in argv else -1
-    module = argv[at + 1] if 0 <= at < len(argv) - 1 else ""
-    return module == "miss" or module.startswith("miss.")
-
-
 if not as_command():
     for _module in _API_MODULES:
         importlib.import_module(_module)

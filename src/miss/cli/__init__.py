@@ -136,7 +136,7 @@ def _command_in(argv: Sequence[str]) -> str:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the ``miss`` command line with ``argv`` (default ``sys.argv[1:]``); the exit status."""
-    from miss import LEAN_ENV, as_command
+    from miss._process import LEAN_ENV, as_command
     from miss.errors import MissError
 
     argv = sys.argv[1:] if argv is None else list(argv)

@@ -34,7 +34,7 @@ from typing import Any
 import meshoptimizer
 import numpy as np
 
-from miss._cores import usable_cores
+from miss._process import usable_cores
 from miss.errors import EmptySurface
 from miss.export.gltf import write_scene
 from miss.geometry import mesh_normals

@@ -47,7 +47,6 @@ from typing import Any, BinaryIO
 
 import numpy as np
 
-from miss import LEAN_ENV
 from miss.errors import (
     BadParameter,
     DiskFull,
@@ -284,7 +283,7 @@ def _spawn(work: Path, config: dict[str, Any], limits: Limits) -> subprocess.Pop
     config["cpu_seconds"] = math.ceil(limits.seconds)
     config["nice"] = limits.nice
     config["package"] = str(Path(__file__).resolve().parent.parent)
-    env = {"PATH": "/usr/bin:/bin", "LANG": "C.UTF-8", "OMP_NUM_THREADS": "1", LEAN_ENV: "1"}
+    env = {"PATH": "/usr/bin:/bin", "LANG": "C.UTF-8", "OMP_NUM_THREADS": "1"}
     with open(work / "child.log", "ab") as log:
         return subprocess.Popen(
             [sys.executable, "-I", "-c", _BOOTSTRAP, json.dumps(config)],

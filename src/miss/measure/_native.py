@@ -29,7 +29,7 @@ from typing import Any
 
 import numpy as np
 
-from miss._cores import usable_cores
+from miss._process import usable_cores
 from miss.measure._core import Deviation, Kernels, Side, grid_shape, half, measure
 from miss.types import Mesh
 

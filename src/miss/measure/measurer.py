@@ -35,7 +35,7 @@ import threading
 from concurrent.futures import Future, ThreadPoolExecutor
 from typing import TYPE_CHECKING, Any, BinaryIO
 
-from miss import LEAN_ENV
+from miss._process import LEAN_ENV
 from miss.measure import native
 
 if TYPE_CHECKING:

@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Protocol
 
-from miss import LEAN_ENV
+from miss._process import LEAN_ENV
 from miss.server.storage.store import Store
 
 #: What native code and Python print when an allocation fails: the worker hit its memory
