@@ -47,7 +47,6 @@ import argparse
 import os
 import shutil
 import statistics
-import subprocess
 import sys
 import tempfile
 import time
@@ -57,7 +56,7 @@ from typing import Any
 
 import httpx
 from common import CACHE, markdown_table, save, write_nifti
-from load import PASSWORD, log_in, start_server, upload
+from load import PASSWORD, log_in, start_server, stop_server, upload
 
 DATASETS = Path(
     os.environ.get("MISS_DATASETS", Path(__file__).resolve().parents[2] / "shared/datasets")
@@ -218,11 +217,7 @@ class Target:
         self.runs: list[dict[str, Any]] = []
 
     def stop(self) -> None:
-        self.proc.terminate()
-        try:
-            self.proc.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
+        stop_server(self.proc, timeout=20)
 
     def model(self, model_id: str) -> dict[str, Any]:
         r = httpx.get(f"{self.url}/api/models/{model_id}", headers=self.headers, timeout=30)

@@ -24,7 +24,6 @@ import argparse
 import hashlib
 import os
 import shutil
-import subprocess
 import tempfile
 import time
 from pathlib import Path
@@ -32,7 +31,7 @@ from typing import Any
 
 import httpx
 from common import CACHE, markdown_table, save, write_nifti
-from load import log_in, start_server, submit, upload, wait_done
+from load import log_in, start_server, stop_server, submit, upload, wait_done
 
 from miss.export import export
 from miss.server.storage import formats
@@ -123,11 +122,7 @@ def one_case(name: str, work: Path) -> dict[str, Any]:
             "bytes_after_every_download": folder_bytes(folder), "downloads": rows,
         }  # fmt: skip
     finally:
-        proc.terminate()
-        try:
-            proc.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            proc.kill()
+        stop_server(proc, timeout=20)
 
 
 def tables(results: list[dict[str, Any]]) -> str:

@@ -45,7 +45,6 @@ import multiprocessing as mp
 import os
 import random
 import shutil
-import signal
 import socket
 import statistics
 import subprocess
@@ -87,6 +86,17 @@ def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
+
+
+def stop_server(proc: subprocess.Popen[bytes], timeout: float = 30) -> None:
+    """Stop a server :func:`start_server` started: SIGTERM, then SIGKILL if it has not
+    exited within ``timeout`` seconds."""
+    proc.terminate()
+    try:
+        proc.wait(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
 
 
 def start_server(
@@ -642,8 +652,7 @@ def one_run(args: argparse.Namespace, processes: int, cluster: Any) -> dict[str,
             print((work / "server.log").read_text()[-4000:], file=sys.stderr)
             raise
         finally:
-            proc.send_signal(signal.SIGTERM)
-            proc.wait(timeout=60)
+            stop_server(proc, timeout=60)
             # Kept for a look after the run (the data folder goes).
             shutil.copy(work / "server.log", Path(tempfile.gettempdir()) / "miss-load-server.log")
         if target is not None:

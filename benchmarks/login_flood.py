@@ -19,7 +19,7 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import httpx
-from load import log_in, start_server
+from load import log_in, start_server, stop_server
 
 LOGINS = 120
 
@@ -64,8 +64,7 @@ def main() -> None:
         took = time.monotonic() - start
         worker.join()
     finally:
-        proc.terminate()
-        proc.wait(30)
+        stop_server(proc)
     print("| another user's GET /api/auth/me | requests | median ms | p95 ms | max ms |")
     print("|---|---|---|---|---|")
     print(row("quiet", quiet))

@@ -37,7 +37,7 @@ from typing import Any
 import httpx
 from common import markdown_table, save
 from first_pixels import cthead_file
-from load import log_in, start_server, upload
+from load import log_in, start_server, stop_server, upload
 from volume_view import mr_zip
 
 MR_DIR = Path(__file__).resolve().parents[2] / "shared/datasets/mr_head_dicom_vsseg001_t1"
@@ -110,8 +110,7 @@ def main(argv: list[str] | None = None) -> int:
                 results.append({"case": name, "level": level, "runs": runs})
                 print(name, runs[-1], flush=True)
     finally:
-        proc.terminate()
-        proc.wait(timeout=60)
+        stop_server(proc, timeout=60)
         shutil.rmtree(work, ignore_errors=True)
     text = table(results)
     print(text)

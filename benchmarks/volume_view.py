@@ -34,7 +34,7 @@ from typing import Any
 import httpx
 from common import CACHE, markdown_table, save
 from first_pixels import CHROMIUM, CHROMIUM_ARGS, LAPTOP, cthead_file
-from load import PASSWORD, log_in, start_server, submit, upload, wait_done
+from load import PASSWORD, log_in, start_server, stop_server, submit, upload, wait_done
 
 MR = Path(__file__).resolve().parents[2] / "shared/datasets/mr_head_dicom_vsseg001_t1"
 LEVELS = {"CThead": 1500.0, "MR head": 600.0}
@@ -160,8 +160,7 @@ def main() -> None:
             scans.append(prepare(url, headers, "MR head", mr_zip()))
         measure(url, scans, args.runs, work / "profile")
     finally:
-        proc.terminate()
-        proc.wait(timeout=30)
+        stop_server(proc)
         shutil.rmtree(work, ignore_errors=True)
     text = table(scans)
     print(text)
