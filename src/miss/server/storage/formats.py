@@ -185,7 +185,8 @@ def read_scene(path: Path) -> Stored:
 def _mesh(stored: Any, i: int, entry: dict[str, Any]) -> Mesh:
     vertices = stored[f"v{i}"]
     if entry.get("faces", "plain") == "meshopt":
-        decoded, turns = _decoded_faces(stored[f"f{i}"], len(stored[f"r{i}"])), stored[f"r{i}"]
+        turns = stored[f"r{i}"]  # each access inflates the entry again: once
+        decoded = _decoded_faces(stored[f"f{i}"], len(turns))
         faces = np.empty_like(decoded)
         for turn in _TURNS:
             mine = turns == turn
