@@ -221,18 +221,3 @@ def test_progress_bar_on_a_terminal_and_nothing_on_a_pipe(demo_file: Path, tmp_p
     drawn = _convert_stderr(demo_file, tmp_path / "a.stl", terminal=True)
     assert "[" + "#" * 30 + "] 100%" in drawn and "surface" in drawn
     assert _convert_stderr(demo_file, tmp_path / "b.stl", terminal=False) == ""
-
-
-def test_a_path_that_is_not_there_is_said_before_the_job_loads() -> None:
-    """A mistyped path is answered at once: before numpy, VTK or the job's code load (the
-    command loads what its subcommand needs, not what ``import miss`` loads for the API)."""
-    argv = ["convert", "/no/such/scan", "--level", "300", "-o", "x.glb"]
-    proc = subprocess.run(
-        [sys.executable, "-X", "importtime", "-m", "miss", *argv], capture_output=True, text=True
-    )
-    assert proc.returncode == 2
-    lines = proc.stderr.strip().splitlines()
-    loaded = {line.rsplit("|", 1)[1].strip() for line in lines if line.startswith("import time:")}
-    assert not loaded & {"numpy", "vtkmodules", "miss.pipeline"}, sorted(loaded)
-    said = [line for line in lines if not line.startswith("import time:")]
-    assert said == ["miss: /no/such/scan: no such file or folder; check the path."]

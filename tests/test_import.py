@@ -64,14 +64,33 @@ def test_documented_names_are_the_functions_after_their_modules_load() -> None:
     assert miss.Volume.__module__ == "miss.types"
 
 
-def _imported_by(*args: str) -> set[str]:
-    """Every module a ``python -m miss.cli ARGS`` process imported (``-X importtime``)."""
+def _run(*args: str, check: bool = True) -> tuple[int, set[str], list[str]]:
+    """A ``python -X importtime -m miss.cli ARGS`` process: its exit code, every module it
+    imported, and the rest of what it wrote on stderr."""
     proc = subprocess.run(
         [sys.executable, "-X", "importtime", "-m", "miss.cli", *args],
-        capture_output=True, text=True, check=True, timeout=600,
+        capture_output=True, text=True, check=check, timeout=600,
     )  # fmt: skip
-    lines = [line for line in proc.stderr.splitlines() if line.startswith("import time:")]
-    return {line.rsplit("|", 1)[-1].strip() for line in lines[1:]}
+    lines = proc.stderr.splitlines()
+    timed = [line for line in lines if line.startswith("import time:")]
+    said = [line for line in lines if not line.startswith("import time:")]
+    return proc.returncode, {line.rsplit("|", 1)[-1].strip() for line in timed[1:]}, said
+
+
+def _imported_by(*args: str) -> set[str]:
+    """Every module a ``python -m miss.cli ARGS`` process imported (``-X importtime``)."""
+    return _run(*args)[1]
+
+
+def test_a_path_that_is_not_there_is_said_before_the_job_loads() -> None:
+    """A mistyped path is answered at once: before numpy, VTK or the job's code load (the
+    command loads what its subcommand needs, not what ``import miss`` loads for the API)."""
+    code, loaded, said = _run(
+        "convert", "/no/such/scan", "--level", "300", "-o", "x.glb", check=False
+    )
+    assert code == 2
+    assert not loaded & {"numpy", "vtkmodules", "miss.pipeline"}, sorted(loaded)
+    assert said == ["miss: /no/such/scan: no such file or folder; check the path."]
 
 
 def test_miss_help_loads_not_even_numpy() -> None:
