@@ -8,7 +8,7 @@ VALIDATORS := tests/validators
 
 .PHONY: run test test-fast lint format bench web-deps validators vrml-reader chromium pacs-servers postgres clean
 
-$(VENV)/.installed: pyproject.toml setup.py src/miss/measure/_nearest.cpp
+$(VENV)/.installed: pyproject.toml setup.py src/miss/measure/_nearest.cpp src/miss/decimate/_placed.cpp
 	$(PYTHON) -m venv $(VENV)
 	$(PIP) install -q --upgrade pip
 	$(PIP) install -q -e '.[test]'

@@ -1,0 +1,780 @@
+// Edge collapse with the surviving vertex placed by the quadric, within a proven bound:
+// the kernel of miss.decimate.placed, in native code (built at install by setup.py, called
+// through ctypes, which lets go of the GIL for the call).
+//
+// A collapse of the edge u-w removes u and moves w to a point p: the patch of triangles
+// round u and w (their two fans, the two triangles on the edge once) is replaced by the
+// fan from p over the patch's outer loop. p is where the sum of u's and w's quadrics
+// (Garland and Heckbert's plane quadrics of the input triangles, area-weighted) is least;
+// where that is ill-posed (a flat or a straight stretch) the least along the edge; then w
+// and u as they are (a half-edge collapse), in that order, the first that holds.
+//
+// The bound is vertex removal's overlay bound (miss.decimate._fan.overlay_gap) carried
+// over to two fans: both the old patch and the new fan are seen along the old patch's
+// mean normal N. Where every old and every new triangle faces along N and each surface
+// covers the loop's outline once, both are graphs of a height over that outline, so a
+// point of either lies straight above (or below) a point of the other, within the
+// difference of their heights there. That difference is linear over each overlap of an old
+// and a new triangle, so it is largest at a corner of one: u, w (the new fan's height
+// beneath them), p (the old patch's height beneath it), or a crossing of an old inner edge
+// with a new one; the loop's vertices and edges lie on both (0). Each new triangle carries
+// the error already spent on the triangles it replaces plus that difference (accumulated
+// error), and a collapse goes only if that stays within the bound: the output is within
+// the bound of the input everywhere, both ways, however the collapses chain.
+//
+// Refused: a vertex on a boundary or pinched (its triangles are not one closed fan), a
+// locked vertex that would move (a locked vertex may stay and take its neighbour in), a
+// collapse that changes the topology (the two loops share a vertex besides the edge's two
+// neighbours, or the patch's loop would close a tetrahedron), a new triangle degenerate or
+// not facing along N, a vertex with more than `cap` triangles, or a cost past the bound.
+//
+// Order: cheapest first by quadric error, from a heap of vertices keyed by their cheapest
+// edge; each vertex tries its two cheapest edges. The run is staged (fractions of the
+// bound, rising), as the numba half-edge collapse's.
+
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <exception>
+#include <limits>
+#include <vector>
+
+namespace {
+
+const double kInf = std::numeric_limits<double>::infinity();
+const int kCandidates = 2;   // the cheapest edges of a vertex that are tried
+const double kDegenerate = 1e-6;  // 2 x area below this x the squared longest edge
+
+struct V3 {
+    double x, y, z;
+};
+inline V3 sub(V3 a, V3 b) { return {a.x - b.x, a.y - b.y, a.z - b.z}; }
+inline V3 cross(V3 a, V3 b) {
+    return {a.y * b.z - a.z * b.y, a.z * b.x - a.x * b.z, a.x * b.y - a.y * b.x};
+}
+inline double dot(V3 a, V3 b) { return a.x * b.x + a.y * b.y + a.z * b.z; }
+inline double cross2(double ax, double ay, double bx, double by) { return ax * by - ay * bx; }
+
+struct Run {
+    double* pts;  // (N, 3), moved in place
+    int32_t* faces;  // (M, 3), edited in place
+    uint8_t* alive;  // (M,)
+    const uint8_t* locked;  // (N,)
+    int64_t n_pts;
+    int cap;  // most triangles a new vertex may carry
+    int row;  // the table's row length (>= cap, >= the input's largest valence)
+    std::vector<int32_t> vf;  // (N, row) vertex -> faces
+    std::vector<int32_t> vdeg;
+    std::vector<double> q;  // (N, 10) quadrics
+    std::vector<double> terr;  // (M,) error spent on each triangle
+    std::vector<double> need;  // (N,) least bound a vertex's collapses need (0: unknown)
+    std::vector<double> key;  // heap
+    std::vector<int32_t> item, pos;
+    int64_t size = 0;
+    // what the run did: pops tried, pops put back at their cost, overlays weighed, and
+    // collapses to the quadric's point, to w, to u
+    int64_t n_tries = 0, n_rekeyed = 0, n_overlays = 0, n_spot[3] = {0, 0, 0};
+
+    // scratch (fans of up to `row` triangles; patches of up to 2 x row)
+    std::vector<int32_t> fan_u, loop_u, fan_w, loop_w, as, bs, used, loop, patch;
+    std::vector<int32_t> old_tri;  // local corners of the old patch's triangles
+    std::vector<double> xs, ys, hs, ang, unw, dmax, old_err, trial, best;
+    std::vector<double> ccost;
+    std::vector<int32_t> corder;
+
+    V3 P(int32_t v) const { return {pts[3 * v], pts[3 * v + 1], pts[3 * v + 2]}; }
+
+    // ------------------------------------------------------------------ quadrics
+    void plane_quadrics(int64_t n_faces) {
+        for (int64_t f = 0; f < n_faces; ++f) {
+            int32_t a = faces[3 * f], b = faces[3 * f + 1], c = faces[3 * f + 2];
+            V3 n = cross(sub(P(b), P(a)), sub(P(c), P(a)));
+            double len = std::sqrt(dot(n, n));
+            if (len == 0.0) continue;
+            double w = 0.5 * len;
+            n = {n.x / len, n.y / len, n.z / len};
+            double d = -dot(n, P(a));
+            double r[10] = {n.x * n.x, n.x * n.y, n.x * n.z, n.x * d, n.y * n.y,
+                            n.y * n.z, n.y * d,   n.z * n.z, n.z * d, d * d};
+            for (int32_t u : {a, b, c})
+                for (int k = 0; k < 10; ++k) q[10 * u + k] += w * r[k];
+        }
+    }
+
+    static double q_at(const double* Q, V3 p) {
+        return Q[0] * p.x * p.x + 2 * Q[1] * p.x * p.y + 2 * Q[2] * p.x * p.z + 2 * Q[3] * p.x +
+               Q[4] * p.y * p.y + 2 * Q[5] * p.y * p.z + 2 * Q[6] * p.y + Q[7] * p.z * p.z +
+               2 * Q[8] * p.z + Q[9];
+    }
+
+    // Where the collapse of u-w puts the vertex, and its quadric cost there.
+    double place(int32_t u, int32_t w, V3& p) const {
+        bool lu = locked[u], lw = locked[w];
+        double Q[10];
+        for (int k = 0; k < 10; ++k) Q[k] = q[10 * u + k] + q[10 * w + k];
+        if (lu && lw) {
+            p = P(w);
+            return kInf;
+        }
+        if (lu || lw) {
+            p = P(lu ? u : w);
+            return std::max(0.0, q_at(Q, p));
+        }
+        V3 a = P(u), b = P(w);
+        V3 e = sub(b, a);
+        double e2 = dot(e, e);
+        // the least of Q: A p = -b, by Cramer's rule where A is well-conditioned
+        double a00 = Q[0], a01 = Q[1], a02 = Q[2], a11 = Q[4], a12 = Q[5], a22 = Q[7];
+        double c0 = a11 * a22 - a12 * a12, c1 = a02 * a12 - a01 * a22, c2 = a01 * a12 - a02 * a11;
+        double det = a00 * c0 + a01 * c1 + a02 * c2;
+        double norm = std::sqrt(a00 * a00 + a11 * a11 + a22 * a22 +
+                                2 * (a01 * a01 + a02 * a02 + a12 * a12));
+        if (norm > 0.0 && std::fabs(det) > 1e-3 * norm * norm * norm) {
+            double b0 = -Q[3], b1 = -Q[6], b2 = -Q[8];
+            double d1 = a02 * a12 - a01 * a22;  // adjugate, symmetric
+            double d2 = a01 * a12 - a02 * a11;
+            double e11 = a00 * a22 - a02 * a02, e12 = a01 * a02 - a00 * a12;
+            double e22 = a00 * a11 - a01 * a01;
+            V3 s = {(c0 * b0 + d1 * b1 + d2 * b2) / det, (d1 * b0 + e11 * b1 + e12 * b2) / det,
+                    (d2 * b0 + e12 * b1 + e22 * b2) / det};
+            V3 mid = {0.5 * (a.x + b.x), 0.5 * (a.y + b.y), 0.5 * (a.z + b.z)};
+            V3 off = sub(s, mid);
+            if (std::isfinite(s.x + s.y + s.z) && dot(off, off) <= e2) {
+                p = s;
+                return std::max(0.0, q_at(Q, p));
+            }
+        }
+        // along the edge: Q(a + t e) = alpha t^2 + 2 beta t + gamma, least in [0, 1]
+        double t = 0.5;
+        double Ae[3] = {a00 * e.x + a01 * e.y + a02 * e.z, a01 * e.x + a11 * e.y + a12 * e.z,
+                        a02 * e.x + a12 * e.y + a22 * e.z};
+        double alpha = Ae[0] * e.x + Ae[1] * e.y + Ae[2] * e.z;
+        double beta = Ae[0] * a.x + Ae[1] * a.y + Ae[2] * a.z + Q[3] * e.x + Q[6] * e.y +
+                      Q[8] * e.z;
+        if (alpha > 0.0) t = std::min(1.0, std::max(0.0, -beta / alpha));
+        p = {a.x + t * e.x, a.y + t * e.y, a.z + t * e.z};
+        return std::max(0.0, q_at(Q, p));
+    }
+
+    // u's neighbours (the corner after u in each of its triangles), one per triangle
+    int32_t next_corner(int32_t f, int32_t u) const {
+        const int32_t* c = faces + 3 * f;
+        return c[0] == u ? c[1] : (c[1] == u ? c[2] : c[0]);
+    }
+
+    double vertex_cost(int32_t u) const {
+        double best = kInf;
+        V3 p;
+        for (int k = 0; k < vdeg[u]; ++k)
+            best = std::min(best, place(u, next_corner(vf[size_t(u) * row + k], u), p));
+        return best;
+    }
+
+    // ------------------------------------------------------------------ fans
+    // u's triangles chained round it (fan) and the loop of its neighbours; the loop's
+    // triangle k is (u, loop[k], loop[k+1]). False where they are not one closed fan.
+    bool order_fan(int32_t u, int32_t* fan, int32_t* lp) {
+        int n = vdeg[u];
+        if (n < 3) return false;
+        const int32_t* r = &vf[size_t(u) * row];
+        for (int k = 0; k < n; ++k) {
+            const int32_t* c = faces + 3 * r[k];
+            int i = c[0] == u ? 0 : (c[1] == u ? 1 : 2);
+            as[k] = c[(i + 1) % 3];
+            bs[k] = c[(i + 2) % 3];
+            used[k] = 0;
+        }
+        int cur = 0;
+        used[0] = 1;
+        for (int step = 0; step < n; ++step) {
+            fan[step] = r[cur];
+            lp[step] = as[cur];
+            int32_t want = bs[cur];
+            if (step == n - 1) return want == as[0];
+            int nk = -1;
+            for (int k = 0; k < n; ++k)
+                if (!used[k] && as[k] == want) {
+                    nk = k;
+                    break;
+                }
+            if (nk < 0) return false;
+            used[nk] = 1;
+            cur = nk;
+        }
+        return false;
+    }
+
+    bool face_exists(int32_t a, int32_t b, int32_t c) const {
+        for (int k = 0; k < vdeg[a]; ++k) {
+            const int32_t* f = faces + 3 * vf[size_t(a) * row + k];
+            int hits = 0;
+            for (int m = 0; m < 3; ++m) hits += (f[m] == b || f[m] == c);
+            if (hits == 2) return true;
+        }
+        return false;
+    }
+
+    // ------------------------------------------------------------------ the bound
+    // Local points: 0 = u, 1 = w (where they are), 2 = p, 3 + i = loop[i]. The old patch's
+    // triangles are old_tri (n_old x 3, local corners), each carrying old_err; the new fan's
+    // triangle i is (2, 3 + i, 3 + i + 1). Fills spent[i]: the error new triangle i carries
+    // (the most carried by the old triangles it overlaps, plus the largest height
+    // difference over it). Returns the largest, inf where the bound does not apply, or,
+    // as soon as a difference alone passes `limit`, that difference.
+    double overlay(int32_t u, int32_t w, V3 p, int n_loop, int n_old, double limit,
+                   double* spent) {
+        V3 o = P(w);
+        auto local = [&](int i) -> V3 {
+            return i == 0 ? P(u) : (i == 1 ? P(w) : (i == 2 ? p : P(loop[i - 3])));
+        };
+        // N: the old patch's mean normal
+        V3 N = {0, 0, 0};
+        for (int t = 0; t < n_old; ++t) {
+            V3 a = local(old_tri[3 * t]), b = local(old_tri[3 * t + 1]),
+               c = local(old_tri[3 * t + 2]);
+            V3 n = cross(sub(b, a), sub(c, a));
+            N = {N.x + n.x, N.y + n.y, N.z + n.z};
+        }
+        double len = std::sqrt(dot(N, N));
+        if (!(len > 0.0)) return kInf;
+        N = {N.x / len, N.y / len, N.z / len};
+        V3 e;
+        if (std::fabs(N.x) <= std::fabs(N.y) && std::fabs(N.x) <= std::fabs(N.z))
+            e = {0.0, N.z, -N.y};
+        else if (std::fabs(N.y) <= std::fabs(N.z))
+            e = {-N.z, 0.0, N.x};
+        else
+            e = {N.y, -N.x, 0.0};
+        double el = std::sqrt(dot(e, e));
+        e = {e.x / el, e.y / el, e.z / el};
+        V3 f = cross(N, e);
+        int n_pts = 3 + n_loop;
+        double scale = 0.0;
+        for (int i = 0; i < n_pts; ++i) {
+            V3 d = sub(local(i), o);
+            xs[i] = dot(e, d);
+            ys[i] = dot(f, d);
+            hs[i] = dot(N, d);
+            scale += xs[i] * xs[i] + ys[i] * ys[i];
+        }
+        double tol = 1e-9 * scale;
+        double outline = 0.0;
+        for (int i = 0; i < n_loop; ++i) {
+            int a = 3 + i, b = 3 + (i + 1) % n_loop;
+            outline += cross2(xs[a], ys[a], xs[b], ys[b]);
+        }
+        auto area = [&](int a, int b, int c) {
+            return cross2(xs[b] - xs[a], ys[b] - ys[a], xs[c] - xs[a], ys[c] - ys[a]);
+        };
+        double old_sum = 0.0, new_sum = 0.0;
+        for (int t = 0; t < n_old; ++t) {
+            double s = area(old_tri[3 * t], old_tri[3 * t + 1], old_tri[3 * t + 2]);
+            if (s <= 0.0) return kInf;  // an old triangle folded back: no height over it
+            old_sum += s;
+        }
+        for (int i = 0; i < n_loop; ++i) {
+            double s = area(2, 3 + i, 3 + (i + 1) % n_loop);
+            if (s <= 0.0) return kInf;  // a new triangle folded back
+            new_sum += s;
+        }
+        if (std::fabs(old_sum - outline) > tol || std::fabs(new_sum - outline) > tol)
+            return kInf;  // one of them winds round more than once
+        // The largest difference over each new triangle, dmax[i]: the difference at p
+        // applies to every new triangle (their common corner); at u and w to the
+        // triangles they lie in (and those beside, where they lie on an edge); at a
+        // crossing on the new edge p-loop[i] to the two triangles beside it.
+        const double kSlack = 1e-9;
+        double top = 0.0;  // the largest difference so far
+        auto add = [&](int i, double d) {
+            if (d > dmax[i]) {
+                dmax[i] = d;
+                top = std::max(top, d);
+            }
+        };
+        double dp;
+        {
+            double best = -kInf, height = 0.0;
+            for (int t = 0; t < n_old; ++t) {
+                int a = old_tri[3 * t], b = old_tri[3 * t + 1], c = old_tri[3 * t + 2];
+                double s = area(a, b, c);
+                double la = area(2, b, c) / s, lb = area(a, 2, c) / s, lc = 1.0 - la - lb;
+                double inside = std::min(la, std::min(lb, lc));
+                if (inside > best) {
+                    best = inside;
+                    height = la * hs[a] + lb * hs[b] + lc * hs[c];
+                }
+            }
+            dp = std::fabs(hs[2] - height);
+        }
+        for (int i = 0; i < n_loop; ++i) dmax[i] = dp;
+        top = dp;
+        if (top > limit) return top;
+        for (int v = 0; v < 2; ++v) {
+            int hold = -1;
+            double best = -kInf, height = 0.0;
+            for (int i = 0; i < n_loop; ++i) {
+                int b = 3 + i, c = 3 + (i + 1) % n_loop;
+                double s = area(2, b, c);
+                double la = area(v, b, c) / s, lb = area(2, v, c) / s, lc = 1.0 - la - lb;
+                double inside = std::min(la, std::min(lb, lc));
+                if (inside > best) {
+                    best = inside;
+                    height = la * hs[2] + lb * hs[b] + lc * hs[c];
+                    hold = i;
+                }
+            }
+            double d = std::fabs(hs[v] - height);
+            for (int i = 0; i < n_loop; ++i) {
+                int b = 3 + i, c = 3 + (i + 1) % n_loop;
+                double s = area(2, b, c);
+                double inside = std::min(area(v, b, c), std::min(area(2, v, c), area(2, b, v))) / s;
+                if (i == hold || inside >= -kSlack) add(i, d);
+            }
+            if (top > limit) return top;
+        }
+        // old inner edges (an end at u or w; each once: a < b) against new ones (p to a loop
+        // vertex)
+        for (int t = 0; t < n_old; ++t) {
+            for (int k = 0; k < 3; ++k) {
+                int a = old_tri[3 * t + k], b = old_tri[3 * t + (k + 1) % 3];
+                if (a > b || a > 1) continue;  // a in {0, 1}: inner
+                double sx = xs[b] - xs[a], sy = ys[b] - ys[a];
+                double wx = xs[2] - xs[a], wy = ys[2] - ys[a];
+                for (int i = 0; i < n_loop; ++i) {
+                    int c = 3 + i;
+                    if (b == c) continue;  // they meet at the loop vertex (0 there)
+                    double tx = xs[c] - xs[2], ty = ys[c] - ys[2];
+                    double d = cross2(sx, sy, tx, ty);
+                    if (d == 0.0) continue;  // parallel: their ends are measured already
+                    double s = cross2(wx, wy, tx, ty) / d;  // along the old edge
+                    double r = cross2(wx, wy, sx, sy) / d;  // along the new one
+                    if (s >= 0.0 && s <= 1.0 && r >= 0.0 && r <= 1.0) {
+                        double ho = hs[a] + s * (hs[b] - hs[a]);
+                        double hn = hs[2] + r * (hs[c] - hs[2]);
+                        double diff = std::fabs(ho - hn);
+                        add(i, diff);
+                        add((i + n_loop - 1) % n_loop, diff);
+                        if (top > limit) return top;
+                    }
+                }
+            }
+        }
+        // What each new triangle carries, spent[i]: the most the old triangles it overlaps
+        // carry. The new fan is star-shaped from p, so new triangle i is the outline within
+        // the angle from loop[i] to loop[i + 1] seen from p, and an old triangle overlaps it
+        // where their angles overlap; touching is not overlapping (a point where they
+        // touch is a limit of points inside the ones that do overlap, within their error).
+        // Angles are pseudo-angles (diamond angles: a turn is 4, monotone in the angle,
+        // opposite directions 2 apart), which is all this needs.
+        const double kTurn = 4.0, kTouch = 1e-12;
+        for (int i = 0; i < n_pts; ++i) {
+            double dx = xs[i] - xs[2], dy = ys[i] - ys[2];
+            if (dx == 0.0 && dy == 0.0)
+                ang[i] = kInf;
+            else if (dy >= 0.0)
+                ang[i] = dx >= 0.0 ? dy / (dx + dy) : 1.0 - dx / (dy - dx);
+            else
+                ang[i] = dx < 0.0 ? 2.0 - dy / (-dx - dy) : 3.0 + dx / (dx - dy);
+        }
+        // the loop's angles unwrapped: rising from the first by each sector's width
+        unw[0] = ang[3];
+        for (int i = 1; i <= n_loop; ++i) {
+            double width = (i < n_loop ? ang[3 + i] : ang[3]) - ang[3 + i - 1];
+            if (width < 0.0) width += kTurn;
+            unw[i] = unw[i - 1] + width;
+        }
+        for (int i = 0; i < n_loop; ++i) spent[i] = 0.0;
+        for (int t = 0; t < n_old; ++t) {
+            int a = old_tri[3 * t], b = old_tri[3 * t + 1], c = old_tri[3 * t + 2];
+            double sa = area(a, b, c);
+            double inside = std::min(area(2, b, c), std::min(area(a, 2, c), area(a, b, 2)));
+            if (inside >= kSlack * sa) {  // p in it (or on its edge): it overlaps them all
+                for (int i = 0; i < n_loop; ++i) spent[i] = std::max(spent[i], old_err[t]);
+                continue;
+            }
+            // p outside: it spans less than a half turn, [lo, hi], the complement of the
+            // largest gap between its corners' angles
+            double th[3];
+            int m = 0;
+            for (int k : {a, b, c})
+                if (ang[k] != kInf) th[m++] = ang[k];
+            std::sort(th, th + m);
+            double gap = -1.0, lo = 0.0;
+            for (int k = 0; k < m; ++k) {
+                double next = k + 1 < m ? th[k + 1] : th[0] + kTurn;
+                if (next - th[k] > gap) {
+                    gap = next - th[k];
+                    lo = k + 1 < m ? th[k + 1] : th[0];
+                }
+            }
+            double hi = lo + (kTurn - gap);
+            while (lo < unw[0]) lo += kTurn, hi += kTurn;
+            while (lo >= unw[0] + kTurn) lo -= kTurn, hi -= kTurn;
+            for (int i = 0; i < n_loop; ++i) {
+                // the sector [unw[i], unw[i + 1]] against [lo, hi] and, past a whole turn,
+                // [lo - turn, hi - turn]
+                if ((lo < unw[i + 1] - kTouch && hi > unw[i] + kTouch) ||
+                    (hi - kTurn > unw[i] + kTouch))
+                    spent[i] = std::max(spent[i], old_err[t]);
+            }
+        }
+        top = 0.0;
+        for (int i = 0; i < n_loop; ++i) {
+            spent[i] += dmax[i];
+            top = std::max(top, spent[i]);
+        }
+        return top;
+    }
+
+    // no new triangle degenerate (their facing is the overlay's to check)
+    bool upright(V3 p, int n_loop) const {
+        for (int i = 0; i < n_loop; ++i) {
+            V3 b = P(loop[i]), c = P(loop[(i + 1) % n_loop]);
+            V3 x = sub(b, p), y = sub(c, p), z = sub(c, b);
+            V3 n = cross(x, y);
+            double longest = std::max(dot(x, x), std::max(dot(y, y), dot(z, z)));
+            if (std::sqrt(dot(n, n)) <= kDegenerate * longest) return false;
+        }
+        return true;
+    }
+
+    // ------------------------------------------------------------------ one collapse
+    // u into a neighbour (its cheapest kCandidates edges), if one is valid and within the
+    // bound. Returns the triangles freed (2), or -1 with `needed` the least bound under
+    // which one of those weighed could go while the fans stay as they are.
+    int try_collapse(int32_t u, double bound, double key_u, double& needed) {
+        needed = kInf;
+        n_tries++;
+        int n_u = vdeg[u];
+        if (!order_fan(u, fan_u.data(), loop_u.data())) return -1;
+        double carried_u = kInf;  // the least any of u's triangles carries
+        for (int k = 0; k < n_u; ++k) carried_u = std::min(carried_u, terr[fan_u[k]]);
+        if (carried_u >= bound) {
+            needed = carried_u;
+            return -1;
+        }
+        // the candidates, cheapest first (insertion: a dozen at most)
+        int m = 0;
+        for (int k = 0; k < n_u; ++k) {
+            V3 p;
+            double c = place(u, loop_u[k], p);
+            int i = m;
+            while (i > 0 && ccost[i - 1] > c) {
+                ccost[i] = ccost[i - 1];
+                corder[i] = corder[i - 1];
+                --i;
+            }
+            ccost[i] = c;
+            corder[i] = k;
+            ++m;
+        }
+        if (m > 0 && ccost[0] > key_u && ccost[0] < kInf) {
+            needed = ccost[0];  // its key was low (see stage): back, at its cost
+            return -2;
+        }
+        for (int ci = 0; ci < std::min(m, kCandidates); ++ci) {
+            if (ccost[ci] == kInf) break;
+            int j = corder[ci];
+            int32_t w = loop_u[j];
+            int n_w = vdeg[w];
+            if (!order_fan(w, fan_w.data(), loop_w.data())) continue;
+            // the patch's loop: u's loop after w, then w's loop after u's last, before u's
+            // first (w's loop runs ..., u, a_last, ..., a_first, ...)
+            int iu = -1;
+            for (int k = 0; k < n_w; ++k)
+                if (loop_w[k] == u) iu = k;
+            if (iu < 0) continue;
+            int n_loop = 0;
+            for (int k = 1; k < n_u; ++k) loop[n_loop++] = loop_u[(j + k) % n_u];
+            int32_t a_first = loop[0], a_last = loop[n_loop - 1];
+            if (loop_w[(iu + 1) % n_w] != a_last || loop_w[(iu + n_w - 1) % n_w] != a_first)
+                continue;  // not a manifold edge
+            bool ok = true;
+            for (int k = 2; k < n_w - 1 && ok; ++k) {
+                int32_t b = loop_w[(iu + k) % n_w];
+                for (int i = 0; i < n_u - 1; ++i)
+                    if (loop[i] == b) ok = false;  // the loops share a vertex: a pinch
+                loop[n_loop++] = b;
+            }
+            if (!ok || n_loop < 3 || n_loop > cap) continue;
+            if (n_loop == 3 && face_exists(loop[0], loop[1], loop[2])) continue;
+            // the old patch (u's fan, then w's without the two on the edge), local corners
+            // (u's loop position q is loop[q - j - 1]; w's loop position iu + k is a_last
+            // for k = 1, loop[n_u + k - 3] for k in 2 .. n_w - 2, a_first for k = n_w - 1)
+            auto loc_u = [&](int q) { return q == j ? 1 : 3 + (q - j - 1 + n_u) % n_u; };
+            auto loc_w = [&](int q) {
+                int k = (q - iu + n_w) % n_w;
+                return k == 0 ? 0 : (k == n_w - 1 ? 3 : 3 + n_u + k - 3);
+            };
+            int n_old = 0, n_patch = 0;
+            for (int k = 0; k < n_u; ++k) {
+                patch[n_patch++] = fan_u[k];
+                old_err[n_old] = terr[fan_u[k]];
+                old_tri[3 * n_old] = 0;
+                old_tri[3 * n_old + 1] = loc_u(k);
+                old_tri[3 * n_old + 2] = loc_u((k + 1) % n_u);
+                ++n_old;
+            }
+            for (int k = 0; k < n_w; ++k) {
+                int32_t a = loop_w[k], b = loop_w[(k + 1) % n_w];
+                if (a == u || b == u) continue;
+                patch[n_patch++] = fan_w[k];
+                old_err[n_old] = terr[fan_w[k]];
+                old_tri[3 * n_old] = 1;
+                old_tri[3 * n_old + 1] = loc_w(k);
+                old_tri[3 * n_old + 2] = loc_w((k + 1) % n_w);
+                ++n_old;
+            }
+            // where w goes: the quadric's point, then w, then u as they are
+            V3 spots[3];
+            int n_spots = 0;
+            place(u, w, spots[n_spots++]);
+            spots[n_spots++] = P(w);
+            if (!locked[w]) spots[n_spots++] = P(u);
+            // the spot that spends least of the bound
+            int chosen = -1;
+            double least = kInf;
+            for (int s = 0; s < n_spots; ++s) {
+                V3 p = spots[s];
+                if (s > 0 && p.x == spots[0].x && p.y == spots[0].y && p.z == spots[0].z)
+                    continue;
+                if (!upright(p, n_loop)) continue;
+                n_overlays++;
+                double spent = overlay(u, w, p, n_loop, n_old, std::min(least, bound), trial.data());
+                if (spent < least) {
+                    least = spent;
+                    chosen = s;
+                    std::copy(trial.begin(), trial.begin() + n_loop, best.begin());
+                }
+            }
+            if (chosen >= 0 && least <= bound) {
+                n_spot[chosen]++;
+                commit(u, w, spots[chosen], n_loop, n_patch);
+                return 2;
+            }
+            needed = std::min(needed, least);
+        }
+        return -1;
+    }
+
+    // Replaces the patch by the new fan (each new triangle carrying best[i]), reusing the
+    // patch's face slots, and moves w to p.
+    void commit(int32_t u, int32_t w, V3 p, int n_loop, int n_patch) {
+        // loop vertices lose their patch triangles (those with a corner u or w) from
+        // their rows
+        for (int i = 0; i < n_loop; ++i) {
+            int32_t x = loop[i];
+            int32_t* r = &vf[size_t(x) * row];
+            int keep = 0;
+            for (int k = 0; k < vdeg[x]; ++k) {
+                const int32_t* c = faces + 3 * r[k];
+                bool in_patch = c[0] == u || c[1] == u || c[2] == u || c[0] == w ||
+                                c[1] == w || c[2] == w;
+                if (!in_patch) r[keep++] = r[k];
+            }
+            vdeg[x] = keep;
+        }
+        int32_t* rw = &vf[size_t(w) * row];
+        for (int i = 0; i < n_loop; ++i) {
+            int32_t f = patch[i];
+            int32_t b = loop[i], c = loop[(i + 1) % n_loop];
+            faces[3 * f] = w;
+            faces[3 * f + 1] = b;
+            faces[3 * f + 2] = c;
+            terr[f] = best[i];
+            rw[i] = f;
+            vf[size_t(b) * row + vdeg[b]++] = f;
+            vf[size_t(c) * row + vdeg[c]++] = f;
+        }
+        vdeg[w] = n_loop;
+        for (int t = n_loop; t < n_patch; ++t) alive[patch[t]] = 0;
+        vdeg[u] = 0;
+        pts[3 * w] = p.x;
+        pts[3 * w + 1] = p.y;
+        pts[3 * w + 2] = p.z;
+        for (int k = 0; k < 10; ++k) q[10 * w + k] += q[10 * u + k];
+    }
+
+    // ------------------------------------------------------------------ the heap
+    void swap_(int64_t i, int64_t j) {
+        std::swap(key[i], key[j]);
+        std::swap(item[i], item[j]);
+        pos[item[i]] = int32_t(i);
+        pos[item[j]] = int32_t(j);
+    }
+    void sift(int64_t i) {
+        while (i > 0 && key[(i - 1) >> 1] > key[i]) {
+            swap_(i, (i - 1) >> 1);
+            i = (i - 1) >> 1;
+        }
+        for (;;) {
+            int64_t c = 2 * i + 1;
+            if (c >= size) return;
+            if (c + 1 < size && key[c + 1] < key[c]) ++c;
+            if (key[i] <= key[c]) return;
+            swap_(i, c);
+            i = c;
+        }
+    }
+    void put(int32_t v, double cost) {
+        int64_t i = pos[v];
+        if (i < 0) {
+            i = size++;
+            item[i] = v;
+            pos[v] = int32_t(i);
+        }
+        key[i] = cost;
+        sift(i);
+    }
+    void remove(int32_t v) {
+        int64_t i = pos[v];
+        if (i < 0) return;
+        --size;
+        if (i != size) {
+            swap_(i, size);
+            sift(i);
+        }
+        pos[v] = -1;
+    }
+    int32_t pop() {
+        int32_t v = item[0];
+        --size;
+        if (size > 0) {
+            swap_(0, size);
+            sift(0);
+        }
+        pos[v] = -1;
+        return v;
+    }
+
+    int64_t stage(double bound, int64_t n_alive, int64_t target) {
+        for (int32_t u = 0; u < n_pts; ++u) {
+            if (vdeg[u] > 0 && !locked[u] && pos[u] < 0 && need[u] <= bound) {
+                double c = vertex_cost(u);
+                if (c < kInf) put(u, c);
+            }
+        }
+        // a locked vertex's edges are weighed from its free neighbours
+        while (size > 0 && n_alive > target) {
+            double key_u = key[0];
+            int32_t u = pop();
+            double needed;
+            int freed = try_collapse(u, bound, key_u, needed);
+            if (freed == -2) {
+                ++n_rekeyed;
+                put(u, needed);
+                continue;
+            }
+            if (freed < 0) {
+                need[u] = needed;
+                continue;
+            }
+            n_alive -= freed;
+            int32_t w = faces[3 * patch[0]];
+            int n_loop = vdeg[w];
+            // Keys: w's edges all changed; a loop vertex's only to w (and to u, gone).
+            // One in the heap keeps the lower of its key and its edge to w: a key never
+            // above its cost, so that one popped too soon goes back (try_collapse).
+            for (int i = -1; i < n_loop; ++i) {
+                int32_t x = i < 0 ? w : loop[i];
+                need[x] = 0.0;
+                if (locked[x]) continue;
+                double c;
+                if (i >= 0 && pos[x] >= 0) {
+                    V3 p;
+                    c = std::min(key[pos[x]], place(x, w, p));
+                } else {
+                    c = vertex_cost(x);
+                }
+                if (c < kInf)
+                    put(x, c);
+                else
+                    remove(x);
+            }
+        }
+        while (size > 0) pos[item[--size]] = -1;
+        return n_alive;
+    }
+};
+
+}  // namespace
+
+extern "C" {
+
+// Collapse `faces` (n_faces x 3 int32, edited in place; `alive` marks the triangles that
+// are left) over `pts` (n_pts x 3 float64, the survivors moved in place) until `target`
+// triangles remain or none goes within the bound: stage by stage, each at
+// stages[i] x bound_mm. `locked` (n_pts bytes) never move. Writes the triangles left and
+// the last stage's bound (mm), and into counts (6) what the run did: pops tried, pops put
+// back at their cost, overlays weighed, collapses to the quadric's point, to w as it was,
+// to u. Returns 0, or 1 where it ran out of memory (nothing is then to be used).
+int miss_placed_collapse(double* pts, int64_t n_pts, int32_t* faces, int64_t n_faces,
+                         uint8_t* alive, const uint8_t* locked, int cap, const double* stages,
+                         int n_stages, double bound_mm, double slack, int64_t target,
+                         int64_t* out_alive, double* out_bound, int64_t* counts) try {
+    Run r;
+    r.pts = pts;
+    r.faces = faces;
+    r.alive = alive;
+    r.locked = locked;
+    r.n_pts = n_pts;
+    r.cap = cap;
+    r.vdeg.assign(n_pts, 0);
+    for (int64_t f = 0; f < 3 * n_faces; ++f) r.vdeg[faces[f]] += 1;
+    int largest = 0;
+    for (int64_t v = 0; v < n_pts; ++v) largest = std::max(largest, r.vdeg[v]);
+    r.row = std::max(cap, largest);
+    r.vf.assign(size_t(n_pts) * r.row, -1);
+    std::fill(r.vdeg.begin(), r.vdeg.end(), 0);
+    for (int64_t f = 0; f < n_faces; ++f)
+        for (int c = 0; c < 3; ++c) {
+            int32_t u = faces[3 * f + c];
+            r.vf[size_t(u) * r.row + r.vdeg[u]++] = int32_t(f);
+        }
+    r.q.assign(size_t(n_pts) * 10, 0.0);
+    r.plane_quadrics(n_faces);
+    r.terr.assign(n_faces, 0.0);
+    r.need.assign(n_pts, 0.0);
+    r.key.assign(n_pts, 0.0);
+    r.item.assign(n_pts, 0);
+    r.pos.assign(n_pts, -1);
+    int s = r.row + 1, s2 = 2 * r.row + 4;
+    for (auto* v : {&r.fan_u, &r.loop_u, &r.fan_w, &r.loop_w, &r.as, &r.bs, &r.used, &r.corder})
+        v->assign(s, 0);
+    r.loop.assign(s2, 0);
+    r.patch.assign(s2, 0);
+    r.old_tri.assign(3 * s2, 0);
+    r.xs.assign(s2 + 3, 0.0);
+    r.ys.assign(s2 + 3, 0.0);
+    r.hs.assign(s2 + 3, 0.0);
+    for (auto* v : {&r.ang, &r.unw, &r.dmax, &r.old_err, &r.trial, &r.best}) v->assign(s2 + 3, 0.0);
+    r.ccost.assign(s, 0.0);
+    for (int64_t f = 0; f < n_faces; ++f) alive[f] = 1;
+    int64_t n_alive = n_faces;
+    double bound = 0.0;
+    for (int i = 0; i < n_stages; ++i) {
+        bound = stages[i] * bound_mm + slack;
+        n_alive = r.stage(bound, n_alive, target);
+        if (n_alive <= target) break;
+    }
+    counts[0] = r.n_tries;
+    counts[1] = r.n_rekeyed;
+    counts[2] = r.n_overlays;
+    for (int k = 0; k < 3; ++k) counts[3 + k] = r.n_spot[k];
+    *out_alive = n_alive;
+    *out_bound = bound;
+    return 0;
+} catch (const std::exception&) {  // bad_alloc: an exception must not cross into ctypes
+    return 1;
+}
+
+}  // extern "C"
+
+static struct PyModuleDef placed_module = {
+    PyModuleDef_HEAD_INIT, "_placed", "MISS's placed edge collapse, called through ctypes.", -1,
+    nullptr, nullptr, nullptr, nullptr, nullptr};
+
+PyMODINIT_FUNC PyInit__placed(void) { return PyModule_Create(&placed_module); }
