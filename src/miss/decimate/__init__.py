@@ -13,6 +13,11 @@ Methods
     ours, in :mod:`miss.decimate._collapse` (the same bound as schroeder's, for the fan
     from the vertex that stays). Vertices are never moved and none are created; it keeps
     fewer triangles than schroeder at the same bound (measured: ``benchmarks/collapse.py``).
+``placed``
+    Edge collapses whose kept vertex moves to where the quadric puts it, each within a
+    proven bound: ours, native (:mod:`miss.decimate.placed`; the same overlay bound,
+    carried over to an edge's two fans). The only bounded method that moves vertices: the
+    fewest triangles at a bound, for the most time (measured: ``benchmarks/collapse.py``).
 ``none``
     The mesh as it is.
 
@@ -26,7 +31,7 @@ Schedules
 ---------
 ``guaranteed`` (default)
     The bound is a hard cap, and schroeder makes the model whichever method was asked for
-    but collapse, which holds it the same way (``finished_with`` says so): its triangles carry the error already spent on them
+    but collapse and placed, which hold it the same way (``finished_with`` says so): its triangles carry the error already spent on them
     (accumulated error), and each deletion's share is a bound on the distance between the
     triangles it removes and those that replace it, everywhere on them
     (:func:`miss.decimate._fan.overlay_gap`), so the output is within the bound everywhere,
@@ -67,7 +72,7 @@ if TYPE_CHECKING:
     from miss.measure.measurer import RemoteSide
     from miss.types import Mesh
 
-Method = Literal["none", "quadric", "schroeder", "collapse"]
+Method = Literal["none", "quadric", "schroeder", "collapse", "placed"]
 Schedule = Literal["guaranteed", "paper"]
 #: The decimation methods, ``Method``'s (the job declaration, :mod:`miss.spec`, offers these).
 METHODS: tuple[str, ...] = get_args(Method)
@@ -112,7 +117,7 @@ _SCREEN = 2048
 _TOLERANCE = 1e-6
 # The methods whose models are within their bound by construction (the accumulated
 # error, see miss.decimate._fan.overlay_gap): checked at the contract's points only.
-_BOUNDED = ("schroeder", "collapse")
+_BOUNDED = ("schroeder", "collapse", "placed")
 
 
 @dataclass(frozen=True)
@@ -243,7 +248,7 @@ def decimate(
 
     start = time.perf_counter()
     if method == "none" or mesh.n_triangles == 0:
-        faces, bound_mm, check, rounds, by = mesh.faces, 0.0, None, 0, "none"
+        faces, bound_mm, check, rounds, by, moved = mesh.faces, 0.0, None, 0, "none", None
     else:
         heard = progress or _unheard
         run = _runner(
@@ -252,11 +257,12 @@ def decimate(
         )  # fmt: skip
         heard("decimate", 0.0)
         if measure:
-            faces, bound_mm, check, rounds, by = _held(mesh, run, heard=heard)
+            faces, bound_mm, check, rounds, by, moved = _held(mesh, run, heard=heard)
         else:
-            (faces, bound_mm, by), check, rounds = run(None, 1), None, 1
+            (faces, bound_mm, by, moved), check, rounds = run(None, 1), None, 1
     if method != "none":
-        vertices, faces = compact(mesh.vertices, faces)
+        kept = mesh.vertices if moved is None else moved.astype(mesh.vertices.dtype)
+        vertices, faces = compact(kept, faces)
         out = Mesh(vertices=vertices, faces=faces, normals=vertex_normals(vertices, faces))
     else:
         out = mesh
@@ -297,8 +303,8 @@ def _unheard(stage: str, fraction: float) -> None:
 
 
 #: One run given the vertices locked and the round (1, 2, ...): (faces, bound mm, the
-#: method that made them).
-Run = Callable[["np.ndarray | None", int], tuple["np.ndarray", float, str]]
+#: method that made them, and the vertices where the method moved some (None: the input's)).
+Run = Callable[["np.ndarray | None", int], tuple["np.ndarray", float, str, "np.ndarray | None"]]
 
 
 def _runner(
@@ -336,21 +342,23 @@ def _runner(
 
         runs = _QUADRIC_ROUNDS.get(schedule, 1)
 
-        def run_quadric(locked: np.ndarray | None, round_: int) -> tuple[np.ndarray, float, str]:
+        def run_quadric(
+            locked: np.ndarray | None, round_: int
+        ) -> tuple[np.ndarray, float, str, None]:
             if round_ > runs:
                 # quadric's locks are not schroeder's: its first run starts free (bar ``fixed``)
                 free = fixed if round_ == runs + 1 else locked
                 faces, ended = schroeder(mesh, reduce, bound_mm / 8, bound_mm, 0, free, tick)
-                return faces, ended, "schroeder"
+                return faces, ended, "schroeder", None
             target = bound_mm / extent * _QUADRIC_TIGHTER ** (round_ - 1)
             faces = quadric(mesh, reduce, target, locked)[0]
             tick(1.0)  # meshoptimizer's one call says nothing on its way
-            return faces, bound_mm, "quadric"
+            return faces, bound_mm, "quadric", None
 
         run_quadric.hands_over_after = runs  # type: ignore[attr-defined]
         return run_quadric
-    if method == "collapse":
-        return _collapse_runner(mesh, reduce, error_bound, max_error, schedule, diag)
+    if method in ("collapse", "placed"):
+        return _collapse_runner(mesh, method, reduce, error_bound, max_error, schedule, diag)
     if schedule == "guaranteed":
         # Whatever the method asked for: schroeder's accumulated error is a bound (see
         # miss.decimate._fan.overlay_gap), quadric's error an estimate that a check at points
@@ -361,53 +369,68 @@ def _runner(
             schroeder(mesh, reduce, bound_mm / 8, bound_mm, 0, locked, tick)[0],
             bound_mm,
             "schroeder",
+            None,
         )
     return lambda locked, _: (
         *schroeder(mesh, reduce, error_bound * diag, max_error * diag, paper_passes, locked, tick),
         "schroeder",
+        None,
     )
 
 
 def _collapse_runner(
-    mesh: Mesh, reduce: float, error_bound: float, max_error: float, schedule: str, diag: float
+    mesh: Mesh,
+    method: str,
+    reduce: float,
+    error_bound: float,
+    max_error: float,
+    schedule: str,
+    diag: float,
 ) -> Run:
-    """collapse's runs: held to the bound asked for (``guaranteed``), or, under ``paper``,
-    at a bound doubled from ``error_bound`` up to ``max_error`` until ``reduce`` is met,
-    as schroeder's passes (each stage goes on from the last, its triangles carrying their
-    error)."""
-    from miss.decimate.collapse import collapse
+    """collapse's and placed's runs: held to the bound asked for (``guaranteed``), or,
+    under ``paper``, at a bound doubled from ``error_bound`` up to ``max_error`` until
+    ``reduce`` is met, as schroeder's passes (each stage goes on from the last, its
+    triangles carrying their error)."""
+    from miss.decimate.collapse import STAGES, collapse
+    from miss.decimate.placed import placed
+
+    def run(locked: np.ndarray | None, bound_mm: float, stages: tuple[float, ...]) -> tuple:
+        if method == "placed":
+            vertices, faces, ended = placed(mesh, reduce, bound_mm, locked, stages)
+            # in the input's type, as the model will have them: the check measures those
+            return faces, ended, "placed", vertices.astype(mesh.vertices.dtype)
+        return (*collapse(mesh, reduce, bound_mm, locked, stages), "collapse", None)
 
     if schedule == "guaranteed":
-        return lambda locked, _: (
-            collapse(mesh, reduce, error_bound * diag, locked)[0],
-            error_bound * diag,
-            "collapse",
-        )
+
+        def held(locked: np.ndarray | None, _: int) -> tuple:
+            faces, _ended, by, vertices = run(locked, error_bound * diag, STAGES)
+            return faces, error_bound * diag, by, vertices  # held to the bound asked for
+
+        return held
     stages = [error_bound]
     while stages[-1] < max_error:
         stages.append(min(2.0 * stages[-1], max_error))
     fractions = tuple(s / max_error for s in stages)
-    return lambda locked, _: (
-        *collapse(mesh, reduce, max_error * diag, locked, fractions),
-        "collapse",
-    )
+    return lambda locked, _: run(locked, max_error * diag, fractions)
 
 
 def decimate_held(
     mesh: Mesh, method: Method | str, reduce: float, bound_mm: float, fixed: np.ndarray
-) -> tuple[np.ndarray, BoundCheck]:
-    """The faces a ``guaranteed`` decimation of ``mesh`` keeps, with the ``fixed`` (N,)
-    vertices never removed, and its check: measured within ``bound_mm`` (mm). For one
-    block of a surface (its border fixed, so that the blocks still meet); the caller
-    compacts. ``decimate`` is the whole-mesh function."""
+) -> tuple[np.ndarray, np.ndarray, BoundCheck]:
+    """The vertices (the input's, with those the method moved where it moved them) and
+    the faces a ``guaranteed`` decimation of ``mesh`` keeps, with the ``fixed`` (N,)
+    vertices never removed nor moved, and its check: measured within ``bound_mm`` (mm).
+    For one block of a surface (its border fixed, so that the blocks still meet); the
+    caller compacts. ``decimate`` is the whole-mesh function."""
     check_decimation(method, 1.0, reduce, 1.0, "guaranteed")
     diag = mesh.diagonal()
     if method == "none" or mesh.n_triangles == 0 or diag <= 0.0:
-        run: Run = lambda locked, _: (mesh.faces, bound_mm, "none")  # noqa: E731
+        run: Run = lambda locked, _: (mesh.faces, bound_mm, "none", None)  # noqa: E731
     else:
         run = _runner(mesh, method, reduce, bound_mm / diag, 1.0, 0, "guaranteed", fixed)
-    faces, _, (check, _), _, _ = _held(mesh, run, fixed=fixed)
-    return faces, check
+    faces, _, (check, _), _, _, moved = _held(mesh, run, fixed=fixed)
+    return (mesh.vertices if moved is None else moved), faces, check
 
 
 def _held(
@@ -416,12 +439,12 @@ def _held(
     rounds: int = ROUNDS,
     fixed: np.ndarray | None = None,
     heard: Heard = _unheard,
-) -> tuple[np.ndarray, float, tuple[BoundCheck, float], int, str]:
+) -> tuple[np.ndarray, float, tuple[BoundCheck, float], int, str, np.ndarray | None]:
     """Run until the output is measured within its bound: each time it is not, the input
     vertices around the points out of bound are locked and the run repeated (the locks
     start again, from ``fixed``, when another method takes over); the last round keeps the
     input as it is (0 mm). Returns (faces, bound mm, (check, seconds of checking), rounds
-    run, the method that made the faces)."""
+    run, the method that made the faces, the vertices where it moved some or None)."""
     from miss.measure import surface_adjacency, surface_grid
 
     def build() -> tuple[tuple, tuple[np.ndarray, np.ndarray]]:
@@ -493,7 +516,7 @@ def _rounds(
     fixed: np.ndarray | None,
     inputs: Callable[[], tuple[tuple, tuple[np.ndarray, np.ndarray]]],
     heard: Heard = _unheard,
-) -> tuple[np.ndarray, float, tuple[BoundCheck, float], int, str]:
+) -> tuple[np.ndarray, float, tuple[BoundCheck, float], int, str, np.ndarray | None]:
     """:func:`_held`'s rounds; ``inputs()``: the input's grid and adjacency; ``heard``
     hears ("check", 0) as each round's check of the bound begins, ("check", 1) at its end."""
     import numpy as np
@@ -506,9 +529,9 @@ def _rounds(
     slack = _TOLERANCE * mesh.diagonal()
     for round_ in range(1, rounds + 1):
         if round_ < rounds:
-            faces, bound_mm, by = run(locked, round_)
+            faces, bound_mm, by, moved = run(locked, round_)
         else:
-            faces, by = mesh.faces, "none"
+            faces, by, moved = mesh.faces, "none", None
         begin = time.perf_counter()
         if round_ == getattr(run, "hands_over_after", 0) and _strays(mesh, faces, bound_mm + slack):
             # the next round is another method's, which starts from ``fixed``: no locks wanted
@@ -521,19 +544,21 @@ def _rounds(
         # schroeder made is within its bound by construction: measured at the contract's
         # points, not at its triangles' centroids too (see bound_check)
         cap, centroids = 2.0 * bound_mm + slack, by not in _BOUNDED
-        check = bound_check(mesh, faces, cap, grid, around, centroids)
+        check = bound_check(mesh, faces, cap, grid, around, centroids, moved)
         spent += time.perf_counter() - begin
         heard("check", 1.0)
         if check.max_mm <= bound_mm + slack or round_ == rounds:
-            return faces, bound_mm, (check, spent), round_, by
+            return faces, bound_mm, (check, spent), round_, by, moved
         begin = time.perf_counter()
-        mended = _put_back(mesh, faces, check, bound_mm + slack)
+        # (an output that moved vertices is run again instead: the splits assume they are
+        # the input's)
+        mended = None if moved is not None else _put_back(mesh, faces, check, bound_mm + slack)
         again = None
         if mended is not None:
             again = bound_check(mesh, mended, cap, grid, around, centroids)
         spent += time.perf_counter() - begin
         if mended is not None and again is not None and again.max_mm <= bound_mm + slack:
-            return mended, bound_mm, (again, spent), round_, by
+            return mended, bound_mm, (again, spent), round_, by, None
         if by != last and last:
             locked[:] = fixed
         locked |= _out_of_bound(mesh, check, bound_mm)

@@ -82,7 +82,9 @@ def placed(
     """
     lib = _library()
     if lib is None:
-        raise RuntimeError("the placed collapse was not built: run `make test` (needs a C++ compiler)")
+        raise RuntimeError(
+            "the placed collapse was not built: run `make test` (needs a C++ compiler)"
+        )
     pts = np.array(mesh.vertices, dtype=np.float64, order="C")  # a copy: moved in place
     work = np.array(mesh.faces, dtype=np.int32, order="C")
     free = np.zeros(len(pts), np.uint8) if locked is None else locked.astype(np.uint8)

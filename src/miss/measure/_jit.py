@@ -599,9 +599,10 @@ def bound_check(
     grid: tuple | None = None,
     adjacency: tuple[np.ndarray, np.ndarray] | None = None,
     centroids: bool = True,
+    vertices: np.ndarray | None = None,
 ) -> BoundCheck:
     """Two-sided deviation (mm) of the output ``faces`` (M, 3), which index ``before``'s
-    vertices, from ``before``'s surface: every input vertex the output dropped to the output
+    vertices (or ``vertices``, see below), from ``before``'s surface: every input vertex the output dropped to the output
     surface, and the output's edge midpoints and triangle centroids to the input surface.
 
     The output's own vertices are input vertices (distance 0), so this covers every vertex
@@ -620,7 +621,18 @@ def bound_check(
     more: on the 15 surfaces and bounds of ``benchmarks/bounds.py`` no centroid was ever the
     farthest point (the largest was an input vertex at 13, an edge midpoint at 2), and they
     were 28-47 % of the points searched.
+
+    ``vertices`` (N, 3), for an output that moved some of ``before``'s vertices (the placed
+    collapse, :mod:`miss.decimate.placed`): the faces index it. An output vertex that moved
+    is measured to the input (as an edge from it to itself in ``edges``), every input vertex
+    it moved from to the output, and every output triangle or edge with a moved corner is
+    new.
     """
+    if vertices is not None:
+        moved = (np.asarray(vertices) != before.vertices).any(axis=1)
+        moved[np.setdiff1d(np.arange(len(moved)), faces.ravel())] = False
+        if moved.any():
+            return _moved_check(before, faces, vertices, moved, cap, grid, adjacency, centroids)
     faces = np.ascontiguousarray(faces)
     used_in, dropped = dropped_vertices(
         np.ascontiguousarray(before.faces), faces, before.n_vertices
@@ -653,6 +665,70 @@ def bound_check(
     count = int(used_in.sum()) + len(back)
     top = max(
         float(to_output[dropped].max()) if len(dropped) else 0.0,
+        float(back.max()) if len(back) else 0.0,
+    )
+    return BoundCheck(
+        max_mm=top,
+        mean_mm=total / count if count else 0.0,
+        samples=count,
+        to_output=to_output,
+        edges=edges,
+        edge_mm=edge_mm,
+        faces=new,
+        face_mm=face_mm,
+    )
+
+
+def _moved_check(
+    before: Mesh,
+    faces: np.ndarray,
+    vertices: np.ndarray,
+    moved: np.ndarray,
+    cap: float,
+    grid: tuple | None,
+    adjacency: tuple[np.ndarray, np.ndarray] | None,
+    centroids: bool,
+) -> BoundCheck:
+    """:func:`bound_check` of an output whose ``moved`` (N,) vertices are not where the
+    input has them (``vertices``: where the output has every one)."""
+    faces = np.ascontiguousarray(faces)
+    n = before.n_vertices
+    used_in, dropped = dropped_vertices(np.ascontiguousarray(before.faces), faces, n)
+    # the input vertices the output no longer has where they were
+    away = np.union1d(dropped, np.flatnonzero(moved & used_in))
+    verts = np.ascontiguousarray(vertices)  # in their own type, as the kernels take the input's
+    after = Mesh(vertices=verts, faces=faces)
+    start, items = adjacency or surface_adjacency(before)
+    inputs = np.ascontiguousarray(before.faces)
+    touched = moved[faces].any(axis=1)
+    new = _new_faces(inputs, start, items, faces[~touched])
+    new = np.concatenate([new, faces[touched]])
+    edges = _unique_edges(new, n, inputs, start, items)
+    # an input edge with a moved end is new too; a moved vertex, as an edge to itself
+    rows = faces[touched]
+    pairs = np.concatenate([rows[:, [k, (k + 1) % 3]] for k in range(3)]).astype(np.int64)
+    pairs = pairs[moved[pairs].any(axis=1)]
+    pairs.sort(axis=1)
+    itself = np.repeat(np.flatnonzero(moved), 2).reshape(-1, 2).astype(np.int64)
+    every = np.concatenate([edges, pairs, itself])
+    keys = np.unique(every[:, 0] * n + every[:, 1])  # each once, in order
+    edges = np.stack([keys // n, keys % n], axis=1)
+    if not centroids:
+        new = new[:0]
+    of_input = np.asarray(before.vertices, dtype=np.float64)[away]
+    wide = verts.astype(np.float64)
+    of_output = np.concatenate(
+        [0.5 * (wide[edges[:, 0]] + wide[edges[:, 1]]), wide[new].mean(axis=1)]
+    )
+    back = distances_to(of_output, before, cap, grid) if len(of_output) else np.zeros(0)
+    to_output = np.where(used_in, 0.0, np.nan)
+    if len(away):
+        to_output[away] = distances_to(of_input, after, cap)
+    edge_mm, face_mm = back[: len(edges)], back[len(edges) :]
+    total = float(to_output[away].sum()) + float(back.sum())
+    count = int(used_in.sum()) + len(back)
+    top = max(
+        float(to_output[away].max()) if len(away) else 0.0,
         float(back.max()) if len(back) else 0.0,
     )
     return BoundCheck(

@@ -329,13 +329,14 @@ def _decimate_block(part: BlockMesh, method: str, reduce: float, bound_mm: float
     fixed = np.zeros(len(part.vertices), dtype=bool)
     fixed[part.shared] = True
     mesh = Mesh(vertices=part.vertices, faces=part.faces)
-    faces, check = decimate_held(mesh, method, reduce, bound_mm, fixed)
+    vertices, faces, check = decimate_held(mesh, method, reduce, bound_mm, fixed)
     used = fixed.copy()
     used[faces.ravel()] = True
     new = np.cumsum(used) - 1
     return replace(
         part,
-        vertices=part.vertices[used],
+        # (a vertex the placed collapse moved keeps its normal: it moved less than the bound)
+        vertices=np.asarray(vertices, dtype=part.vertices.dtype)[used],
         faces=new[faces].astype(np.int32),
         normals=part.normals[used],
         shared=new[part.shared],
