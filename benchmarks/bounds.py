@@ -164,7 +164,7 @@ def bench_case(
     for bound in bounds:
         bound_mm = bound * mesh.diagonal()
         rows = []
-        for method in ("quadric", "schroeder"):
+        for method in ("quadric", "schroeder", "placed"):
             result, seconds = _timed(miss_run(mesh, method, bound))
             rows.append(_row(f"MISS {method}", mesh, result, seconds, bound_mm, samples))
         best = min(r["triangles"] for r in rows)
@@ -230,7 +230,7 @@ def run(
 ) -> dict[str, Any]:
     """Measure every case (all by default), write ``bounds.{json,md}`` into ``out``."""
     chosen = {k: v for k, v in cases().items() if names is None or k in names}
-    warm_methods(("quadric", "schroeder"))
+    warm_methods(("quadric", "schroeder", "placed"))
     result: dict[str, Any] = {"machine": machine(), "reduce": REDUCE, "cases": {}}
     for name, mesh, _ in case_surfaces(chosen, log):
         result["cases"][name] = bench_case(mesh, bounds, peers, log)

@@ -1,15 +1,18 @@
-"""Bounded half-edge collapse against schroeder and the unbounded quadric: triangles and time.
+"""MISS's bounded methods (placed and half-edge collapse, schroeder) against the unbounded
+quadric: triangles and time, and where placed's time goes.
 
     .venv/bin/python benchmarks/collapse.py [--cases a,b] [--runs 3] [--out DIR]
                                             [--dense-samples N]
 
-For each surface and bound (a fraction of the bounding-box diagonal), MISS's two bounded
+For each surface and bound (a fraction of the bounding-box diagonal), MISS's three bounded
 methods run as a job runs them (``decimate(..., reduce=0.99)``, the guaranteed schedule:
 the bound decides where they stop, and the run is checked, :func:`miss.measure.bound_check`),
 and MISS's unbounded quadric as before bounds were held (to 10 %, nothing checked). Each is
 timed ``--runs`` times (the median reported): the whole call, and within it the
 decimation's and the check's seconds from the report. Each bounded output is also measured
-densely here (:func:`miss.measure._jit.between`, seed 5), not by the method. Writes
+densely here (:func:`miss.measure._jit.between`, seed 5), not by the method. Placed's
+kernel is run once more on its own for its counts (vertices tried, overlays weighed,
+collapses by where the vertex went) and its time per collapse. Writes
 ``results/collapse.{json,md}``.
 """
 
@@ -23,10 +26,12 @@ import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from common import case_surfaces, warm_methods, write_result
 from paper import machine
 
 import miss
+from miss.decimate.placed import COUNTS, placed
 from miss.measure._jit import between
 from miss.types import Mesh
 
@@ -91,7 +96,7 @@ def bench_case(
                             "bounds": {}}  # fmt: skip
     for bound in bounds:
         rows = []
-        for method in ("collapse", "schroeder"):
+        for method in ("placed", "collapse", "schroeder"):
             run = _median_run(mesh, method, bound, runs)
             report = run.pop("report")
             out = run.pop("out")
@@ -103,6 +108,14 @@ def bench_case(
                          "over_quadric": run["seconds"] / reference})  # fmt: skip
             log(f"  {bound} {method}: {out.n_triangles} triangles, {run['seconds']:.2f} s")
         case["bounds"][str(bound)] = rows
+        counts = np.zeros(len(COUNTS), np.int64)
+        start = time.perf_counter()
+        placed(mesh, REDUCE, bound * mesh.diagonal(), counts=counts)
+        seconds = time.perf_counter() - start
+        case.setdefault("placed_counts", {})[str(bound)] = {
+            "seconds": seconds,
+            **dict(zip(COUNTS, counts.tolist(), strict=True)),
+        }
     return case
 
 
@@ -132,13 +145,28 @@ def markdown(result: dict[str, Any]) -> str:
                     f"| {r['dense_max_mm']:.4f} | {r['bound_mm']:.4f} "
                     f"| {'yes' if r['holds_densely'] else 'no'} |\n"
                 )
+    lines += [
+        "\nWhere placed's time goes (its kernel alone, once; collapses = the last three "
+        "columns):\n\n| surface | bound | seconds | "
+        + " | ".join(COUNTS)
+        + " | µs per collapse | overlays per collapse |\n",
+        "| --- | ---: | ---: | " + " | ".join("---:" for _ in COUNTS) + " | ---: | ---: |\n",
+    ]
+    for name, case in result["cases"].items():
+        for bound, c in case.get("placed_counts", {}).items():
+            done = max(sum(c[k] for k in COUNTS[3:]), 1)
+            lines.append(
+                f"| {name} | {bound} | {c['seconds']:.2f} | "
+                + " | ".join(str(c[k]) for k in COUNTS)
+                + f" | {1e6 * c['seconds'] / done:.1f} | {c[COUNTS[2]] / done:.1f} |\n"
+            )
     return "".join(lines)
 
 
 def run(out: Path, names: list[str] | None, runs: int, samples: int, log: Any) -> dict[str, Any]:
     """Measure every case (all by default), write ``collapse.{json,md}`` into ``out``."""
     chosen = {k: v for k, v in cases().items() if names is None or k in names}
-    warm_methods(("quadric", "schroeder", "collapse"))
+    warm_methods(("quadric", "schroeder", "collapse", "placed"))
     result: dict[str, Any] = {"machine": machine(), "reduce": REDUCE, "runs": runs, "cases": {}}
     for name, mesh, (bounds,) in case_surfaces(chosen, log, normals=False):
         result["cases"][name] = bench_case(mesh, bounds, runs, samples, log)

@@ -310,15 +310,15 @@ def test_bounds_rows_on_the_phantom() -> None:
     assert case["unbounded_quadric_seconds"] > 0
     for entry in case["bounds"].values():
         rows = {r["method"]: r for r in entry["rows"]}
-        assert set(rows) == {"MISS quadric", "MISS schroeder", *bounds.PEERS}
-        for name in ("MISS quadric", "MISS schroeder"):
+        assert set(rows) == {"MISS quadric", "MISS schroeder", "MISS placed", *bounds.PEERS}
+        for name in ("MISS quadric", "MISS schroeder", "MISS placed"):
             assert rows[name]["holds"] and rows[name]["max_mm"] <= entry["bound_mm"] * 1.000001
         for row in rows.values():  # the dense measure adds points: never less than the checked
             assert row["dense_max_mm"] >= row["max_mm"]
             assert row["holds_densely"] == (
                 row["dense_max_mm"] <= entry["bound_mm"] + 1e-6 * mesh.diagonal()
             )
-        best = min(rows["MISS quadric"]["triangles"], rows["MISS schroeder"]["triangles"])
+        best = min(rows[f"MISS {m}"]["triangles"] for m in ("quadric", "schroeder", "placed"))
         assert abs(rows["pyfqmr"]["triangles"] - best) <= 0.02 * best + 2
     assert len(bounds.verdict(case)) == 2
     import report

@@ -153,10 +153,12 @@ def test_the_benchmark_rows_on_the_phantom(capsys) -> None:
     mesh = extract_surface(phantom(48, spacing=4.0), 200.0)
     case = bench.bench_case(mesh, (0.002,), runs=1, samples=20_000, log=lambda line: None)
     rows = {r["method"]: r for r in case["bounds"]["0.002"]}
-    assert set(rows) == {"collapse", "schroeder"} and case["quadric_seconds"] > 0
+    assert set(rows) == {"placed", "collapse", "schroeder"} and case["quadric_seconds"] > 0
     for row in rows.values():
         assert row["holds_densely"] and row["max_mm"] <= row["bound_mm"] * 1.000001
     table = bench.markdown({"cases": {"phantom": case}})
-    assert "| phantom |" in table and "| collapse |" in table
+    assert "| phantom |" in table and "| collapse |" in table and "| placed |" in table
+    counts = case["placed_counts"]["0.002"]
+    assert counts["vertices tried"] > 0 and "µs per collapse" in table
     assert bench.main(["--cases", "CThead knee"]) == 2
     assert "unknown case" in capsys.readouterr().err

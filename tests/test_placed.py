@@ -4,6 +4,8 @@ collapse at the same bound; and the check that measures a model whose vertices m
 
 from __future__ import annotations
 
+import importlib
+
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
@@ -148,3 +150,15 @@ def test_placed_is_a_method_of_decimate_the_paper_schedule_and_the_command_line(
     args = build_parser().parse_args(["convert", "in.nii", "-o", "out.glb", "--decimate", "placed"])
     assert args.decimate == "placed"
     assert ModelRequest(volume="v", decimate="placed").decimate == "placed"
+
+
+@pytest.mark.slow  # the whole CThead bone, twice
+def test_the_slabs_give_the_same_model_on_one_thread_as_on_two(bone: Mesh, monkeypatch) -> None:
+    module = importlib.import_module("miss.decimate.placed")  # the module, not the function
+    bound_mm = 0.002 * bone.diagonal()
+    monkeypatch.setattr(module, "usable_cores", lambda: 2)
+    v2, f2, _ = placed(bone, 0.99, bound_mm)
+    monkeypatch.setattr(module, "usable_cores", lambda: 1)
+    v1, f1, _ = placed(bone, 0.99, bound_mm)
+    assert module._slab_count(bone.n_triangles) > 1
+    assert np.array_equal(f1, f2) and np.array_equal(v1, v2)

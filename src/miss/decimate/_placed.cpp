@@ -36,10 +36,12 @@
 #include <Python.h>
 
 #include <algorithm>
+#include <atomic>
 #include <cmath>
 #include <cstdint>
 #include <exception>
 #include <limits>
+#include <thread>
 #include <vector>
 
 namespace {
@@ -58,6 +60,18 @@ inline V3 cross(V3 a, V3 b) {
 inline double dot(V3 a, V3 b) { return a.x * b.x + a.y * b.y + a.z * b.z; }
 inline double cross2(double ax, double ay, double bx, double by) { return ax * by - ay * bx; }
 
+// What every worker shares: the mesh being collapsed and its tables.
+struct Shared {
+    std::vector<int32_t> vf;  // (N, row) vertex -> faces
+    std::vector<int32_t> vdeg;
+    std::vector<double> q;  // (N, 10) quadrics
+    std::vector<double> terr;  // (M,) error spent on each triangle
+    std::vector<double> need;  // (N,) least bound a vertex's collapses need (0: unknown)
+    std::vector<int32_t> pos;  // (N,) each vertex's place in its worker's heap (-1: none)
+};
+
+// One worker: a stage over the vertices it owns (a slab's, or all), with its own heap and
+// scratch; the arrays it points to are shared.
 struct Run {
     double* pts;  // (N, 3), moved in place
     int32_t* faces;  // (M, 3), edited in place
@@ -66,13 +80,17 @@ struct Run {
     int64_t n_pts;
     int cap;  // most triangles a new vertex may carry
     int row;  // the table's row length (>= cap, >= the input's largest valence)
-    std::vector<int32_t> vf;  // (N, row) vertex -> faces
-    std::vector<int32_t> vdeg;
-    std::vector<double> q;  // (N, 10) quadrics
-    std::vector<double> terr;  // (M,) error spent on each triangle
-    std::vector<double> need;  // (N,) least bound a vertex's collapses need (0: unknown)
+    int32_t* vf;
+    int32_t* vdeg;
+    double* q;
+    double* terr;
+    double* need;
+    int32_t* pos;
+    // the worker's vertices: owner[v] == me (all, where owner is null)
+    const int32_t* owner = nullptr;
+    int32_t me = 0;
     std::vector<double> key;  // heap
-    std::vector<int32_t> item, pos;
+    std::vector<int32_t> item;
     int64_t size = 0;
     // what the run did: pops tried, pops put back at their cost, overlays weighed, and
     // collapses to the quadric's point, to w, to u
@@ -86,6 +104,23 @@ struct Run {
     std::vector<int32_t> corder;
 
     V3 P(int32_t v) const { return {pts[3 * v], pts[3 * v + 1], pts[3 * v + 2]}; }
+    bool mine(int32_t v) const { return owner == nullptr || owner[v] == me; }
+
+    void attach(double* p, int32_t* f, uint8_t* a, const uint8_t* l, int64_t n, int c, int r,
+                Shared& s) {
+        pts = p, faces = f, alive = a, locked = l, n_pts = n, cap = c, row = r;
+        vf = s.vf.data(), vdeg = s.vdeg.data(), q = s.q.data(), terr = s.terr.data();
+        need = s.need.data(), pos = s.pos.data();
+        int a1 = row + 1, a2 = 2 * row + 4;
+        for (auto* v : {&fan_u, &loop_u, &fan_w, &loop_w, &as, &bs, &used, &corder})
+            v->assign(a1, 0);
+        loop.assign(a2, 0);
+        patch.assign(a2, 0);
+        old_tri.assign(3 * a2, 0);
+        for (auto* v : {&xs, &ys, &hs, &ang, &unw, &dmax, &old_err, &trial, &best})
+            v->assign(a2 + 3, 0.0);
+        ccost.assign(a1, 0.0);
+    }
 
     // ------------------------------------------------------------------ quadrics
     void plane_quadrics(int64_t n_faces) {
@@ -479,6 +514,7 @@ struct Run {
             if (ccost[ci] == kInf) break;
             int j = corder[ci];
             int32_t w = loop_u[j];
+            if (!mine(w)) continue;  // another worker's (or the guard's): its rows are theirs
             int n_w = vdeg[w];
             if (!order_fan(w, fan_w.data(), loop_w.data())) continue;
             // the patch's loop: u's loop after w, then w's loop after u's last, before u's
@@ -650,8 +686,16 @@ struct Run {
         return v;
     }
 
-    int64_t stage(double bound, int64_t n_alive, int64_t target) {
-        for (int32_t u = 0; u < n_pts; ++u) {
+    // One stage at `bound` over the worker's vertices (visit: n_visit of them; null: all),
+    // until `target` live triangles remain of `n_alive` or nothing more goes. Returns the
+    // live triangles.
+    int64_t stage(double bound, int64_t n_alive, int64_t target, const int32_t* visit,
+                  int64_t n_visit) {
+        key.assign(n_visit, 0.0);
+        item.assign(n_visit, 0);
+        size = 0;
+        for (int64_t k = 0; k < n_visit; ++k) {
+            int32_t u = visit ? visit[k] : int32_t(k);
             if (vdeg[u] > 0 && !locked[u] && pos[u] < 0 && need[u] <= bound) {
                 double c = vertex_cost(u);
                 if (c < kInf) put(u, c);
@@ -681,7 +725,7 @@ struct Run {
             for (int i = -1; i < n_loop; ++i) {
                 int32_t x = i < 0 ? w : loop[i];
                 need[x] = 0.0;
-                if (locked[x]) continue;
+                if (locked[x] || !mine(x)) continue;
                 double c;
                 if (i >= 0 && pos[x] >= 0) {
                     V3 p;
@@ -700,6 +744,33 @@ struct Run {
     }
 };
 
+
+// Slabs side by side: the vertices of a slab (slab[v], set by position across the mesh) that
+// no live triangle spanning two slabs touches (those are the guard's) have neighbours in
+// their own slab only, and no two slabs share a neighbour; a collapse within a slab (both
+// ends its own) joins two of its own fans, so that stays true. Each slab's collapses then
+// read and write only its own vertices' rows, quadrics and positions and the triangles
+// that touch them, whatever the other slabs do: the result is the same however many
+// threads run them.
+struct Slabs {
+    std::vector<int32_t> owner;  // (N,) a vertex's slab, or -1 (the guard's)
+    std::vector<std::vector<int32_t>> visit;  // each slab's vertices, in index order
+};
+
+void guard(const int32_t* faces, const uint8_t* alive, int64_t n_faces, const int32_t* vdeg,
+           const int32_t* slab, int64_t n_pts, int count, Slabs& out) {
+    out.owner.assign(slab, slab + n_pts);
+    for (int64_t f = 0; f < n_faces; ++f) {
+        if (!alive[f]) continue;
+        const int32_t* c = faces + 3 * f;
+        if (slab[c[0]] != slab[c[1]] || slab[c[1]] != slab[c[2]])
+            out.owner[c[0]] = out.owner[c[1]] = out.owner[c[2]] = -1;
+    }
+    out.visit.assign(count, {});
+    for (int64_t v = 0; v < n_pts; ++v)
+        if (vdeg[v] > 0 && out.owner[v] >= 0) out.visit[out.owner[v]].push_back(int32_t(v));
+}
+
 }  // namespace
 
 extern "C" {
@@ -707,63 +778,87 @@ extern "C" {
 // Collapse `faces` (n_faces x 3 int32, edited in place; `alive` marks the triangles that
 // are left) over `pts` (n_pts x 3 float64, the survivors moved in place) until `target`
 // triangles remain or none goes within the bound: stage by stage, each at
-// stages[i] x bound_mm. `locked` (n_pts bytes) never move. Writes the triangles left and
-// the last stage's bound (mm), and into counts (6) what the run did: pops tried, pops put
+// stages[i] x bound_mm, each first slab by slab (`slab`: n_pts int32 in [0, count), on up
+// to `threads` threads; count 1: none) and then over the whole mesh, serially, for what
+// the slabs left. `locked` (n_pts bytes) never move. Writes the triangles left and the
+// last stage's bound (mm), and into counts (6) what the run did: pops tried, pops put
 // back at their cost, overlays weighed, collapses to the quadric's point, to w as it was,
 // to u. Returns 0, or 1 where it ran out of memory (nothing is then to be used).
 int miss_placed_collapse(double* pts, int64_t n_pts, int32_t* faces, int64_t n_faces,
                          uint8_t* alive, const uint8_t* locked, int cap, const double* stages,
                          int n_stages, double bound_mm, double slack, int64_t target,
-                         int64_t* out_alive, double* out_bound, int64_t* counts) try {
-    Run r;
-    r.pts = pts;
-    r.faces = faces;
-    r.alive = alive;
-    r.locked = locked;
-    r.n_pts = n_pts;
-    r.cap = cap;
-    r.vdeg.assign(n_pts, 0);
-    for (int64_t f = 0; f < 3 * n_faces; ++f) r.vdeg[faces[f]] += 1;
+                         const int32_t* slab, int count, int threads, int64_t* out_alive,
+                         double* out_bound, int64_t* counts) try {
+    Shared sh;
+    sh.vdeg.assign(n_pts, 0);
+    for (int64_t f = 0; f < 3 * n_faces; ++f) sh.vdeg[faces[f]] += 1;
     int largest = 0;
-    for (int64_t v = 0; v < n_pts; ++v) largest = std::max(largest, r.vdeg[v]);
-    r.row = std::max(cap, largest);
-    r.vf.assign(size_t(n_pts) * r.row, -1);
-    std::fill(r.vdeg.begin(), r.vdeg.end(), 0);
+    for (int64_t v = 0; v < n_pts; ++v) largest = std::max(largest, sh.vdeg[v]);
+    int row = std::max(cap, largest);
+    sh.vf.assign(size_t(n_pts) * row, -1);
+    std::fill(sh.vdeg.begin(), sh.vdeg.end(), 0);
     for (int64_t f = 0; f < n_faces; ++f)
         for (int c = 0; c < 3; ++c) {
             int32_t u = faces[3 * f + c];
-            r.vf[size_t(u) * r.row + r.vdeg[u]++] = int32_t(f);
+            sh.vf[size_t(u) * row + sh.vdeg[u]++] = int32_t(f);
         }
-    r.q.assign(size_t(n_pts) * 10, 0.0);
-    r.plane_quadrics(n_faces);
-    r.terr.assign(n_faces, 0.0);
-    r.need.assign(n_pts, 0.0);
-    r.key.assign(n_pts, 0.0);
-    r.item.assign(n_pts, 0);
-    r.pos.assign(n_pts, -1);
-    int s = r.row + 1, s2 = 2 * r.row + 4;
-    for (auto* v : {&r.fan_u, &r.loop_u, &r.fan_w, &r.loop_w, &r.as, &r.bs, &r.used, &r.corder})
-        v->assign(s, 0);
-    r.loop.assign(s2, 0);
-    r.patch.assign(s2, 0);
-    r.old_tri.assign(3 * s2, 0);
-    r.xs.assign(s2 + 3, 0.0);
-    r.ys.assign(s2 + 3, 0.0);
-    r.hs.assign(s2 + 3, 0.0);
-    for (auto* v : {&r.ang, &r.unw, &r.dmax, &r.old_err, &r.trial, &r.best}) v->assign(s2 + 3, 0.0);
-    r.ccost.assign(s, 0.0);
+    sh.q.assign(size_t(n_pts) * 10, 0.0);
+    sh.terr.assign(n_faces, 0.0);
+    sh.need.assign(n_pts, 0.0);
+    sh.pos.assign(n_pts, -1);
+    std::vector<Run> runs(std::max(count, 1));
+    for (auto& r : runs) r.attach(pts, faces, alive, locked, n_pts, cap, row, sh);
+    runs[0].plane_quadrics(n_faces);
     for (int64_t f = 0; f < n_faces; ++f) alive[f] = 1;
     int64_t n_alive = n_faces;
     double bound = 0.0;
+    Slabs slabs;
     for (int i = 0; i < n_stages; ++i) {
         bound = stages[i] * bound_mm + slack;
-        n_alive = r.stage(bound, n_alive, target);
+        if (count > 1 && n_alive > target) {
+            guard(faces, alive, n_faces, sh.vdeg.data(), slab, n_pts, count, slabs);
+            int64_t total = 0;
+            for (auto& v : slabs.visit) total += int64_t(v.size());
+            // each slab stops at its share (by vertices) of the triangles to remove
+            double share = double(n_alive - target) / double(std::max<int64_t>(total, 1));
+            std::vector<int64_t> left(count, n_alive);
+            std::atomic<int> failed{0};
+            auto work = [&](int first) {
+                try {
+                    for (int d = first; d < count; d += threads) {
+                        Run& r = runs[d];
+                        r.owner = slabs.owner.data();
+                        r.me = d;
+                        int64_t stop = n_alive - int64_t(std::floor(share * slabs.visit[d].size()));
+                        left[d] = r.stage(bound, n_alive, stop, slabs.visit[d].data(),
+                                          int64_t(slabs.visit[d].size()));
+                    }
+                } catch (const std::exception&) {
+                    failed = 1;
+                }
+            };
+            std::vector<std::thread> pool;
+            for (int t = 1; t < std::min(threads, count); ++t) pool.emplace_back(work, t);
+            work(0);
+            for (auto& t : pool) t.join();
+            if (failed) return 1;
+            int64_t freed = 0;
+            for (int d = 0; d < count; ++d) freed += n_alive - left[d];
+            n_alive -= freed;
+        }
+        Run& r = runs[0];
+        r.owner = nullptr;
+        r.me = 0;
+        n_alive = r.stage(bound, n_alive, target, nullptr, n_pts);
         if (n_alive <= target) break;
     }
-    counts[0] = r.n_tries;
-    counts[1] = r.n_rekeyed;
-    counts[2] = r.n_overlays;
-    for (int k = 0; k < 3; ++k) counts[3 + k] = r.n_spot[k];
+    for (int k = 0; k < 6; ++k) counts[k] = 0;
+    for (auto& r : runs) {
+        counts[0] += r.n_tries;
+        counts[1] += r.n_rekeyed;
+        counts[2] += r.n_overlays;
+        for (int k = 0; k < 3; ++k) counts[3 + k] += r.n_spot[k];
+    }
     *out_alive = n_alive;
     *out_bound = bound;
     return 0;
