@@ -519,8 +519,8 @@ class Decimation:
     ``paper``: the bound is raised up to ``max_error`` until ``reduce`` is met."""
 
     method: str = param(
-        METHOD, '"none", "schroeder" (the paper\'s), "quadric" (fast) or "collapse" (fewest '
-        "triangles within the bound)",
+        METHOD, '"none", "schroeder" (the paper\'s), "quadric" (fast), "collapse" (fewer '
+        'triangles within the bound) or "placed" (the fewest: vertices moved; the slowest)',
         name="decimate", choices=METHODS,
     )  # fmt: skip
     error_bound: float = param(
