@@ -315,8 +315,8 @@ struct Run {
             if (s <= 0.0) return kInf;  // a new triangle folded back
             new_sum += s;
         }
-        if (std::fabs(old_sum - outline) > tol || std::fabs(new_sum - outline) > tol)
-            return kInf;  // one of them winds round more than once
+        if (!(std::fabs(old_sum - outline) <= tol) || !(std::fabs(new_sum - outline) <= tol))
+            return kInf;  // one of them winds round more than once (or a figure is not one)
         // The largest difference over each new triangle, dmax[i]: the difference at p
         // applies to every new triangle (their common corner); at u and w to the
         // triangles they lie in (and those beside, where they lie on an edge); at a
@@ -806,6 +806,7 @@ int miss_placed_collapse(double* pts, int64_t n_pts, int32_t* faces, int64_t n_f
     sh.terr.assign(n_faces, 0.0);
     sh.need.assign(n_pts, 0.0);
     sh.pos.assign(n_pts, -1);
+    threads = std::max(1, std::min(threads, count));
     std::vector<Run> runs(std::max(count, 1));
     for (auto& r : runs) r.attach(pts, faces, alive, locked, n_pts, cap, row, sh);
     runs[0].plane_quadrics(n_faces);
@@ -837,9 +838,17 @@ int miss_placed_collapse(double* pts, int64_t n_pts, int32_t* faces, int64_t n_f
                     failed = 1;
                 }
             };
+            // (a thread that cannot be started has its slabs run here, after the first's)
             std::vector<std::thread> pool;
-            for (int t = 1; t < std::min(threads, count); ++t) pool.emplace_back(work, t);
-            work(0);
+            std::vector<int> here = {0};
+            for (int t = 1; t < threads; ++t) {
+                try {
+                    pool.emplace_back(work, t);
+                } catch (const std::exception&) {
+                    here.push_back(t);
+                }
+            }
+            for (int t : here) work(t);
             for (auto& t : pool) t.join();
             if (failed) return 1;
             int64_t freed = 0;
