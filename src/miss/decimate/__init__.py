@@ -211,7 +211,7 @@ def decimate(
     Parameters
     ----------
     mesh : Mesh
-    method : "none", "quadric", "schroeder" or "collapse"
+    method : "none", "quadric", "schroeder", "collapse" or "placed"
     reduce : float
         Target fraction of triangles to remove, in [0, 1) (the paper's reduce rate).
     error_bound : float

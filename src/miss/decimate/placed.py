@@ -9,8 +9,9 @@ better placed vertices. Its bound is the overlay bound of vertex removal carried
 two fans of an edge (see the kernel's header): every output point is within the bound of the
 input surface and every input point within it of the output, however the collapses chain.
 
-Vertices on a boundary (an open fan) and locked vertices never move; a locked vertex may take
-in a free neighbour. The output's vertex array is the input's with the survivors moved (the
+Vertices on a boundary (an open fan) are neither moved nor removed (schroeder and the
+half-edge collapse do remove them along the boundary); locked vertices are not moved nor
+removed either, but may take in a free neighbour. The output's vertex array is the input's with the survivors moved (the
 faces index it), so that a caller keeps its vertex numbering (the locks of a job's blocks).
 """
 

@@ -602,8 +602,9 @@ def bound_check(
     vertices: np.ndarray | None = None,
 ) -> BoundCheck:
     """Two-sided deviation (mm) of the output ``faces`` (M, 3), which index ``before``'s
-    vertices (or ``vertices``, see below), from ``before``'s surface: every input vertex the output dropped to the output
-    surface, and the output's edge midpoints and triangle centroids to the input surface.
+    vertices (or ``vertices``, see below), from ``before``'s surface: every input vertex
+    the output dropped to the output surface, and the output's edge midpoints and triangle
+    centroids to the input surface.
 
     The output's own vertices are input vertices (distance 0), so this covers every vertex
     both ways exactly, plus the points where a new triangle bulges from the input most
