@@ -3,6 +3,8 @@ measured densely; the topology kept; fewer triangles than schroeder at the same 
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
@@ -65,16 +67,26 @@ def test_cthead_bone_is_held_densely_with_fewer_triangles_than_schroeder(
     assert out.n_triangles < 0.9 * schroeder.n_triangles
 
 
-@settings(
-    max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow], derandomize=True
-)
-@given(
-    kind=st.sampled_from(["sphere", "plate", "box"]),
-    seed=st.integers(0, 2**16),
-    noise=st.sampled_from([0.0, 0.02, 0.2]),
-    pieces=st.integers(0, 3),
-    bound=st.sampled_from(BOUNDS),
-)
+def random_surfaces(test: Callable[..., None]) -> Callable[..., None]:
+    """``test`` run on 25 of :func:`test_bounds.scene`'s surfaces, each with a bound of
+    ``BOUNDS`` (the same draws for every bounded method's test)."""
+    return settings(
+        max_examples=25,
+        deadline=None,
+        suppress_health_check=[HealthCheck.too_slow],
+        derandomize=True,
+    )(
+        given(
+            kind=st.sampled_from(["sphere", "plate", "box"]),
+            seed=st.integers(0, 2**16),
+            noise=st.sampled_from([0.0, 0.02, 0.2]),
+            pieces=st.integers(0, 3),
+            bound=st.sampled_from(BOUNDS),
+        )(test)
+    )
+
+
+@random_surfaces
 def test_random_surfaces_are_held_densely_and_keep_their_topology(
     kind: str, seed: int, noise: float, pieces: int, bound: float
 ) -> None:

@@ -8,10 +8,8 @@ import importlib
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
-from hypothesis import strategies as st
 from test_bounds import dense_max, independent_max, miss_surface, scene
-from test_collapse import held_everywhere
+from test_collapse import BOUNDS, held_everywhere, random_surfaces
 from test_schroeder import (
     assert_valid_mesh,
     boundary_edges,
@@ -24,8 +22,6 @@ from miss import Mesh, decimate
 from miss.decimate.collapse import collapse
 from miss.decimate.placed import COUNTS, native, placed
 from miss.measure import bound_check
-
-BOUNDS = (0.002, 0.0005)
 
 
 def assert_same_topology(before: Mesh, vertices: np.ndarray, faces: np.ndarray) -> None:
@@ -69,16 +65,7 @@ def test_cthead_bone_is_held_densely_with_fewer_triangles_than_the_half_edge_col
     assert out.n_triangles < 0.97 * len(half_edge)
 
 
-@settings(
-    max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow], derandomize=True
-)
-@given(
-    kind=st.sampled_from(["sphere", "plate", "box"]),
-    seed=st.integers(0, 2**16),
-    noise=st.sampled_from([0.0, 0.02, 0.2]),
-    pieces=st.integers(0, 3),
-    bound=st.sampled_from(BOUNDS),
-)
+@random_surfaces
 def test_random_surfaces_are_held_densely_and_keep_their_topology(
     kind: str, seed: int, noise: float, pieces: int, bound: float
 ) -> None:

@@ -662,12 +662,26 @@ def bound_check(
         if len(dropped):
             out_grid = making.result() if making is not None else None
             to_output[dropped] = distances_to(of_input, after, cap, out_grid, ordered=True)
+    return _summed(to_output, dropped, used_in, back, edges, new)
+
+
+def _summed(
+    to_output: np.ndarray,
+    measured: np.ndarray,
+    used_in: np.ndarray,
+    back: np.ndarray,
+    edges: np.ndarray,
+    new: np.ndarray,
+) -> BoundCheck:
+    """A check's figures: ``to_output`` (N,) measured at the input vertices ``measured``
+    (the rest used 0), ``back``: the midpoints of ``edges`` then the centroids of ``new``
+    to the input."""
     edge_mm, face_mm = back[: len(edges)], back[len(edges) :]
     # the mean over every input vertex (kept ones at 0) and every output point measured
-    total = float(to_output[dropped].sum()) + float(back.sum())
+    total = float(to_output[measured].sum()) + float(back.sum())
     count = int(used_in.sum()) + len(back)
     top = max(
-        float(to_output[dropped].max()) if len(dropped) else 0.0,
+        float(to_output[measured].max()) if len(measured) else 0.0,
         float(back.max()) if len(back) else 0.0,
     )
     return BoundCheck(
@@ -733,20 +747,4 @@ def _moved_check(
     to_output = np.where(used_in, 0.0, np.nan)
     if len(away):
         to_output[away] = distances_to(of_input, after, cap, ordered=True)
-    edge_mm, face_mm = back[: len(edges)], back[len(edges) :]
-    total = float(to_output[away].sum()) + float(back.sum())
-    count = int(used_in.sum()) + len(back)
-    top = max(
-        float(to_output[away].max()) if len(away) else 0.0,
-        float(back.max()) if len(back) else 0.0,
-    )
-    return BoundCheck(
-        max_mm=top,
-        mean_mm=total / count if count else 0.0,
-        samples=count,
-        to_output=to_output,
-        edges=edges,
-        edge_mm=edge_mm,
-        faces=new,
-        face_mm=face_mm,
-    )
+    return _summed(to_output, away, used_in, back, edges, new)
