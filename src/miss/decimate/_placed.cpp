@@ -99,9 +99,14 @@ struct Run {
     // scratch (fans of up to `row` triangles; patches of up to 2 x row)
     std::vector<int32_t> fan_u, loop_u, fan_w, loop_w, as, bs, used, loop, patch;
     std::vector<int32_t> old_tri;  // local corners of the old patch's triangles
-    std::vector<double> xs, ys, hs, ang, unw, dmax, old_err, trial, best;
+    // the old patch's inner edges (an end at u or w), each once: (a, b, t, s), a < b local
+    // corners, t and s the old triangles beside it
+    std::vector<int32_t> inner;
+    int n_inner = 0;
+    std::vector<double> xs, ys, hs, ang, unw, ins, old_err, trial, best;
     std::vector<double> ccost;
     std::vector<int32_t> corder;
+    std::vector<double> pair;  // (old x new) the largest difference over their overlap
 
     V3 P(int32_t v) const { return {pts[3 * v], pts[3 * v + 1], pts[3 * v + 2]}; }
     bool mine(int32_t v) const { return owner == nullptr || owner[v] == me; }
@@ -117,9 +122,11 @@ struct Run {
         loop.assign(a2, 0);
         patch.assign(a2, 0);
         old_tri.assign(3 * a2, 0);
-        for (auto* v : {&xs, &ys, &hs, &ang, &unw, &dmax, &old_err, &trial, &best})
+        inner.assign(4 * 3 * a2, 0);
+        for (auto* v : {&xs, &ys, &hs, &ang, &unw, &ins, &old_err, &trial, &best})
             v->assign(a2 + 3, 0.0);
         ccost.assign(a1, 0.0);
+        pair.assign(size_t(a2) * size_t(a1), 0.0);
     }
 
     // ------------------------------------------------------------------ quadrics
@@ -256,9 +263,9 @@ struct Run {
     // Local points: 0 = u, 1 = w (where they are), 2 = p, 3 + i = loop[i]. The old patch's
     // triangles are old_tri (n_old x 3, local corners), each carrying old_err; the new fan's
     // triangle i is (2, 3 + i, 3 + i + 1). Fills spent[i]: the error new triangle i carries
-    // (the most carried by the old triangles it overlaps, plus the largest height
-    // difference over it). Returns the largest, inf where the bound does not apply, or,
-    // as soon as a difference alone passes `limit`, that difference.
+    // (the most, over the old triangles it overlaps, of what one carried plus the largest
+    // height difference over their overlap). Returns the largest, inf where the bound does
+    // not apply, or, as soon as a difference alone passes `limit`, that difference.
     double overlay(int32_t u, int32_t w, V3 p, int n_loop, int n_old, double limit,
                    double* spent) {
         V3 o = P(w);
@@ -317,35 +324,44 @@ struct Run {
         }
         if (!(std::fabs(old_sum - outline) <= tol) || !(std::fabs(new_sum - outline) <= tol))
             return kInf;  // one of them winds round more than once (or a figure is not one)
-        // The largest difference over each new triangle, dmax[i]: the difference at p
-        // applies to every new triangle (their common corner); at u and w to the
-        // triangles they lie in (and those beside, where they lie on an edge); at a
-        // crossing on the new edge p-loop[i] to the two triangles beside it.
+        // The largest difference over each overlap of an old triangle t and a new one i,
+        // pair[t * n_loop + i]. It is linear there, so largest at a corner of the overlap:
+        // p (a corner of every new triangle) where it lies in t; u or w where t has it as a
+        // corner and it lies in i; a crossing of an inner edge of t (an end at u or w) with
+        // an edge of i from p; or a loop vertex (0). (t's other edges and i's third edge
+        // lie on the loop's outline.) A point on an edge counts for the triangles on both
+        // sides. Counting each overlap on its own, not each new triangle's largest
+        // difference against the most any old triangle it overlaps carried, keeps an old
+        // triangle's spent error off the difference somewhere else.
         const double kSlack = 1e-9;
         double top = 0.0;  // the largest difference so far
-        auto add = [&](int i, double d) {
-            if (d > dmax[i]) {
-                dmax[i] = d;
-                top = std::max(top, d);
-            }
+        double* pd = pair.data();
+        std::fill(pd, pd + size_t(n_old) * size_t(n_loop), 0.0);
+        auto add = [&](int t, int i, double d) {
+            double& x = pd[size_t(t) * n_loop + i];
+            if (d > x) x = d;
+            if (d > top) top = d;
         };
-        double dp;
         {
+            int hold = -1;
             double best = -kInf, height = 0.0;
             for (int t = 0; t < n_old; ++t) {
                 int a = old_tri[3 * t], b = old_tri[3 * t + 1], c = old_tri[3 * t + 2];
                 double s = area(a, b, c);
                 double la = area(2, b, c) / s, lb = area(a, 2, c) / s, lc = 1.0 - la - lb;
                 double inside = std::min(la, std::min(lb, lc));
+                ins[t] = inside;
                 if (inside > best) {
                     best = inside;
                     height = la * hs[a] + lb * hs[b] + lc * hs[c];
+                    hold = t;
                 }
             }
-            dp = std::fabs(hs[2] - height);
+            double dp = std::fabs(hs[2] - height);
+            for (int t = 0; t < n_old; ++t)
+                if (t == hold || ins[t] >= -kSlack)
+                    for (int i = 0; i < n_loop; ++i) add(t, i, dp);
         }
-        for (int i = 0; i < n_loop; ++i) dmax[i] = dp;
-        top = dp;
         if (top > limit) return top;
         for (int v = 0; v < 2; ++v) {
             int hold = -1;
@@ -366,39 +382,44 @@ struct Run {
                 int b = 3 + i, c = 3 + (i + 1) % n_loop;
                 double s = area(2, b, c);
                 double inside = std::min(area(v, b, c), std::min(area(2, v, c), area(2, b, v))) / s;
-                if (i == hold || inside >= -kSlack) add(i, d);
+                if (i != hold && inside < -kSlack) continue;
+                for (int t = 0; t < n_old; ++t)
+                    if (old_tri[3 * t] == v || old_tri[3 * t + 1] == v || old_tri[3 * t + 2] == v)
+                        add(t, i, d);
             }
             if (top > limit) return top;
         }
-        // old inner edges (an end at u or w; each once: a < b) against new ones (p to a loop
-        // vertex)
-        for (int t = 0; t < n_old; ++t) {
-            for (int k = 0; k < 3; ++k) {
-                int a = old_tri[3 * t + k], b = old_tri[3 * t + (k + 1) % 3];
-                if (a > b || a > 1) continue;  // a in {0, 1}: inner
-                double sx = xs[b] - xs[a], sy = ys[b] - ys[a];
-                double wx = xs[2] - xs[a], wy = ys[2] - ys[a];
-                for (int i = 0; i < n_loop; ++i) {
-                    int c = 3 + i;
-                    if (b == c) continue;  // they meet at the loop vertex (0 there)
-                    double tx = xs[c] - xs[2], ty = ys[c] - ys[2];
-                    double d = cross2(sx, sy, tx, ty);
-                    if (d == 0.0) continue;  // parallel: their ends are measured already
-                    double s = cross2(wx, wy, tx, ty) / d;  // along the old edge
-                    double r = cross2(wx, wy, sx, sy) / d;  // along the new one
-                    if (s >= 0.0 && s <= 1.0 && r >= 0.0 && r <= 1.0) {
-                        double ho = hs[a] + s * (hs[b] - hs[a]);
-                        double hn = hs[2] + r * (hs[c] - hs[2]);
-                        double diff = std::fabs(ho - hn);
-                        add(i, diff);
-                        add((i + n_loop - 1) % n_loop, diff);
-                        if (top > limit) return top;
-                    }
+        // the old inner edges against the new edges from p (each crossing is in the two
+        // old triangles beside the one and the two new ones beside the other)
+        for (int e = 0; e < n_inner; ++e) {
+            const int32_t* g = &inner[4 * e];
+            int a = g[0], b = g[1], t = g[2], t2 = g[3];
+            double sx = xs[b] - xs[a], sy = ys[b] - ys[a];
+            double wx = xs[2] - xs[a], wy = ys[2] - ys[a];
+            for (int i = 0; i < n_loop; ++i) {
+                int c = 3 + i;
+                if (b == c) continue;  // they meet at the loop vertex (0 there)
+                double tx = xs[c] - xs[2], ty = ys[c] - ys[2];
+                double d = cross2(sx, sy, tx, ty);
+                if (d == 0.0) continue;  // parallel: their ends are measured already
+                double s = cross2(wx, wy, tx, ty) / d;  // along the old edge
+                double r = cross2(wx, wy, sx, sy) / d;  // along the new one
+                if (s >= 0.0 && s <= 1.0 && r >= 0.0 && r <= 1.0) {
+                    double ho = hs[a] + s * (hs[b] - hs[a]);
+                    double hn = hs[2] + r * (hs[c] - hs[2]);
+                    double diff = std::fabs(ho - hn);
+                    int h = (i + n_loop - 1) % n_loop;
+                    add(t, i, diff);
+                    add(t, h, diff);
+                    add(t2, i, diff);
+                    add(t2, h, diff);
                 }
             }
+            if (top > limit) return top;
         }
-        // What each new triangle carries, spent[i]: the most the old triangles it overlaps
-        // carry. The new fan is star-shaped from p, so new triangle i is the outline within
+        // What each new triangle carries, spent[i]: the most, over the old triangles it
+        // overlaps, of what one carried plus the largest difference over their overlap.
+        // The new fan is star-shaped from p, so new triangle i is the outline within
         // the angle from loop[i] to loop[i + 1] seen from p, and an old triangle overlaps it
         // where their angles overlap; touching is not overlapping (a point where they
         // touch is a limit of points inside the ones that do overlap, within their error).
@@ -426,8 +447,10 @@ struct Run {
             int a = old_tri[3 * t], b = old_tri[3 * t + 1], c = old_tri[3 * t + 2];
             double sa = area(a, b, c);
             double inside = std::min(area(2, b, c), std::min(area(a, 2, c), area(a, b, 2)));
-            if (inside >= kSlack * sa) {  // p in it (or on its edge): it overlaps them all
-                for (int i = 0; i < n_loop; ++i) spent[i] = std::max(spent[i], old_err[t]);
+            const double* row_t = pd + size_t(t) * n_loop;
+            if (inside >= kSlack * sa) {  // p in it: it overlaps them all
+                for (int i = 0; i < n_loop; ++i)
+                    spent[i] = std::max(spent[i], old_err[t] + row_t[i]);
                 continue;
             }
             // p outside: it spans less than a half turn, [lo, hi], the complement of the
@@ -453,14 +476,11 @@ struct Run {
                 // [lo - turn, hi - turn]
                 if ((lo < unw[i + 1] - kTouch && hi > unw[i] + kTouch) ||
                     (hi - kTurn > unw[i] + kTouch))
-                    spent[i] = std::max(spent[i], old_err[t]);
+                    spent[i] = std::max(spent[i], old_err[t] + row_t[i]);
             }
         }
         top = 0.0;
-        for (int i = 0; i < n_loop; ++i) {
-            spent[i] += dmax[i];
-            top = std::max(top, spent[i]);
-        }
+        for (int i = 0; i < n_loop; ++i) top = std::max(top, spent[i]);
         return top;
     }
 
@@ -564,6 +584,20 @@ struct Run {
                 old_tri[3 * n_old + 2] = loc_w((k + 1) % n_w);
                 ++n_old;
             }
+            // the inner edges (an end at u or w; a < b) and the triangles beside each
+            n_inner = 0;
+            for (int t = 0; t < n_old; ++t)
+                for (int k = 0; k < 3; ++k) {
+                    int a = old_tri[3 * t + k], b = old_tri[3 * t + (k + 1) % 3];
+                    if (a > b || a > 1) continue;
+                    int twin = -1;
+                    for (int t2 = 0; t2 < n_old && twin < 0; ++t2)
+                        for (int k2 = 0; k2 < 3; ++k2)
+                            if (old_tri[3 * t2 + k2] == b && old_tri[3 * t2 + (k2 + 1) % 3] == a)
+                                twin = t2;
+                    int32_t* g = &inner[4 * n_inner++];
+                    g[0] = a, g[1] = b, g[2] = t, g[3] = twin < 0 ? t : twin;
+                }
             // where w goes: the quadric's point, then w, then u as they are
             V3 spots[3];
             int n_spots = 0;
