@@ -18,9 +18,10 @@
 // and a new triangle, so it is largest at a corner of one: u, w (the new fan's height
 // beneath them), p (the old patch's height beneath it), or a crossing of an old inner edge
 // with a new one; the loop's vertices and edges lie on both (0). Each new triangle carries
-// the error already spent on the triangles it replaces plus that difference (accumulated
-// error), and a collapse goes only if that stays within the bound: the output is within
-// the bound of the input everywhere, both ways, however the collapses chain.
+// the most, over the old triangles it overlaps, of the error already spent on one plus the
+// largest difference over their overlap (accumulated error), and a collapse goes only if
+// that stays within the bound: the output is within the bound of the input everywhere, both
+// ways, however the collapses chain.
 //
 // Refused: a vertex on a boundary or pinched (its triangles are not one closed fan), a
 // locked vertex that would move (a locked vertex may stay and take its neighbour in), a
