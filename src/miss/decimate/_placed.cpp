@@ -106,6 +106,7 @@ struct Run {
     int n_inner = 0;
     std::vector<double> xs, ys, hs, ang, unw, ins, old_err, trial, best;
     std::vector<double> ccost;
+    std::vector<V3> cspot;  // where each of u's edges would put the vertex
     std::vector<int32_t> corder;
     std::vector<double> pair;  // (old x new) the largest difference over their overlap
 
@@ -127,6 +128,7 @@ struct Run {
         for (auto* v : {&xs, &ys, &hs, &ang, &unw, &ins, &old_err, &trial, &best})
             v->assign(a2 + 3, 0.0);
         ccost.assign(a1, 0.0);
+        cspot.assign(a1, V3{0.0, 0.0, 0.0});
         pair.assign(size_t(a2) * size_t(a1), 0.0);
     }
 
@@ -515,8 +517,7 @@ struct Run {
         // the candidates, cheapest first (insertion: a dozen at most)
         int m = 0;
         for (int k = 0; k < n_u; ++k) {
-            V3 p;
-            double c = place(u, loop_u[k], p);
+            double c = place(u, loop_u[k], cspot[k]);
             int i = m;
             while (i > 0 && ccost[i - 1] > c) {
                 ccost[i] = ccost[i - 1];
@@ -602,7 +603,7 @@ struct Run {
             // where w goes: the quadric's point, then w, then u as they are
             V3 spots[3];
             int n_spots = 0;
-            place(u, w, spots[n_spots++]);
+            spots[n_spots++] = cspot[j];
             spots[n_spots++] = P(w);
             if (!locked[w]) spots[n_spots++] = P(u);
             // the spot that spends least of the bound
