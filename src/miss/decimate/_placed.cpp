@@ -39,7 +39,8 @@
 // not facing along N, a vertex with more than `cap` triangles, or a cost past the bound.
 //
 // Order: cheapest first by quadric error, from a heap of vertices keyed by their cheapest
-// edge; each vertex tries its two cheapest edges. The run is staged (fractions of the
+// edge; each vertex tries its four cheapest edges (on the MR head at 0.002: 1 189 798
+// triangles in 45.8 s; two kept 1 227 072 in 40.9 s). The run is staged (fractions of the
 // bound, rising), as the numba half-edge collapse's.
 
 #define PY_SSIZE_T_CLEAN
@@ -57,7 +58,7 @@
 namespace {
 
 const double kInf = std::numeric_limits<double>::infinity();
-const int kCandidates = 2;   // the cheapest edges of a vertex that are tried
+const int kCandidates = 4;   // the cheapest edges of a vertex that are tried
 const double kDegenerate = 1e-6;  // 2 x area below this x the squared longest edge
 
 struct V3 {

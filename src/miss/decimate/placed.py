@@ -6,13 +6,16 @@ Unlike vertex removal (schroeder) and the half-edge collapse (:mod:`miss.decimat
 it moves vertices: each collapse puts the vertex that stays where the input's planes around
 both ends meet best (Garland and Heckbert's quadric), so a noisy surface is followed by fewer,
 better placed vertices. Its bound is the overlay bound of vertex removal carried over to the
-two fans of an edge (see the kernel's header): every output point is within the bound of the
+two fans of an edge, and what each triangle has spent is a box of error vectors, grown at
+each collapse by the signed height differences along the patch's normal, so that a lift and
+a later drop cancel (see the kernel's header): every output point is within the bound of the
 input surface and every input point within it of the output, however the collapses chain.
 
 Vertices on a boundary (an open fan) are neither moved nor removed (schroeder and the
 half-edge collapse do remove them along the boundary); locked vertices are not moved nor
-removed either, but may take in a free neighbour. The output's vertex array is the input's with the survivors moved (the
-faces index it), so that a caller keeps its vertex numbering (the locks of a job's blocks).
+removed either, but may take in a free neighbour. The output's vertex array is the input's
+with the survivors moved (the faces index it), so that a caller keeps its vertex numbering
+(the locks of a job's blocks).
 """
 
 from __future__ import annotations
