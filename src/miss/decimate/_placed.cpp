@@ -452,10 +452,11 @@ struct Run {
             if (top > limit) return top;
         }
         // Each new triangle's box: the hull, over the old triangles it overlaps, of the old
-        // box grown by N times their overlap's differences. The new fan is star-shaped from p, so new triangle i is the outline within
-        // the angle from loop[i] to loop[i + 1] seen from p, and an old triangle overlaps it
-        // where their angles overlap; touching is not overlapping (a point where they
-        // touch is a limit of points inside the ones that do overlap, within their error).
+        // box grown by N times their overlap's differences. The new fan is star-shaped
+        // from p, so new triangle i is the outline within the angle from loop[i] to
+        // loop[i + 1] seen from p, and an old triangle overlaps it where their angles
+        // overlap; touching is not overlapping (a point where they touch is a limit of
+        // points inside the ones that do overlap, within their error).
         // Angles are pseudo-angles (diamond angles: a turn is 4, monotone in the angle,
         // opposite directions 2 apart), which is all this needs.
         const double kTurn = 4.0, kTouch = 1e-12;
