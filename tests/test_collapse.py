@@ -134,25 +134,23 @@ def test_locked_vertices_stay() -> None:
     assert np.isin(np.flatnonzero(locked), faces).all()
 
 
-def test_collapse_is_a_method_of_decimate_and_the_paper_schedule() -> None:
+@pytest.mark.parametrize("method", ["collapse", "placed"])
+def test_the_method_is_offered_by_decimate_the_paper_schedule_the_api_and_the_command_line(
+    method: str,
+) -> None:
+    from miss.cli import build_parser
+    from miss.server.core.schemas import ModelRequest
+
     mesh = scene("box", 3, 0.2, 1)
-    out, report = decimate(mesh, "collapse", reduce=0.5, error_bound=0.0001, schedule="paper")
-    assert report.finished_with == "collapse" and report.bound_held
+    out, report = decimate(mesh, method, reduce=0.5, error_bound=0.0001, schedule="paper")
+    assert report.finished_with == method and report.bound_held
     assert report.stopped_by == "reduce" and report.achieved_reduction >= 0.5
     # the bound was raised (doubled from 0.0001) until reduce was met, and held there
     assert 0.0001 * mesh.diagonal() < report.bound_mm <= 0.01 * mesh.diagonal()
     assert independent_max(mesh, out) <= report.bound_mm + 1e-6 * mesh.diagonal()
-
-
-def test_collapse_is_offered_by_the_api_and_the_command_line() -> None:
-    from miss.cli import build_parser
-    from miss.server.core.schemas import ModelRequest
-
-    args = build_parser().parse_args(
-        ["convert", "in.nii", "-o", "out.glb", "--decimate", "collapse"]
-    )
-    assert args.decimate == "collapse"
-    assert ModelRequest(volume="v", decimate="collapse").decimate == "collapse"
+    args = build_parser().parse_args(["convert", "in.nii", "-o", "out.glb", "--decimate", method])
+    assert args.decimate == method
+    assert ModelRequest(volume="v", decimate=method).decimate == method
 
 
 def test_the_benchmark_rows_on_the_phantom(capsys) -> None:

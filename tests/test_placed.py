@@ -8,7 +8,7 @@ import importlib
 
 import numpy as np
 import pytest
-from test_bounds import dense_max, independent_max, miss_surface, scene
+from test_bounds import dense_max, miss_surface, scene
 from test_collapse import BOUNDS, held_everywhere, random_surfaces
 from test_schroeder import (
     assert_valid_mesh,
@@ -123,21 +123,6 @@ def test_the_check_measures_a_vertex_that_moved() -> None:
     assert (check.edges == 10).any()  # the moved vertex, among what was measured
     assert check.to_output[10] > 0.3  # the input vertex it left, to the output
     assert bound_check(mesh, mesh.faces, vertices=mesh.vertices.copy()).max_mm == 0.0
-
-
-def test_placed_is_a_method_of_decimate_the_paper_schedule_and_the_command_line() -> None:
-    from miss.cli import build_parser
-    from miss.server.core.schemas import ModelRequest
-
-    mesh = scene("box", 3, 0.2, 1)
-    out, report = decimate(mesh, "placed", reduce=0.5, error_bound=0.0001, schedule="paper")
-    assert report.finished_with == "placed" and report.bound_held
-    assert report.stopped_by == "reduce" and report.achieved_reduction >= 0.5
-    assert 0.0001 * mesh.diagonal() < report.bound_mm <= 0.01 * mesh.diagonal()
-    assert independent_max(mesh, out) <= report.bound_mm + 1e-6 * mesh.diagonal()
-    args = build_parser().parse_args(["convert", "in.nii", "-o", "out.glb", "--decimate", "placed"])
-    assert args.decimate == "placed"
-    assert ModelRequest(volume="v", decimate="placed").decimate == "placed"
 
 
 @pytest.mark.slow  # the whole CThead bone, twice
