@@ -39,9 +39,15 @@
 // not facing along N, a vertex with more than `cap` triangles, or a cost past the bound.
 //
 // Order: cheapest first by quadric error, from a heap of vertices keyed by their cheapest
-// edge; each vertex tries its four cheapest edges (on the MR head at 0.002: 1 189 798
-// triangles in 45.8 s; two kept 1 227 072 in 40.9 s). The run is staged (fractions of the
-// bound, rising), as the numba half-edge collapse's.
+// edge (kept exact: a vertex remembers the neighbour across it, and is weighed again when
+// that edge changes); each vertex tries its four cheapest edges (on the MR head at 0.002:
+// 1 189 798 triangles; two kept 1 227 072). The run is staged (fractions of the bound,
+// rising), as the numba half-edge collapse's.
+//
+// Work not done (the same model, 30 % less time on the MR head): what the spots of one edge
+// share (N, the frame, the old patch's areas) is worked out once per edge, and an edge whose
+// old patch has no height over its outline weighs no spot; an overlay stops as soon as a
+// sure overlap's grown box passes the bound, not only a difference alone.
 
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -79,6 +85,7 @@ struct Shared {
     std::vector<float> terr;  // (M, 6) each triangle's error box, least corner then most
     std::vector<double> need;  // (N,) least bound a vertex's collapses need (0: unknown)
     std::vector<int32_t> pos;  // (N,) each vertex's place in its worker's heap (-1: none)
+    std::vector<int32_t> via;  // (N,) the neighbour across a vertex's cheapest edge
 };
 
 // One worker: a stage over the vertices it owns (a slab's, or all), with its own heap and
@@ -97,6 +104,7 @@ struct Run {
     float* terr;
     double* need;
     int32_t* pos;
+    int32_t* via;
     // the worker's vertices: owner[v] == me (all, where owner is null)
     const int32_t* owner = nullptr;
     int32_t me = 0;
@@ -114,7 +122,10 @@ struct Run {
     // corners, t and s the old triangles beside it
     std::vector<int32_t> inner;
     int n_inner = 0;
-    std::vector<double> xs, ys, hs, ang, unw, ins, old_box, trial, best, box;
+    std::vector<double> xs, ys, hs, sq, old_area, ang, unw, ins, old_box, trial, best, box;
+    // the candidate's frame (see frame)
+    V3 fo, fn, fe, ff;
+    double outline = 0.0, old_sum = 0.0;
     std::vector<double> ccost;
     std::vector<V3> cspot;  // where each of u's edges would put the vertex
     std::vector<int32_t> corder;
@@ -128,7 +139,7 @@ struct Run {
                 Shared& s) {
         pts = p, faces = f, alive = a, locked = l, n_pts = n, cap = c, row = r;
         vf = s.vf.data(), vdeg = s.vdeg.data(), q = s.q.data(), terr = s.terr.data();
-        need = s.need.data(), pos = s.pos.data();
+        need = s.need.data(), pos = s.pos.data(), via = s.via.data();
         int a1 = row + 1, a2 = 2 * row + 4;
         for (auto* v : {&fan_u, &loop_u, &fan_w, &loop_w, &as, &bs, &used, &corder})
             v->assign(a1, 0);
@@ -136,7 +147,7 @@ struct Run {
         patch.assign(a2, 0);
         old_tri.assign(3 * a2, 0);
         inner.assign(4 * 3 * a2, 0);
-        for (auto* v : {&xs, &ys, &hs, &ang, &unw, &ins}) v->assign(a2 + 3, 0.0);
+        for (auto* v : {&xs, &ys, &hs, &sq, &old_area, &ang, &unw, &ins}) v->assign(a2 + 3, 0.0);
         for (auto* v : {&old_box, &trial, &best, &box}) v->assign(6 * (a2 + 3), 0.0);
         ccost.assign(a1, 0.0);
         cspot.assign(a1, V3{0.0, 0.0, 0.0});
@@ -222,11 +233,15 @@ struct Run {
         return c[0] == u ? c[1] : (c[1] == u ? c[2] : c[0]);
     }
 
-    double vertex_cost(int32_t u) const {
+    // u's cheapest edge's cost (via[u]: the neighbour across it)
+    double vertex_cost(int32_t u) {
         double best = kInf;
         V3 p;
-        for (int k = 0; k < vdeg[u]; ++k)
-            best = std::min(best, place(u, next_corner(vf[size_t(u) * row + k], u), p));
+        for (int k = 0; k < vdeg[u]; ++k) {
+            int32_t x = next_corner(vf[size_t(u) * row + k], u);
+            double c = place(u, x, p);
+            if (c < best) best = c, via[u] = x;
+        }
         return best;
     }
 
@@ -294,17 +309,18 @@ struct Run {
     }
     // Local points: 0 = u, 1 = w (where they are), 2 = p, 3 + i = loop[i]. The old patch's
     // triangles are old_tri (n_old x 3, local corners), each with its error box in old_box;
-    // the new fan's triangle i is (2, 3 + i, 3 + i + 1). Fills spent[6 i, 6 i + 6): new
-    // triangle i's error box (see the header). Returns the farthest any new box reaches,
-    // inf where the bound does not apply, or, as soon as a difference alone passes `limit`,
-    // that difference (a box holds 0, so it reaches at least as far as any difference).
-    double overlay(int32_t u, int32_t w, V3 p, int n_loop, int n_old, double limit,
-                   double* spent) {
+    // the new fan's triangle i is (2, 3 + i, 3 + i + 1).
+    //
+    // The candidate's frame, what does not depend on where the vertex goes: N, the old
+    // patch's mean normal, e and f across it, every local point but p seen from w along N
+    // (xs, ys across, hs along), the old triangles' areas and the outline's. False where the
+    // old patch has no height over the outline (N is 0 or an old triangle is folded back):
+    // then no spot holds.
+    bool frame(int32_t u, int32_t w, int n_loop, int n_old) {
         V3 o = P(w);
         auto local = [&](int i) -> V3 {
-            return i == 0 ? P(u) : (i == 1 ? P(w) : (i == 2 ? p : P(loop[i - 3])));
+            return i == 0 ? P(u) : (i == 1 ? P(w) : P(loop[i - 3]));
         };
-        // N: the old patch's mean normal
         V3 N = {0, 0, 0};
         for (int t = 0; t < n_old; ++t) {
             V3 a = local(old_tri[3 * t]), b = local(old_tri[3 * t + 1]),
@@ -313,7 +329,7 @@ struct Run {
             N = {N.x + n.x, N.y + n.y, N.z + n.z};
         }
         double len = std::sqrt(dot(N, N));
-        if (!(len > 0.0)) return kInf;
+        if (!(len > 0.0)) return false;
         N = {N.x / len, N.y / len, N.z / len};
         V3 e;
         if (std::fabs(N.x) <= std::fabs(N.y) && std::fabs(N.x) <= std::fabs(N.z))
@@ -324,31 +340,52 @@ struct Run {
             e = {N.y, -N.x, 0.0};
         double el = std::sqrt(dot(e, e));
         e = {e.x / el, e.y / el, e.z / el};
-        V3 f = cross(N, e);
-        int n_pts = 3 + n_loop;
-        double scale = 0.0;
-        for (int i = 0; i < n_pts; ++i) {
+        fo = o, fn = N, fe = e, ff = cross(N, e);
+        for (int i = 0; i < 3 + n_loop; ++i) {
+            if (i == 2) continue;
             V3 d = sub(local(i), o);
-            xs[i] = dot(e, d);
-            ys[i] = dot(f, d);
-            hs[i] = dot(N, d);
-            scale += xs[i] * xs[i] + ys[i] * ys[i];
+            xs[i] = dot(fe, d);
+            ys[i] = dot(ff, d);
+            hs[i] = dot(fn, d);
+            sq[i] = xs[i] * xs[i] + ys[i] * ys[i];
         }
-        double tol = 1e-9 * scale;
-        double outline = 0.0;
+        outline = 0.0;
         for (int i = 0; i < n_loop; ++i) {
             int a = 3 + i, b = 3 + (i + 1) % n_loop;
             outline += cross2(xs[a], ys[a], xs[b], ys[b]);
         }
-        auto area = [&](int a, int b, int c) {
-            return cross2(xs[b] - xs[a], ys[b] - ys[a], xs[c] - xs[a], ys[c] - ys[a]);
-        };
-        double old_sum = 0.0, new_sum = 0.0;
+        old_sum = 0.0;
         for (int t = 0; t < n_old; ++t) {
             double s = area(old_tri[3 * t], old_tri[3 * t + 1], old_tri[3 * t + 2]);
-            if (s <= 0.0) return kInf;  // an old triangle folded back: no height over it
+            if (s <= 0.0) return false;  // an old triangle folded back: no height over it
+            old_area[t] = s;
             old_sum += s;
         }
+        return true;
+    }
+
+    double area(int a, int b, int c) const {
+        return cross2(xs[b] - xs[a], ys[b] - ys[a], xs[c] - xs[a], ys[c] - ys[a]);
+    }
+
+    // In the frame: fills spent[6 i, 6 i + 6) with new triangle i's error box (see the
+    // header) where the vertex goes to p. Returns the farthest any new box reaches, inf
+    // where the bound does not apply, or, as soon as a difference alone passes `limit`, that
+    // difference (a box holds 0, so it reaches at least as far as any difference).
+    double overlay(V3 p, int n_loop, int n_old, double limit, double* spent) {
+        V3 N = fn;
+        {
+            V3 d = sub(p, fo);
+            xs[2] = dot(fe, d);
+            ys[2] = dot(ff, d);
+            hs[2] = dot(fn, d);
+            sq[2] = xs[2] * xs[2] + ys[2] * ys[2];
+        }
+        int n_pts = 3 + n_loop;
+        double scale = 0.0;
+        for (int i = 0; i < n_pts; ++i) scale += sq[i];
+        double tol = 1e-9 * scale;
+        double new_sum = 0.0;
         for (int i = 0; i < n_loop; ++i) {
             double s = area(2, 3 + i, 3 + (i + 1) % n_loop);
             if (s <= 0.0) return kInf;  // a new triangle folded back
@@ -376,12 +413,29 @@ struct Run {
             hi_d[k] = std::max(hi_d[k], d);
             top = std::max(top, std::fabs(d));
         };
+        // A sure overlap of old triangle t with a new one (p inside t, or u or w inside the new
+        // one, or a crossing inside both edges) grows that new one's box by at least t's box
+        // grown by d N: reach2 keeps the farthest such a box reaches (squared), to stop early.
+        const double n3[3] = {N.x, N.y, N.z};
+        double reach2 = 0.0;
+        auto grow = [&](int t, double d) {
+            const double* ob = &old_box[6 * t];
+            double r2 = 0.0;
+            for (int m = 0; m < 3; ++m) {
+                double a = d * n3[m];
+                double lo = ob[m] + std::min(0.0, a), hi = ob[3 + m] + std::max(0.0, a);
+                r2 += std::max(lo * lo, hi * hi);
+            }
+            reach2 = std::max(reach2, r2);
+        };
+        // (a box reaches at least as far as any difference and any sure grown box)
+        auto past = [&]() { return std::max(top, std::sqrt(reach2)); };
         {
             int hold = -1;
             double best = -kInf, height = 0.0;
             for (int t = 0; t < n_old; ++t) {
                 int a = old_tri[3 * t], b = old_tri[3 * t + 1], c = old_tri[3 * t + 2];
-                double s = area(a, b, c);
+                double s = old_area[t];
                 double la = area(2, b, c) / s, lb = area(a, 2, c) / s, lc = 1.0 - la - lb;
                 double inside = std::min(la, std::min(lb, lc));
                 ins[t] = inside;
@@ -393,10 +447,12 @@ struct Run {
             }
             double dp = height - hs[2];
             for (int t = 0; t < n_old; ++t)
-                if (t == hold || ins[t] >= -kSlack)
+                if (t == hold || ins[t] >= -kSlack) {
                     for (int i = 0; i < n_loop; ++i) add(t, i, dp);
+                    if (ins[t] > kSlack) grow(t, dp);
+                }
         }
-        if (top > limit) return top;
+        if (past() > limit) return past();
         for (int v = 0; v < 2; ++v) {
             int hold = -1;
             double best = -kInf, height = 0.0;
@@ -412,16 +468,22 @@ struct Run {
                 }
             }
             double d = hs[v] - height;
+            bool sure = false;
             for (int i = 0; i < n_loop; ++i) {
                 int b = 3 + i, c = 3 + (i + 1) % n_loop;
                 double s = area(2, b, c);
                 double inside = std::min(area(v, b, c), std::min(area(2, v, c), area(2, b, v))) / s;
                 if (i != hold && inside < -kSlack) continue;
+                sure = sure || inside > kSlack;
                 for (int t = 0; t < n_old; ++t)
                     if (old_tri[3 * t] == v || old_tri[3 * t + 1] == v || old_tri[3 * t + 2] == v)
                         add(t, i, d);
             }
-            if (top > limit) return top;
+            if (sure)
+                for (int t = 0; t < n_old; ++t)
+                    if (old_tri[3 * t] == v || old_tri[3 * t + 1] == v || old_tri[3 * t + 2] == v)
+                        grow(t, d);
+            if (past() > limit) return past();
         }
         // the old inner edges against the new edges from p (each crossing is in the two
         // old triangles beside the one and the two new ones beside the other)
@@ -447,9 +509,10 @@ struct Run {
                     add(t, h, diff);
                     add(t2, i, diff);
                     add(t2, h, diff);
+                    if (s > 0.0 && s < 1.0 && r > 0.0 && r < 1.0) grow(t, diff), grow(t2, diff);
                 }
             }
-            if (top > limit) return top;
+            if (past() > limit) return past();
         }
         // Each new triangle's box: the hull, over the old triangles it overlaps, of the old
         // box grown by N times their overlap's differences. The new fan is star-shaped
@@ -477,7 +540,6 @@ struct Run {
             unw[i] = unw[i - 1] + width;
         }
         for (int i = 0; i < 6 * n_loop; ++i) box[i] = i % 6 < 3 ? kInf : -kInf;
-        const double n3[3] = {N.x, N.y, N.z};
         auto merge = [&](int t, int i) {
             size_t k = size_t(t) * n_loop + i;
             const double* ob = &old_box[6 * t];
@@ -490,7 +552,7 @@ struct Run {
         };
         for (int t = 0; t < n_old; ++t) {
             int a = old_tri[3 * t], b = old_tri[3 * t + 1], c = old_tri[3 * t + 2];
-            double sa = area(a, b, c);
+            double sa = old_area[t];
             double inside = std::min(area(2, b, c), std::min(area(a, 2, c), area(a, b, 2)));
             if (inside >= kSlack * sa) {  // p in it: it overlaps them all
                 for (int i = 0; i < n_loop; ++i) merge(t, i);
@@ -572,7 +634,8 @@ struct Run {
             ++m;
         }
         if (m > 0 && ccost[0] > key_u && ccost[0] < kInf) {
-            needed = ccost[0];  // its key was low (see stage): back, at its cost
+            needed = ccost[0];  // its key was low: back, at its cost
+            via[u] = loop_u[corder[0]];
             return -2;
         }
         for (int ci = 0; ci < std::min(m, kCandidates); ++ci) {
@@ -629,6 +692,7 @@ struct Run {
                 old_tri[3 * n_old + 2] = loc_w((k + 1) % n_w);
                 ++n_old;
             }
+            if (!frame(u, w, n_loop, n_old)) continue;
             // the inner edges (an end at u or w; a < b) and the triangles beside each
             n_inner = 0;
             for (int t = 0; t < n_old; ++t)
@@ -658,7 +722,7 @@ struct Run {
                     continue;
                 if (!upright(p, n_loop)) continue;
                 n_overlays++;
-                double spent = overlay(u, w, p, n_loop, n_old, std::min(least, bound), trial.data());
+                double spent = overlay(p, n_loop, n_old, std::min(least, bound), trial.data());
                 if (spent < least) {
                     least = spent;
                     chosen = s;
@@ -801,17 +865,21 @@ struct Run {
             n_alive -= freed;
             int32_t w = faces[3 * patch[0]];
             int n_loop = vdeg[w];
-            // Keys: w's edges all changed; a loop vertex's only to w (and to u, gone).
-            // One in the heap keeps the lower of its key and its edge to w: a key never
-            // above its cost, so that one popped too soon goes back (try_collapse).
+            // Keys: w's edges all changed; a loop vertex's only to w (and to u, gone). One
+            // in the heap whose cheapest edge was to neither keeps the lower of its key and
+            // its edge to w; the others are weighed again.
             for (int i = -1; i < n_loop; ++i) {
                 int32_t x = i < 0 ? w : loop[i];
                 need[x] = 0.0;
                 if (locked[x] || !mine(x)) continue;
                 double c;
-                if (i >= 0 && pos[x] >= 0) {
+                if (i >= 0 && pos[x] >= 0 && via[x] != u && via[x] != w) {
                     V3 p;
-                    c = std::min(key[pos[x]], place(x, w, p));
+                    c = place(x, w, p);
+                    if (c < key[pos[x]])
+                        via[x] = w;
+                    else
+                        c = key[pos[x]];
                 } else {
                     c = vertex_cost(x);
                 }
@@ -888,6 +956,7 @@ int miss_placed_collapse(double* pts, int64_t n_pts, int32_t* faces, int64_t n_f
     sh.terr.assign(6 * size_t(n_faces), 0.0f);
     sh.need.assign(n_pts, 0.0);
     sh.pos.assign(n_pts, -1);
+    sh.via.assign(n_pts, -1);
     threads = std::max(1, std::min(threads, count));
     std::vector<Run> runs(std::max(count, 1));
     for (auto& r : runs) r.attach(pts, faces, alive, locked, n_pts, cap, row, sh);
