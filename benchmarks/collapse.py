@@ -48,7 +48,7 @@ def cases(root: Path = DATASETS) -> dict[str, tuple[Path, float, tuple[float, ..
     return {
         "CThead bone": (cthead, 1500.0, (0.002, 0.0005)),
         "CThead skin": (cthead, 600.0, (0.002, 0.0005)),
-        "MR DICOM head skin": (root / "mr_head_dicom_vsseg001_t1", 270.0, (0.002,)),
+        "MR DICOM head skin": (root / "mr_head_dicom_vsseg001_t1", 270.0, (0.002, 0.0002)),
     }
 
 
