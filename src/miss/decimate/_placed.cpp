@@ -371,8 +371,9 @@ struct Run {
 
     // In the frame: fills spent[6 i, 6 i + 6) with new triangle i's error box (see the
     // header) where the vertex goes to p. Returns the farthest any new box reaches, inf
-    // where the bound does not apply, or, as soon as a difference alone passes `limit`, that
-    // difference (a box holds 0, so it reaches at least as far as any difference).
+    // where the bound does not apply, or, as soon as a difference alone or a sure overlap's
+    // grown box (below) passes `limit`, how far that reaches (a new box reaches at least as
+    // far: it holds 0, and each such grown box).
     double overlay(V3 p, int n_loop, int n_old, double limit, double* spent) {
         V3 N = fn;
         {
@@ -635,7 +636,7 @@ struct Run {
             ++m;
         }
         if (m > 0 && ccost[0] > key_u && ccost[0] < kInf) {
-            needed = ccost[0];  // its key was low: back, at its cost
+            needed = ccost[0];  // a key below its cost (kept exact: not seen): back, at it
             via[u] = loop_u[corder[0]];
             return -2;
         }
